@@ -115,3 +115,23 @@ def seed_everything(seed: int) -> np.random.Generator:
     np.random.seed(seed % (2**32))
     torch.manual_seed(seed)
     return np.random.default_rng(seed)
+
+
+def merge_config(section: str, user: dict[str, Any] | None, defaults: dict[str, Any]) -> dict[str, Any]:
+    """Fill ``user`` with ``defaults`` (recursively); unknown keys fail fast naming their path.
+
+    >>> merge_config("train", {"iterations": 10}, {"iterations": 100, "lr": 3e-3})
+    {'iterations': 10, 'lr': 0.003}
+    """
+    user = dict(user or {})
+    unknown = sorted(set(user) - set(defaults))
+    if unknown:
+        allowed = ", ".join(sorted(defaults))
+        raise CtsplatError(f"unknown config key {section}.{unknown[0]}; allowed keys in {section}: {allowed}")
+    out: dict[str, Any] = {}
+    for key, default in defaults.items():
+        if key in user and isinstance(default, dict) and default and isinstance(user[key], dict):
+            out[key] = merge_config(f"{section}.{key}", user[key], default)
+        else:
+            out[key] = user.get(key, default)
+    return out
