@@ -1,0 +1,255 @@
+"""Initial Gaussian sets (``init``): ``volume``, ``uniform``, ``fbp`` and ``sfm`` seeding.
+
+Every strategy returns a :class:`Seed` of plain NumPy arrays in world millimetres (``docs/conventions.md``):
+isotropic scales, identity rotations, densities ρ in normalised-volume units. Only ``volume`` reads the
+reference volume's voxel values; its seed is flagged ``uses_reference_volume=True`` so every output of such a
+run can say so.
+
+Mass bookkeeping used by the grid-based seeds: a Gaussian ``ρ exp(-|x - m|² / 2σ²)`` carries
+``ρ (2π)^{3/2} σ³`` (normalised units × mm³). Drawing ``n`` Gaussians uniformly among ``M`` candidate voxels
+of volume ``v_vox`` puts on average ``n / M`` Gaussians in each voxel, so choosing
+
+.. math:: ρ_i = \\frac{M\\, v_{vox}}{n\\, (2π)^{3/2} σ^3}\\, V(p_i)
+
+makes the expected seeded field equal to the voxel values ``V`` ("density proportional to the value").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ctsplat.utils import CtsplatError
+
+__all__ = [
+    "Seed",
+    "seed_from_grid",
+    "seed_uniform",
+    "seed_from_points",
+    "read_ply_points",
+    "grid_bounds_mm",
+]
+
+_GAUSS_NORM = (2.0 * np.pi) ** 1.5
+
+
+@dataclass
+class Seed:
+    """An initial Gaussian set.
+
+    Attributes
+    ----------
+    means : ndarray, shape (N, 3), float32 — centres in world mm.
+    scales : ndarray, shape (N, 3), float32 — standard deviations in mm.
+    densities : ndarray, shape (N,), float32 — peak densities ρ (normalised volume units), > 0.
+    uses_reference_volume : bool — True when the reference volume's voxel values were read.
+    strategy : str — the ``init`` value that produced it.
+    """
+
+    means: np.ndarray
+    scales: np.ndarray
+    densities: np.ndarray
+    uses_reference_volume: bool
+    strategy: str
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+
+def grid_bounds_mm(shape: tuple[int, int, int], affine: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned world box (mm) covered by the voxels of a grid (voxel edges, not centres).
+
+    Returns
+    -------
+    lo, hi : ndarray, shape (3,)
+    """
+    corners = np.array([[a, b, c] for a in (-0.5, shape[0] - 0.5) for b in (-0.5, shape[1] - 0.5)
+                        for c in (-0.5, shape[2] - 0.5)], float)
+    world = corners @ np.asarray(affine, float)[:3, :3].T + np.asarray(affine, float)[:3, 3]
+    return world.min(0), world.max(0)
+
+
+def seed_from_grid(
+    data: np.ndarray,
+    affine: np.ndarray,
+    n: int,
+    rng: np.random.Generator,
+    *,
+    top_fraction: float = 0.3,
+    scale_voxels: float = 0.75,
+    uses_reference_volume: bool,
+    strategy: str,
+) -> Seed:
+    """Sample Gaussians at the brightest voxels of a volume (reference volume or a reconstruction).
+
+    Candidates are voxels whose value is in the top ``top_fraction`` of all voxels and positive; ``n`` of them
+    are drawn (without replacement when possible), each centre is jittered uniformly within its voxel, the
+    scale is ``scale_voxels`` × the mean voxel edge, and ρ is proportional to the voxel value with the
+    mass-preserving factor of the module docstring.
+
+    Parameters
+    ----------
+    data : ndarray, shape (I, J, K)
+        Voxel values (normalised units; negative values, e.g. FBP ringing, are clipped to 0).
+    affine : ndarray, shape (4, 4)
+        Voxel index -> world mm.
+    n : int
+        Number of Gaussians (> 0).
+    top_fraction : float in (0, 1]
+        Fraction of voxels eligible (0.3 = top 30 %).
+    """
+    data = np.clip(np.asarray(data, np.float64), 0.0, None)
+    if n <= 0:
+        raise CtsplatError(f"init needs a positive number of Gaussians, got n_init={n}")
+    if not 0.0 < top_fraction <= 1.0:
+        raise CtsplatError(f"init_top_fraction must be in (0, 1], got {top_fraction}")
+    thr = np.quantile(data, 1.0 - top_fraction)
+    mask = (data >= thr) & (data > 0)
+    cand = np.flatnonzero(mask)
+    if cand.size == 0:
+        raise CtsplatError(f"cannot seed init={strategy}: the volume has no positive voxels (all values <= 0)")
+    pick = rng.choice(cand, size=n, replace=n > cand.size)
+    idx = np.stack(np.unravel_index(pick, data.shape), axis=1).astype(np.float64)
+    idx += rng.uniform(-0.5, 0.5, size=idx.shape)
+    affine = np.asarray(affine, float)
+    means = idx @ affine[:3, :3].T + affine[:3, 3]
+    spacing = np.linalg.norm(affine[:3, :3], axis=0)
+    sigma = scale_voxels * float(spacing.mean())
+    v_vox = float(abs(np.linalg.det(affine[:3, :3])))
+    k = cand.size * v_vox / (n * _GAUSS_NORM * sigma**3)
+    dens = np.maximum(k * data.ravel()[pick], 1e-6)
+    return Seed(
+        means=means.astype(np.float32),
+        scales=np.full((n, 3), sigma, np.float32),
+        densities=dens.astype(np.float32),
+        uses_reference_volume=uses_reference_volume,
+        strategy=strategy,
+    )
+
+
+def seed_uniform(
+    lo: np.ndarray, hi: np.ndarray, n: int, rng: np.random.Generator, *, density: float = 0.05
+) -> Seed:
+    """Gaussians uniformly distributed in the box ``[lo, hi]`` (the scanner field of view).
+
+    The isotropic scale is half the mean spacing ``((∏(hi - lo)) / n)^{1/3}`` so neighbours overlap
+    without blurring the box; all densities equal ``density`` (small: the SfM-free baseline).
+    """
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    if n <= 0:
+        raise CtsplatError(f"init needs a positive number of Gaussians, got n_init={n}")
+    if np.any(hi <= lo):
+        raise CtsplatError(f"empty field of view box lo={lo.tolist()} hi={hi.tolist()}")
+    means = rng.uniform(lo, hi, size=(n, 3))
+    d = (float(np.prod(hi - lo)) / n) ** (1.0 / 3.0)
+    return Seed(
+        means=means.astype(np.float32),
+        scales=np.full((n, 3), 0.5 * d, np.float32),
+        densities=np.full(n, density, np.float32),
+        uses_reference_volume=False,
+        strategy="uniform",
+    )
+
+
+def seed_from_points(
+    points: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    n: int,
+    rng: np.random.Generator,
+    *,
+    fill_fraction: float = 0.5,
+    density: float = 0.05,
+) -> Seed:
+    """SfM sparse points plus a uniform fill of the field of view.
+
+    Points outside ``[lo, hi]`` are dropped; at most ``n - round(fill_fraction n)`` points are kept (random
+    subset) and the rest of the ``n`` Gaussians are uniform in the box. A point's scale is the mean distance to
+    its 3 nearest neighbours among the kept points (as 3DGS), clipped to [0.5, 2] × the fill spacing.
+    """
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, float).reshape(-1, 3)
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    inside = np.all((points >= lo) & (points <= hi), axis=1)
+    points = points[inside]
+    n_fill_min = int(round(fill_fraction * n))
+    keep = max(0, min(points.shape[0], n - n_fill_min))
+    if keep < points.shape[0]:
+        points = points[np.sort(rng.choice(points.shape[0], size=keep, replace=False))]
+    fill = seed_uniform(lo, hi, n - keep, rng, density=density) if n - keep > 0 else None
+    d_fill = (float(np.prod(hi - lo)) / n) ** (1.0 / 3.0)
+    if keep >= 4:
+        dist, _ = cKDTree(points).query(points, k=4)
+        s = np.clip(dist[:, 1:].mean(1), 0.25 * d_fill, d_fill)
+    else:
+        s = np.full(keep, 0.5 * d_fill)
+    means = [points]
+    scales = [np.repeat(s[:, None], 3, axis=1)]
+    dens = [np.full(keep, density)]
+    if fill is not None:
+        means.append(fill.means)
+        scales.append(fill.scales)
+        dens.append(fill.densities)
+    return Seed(
+        means=np.concatenate(means).astype(np.float32),
+        scales=np.concatenate(scales).astype(np.float32),
+        densities=np.concatenate(dens).astype(np.float32),
+        uses_reference_volume=False,
+        strategy="sfm",
+    )
+
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+def read_ply_points(path: str | Path) -> np.ndarray:
+    """Vertex positions ``(P, 3)`` (x, y, z) of a PLY point cloud (ASCII or binary, vertex element first).
+
+    Only scalar vertex properties are supported (as written by COLMAP / 3DGS tools).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise CtsplatError(f"SfM point cloud {path} does not exist; run the sfm step first")
+    raw = path.read_bytes()
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise CtsplatError(f"{path} is not a PLY file (no 'ply' magic / end_header)")
+    header = raw[:end].decode("ascii", "replace").splitlines()
+    body = raw[raw.index(b"\n", end) + 1:]
+    fmt, count, props, element = "ascii", 0, [], None
+    for line in header:
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "format":
+            fmt = parts[1]
+        elif parts[0] == "element":
+            element = parts[1]
+            if element == "vertex":
+                count = int(parts[2])
+        elif parts[0] == "property" and element == "vertex":
+            if parts[1] == "list":
+                raise CtsplatError(f"{path}: list properties on vertices are not supported")
+            props.append((parts[2], _PLY_TYPES[parts[1]]))
+    names = [p[0] for p in props]
+    if not {"x", "y", "z"} <= set(names):
+        raise CtsplatError(f"{path}: vertex element lacks x/y/z properties")
+    if count == 0:
+        return np.zeros((0, 3))
+    if fmt == "ascii":
+        rows = body.decode("ascii").split("\n")[:count]
+        table = np.array([[float(v) for v in r.split()[: len(props)]] for r in rows], float)
+        cols = {nm: table[:, i] for i, nm in enumerate(names)}
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        dt = np.dtype([(nm, order + t) for nm, t in props])
+        arr = np.frombuffer(body, dtype=dt, count=count)
+        cols = {nm: arr[nm].astype(float) for nm in names}
+    return np.stack([cols["x"], cols["y"], cols["z"]], axis=1)
