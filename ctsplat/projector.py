@@ -1,0 +1,376 @@
+"""Beer–Lambert projector: line integrals of μ along detector rays, noise, and the radiograph files.
+
+For a detector ray ``x(s) = o + s d`` (``|d| = 1``, ``s`` in mm, ``s >= 0``) the line integral is
+
+    p = ∫ μ(x(s)) ds  (dimensionless; μ in 1/mm),   transmission I = I0 exp(-p).
+
+μ(x) is the trilinear interpolant of the voxel values (zero outside the grid), whose support is the
+index box ``(-1, N)`` along each axis. Each ray is clipped to that box in index space (slab test), and
+the clipped segment ``[s0, s0 + L]`` is integrated by the midpoint rule with ``n`` equal steps
+``h = L / n <= step_voxels * min(spacing)``:
+
+    p ≈ h Σ_k μ(x(s0 + (k + ½) h)),   k = 0 .. n-1,
+
+sampled with ``torch.nn.functional.grid_sample`` (trilinear, ``align_corners=True``). Rays are sorted by
+length and processed in chunks of at most ``batch_samples`` samples, so memory stays bounded for any
+number of views; everything runs on the device of ``device`` (CUDA when given CUDA tensors).
+
+Noise (optional, seeded): counts ``N = Poisson(I0 exp(-p)) + Normal(0, σ_e)``; counts below one photon
+(including non-positive ones from electronic noise) are clipped to one photon, and ``p_noisy = ln(I0 / N)``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import shutil
+import tempfile
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ctsplat.geometry import (
+    Camera,
+    ConeCamera,
+    ParallelCamera,
+    ViewSet,
+    camera_rays,
+    check_fov,
+    circular_orbit,
+    sphere_orbit,
+)
+from ctsplat.utils import CtsplatError, atomic_path, code_version, merge_config, resolve_device, write_json_atomic
+
+__all__ = [
+    "RADIOGRAPHS_DEFAULTS",
+    "line_integrals",
+    "clip_rays_to_box",
+    "add_noise",
+    "build_view_set",
+    "render_radiographs",
+    "load_radiographs",
+]
+
+log = logging.getLogger(__name__)
+
+RADIOGRAPHS_DEFAULTS: dict[str, Any] = {
+    # camera model: "parallel" (orthographic) or "cone" (perspective, source at the camera centre)
+    "camera": "parallel",
+    "detector_width": 128,
+    "detector_height": 128,
+    # parallel: detector pixel spacing; cone: detector pitch (mm). null = one voxel (the largest voxel edge)
+    # per pixel at the isocentre (cone: pitch = voxel * dsd / dso).
+    "pixel_spacing_mm": None,
+    "dso_mm": 1000.0,  # cone: source-to-isocentre distance (mm)
+    "dsd_mm": 1500.0,  # cone: source-to-detector distance (mm)
+    # parallel: distance of the ray-origin plane from the isocentre (mm); null = just outside the volume
+    "parallel_distance_mm": None,
+    "isocenter_mm": None,  # null = the volume's geometric centre
+    # orbit: "circular" (n_views training angles over 360 deg about +z, plus random held-out angles)
+    # or "sphere" (n_views directions spread over the elevation band, split train/val/test)
+    "orbit": "circular",
+    "n_views": 100,
+    "elevation_range_deg": [-60.0, 60.0],
+    "sphere_sampling": "fibonacci",
+    "wobble_deg": 0.0,
+    "start_deg": 0.0,
+    "split": {"train": 0.7, "val": 0.15, "test": 0.15},
+    "step_voxels": 0.5,
+    "noise": {"enabled": False, "i0": 1.0e5, "electronic_sigma": 0.0},
+    "device": "auto",
+    "batch_samples": 1 << 22,
+}
+
+
+# ---------------------------------------------------------------------------------------- projector
+def clip_rays_to_box(origins: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Slab test: entry ``s0 >= 0`` and length ``L >= 0`` of rays ``o + s d`` inside the box ``[lo, hi]``.
+
+    Parameters
+    ----------
+    origins, dirs : ndarray (N, 3)
+        Ray origins and directions (any consistent units; ``s`` is in units of ``|d|``).
+    lo, hi : ndarray (3,)
+        Box corners.
+
+    Returns
+    -------
+    s0, length : ndarray (N,)
+        ``length == 0`` for rays that miss the box.
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / dirs
+        t1 = (lo - origins) * inv
+        t2 = (hi - origins) * inv
+    tmin = np.minimum(t1, t2)
+    tmax = np.maximum(t1, t2)
+    parallel_axis = dirs == 0
+    inside = (origins > lo) & (origins < hi)
+    tmin = np.where(parallel_axis, np.where(inside, -np.inf, np.inf), tmin)
+    tmax = np.where(parallel_axis, np.where(inside, np.inf, -np.inf), tmax)
+    s0 = np.maximum(tmin.max(axis=1), 0.0)
+    s1 = tmax.min(axis=1)
+    length = np.where(s1 > s0, s1 - s0, 0.0)
+    return s0, length
+
+
+def line_integrals(
+    mu: torch.Tensor | np.ndarray,
+    affine: np.ndarray,
+    camera: Camera,
+    Rs: np.ndarray,
+    ts: np.ndarray,
+    *,
+    step_voxels: float = 0.5,
+    device: str | torch.device | None = None,
+    batch_samples: int = 1 << 22,
+) -> torch.Tensor:
+    """Line integrals ``p = ∫ μ dl`` through ``mu`` for every pixel of every view.
+
+    Parameters
+    ----------
+    mu : Tensor or ndarray (I, J, K)
+        Attenuation in 1/mm, indexed as ``affine`` says. Differentiable when a tensor requiring grad.
+    affine : ndarray (4, 4)
+        Voxel index -> world (mm).
+    camera : ParallelCamera | ConeCamera
+    Rs : ndarray (V, 3, 3), ts : ndarray (V, 3)
+        World-to-camera poses (OpenCV).
+    step_voxels : float
+        Upper bound of the sampling step in units of the smallest voxel edge (<= 0.5 recommended).
+    device : str | torch.device | None
+        Where to compute; default the device of ``mu`` (CPU for arrays).
+    batch_samples : int
+        Maximum number of samples evaluated at once (memory bound: ~40 bytes per sample).
+
+    Returns
+    -------
+    Tensor (V, H, W) float32
+        Dimensionless line integrals; 0 for rays that miss the volume.
+    """
+    if not (0 < step_voxels <= 1.0):
+        raise CtsplatError(f"step_voxels must be in (0, 1], got {step_voxels}")
+    if device is None:
+        device = mu.device if isinstance(mu, torch.Tensor) else torch.device("cpu")
+    device = torch.device(device)
+    mu_t = torch.as_tensor(mu, dtype=torch.float32).to(device)
+    if mu_t.ndim != 3 or min(mu_t.shape) < 2:
+        raise CtsplatError(f"volume must be 3D with at least 2 voxels per axis, got shape {tuple(mu_t.shape)}")
+    shape = np.array(mu_t.shape, float)
+    Rs = np.asarray(Rs, float).reshape(-1, 3, 3)
+    ts = np.asarray(ts, float).reshape(-1, 3)
+    if len(Rs) == 0:
+        raise CtsplatError("empty view set: nothing to project")
+    A = np.asarray(affine, float)
+    Ainv = np.linalg.inv(A)
+    spacing = np.linalg.norm(A[:3, :3], axis=0)
+    step_mm = step_voxels * float(spacing.min())
+    lo, hi = np.full(3, -1.0), shape.copy()  # support of the trilinear interpolant, in index units
+    V, H, W = len(Rs), camera.height, camera.width
+    vol = mu_t[None, None]  # (1, 1, D=I, H=J, W=K); grid_sample's (x, y, z) index (K, J, I)
+    norm = torch.as_tensor(2.0 / (shape[::-1] - 1.0), dtype=torch.float32, device=device)  # (k, j, i) scale
+
+    views_per_group = max(1, (1 << 20) // (H * W))  # bounds the host memory of the ray arrays
+    pieces_idx, pieces_val = [], []
+    for g0 in range(0, V, views_per_group):
+        # rays of this group of views in index space, clipped to the box
+        o_g, d_g = [], []
+        for R, t in zip(Rs[g0 : g0 + views_per_group], ts[g0 : g0 + views_per_group], strict=True):
+            o, d = camera_rays(camera, R, t)
+            o_g.append(o.reshape(-1, 3) @ Ainv[:3, :3].T + Ainv[:3, 3])
+            d_g.append(d.reshape(-1, 3) @ Ainv[:3, :3].T)  # |d| = 1 mm in world -> s stays in mm
+        o_all = np.concatenate(o_g)
+        d_all = np.concatenate(d_g)
+        s0_all, len_all = clip_rays_to_box(o_all, d_all, lo, hi)
+        hit = np.flatnonzero(len_all > 0)
+        hit = hit[np.argsort(-len_all[hit], kind="stable")]  # similar lengths share a chunk
+        start = 0
+        while start < hit.size:
+            n = max(1, math.ceil(len_all[hit[start]] / step_mm))
+            n_rays = max(1, batch_samples // n)
+            idx = hit[start : start + n_rays]
+            start += n_rays
+            o = torch.as_tensor(o_all[idx], dtype=torch.float32, device=device)
+            d = torch.as_tensor(d_all[idx], dtype=torch.float32, device=device)
+            s0 = torch.as_tensor(s0_all[idx], dtype=torch.float32, device=device)
+            h = torch.as_tensor(len_all[idx] / n, dtype=torch.float32, device=device)
+            k = torch.arange(n, dtype=torch.float32, device=device) + 0.5
+            s = s0[:, None] + k[None, :] * h[:, None]  # (R, n) mm
+            p = o[:, None, :] + s[..., None] * d[:, None, :]  # (R, n, 3) index (i, j, k)
+            grid = p.flip(-1) * norm - 1.0  # -> (k, j, i) in [-1, 1]
+            vals = torch.nn.functional.grid_sample(
+                vol, grid[None, None], mode="bilinear", padding_mode="zeros", align_corners=True
+            )[0, 0, 0]  # (R, n)
+            pieces_idx.append(torch.as_tensor(idx + g0 * H * W, device=device))
+            pieces_val.append(vals.sum(-1) * h)
+    out = torch.zeros(V * H * W, dtype=torch.float32, device=device)
+    if pieces_idx:
+        out = out.index_put((torch.cat(pieces_idx),), torch.cat(pieces_val))
+    return out.reshape(V, H, W)
+
+
+def add_noise(p: np.ndarray, i0: float, electronic_sigma: float, rng: np.random.Generator
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Poisson photon noise with ``i0`` photons plus Gaussian electronic noise, back to line integrals.
+
+    ``N = Poisson(i0 exp(-p)) + Normal(0, electronic_sigma)``, ``N <- max(N, 1)``, ``p_noisy = ln(i0 / N)``.
+
+    Returns
+    -------
+    p_noisy : ndarray, like ``p``, float32
+    counts : ndarray, like ``p``, float64 (after clipping)
+    """
+    if not (i0 > 0 and np.isfinite(i0)):
+        raise CtsplatError(f"noise i0 (photons per pixel) must be positive, got {i0}")
+    if electronic_sigma < 0:
+        raise CtsplatError(f"noise electronic_sigma must be >= 0, got {electronic_sigma}")
+    expected = i0 * np.exp(-np.asarray(p, np.float64))
+    counts = rng.poisson(expected).astype(np.float64)
+    if electronic_sigma > 0:
+        counts += rng.normal(0.0, electronic_sigma, size=counts.shape)
+    counts = np.maximum(counts, 1.0)
+    return np.log(i0 / counts).astype(np.float32), counts
+
+
+# ------------------------------------------------------------------------------------- view sets
+def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSet:
+    """The camera and orbit described by a ``radiographs`` config section for ``volume`` (a ``Volume``)."""
+    cfg = merge_config("radiographs", config, RADIOGRAPHS_DEFAULTS)
+    iso = np.asarray(cfg["isocenter_mm"] if cfg["isocenter_mm"] is not None else volume.center_mm(), float)
+    if iso.shape != (3,):
+        raise CtsplatError(f"isocenter_mm must be [x, y, z] in mm, got {cfg['isocenter_mm']!r}")
+    voxel = float(np.max(volume.spacing_mm))
+    corners = np.array([[a, b, c] for a in (-1, volume.shape[0]) for b in (-1, volume.shape[1])
+                        for c in (-1, volume.shape[2])], float)
+    corners_mm = corners @ volume.affine[:3, :3].T + volume.affine[:3, 3]
+    radius = float(np.linalg.norm(corners_mm - iso, axis=1).max())
+    W, H = cfg["detector_width"], cfg["detector_height"]
+    if cfg["camera"] == "parallel":
+        spacing = voxel if cfg["pixel_spacing_mm"] is None else float(cfg["pixel_spacing_mm"])
+        camera: Camera = ParallelCamera(W, H, spacing)
+        distance = (radius * 1.05 + 1.0) if cfg["parallel_distance_mm"] is None else float(cfg["parallel_distance_mm"])
+        if distance <= radius:
+            raise CtsplatError(f"parallel_distance_mm {distance} must exceed the volume's radius {radius:.1f} mm "
+                               "(rays start on the plane z_cam = 0)")
+    elif cfg["camera"] == "cone":
+        dso, dsd = float(cfg["dso_mm"]), float(cfg["dsd_mm"])
+        for name, val in (("dso_mm", dso), ("dsd_mm", dsd)):
+            if not val > 0:
+                raise CtsplatError(f"{name} must be a positive distance in mm, got {val}")
+        pitch = voxel * dsd / dso if cfg["pixel_spacing_mm"] is None else float(cfg["pixel_spacing_mm"])
+        camera = ConeCamera(W, H, pitch, dso, dsd)
+        distance = dso
+        if dso <= radius:
+            warnings.warn(f"dso_mm {dso} puts the source inside the volume's bounding sphere (radius "
+                          f"{radius:.1f} mm); part of the volume lies behind the source", stacklevel=2)
+    else:
+        raise CtsplatError(f"unknown camera {cfg['camera']!r}; allowed: parallel, cone")
+    if cfg["orbit"] == "circular":
+        views = circular_orbit(cfg["n_views"], iso, distance, split_fractions=cfg["split"],
+                               wobble_deg=float(cfg["wobble_deg"]), start_deg=float(cfg["start_deg"]), seed=seed)
+    elif cfg["orbit"] == "sphere":
+        views = sphere_orbit(cfg["n_views"], iso, distance, elevation_range_deg=cfg["elevation_range_deg"],
+                             sampling=cfg["sphere_sampling"], split_fractions=cfg["split"], seed=seed)
+    else:
+        raise CtsplatError(f"unknown orbit {cfg['orbit']!r}; allowed: circular, sphere")
+    meta = {"orbit": cfg["orbit"], "n_views": int(cfg["n_views"]), "wobble_deg": float(cfg["wobble_deg"]),
+            "elevation_range_deg": list(cfg["elevation_range_deg"]), "sphere_sampling": cfg["sphere_sampling"],
+            "split": dict(cfg["split"]), "seed": int(seed), "distance_mm": distance}
+    return ViewSet(camera, views, volume.volume_id, iso, meta)
+
+
+# ---------------------------------------------------------------------------------------- outputs
+def _to_png16(p: np.ndarray) -> np.ndarray:
+    """Transmission ``exp(-p)`` in [0, 1] -> uint16 (0 = opaque, 65535 = unattenuated)."""
+    return np.round(np.clip(np.exp(-p.astype(np.float64)), 0.0, 1.0) * 65535.0).astype(np.uint16)
+
+
+def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any] | None = None,
+                       seed: int = 0) -> ViewSet:
+    """Render the synthetic radiographs of a volume and write them to ``out_dir``.
+
+    Writes ``line_integrals.tif`` (float32 pages [V, H, W], line integrals of μ in 1/mm = volume data ×
+    ``mu_scale_per_mm``, noisy when noise is enabled — the training target), ``views.json`` (the
+    :class:`~ctsplat.geometry.ViewSet`, page order), ``png/view_{id:04d}.png`` (16-bit transmission
+    ``exp(-p)``) and ``radiographs.json`` (provenance: config, seed, code version, volume id, field-of-view
+    check, statistics, timing). Every file is written under a temporary name first.
+    """
+    import imageio.v3 as iio
+    import tifffile
+
+    from ctsplat.volume import load_volume
+
+    cfg = merge_config("radiographs", config, RADIOGRAPHS_DEFAULTS)
+    out_dir = Path(out_dir)
+    volume = load_volume(volume_path)
+    view_set = build_view_set(volume, cfg, seed)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fov_outside = check_fov(view_set.camera, view_set.Rs(), view_set.ts(), volume.data, volume.affine)
+    for w in caught:
+        log.warning("%s", w.message)
+        warnings.warn(w.message, stacklevel=2)
+    device = resolve_device(cfg["device"])
+    mu = torch.as_tensor(volume.data, dtype=torch.float32) * volume.mu_scale_per_mm
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        p = line_integrals(mu, volume.affine, view_set.camera, view_set.Rs(), view_set.ts(),
+                           step_voxels=float(cfg["step_voxels"]), device=device,
+                           batch_samples=int(cfg["batch_samples"])).cpu().numpy()
+    seconds = time.perf_counter() - t0
+    noise = cfg["noise"]
+    if noise["enabled"]:
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x6E6F697365]))
+        p, _ = add_noise(p, float(noise["i0"]), float(noise["electronic_sigma"]), rng)
+    p = np.ascontiguousarray(p, dtype=np.float32)
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out_dir / "line_integrals.tif") as tmp:
+        tifffile.imwrite(tmp, p, photometric="minisblack", metadata={"axes": "QYX"})
+    tmp_png = Path(tempfile.mkdtemp(prefix=".png.", dir=out_dir))
+    try:
+        for view, img in zip(view_set.views, p, strict=True):
+            iio.imwrite(tmp_png / f"view_{view.id:04d}.png", _to_png16(img))
+        if (out_dir / "png").exists():
+            shutil.rmtree(out_dir / "png")
+        os.replace(tmp_png, out_dir / "png")
+    finally:
+        if tmp_png.exists():
+            shutil.rmtree(tmp_png)
+    view_set.save(out_dir / "views.json")
+    write_json_atomic(out_dir / "radiographs.json", {
+        "config": cfg, "seed": int(seed), "code_version": code_version(), "volume_path": str(volume_path),
+        "volume_id": volume.volume_id, "mu_scale_per_mm": volume.mu_scale_per_mm,
+        "n_views": len(view_set), "splits": {s: int(len(view_set.indices(s))) for s in ("train", "val", "test")},
+        "camera": view_set.camera.to_dict(), "fov_outside_fraction_worst_view": fov_outside,
+        "line_integral_stats": {"min": float(p.min()), "max": float(p.max()), "mean": float(p.mean())},
+        "projection_seconds": seconds, "device": str(device),
+        "units": "line integrals of mu in 1/mm (dimensionless); png = 16-bit transmission exp(-p)",
+    })
+    log.info("rendered %d views of %s in %.1f s -> %s", len(view_set), volume.volume_id, seconds, out_dir)
+    return view_set
+
+
+def load_radiographs(out_dir: str | Path) -> tuple[np.ndarray, ViewSet]:
+    """Read ``line_integrals.tif`` (V, H, W) float32 and ``views.json`` written by :func:`render_radiographs`."""
+    import tifffile
+
+    out_dir = Path(out_dir)
+    tif = out_dir / "line_integrals.tif"
+    if not tif.exists():
+        raise CtsplatError(f"{tif} does not exist; run `ctsplat project` for this geometry first")
+    view_set = ViewSet.load(out_dir / "views.json")
+    p = np.asarray(tifffile.imread(tif), dtype=np.float32)
+    if p.ndim == 2:
+        p = p[None]
+    expected = (len(view_set), view_set.camera.height, view_set.camera.width)
+    if p.shape != expected:
+        raise CtsplatError(f"{tif} holds images of shape {p.shape} but views.json describes {expected}; "
+                           "re-render the radiographs")
+    return p, view_set
