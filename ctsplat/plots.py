@@ -1,0 +1,417 @@
+"""Figures of the results chapter (matplotlib/seaborn, headless), from the tables of :mod:`ctsplat.analysis`.
+
+Every function takes plain DataFrames, writes one PNG atomically and returns the matplotlib Figure (closed, so
+tests can inspect its artists without a display). Per-run figures: :func:`plot_convergence`,
+:func:`plot_porkchop`, :func:`plot_acf`, :func:`plot_kde_windows`. Grid figures: :func:`plot_convergence_by_axis`,
+:func:`plot_velocity`, :func:`plot_ablation`, :func:`plot_baselines`, :func:`plot_correlations`;
+:func:`analyse` writes all of them plus the milestones and correlations tables.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+import seaborn as sns  # noqa: E402
+
+from ctsplat import analysis as an  # noqa: E402
+from ctsplat.utils import CtsplatError, atomic_path  # noqa: E402
+
+__all__ = [
+    "ANALYSIS_OUTPUTS",
+    "RUN_FIGURES",
+    "plot_convergence",
+    "plot_porkchop",
+    "plot_acf",
+    "plot_kde_windows",
+    "plot_convergence_by_axis",
+    "plot_velocity",
+    "plot_ablation",
+    "plot_baselines",
+    "plot_correlations",
+    "run_figures",
+    "analyse",
+]
+
+# name -> (file name under results/figures/, report category). Fixed set so the workflow can declare outputs.
+ANALYSIS_OUTPUTS: dict[str, tuple[str, str]] = {
+    **{f"convergence_by_{a}": (f"convergence_by_{a}.png", "Convergence") for a in an.GRID_AXES},
+    "velocity": ("velocity.png", "Convergence"),
+    "acf": ("acf.png", "Convergence"),
+    "kde": ("kde.png", "Convergence"),
+    "correlations_plot": ("correlations.png", "2D vs 3D"),
+    "correlations": ("correlations.csv", "2D vs 3D"),
+    "milestones": ("milestones.csv", "Milestones"),
+    "ablation": ("ablation.png", "Ablation"),
+    "baselines": ("baselines.png", "Baselines"),
+}
+RUN_FIGURES: tuple[str, ...] = ("convergence", "porkchop", "acf", "kde")
+
+METRIC_LABELS = {"psnr2d": "PSNR 2D (dB)", "ssim2d": "SSIM 2D", "psnr3d": "PSNR 3D (dB)", "ssim3d": "SSIM 3D"}
+
+
+def _save(fig: plt.Figure, out: str | os.PathLike[str]) -> plt.Figure:
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    plt.close(fig)
+    return fig
+
+
+def _empty(ax: plt.Axes, text: str) -> None:
+    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, color="0.4")
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Per run
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def plot_convergence(log: pd.DataFrame, out: str | os.PathLike[str], *, window: int = 25,
+                     title: str = "") -> plt.Figure:
+    """2×2 panels (PSNR2D, SSIM2D, PSNR3D, SSIM3D vs iteration): raw values thin, centred rolling mean thick."""
+    fig, axes = plt.subplots(2, 2, figsize=(10, 6.5), sharex=True)
+    for ax, m in zip(axes.ravel(), an.METRICS_2D3D, strict=True):
+        sub = log[["iteration", m]].dropna()
+        if sub.empty:
+            _empty(ax, f"no {m} logged")
+            continue
+        ax.plot(sub["iteration"], sub[m], lw=0.6, alpha=0.5, color="C0", label="raw")
+        ax.plot(sub["iteration"], an.rolling_centered(sub[m], window), lw=2.2, color="C0",
+                label=f"centred mean (W={window})")
+        ax.set_ylabel(METRIC_LABELS[m])
+        ax.grid(alpha=0.3)
+    for ax in axes[1]:
+        ax.set_xlabel("iteration")
+    axes[0, 0].legend(loc="lower right", fontsize=8)
+    fig.suptitle(title or "Convergence")
+    return _save(fig, out)
+
+
+def plot_porkchop(per_view: pd.DataFrame, out: str | os.PathLike[str], *, split: str | None = None,
+                  title: str = "") -> plt.Figure:
+    """Heatmaps of PSNR2D and SSIM2D per view (rows, ordered by azimuth) over iterations (columns)."""
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    for ax, m in zip(axes, ("psnr2d", "ssim2d"), strict=True):
+        table = an.porkchop_table(per_view, m, split=split)
+        if table.empty:
+            _empty(ax, "no per-view evaluations")
+            continue
+        sns.heatmap(table, ax=ax, cmap="viridis", cbar_kws={"label": METRIC_LABELS[m]})
+        ax.set_xlabel("iteration")
+        ax.set_ylabel("view (by azimuth)")
+        ax.set_title(METRIC_LABELS[m])
+    fig.suptitle(title or f"Per-view metrics{f' ({split} split)' if split else ''}")
+    return _save(fig, out)
+
+
+def plot_acf(log: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 40, metric: str = "psnr2d",
+             title: str = "") -> plt.Figure:
+    """Autocorrelation of a metric (default PSNR2D) by lag (in evaluations) with the ±1.96/√n band."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    vals = log[metric].dropna().to_numpy() if metric in log else np.array([])
+    r = an.acf(vals, max_lag)
+    if r.size < 2:
+        _empty(ax, "fewer than two evaluations")
+    else:
+        ax.vlines(np.arange(r.size), 0, r, color="C0")
+        ax.plot(np.arange(r.size), r, "o", color="C0", ms=3)
+        band = 1.96 / np.sqrt(vals.size)
+        ax.axhspan(-band, band, color="0.85", zorder=0)
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_xlabel("lag (evaluations)")
+        ax.set_ylabel(f"ACF of {METRIC_LABELS.get(metric, metric)}")
+    ax.set_title(title or "Autocorrelation")
+    return _save(fig, out)
+
+
+def plot_kde_windows(log: pd.DataFrame, out: str | os.PathLike[str], *, n_windows: int = 4,
+                     title: str = "") -> plt.Figure:
+    """KDEs of PSNR2D and SSIM2D over successive training windows (equal iteration ranges)."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for ax, m in zip(axes, ("psnr2d", "ssim2d"), strict=True):
+        sub = log[["iteration", m]].dropna()
+        if len(sub) < 2:
+            _empty(ax, f"too few {m} values")
+            continue
+        sub = sub.assign(window=an.window_labels(sub["iteration"], n_windows))
+        # windows with a single distinct value have no density: draw them as rugs only
+        ok = sub.groupby("window")[m].transform("nunique") > 1
+        if ok.any():
+            sns.kdeplot(data=sub[ok], x=m, hue="window", ax=ax, common_norm=False, warn_singular=False)
+        sns.rugplot(data=sub, x=m, hue="window", ax=ax, legend=False)
+        ax.set_xlabel(METRIC_LABELS[m])
+    fig.suptitle(title or "Metric distributions over training windows")
+    return _save(fig, out)
+
+
+def run_figures(run_dir: str | os.PathLike[str], outputs: Mapping[str, str | os.PathLike[str]],
+                analysis: Mapping[str, Any] | None = None) -> None:
+    """All per-run figures of one run folder (``outputs``: name in :data:`RUN_FIGURES` -> PNG path)."""
+    cfg = {"window": 25, "max_gap_iters": 10, "acf_max_lag": 40, "kde_windows": 4, **(analysis or {})}
+    run_dir = Path(run_dir)
+    log = an.read_train_log(run_dir / "train_log.csv", max_gap_iters=cfg["max_gap_iters"])
+    title = str(run_dir)
+    if "convergence" in outputs:
+        plot_convergence(log, outputs["convergence"], window=cfg["window"], title=title)
+    if "porkchop" in outputs:
+        per_view = an.read_per_view(run_dir / "per_view.csv")
+        split = "val" if (per_view["split"] == "val").any() else None
+        plot_porkchop(per_view, outputs["porkchop"], split=split, title=title)
+    if "acf" in outputs:
+        plot_acf(log, outputs["acf"], max_lag=cfg["acf_max_lag"], title=title)
+    if "kde" in outputs:
+        plot_kde_windows(log, outputs["kde"], n_windows=cfg["kde_windows"], title=title)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Across runs
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _run_label(df: pd.DataFrame) -> pd.Series:
+    return df["volume"].astype(str) + "/" + df[list(an.GRID_AXES)].astype(str).agg("/".join, axis=1)
+
+
+def plot_convergence_by_axis(logs: pd.DataFrame, axis: str, out: str | os.PathLike[str], *,
+                             window: int = 25) -> plt.Figure:
+    """All runs' PSNR2D/SSIM2D/PSNR3D/SSIM3D centred rolling means overlaid, coloured by one ablation axis."""
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
+    if logs.empty:
+        for ax in axes.ravel():
+            _empty(ax, "no training logs")
+        return _save(fig, out)
+    logs = logs.assign(run=_run_label(logs))
+    levels = sorted(logs[axis].astype(str).unique())
+    palette = dict(zip(levels, sns.color_palette(n_colors=len(levels)), strict=True))
+    for ax, m in zip(axes.ravel(), an.METRICS_2D3D, strict=True):
+        for _run, g in logs.groupby("run", sort=True):
+            sub = g[["iteration", m]].dropna()
+            if sub.empty:
+                continue
+            ax.plot(sub["iteration"], an.rolling_centered(sub[m], window), lw=1.6,
+                    color=palette[str(g[axis].iloc[0])], alpha=0.85)
+        ax.set_ylabel(METRIC_LABELS[m])
+        ax.grid(alpha=0.3)
+    handles = [plt.Line2D([], [], color=c, lw=2, label=f"{axis}={lv}") for lv, c in palette.items()]
+    axes[0, 0].legend(handles=handles, fontsize=8)
+    for ax in axes[1]:
+        ax.set_xlabel("iteration")
+    fig.suptitle(f"Convergence by {axis} (centred mean, W={window})")
+    return _save(fig, out)
+
+
+def plot_velocity(logs: pd.DataFrame, out: str | os.PathLike[str], *, per_iters: int = 1000) -> plt.Figure:
+    """Convergence velocity (median PSNR2D gain per ``per_iters`` iterations) over training, one line per run."""
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    drawn = 0
+    if not logs.empty:
+        logs = logs.assign(run=_run_label(logs))
+        for run, g in logs.groupby("run", sort=True):
+            vc = an.velocity_curve(g["iteration"], g["psnr2d"], per_iters)
+            if len(vc):
+                ax.plot(vc["iteration"], vc["velocity"], marker="o", ms=3, label=run)
+                drawn += 1
+    if drawn:
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_xlabel("iteration")
+        ax.set_ylabel(f"PSNR2D gain per {per_iters} it (dB)")
+        if drawn <= 12:
+            ax.legend(fontsize=7)
+    else:
+        _empty(ax, "not enough evaluations")
+    ax.set_title("Convergence velocity")
+    return _save(fig, out)
+
+
+def plot_correlations(logs: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
+    """Scatter of 2D vs 3D metrics over training (all runs), with pooled Pearson/Spearman in the titles."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    pooled = an.correlations(logs) if not logs.empty else None
+    for ax, (x, y) in zip(axes, (("psnr2d", "psnr3d"), ("ssim2d", "ssim3d")), strict=True):
+        sub = logs[[x, y]].dropna() if not logs.empty else pd.DataFrame()
+        if sub.empty:
+            _empty(ax, "no paired 2D/3D evaluations")
+            continue
+        ax.scatter(sub[x], sub[y], s=8, alpha=0.6)
+        row = pooled[(pooled["x"] == x) & (pooled["y"] == y)].iloc[0]
+        ax.set_title(f"Pearson {row['pearson']:.3f}, Spearman {row['spearman']:.3f} (n={row['n']})")
+        ax.set_xlabel(METRIC_LABELS[x])
+        ax.set_ylabel(METRIC_LABELS[y])
+    return _save(fig, out)
+
+
+def _final_long(summary: pd.DataFrame) -> pd.DataFrame:
+    """Summary in long form: one row per (run, axis, metric) for the ablation plot."""
+    metric_cols = [c for c in ("psnr3d", "ssim3d", "psnr2d", "ssim2d") if c in summary]
+    if not metric_cols:
+        metric_cols = [f"final_{m}" for m in an.METRICS_2D3D if f"final_{m}" in summary]
+    rows = []
+    for _, r in summary.iterrows():
+        for axis in an.GRID_AXES:
+            for m in metric_cols:
+                v = pd.to_numeric(r[m], errors="coerce")
+                if pd.notna(v):
+                    rows.append({"axis": axis, "value": str(r[axis]), "metric": m.removeprefix("final_"),
+                                 "score": float(v)})
+    return pd.DataFrame(rows, columns=["axis", "value", "metric", "score"])
+
+
+def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
+    """Final metrics by ablation axis: box plots with every run as a point (strip), metrics × axes grid."""
+    long = _final_long(summary)
+    axes_used = [a for a in an.GRID_AXES if summary[a].nunique() > 1] or list(an.GRID_AXES[:1])
+    metrics = list(dict.fromkeys(long["metric"])) or ["psnr3d"]
+    fig, axs = plt.subplots(len(metrics), len(axes_used), figsize=(3.2 * len(axes_used), 2.8 * len(metrics)),
+                            squeeze=False)
+    for i, m in enumerate(metrics):
+        for j, axis in enumerate(axes_used):
+            ax = axs[i, j]
+            sub = long[(long["metric"] == m) & (long["axis"] == axis)]
+            if sub.empty:
+                _empty(ax, "no runs")
+                continue
+            order = sorted(sub["value"].unique(), key=_natural)
+            sns.boxplot(data=sub, x="value", y="score", order=order, ax=ax, color="0.85", fliersize=0)
+            sns.stripplot(data=sub, x="value", y="score", order=order, ax=ax, color="C0", size=4, jitter=0.15)
+            ax.set_xlabel(axis if i == len(metrics) - 1 else "")
+            ax.set_ylabel(METRIC_LABELS.get(m, m) if j == 0 else "")
+    fig.suptitle("Final metrics by ablation axis")
+    fig.tight_layout()
+    return _save(fig, out)
+
+
+def _natural(v: str) -> tuple[int, float | str]:
+    try:
+        return (0, float(v))
+    except ValueError:
+        return (1, v)
+
+
+def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os.PathLike[str], *,
+                   metric: str = "psnr3d") -> plt.Figure:
+    """Gaussian runs vs FBP/SART per number of training views (3D metric; Gaussian = mean over seeds, with points).
+
+    ``baselines`` has columns ``method, filter, iterations, n_views, psnr3d, ssim3d`` (+ ``volume``); each
+    (method, filter) is one line; the Gaussian runs are grouped by (init, compositor, mip, poses).
+    """
+    fig, ax = plt.subplots(figsize=(8, 5))
+    col = metric if metric in summary else f"final_{metric}"
+    drawn = False
+    if not baselines.empty and metric in baselines:
+        b = baselines.copy()
+        b["label"] = b["method"].astype(str) + np.where(
+            b.get("filter", pd.Series([""] * len(b))).fillna("").astype(str) != "",
+            " (" + b.get("filter", pd.Series([""] * len(b))).fillna("").astype(str) + ")", "")
+        for label, g in b.groupby("label", sort=True):
+            g = g.groupby("n_views", as_index=False)[metric].max()
+            ax.plot(g["n_views"], g[metric], "s--", label=label, lw=1.2)
+            drawn = True
+    if col in summary and len(summary):
+        s = summary.assign(score=pd.to_numeric(summary[col], errors="coerce")).dropna(subset=["score"])
+        for key, g in s.groupby(["init", "compositor", "mip", "poses"], sort=True):
+            label = "GS " + "/".join(str(k) for k in key)
+            mean = g.groupby("views", as_index=False)["score"].mean()
+            line = ax.plot(mean["views"], mean["score"], "o-", lw=2, label=label)[0]
+            ax.scatter(g["views"], g["score"], color=line.get_color(), s=12, alpha=0.6)
+            drawn = True
+    if drawn:
+        ax.set_xlabel("number of training views")
+        ax.set_ylabel(METRIC_LABELS.get(metric, metric))
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    else:
+        _empty(ax, "no Gaussian runs or baselines")
+    ax.set_title("Gaussian model vs FBP/SART per view count")
+    return _save(fig, out)
+
+
+def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.PathLike[str]], *,
+            baselines_csvs: Sequence[str | os.PathLike[str]] = (), analysis: Mapping[str, Any] | None = None) -> None:
+    """Write every grid-level output named in ``outputs`` (keys of :data:`ANALYSIS_OUTPUTS`) from ``summary.csv``.
+
+    Baseline CSVs are concatenated (the volume is taken from ``results/{volume}/baselines/...`` when the CSV has
+    no ``volume`` column).
+    """
+    cfg = {"window": 25, "max_gap_iters": 10, "velocity_per_iters": 1000, "acf_max_lag": 40, "kde_windows": 4,
+           "milestones": {"psnr2d": 30.0, "ssim2d": 0.9}, **(analysis or {})}
+    unknown = sorted(set(outputs) - set(ANALYSIS_OUTPUTS))
+    if unknown:
+        raise CtsplatError(f"unknown analysis output {unknown[0]!r}; known: {', '.join(ANALYSIS_OUTPUTS)}")
+    summary = pd.read_csv(summary_csv)
+    logs = an.load_runs(summary, max_gap_iters=cfg["max_gap_iters"])
+    for a in an.GRID_AXES:
+        key = f"convergence_by_{a}"
+        if key in outputs:
+            plot_convergence_by_axis(logs, a, outputs[key], window=cfg["window"])
+    if "velocity" in outputs:
+        plot_velocity(logs, outputs["velocity"], per_iters=cfg["velocity_per_iters"])
+    if "acf" in outputs:
+        _plot_acf_runs(logs, outputs["acf"], max_lag=cfg["acf_max_lag"])
+    if "kde" in outputs:
+        plot_kde_windows(logs, outputs["kde"], n_windows=cfg["kde_windows"], title="All runs pooled")
+    if "correlations_plot" in outputs:
+        plot_correlations(logs, outputs["correlations_plot"])
+    if "correlations" in outputs:
+        tables = []
+        for run, g in logs.groupby("run_dir", sort=True) if not logs.empty else []:
+            tables.append(an.correlations(g).assign(run_dir=run))
+        tables.append(an.correlations(logs if not logs.empty else pd.DataFrame(columns=list(an.LOG_COLUMNS)))
+                      .assign(run_dir="all"))
+        _write_csv(pd.concat(tables, ignore_index=True), outputs["correlations"])
+    if "milestones" in outputs:
+        rows = []
+        for run, g in logs.groupby("run_dir", sort=True) if not logs.empty else []:
+            rows.append({"run_dir": run, **{a: g[a].iloc[0] for a in ("volume", *an.GRID_AXES)},
+                         **an.milestones(g, cfg["milestones"])})
+        _write_csv(pd.DataFrame(rows), outputs["milestones"])
+    if "ablation" in outputs:
+        plot_ablation(summary, outputs["ablation"])
+    if "baselines" in outputs:
+        frames = []
+        for p in baselines_csvs:
+            b = pd.read_csv(p)
+            if "volume" not in b:
+                parts = Path(p).parts
+                b["volume"] = parts[parts.index("baselines") - 1] if "baselines" in parts else ""
+            frames.append(b)
+        base = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+        plot_baselines(summary, base, outputs["baselines"])
+
+
+def _plot_acf_runs(logs: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int) -> plt.Figure:
+    """PSNR2D ACF by lag, one line per run."""
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    drawn = 0
+    if not logs.empty:
+        logs = logs.assign(run=_run_label(logs))
+        for run, g in logs.groupby("run", sort=True):
+            r = an.acf(g["psnr2d"].to_numpy(), max_lag)
+            if r.size >= 2:
+                ax.plot(np.arange(r.size), r, marker="o", ms=2, label=run)
+                drawn += 1
+    if drawn:
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_xlabel("lag (evaluations)")
+        ax.set_ylabel("ACF of PSNR2D")
+        if drawn <= 12:
+            ax.legend(fontsize=7)
+    else:
+        _empty(ax, "fewer than two evaluations")
+    ax.set_title("Autocorrelation of PSNR2D by run")
+    return _save(fig, out)
+
+
+def _write_csv(df: pd.DataFrame, out: str | os.PathLike[str]) -> None:
+    with atomic_path(out) as tmp:
+        df.to_csv(tmp, index=False)

@@ -1,0 +1,11 @@
+"""Snakemake adapter: rule sfm -> ctsplat.sfm.run_sfm."""
+
+from pathlib import Path
+
+from _adapter import logged
+
+from ctsplat.sfm import run_sfm
+
+with logged(snakemake):  # noqa: F821
+    out_dir = Path(snakemake.output.summary).parent  # noqa: F821
+    run_sfm(snakemake.input.volume, out_dir, snakemake.params.sfm, seed=snakemake.params.seed)  # noqa: F821

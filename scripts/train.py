@@ -1,0 +1,15 @@
+"""Snakemake adapter: rule train -> ctsplat.train.train (grid-cell config from params, paths from input)."""
+
+from pathlib import Path
+
+from _adapter import logged
+
+from ctsplat.train import train
+
+with logged(snakemake):  # noqa: F821
+    sm = snakemake  # noqa: F821
+    config = dict(sm.params.train)
+    config["volume"] = sm.input.volume
+    config["radiographs"] = str(Path(sm.input.views).parent)
+    config["sfm_dir"] = str(Path(sm.input.sfm).parent) if "sfm" in sm.input.keys() else None
+    train(config, Path(sm.output.model).parent)

@@ -1,0 +1,182 @@
+# Shared helpers: config validation (before any job runs), the ablation grid (Paramspace), input functions.
+# All logic lives in ctsplat.analysis; these are thin wrappers used by the rules.
+import os
+from pathlib import Path
+
+from snakemake.utils import Paramspace
+
+from ctsplat.analysis import GRID_AXES, expand_grid, prepare_config
+from ctsplat.plots import ANALYSIS_OUTPUTS
+from ctsplat.utils import CtsplatError, config_hash
+
+try:
+    CFG = prepare_config(config, base_dir=os.getcwd())
+except CtsplatError as exc:
+    raise WorkflowError(f"ctsplat config error: {exc}") from None
+
+RESULTS = "results"
+GEOMETRY = CFG["grid"]["geometry"]
+VOLUMES = list(CFG["volumes"])
+RUNS = expand_grid(CFG["grid"]["axes"], VOLUMES, CFG["grid"]["exclude"])
+PARAMSPACE = Paramspace(RUNS[list(GRID_AXES)].drop_duplicates(), param_sep="~")
+RUN_PATTERN = f"{RESULTS}/{{volume}}/runs/{PARAMSPACE.wildcard_pattern}"
+RUN_LABELS = {name: f"{{{name}}}" for name in ("volume", *GRID_AXES)}
+
+
+def run_dirs(volume=None):
+    """Run folders of the grid (optionally of one volume), in grid order, from the Paramspace instances."""
+    out = []
+    for v in VOLUMES if volume is None else [volume]:
+        cells = Paramspace(RUNS[RUNS["volume"] == v][list(GRID_AXES)], param_sep="~")
+        out += [f"{RESULTS}/{v}/runs/{p}" for p in cells.instance_patterns]
+    return out
+
+
+def needs_sfm(volume):
+    """SfM runs for a volume when enabled or when a grid cell uses COLMAP poses / SfM points."""
+    rows = RUNS[RUNS["volume"] == volume]
+    return CFG["sfm"]["enabled"] or bool(
+        ((rows["poses"] == "colmap") | (rows["init"] == "sfm")).any()
+    )
+
+
+def baselines_enabled():
+    return CFG["baselines"]["enabled"]
+
+
+def all_targets():
+    """Targets of the default target (all): per-run metrics and figures, the summary and the analysis figures."""
+    targets = [f"{RESULTS}/summary.csv"]
+    targets += [f"{RESULTS}/figures/{fname}" for fname, _ in ANALYSIS_OUTPUTS.values()]
+    for rd in run_dirs():
+        targets += [f"{rd}/metrics.json", f"{rd}/figures/convergence.png"]
+    for v in VOLUMES:
+        if needs_sfm(v):
+            targets.append(f"{RESULTS}/{v}/sfm/summary.json")
+        if baselines_enabled():
+            targets.append(f"{RESULTS}/{v}/baselines/{GEOMETRY}/baselines.csv")
+    return targets
+
+
+def rule_resources(rule):
+    """(threads, mem_mb, runtime) for a rule from config `resources`."""
+    return CFG["resources"][rule]
+
+
+def volume_cfg(wildcards):
+    return CFG["volumes"][wildcards.volume]
+
+
+def ingest_source(wildcards):
+    """Input of `ingest`: the phantom DICOM folder, or the configured source path."""
+    source = volume_cfg(wildcards)["source"]
+    if source == "phantom":
+        return f"{RESULTS}/{wildcards.volume}/phantom_dicom"
+    return source
+
+
+def ingest_params(wildcards):
+    """Keyword arguments of ctsplat.volume.ingest for one volume (preprocessing merged over the global one)."""
+    vol = volume_cfg(wildcards)
+    return {
+        "preprocessing": {**CFG["preprocessing"], **vol["preprocessing"]},
+        "series_uid": vol["series_uid"],
+        "allow_modalities": list(vol["allow_modalities"]),
+        "skip_corrupt": vol["skip_corrupt"],
+        "tiff_voxel_size_mm": vol["tiff_voxel_size_mm"],
+    }
+
+
+def phantom_params(wildcards):
+    return dict(volume_cfg(wildcards)["phantom"])
+
+
+def radiographs_params(wildcards):
+    return dict(CFG["radiographs"][wildcards.geometry])
+
+
+def baselines_params(wildcards):
+    """run_baselines config: the user's settings plus the grid's view counts (FBP/SART per view count)."""
+    views = sorted(
+        set(int(v) for v in RUNS[RUNS["volume"] == wildcards.volume]["views"])
+    )
+    return {"n_views": views, **CFG["baselines"]["settings"]}
+
+
+def sfm_params(wildcards):
+    return dict(CFG["sfm"]["settings"])
+
+
+def run_inputs(wildcards):
+    """Inputs of `train`: the reference volume, the training geometry's radiographs, SfM when used."""
+    rd = f"{RESULTS}/{wildcards.volume}/radiographs/{GEOMETRY}"
+    inputs = {
+        "volume": f"{RESULTS}/{wildcards.volume}/volume.nii.gz",
+        "line_integrals": f"{rd}/line_integrals.tif",
+        "views": f"{rd}/views.json",
+    }
+    if wildcards.poses == "colmap" or wildcards.init == "sfm":
+        inputs["sfm"] = f"{RESULTS}/{wildcards.volume}/sfm/summary.json"
+    return inputs
+
+
+def train_params(wildcards):
+    """The run's training config: hyper-parameters + this grid cell's axis values (paths added by the script).
+
+    Tracked by Snakemake's params rerun trigger, so changing any of it reruns the cell; its hash is recorded.
+    """
+    cell = PARAMSPACE.instance(wildcards)
+    cfg = dict(CFG["train"])
+    cfg.update(
+        init=str(cell["init"]),
+        compositor=str(cell["compositor"]),
+        mip=cell["mip"] == "on",
+        poses=str(cell["poses"]),
+        views=int(cell["views"]),
+        seed=int(cell["seed"]),
+        device=CFG["device"],
+    )
+    return cfg
+
+
+def train_hash(wildcards):
+    return config_hash(train_params(wildcards))
+
+
+def evaluation_params(wildcards):
+    return dict(CFG["evaluation"])
+
+
+def train_gpu(wildcards):
+    return 1 if CFG["device"] == "cuda" else 0
+
+
+def analysis_params():
+    return dict(CFG["analysis"])
+
+
+def all_metrics():
+    return [f"{rd}/metrics.json" for rd in run_dirs()]
+
+
+def all_logs():
+    return [f"{rd}/train_log.csv" for rd in run_dirs()]
+
+
+def all_baselines():
+    if not baselines_enabled():
+        return []
+    return [f"{RESULTS}/{v}/baselines/{GEOMETRY}/baselines.csv" for v in VOLUMES]
+
+
+def analysis_outputs():
+    """Named outputs of `analyse`, each registered in the report with its caption and category."""
+    return {
+        name: report(
+            f"{RESULTS}/figures/{fname}",
+            caption=f"../report/{name}.rst",
+            category=category,
+            labels={"figure": name},
+        )
+        for name, (fname, category) in ANALYSIS_OUTPUTS.items()
+    }

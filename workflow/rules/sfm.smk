@@ -1,0 +1,25 @@
+# COLMAP poses once per volume (its own cone-beam view set), aligned to the world frame.
+
+
+rule sfm:
+    input:
+        volume=f"{RESULTS}/{{volume}}/volume.nii.gz",
+        meta=f"{RESULTS}/{{volume}}/volume.json",
+    output:
+        summary=f"{RESULTS}/{{volume}}/sfm/summary.json",
+        poses=f"{RESULTS}/{{volume}}/sfm/poses.csv",
+    log:
+        f"{RESULTS}/logs/sfm/{{volume}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/sfm/{{volume}}.tsv"
+    conda:
+        "../../envs/ctsplat.yaml"
+    threads: rule_resources("sfm")["threads"]
+    resources:
+        mem_mb=rule_resources("sfm")["mem_mb"],
+        runtime=rule_resources("sfm")["runtime"],
+    params:
+        sfm=sfm_params,
+        seed=0,
+    script:
+        "../../scripts/sfm.py"
