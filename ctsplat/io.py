@@ -1,0 +1,754 @@
+"""Reading CT scans into a geometry-exact slice stack: DICOM series, NIfTI volumes, TIFF stacks.
+
+Every reader returns a :class:`SliceStack`: a float32 array ``data[i, j, k]`` plus the full geometry of
+each slice in the world frame (RAS+, mm; see ``docs/conventions.md``). DICOM patient coordinates are
+LPS; the conversion ``(x, y, z)_RAS = (-x, -y, z)_LPS`` happens exactly once, here, in
+:func:`lps_to_ras`. Nothing downstream sees LPS.
+
+Geometry of a slice stack (all vectors in world RAS, mm)::
+
+    world(i, j, k) = origins[k] + i * spacing_ij[0] * row_dir + j * spacing_ij[1] * col_dir
+
+``row_dir`` (DICOM: first ImageOrientationPatient triplet) is the direction of increasing column
+index ``i``; ``col_dir`` (second triplet) the direction of increasing row index ``j``. Slices are
+sorted by ``origins[k] @ normal`` (strictly increasing), where ``normal`` is the unit vector
+perpendicular to the slice plane pointing towards increasing ``k``. Gantry tilt shows up as an
+in-plane drift of ``origins[k]``; non-uniform slice spacing as non-uniform ``positions_mm``. Both are
+resolved exactly (in world coordinates) by :func:`ctsplat.volume.resample_stack`, so the reader
+never assumes a regular grid along ``k``.
+
+De-identification: ``SliceStack.source`` holds geometry and acquisition facts only (modality,
+scanner model, kVp, spacing ...). UIDs appear only as salted SHA-256 hashes (:func:`salted_hash`);
+patient, study-date and institution fields and file names (often SOP Instance UIDs) are never
+copied.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import re
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctsplat.utils import CtsplatError
+
+__all__ = [
+    "SliceStack",
+    "SeriesInfo",
+    "LPS_TO_RAS",
+    "lps_to_ras",
+    "salted_hash",
+    "find_dicom_series",
+    "read_dicom_series",
+    "read_nifti",
+    "read_tiff_stack",
+    "read_source",
+    "write_dicom_series",
+]
+
+log = logging.getLogger(__name__)
+
+#: Diagonal LPS <-> RAS flip (its own inverse).
+LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0])
+
+#: Tolerances for geometry consistency checks.
+_ORIENT_TOL = 1e-4  # on direction cosines
+_SPACING_RTOL = 1e-4  # relative, pixel spacing across slices
+_DUPLICATE_TOL_MM = 1e-3  # two slices closer than this along the normal are duplicates
+
+_DECODER_PACKAGES = {
+    "1.2.840.10008.1.2.4.90": "pylibjpeg and pylibjpeg-openjpeg",  # JPEG 2000 lossless
+    "1.2.840.10008.1.2.4.91": "pylibjpeg and pylibjpeg-openjpeg",  # JPEG 2000
+    "1.2.840.10008.1.2.4.201": "pylibjpeg and pylibjpeg-openjpeg",  # HTJ2K lossless
+    "1.2.840.10008.1.2.4.202": "pylibjpeg and pylibjpeg-openjpeg",
+    "1.2.840.10008.1.2.4.203": "pylibjpeg and pylibjpeg-openjpeg",
+    "1.2.840.10008.1.2.4.50": "pylibjpeg and pylibjpeg-libjpeg",  # JPEG baseline
+    "1.2.840.10008.1.2.4.51": "pylibjpeg and pylibjpeg-libjpeg",
+    "1.2.840.10008.1.2.4.57": "pylibjpeg and pylibjpeg-libjpeg",  # JPEG lossless
+    "1.2.840.10008.1.2.4.70": "pylibjpeg and pylibjpeg-libjpeg",
+    "1.2.840.10008.1.2.4.80": "pylibjpeg and pylibjpeg-libjpeg",  # JPEG-LS
+    "1.2.840.10008.1.2.4.81": "pylibjpeg and pylibjpeg-libjpeg",
+    "1.2.840.10008.1.2.5": "pylibjpeg and pylibjpeg-rle",  # RLE
+}
+
+
+def lps_to_ras(v: np.ndarray) -> np.ndarray:
+    """Convert points/vectors ``(..., 3)`` from DICOM LPS to RAS: ``(x, y, z) -> (-x, -y, z)``."""
+    return np.asarray(v, dtype=float) @ LPS_TO_RAS
+
+
+def salted_hash(value: str, n: int = 16) -> str:
+    """Salted SHA-256 of an identifier (hex, ``n`` digits); salt from ``$CTSPLAT_DEID_SALT``.
+
+    The default salt is fixed so that outputs stay deterministic; set ``CTSPLAT_DEID_SALT`` to a
+    private value to make hashes unlinkable across sites.
+    """
+    salt = os.environ.get("CTSPLAT_DEID_SALT", "ctsplat-deid-v1")
+    return hashlib.sha256(f"{salt}:{value}".encode()).hexdigest()[:n]
+
+
+@dataclass
+class SliceStack:
+    """A scan as read from disk, before resampling (see the module docstring for the geometry).
+
+    Attributes
+    ----------
+    data : ndarray, shape (I, J, K), float32
+        Values (HU when ``units == "hu"``); ``data[:, :, k]`` is slice ``k``.
+    row_dir, col_dir : ndarray, shape (3,)
+        Unit vectors (world RAS) of increasing ``i`` and ``j``; orthogonal.
+    spacing_ij : tuple of float
+        Pixel spacing (mm) along ``i`` and ``j``.
+    origins : ndarray, shape (K, 3)
+        World position (RAS, mm) of voxel ``(0, 0, k)``'s centre, sorted along ``normal``.
+    units : str
+        ``"hu"`` (Hounsfield units) or ``"raw"`` (scanner/intensity units of a non-CT source).
+    source : dict
+        De-identified description of the input (JSON-serialisable).
+    """
+
+    data: np.ndarray
+    row_dir: np.ndarray
+    col_dir: np.ndarray
+    spacing_ij: tuple[float, float]
+    origins: np.ndarray
+    units: str = "hu"
+    source: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def normal(self) -> np.ndarray:
+        """Unit slice normal (RAS) pointing towards increasing ``k``, shape (3,)."""
+        n = np.cross(self.row_dir, self.col_dir)
+        n = n / np.linalg.norm(n)
+        if len(self.origins) > 1 and float((self.origins[-1] - self.origins[0]) @ n) < 0:
+            n = -n
+        return n
+
+    @property
+    def positions_mm(self) -> np.ndarray:
+        """Slice positions along ``normal`` (mm), shape (K,), strictly increasing."""
+        return self.origins @ self.normal
+
+    @property
+    def tilt_deg(self) -> float:
+        """Angle between the slice stacking direction and the slice normal (gantry tilt), degrees."""
+        if len(self.origins) < 2:
+            return 0.0
+        d = self.origins[-1] - self.origins[0]
+        c = float(abs(d @ self.normal) / np.linalg.norm(d))
+        return float(np.degrees(np.arccos(min(1.0, c))))
+
+
+# --------------------------------------------------------------------------------------------------
+# DICOM
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SeriesInfo:
+    """Header facts of one DICOM series found in a folder (``uid`` is the real SeriesInstanceUID)."""
+
+    uid: str
+    files: list[Path]
+    modality: str
+    number: str
+    description: str
+
+    def label(self) -> str:
+        uid = self.uid or "<no SeriesInstanceUID>"
+        desc = f" '{self.description}'" if self.description else ""
+        return f"{uid} (#{self.number or '?'}{desc}, {self.modality or '?'}, {len(self.files)} files)"
+
+
+def _dcmread(path: Path, *, stop_before_pixels: bool) -> Any:
+    import pydicom
+    from pydicom.errors import InvalidDicomError
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            return pydicom.dcmread(path, stop_before_pixels=stop_before_pixels)
+        except InvalidDicomError:
+            # Old files without the 128-byte preamble: accept only if they look like images.
+            try:
+                ds = pydicom.dcmread(path, stop_before_pixels=stop_before_pixels, force=True)
+            except Exception:  # noqa: BLE001 - anything unreadable is "not DICOM" here
+                return None
+            if "SOPClassUID" in ds and "Rows" in ds and "ImagePositionPatient" in ds:
+                return ds
+            return None
+
+
+def _is_image_sop(ds: Any) -> bool:
+    sop = ds.get("SOPClassUID") or getattr(getattr(ds, "file_meta", None), "MediaStorageSOPClassUID", None)
+    name = getattr(sop, "name", "") or ""
+    return "Image Storage" in name
+
+
+def _walk_files(folder: Path) -> list[Path]:
+    files = [Path(root) / f for root, _, names in os.walk(folder) for f in names]
+    return sorted(p for p in files if p.is_file() and not p.name.startswith("."))
+
+
+def _handle_corrupt(path: Path, why: str, skip_corrupt: bool, skipped: list[Path]) -> None:
+    if not skip_corrupt:
+        raise CtsplatError(
+            f"corrupt or truncated DICOM file {path} ({why}); remove it or pass skip_corrupt "
+            f"(--skip-corrupt) to ignore it with a warning"
+        )
+    log.warning("skipping corrupt DICOM file %s (%s)", path, why)
+    skipped.append(path)
+
+
+def find_dicom_series(
+    folder: str | Path, *, skip_corrupt: bool = False, _skipped: list[Path] | None = None
+) -> list[SeriesInfo]:
+    """Walk ``folder`` recursively and group DICOM image files by SeriesInstanceUID (headers only).
+
+    Non-DICOM files and non-image DICOM objects (DICOMDIR, reports) are ignored. A file that starts
+    as a DICOM image but is cut short is corrupt: an error naming it, or with ``skip_corrupt`` a
+    warning. Returns the series sorted by decreasing number of files.
+    """
+    folder = Path(folder)
+    if not folder.exists():
+        raise CtsplatError(f"input {folder} does not exist; give a DICOM folder, a .nii/.nii.gz file or a TIFF stack")
+    files = _walk_files(folder)
+    if not files:
+        raise CtsplatError(f"input folder {folder} is empty; point ingest at a folder that contains DICOM slices")
+    skipped = _skipped if _skipped is not None else []
+    groups: dict[str, SeriesInfo] = {}
+    for path in files:
+        try:
+            ds = _dcmread(path, stop_before_pixels=True)
+        except Exception as exc:  # noqa: BLE001 - DICOM prefix present but the header does not parse
+            _handle_corrupt(path, f"{type(exc).__name__}: {exc}".split("\n")[0][:120], skip_corrupt, skipped)
+            continue
+        if ds is None:
+            continue
+        if not _is_image_sop(ds) and "Rows" not in ds:
+            continue  # DICOMDIR, structured report, presentation state ...
+        if "Rows" not in ds or "Columns" not in ds:
+            _handle_corrupt(path, "image header ends before Rows/Columns", skip_corrupt, skipped)
+            continue
+        uid = str(ds.get("SeriesInstanceUID", "") or "")
+        info = groups.get(uid)
+        if info is None:
+            info = groups[uid] = SeriesInfo(
+                uid=uid,
+                files=[],
+                modality=str(ds.get("Modality", "") or ""),
+                number=str(ds.get("SeriesNumber", "") or ""),
+                description=str(ds.get("SeriesDescription", "") or ""),
+            )
+        info.files.append(path)
+    if not groups:
+        raise CtsplatError(
+            f"no DICOM image files found in {folder} ({len(files)} other files); "
+            f"point ingest at the folder holding the .dcm slices"
+        )
+    return sorted(groups.values(), key=lambda s: (-len(s.files), s.uid))
+
+
+def _choose_series(
+    series: list[SeriesInfo], series_uid: str | None, allow_modalities: Sequence[str], folder: Path
+) -> SeriesInfo:
+    listing = "; ".join(s.label() for s in series)
+    if series_uid is not None:
+        chosen = [s for s in series if series_uid in (s.uid, s.number)]
+        if not chosen:
+            raise CtsplatError(f"series {series_uid!r} not found in {folder}; series found: {listing}")
+        if len(chosen) > 1:
+            raise CtsplatError(f"series number {series_uid!r} is ambiguous in {folder}; give the UID: {listing}")
+        pick = chosen[0]
+    else:
+        allowed = [s for s in series if s.modality.upper() in {m.upper() for m in allow_modalities}]
+        if not allowed:
+            mods = sorted({s.modality or "?" for s in series})
+            raise CtsplatError(
+                f"no {'/'.join(allow_modalities)} series in {folder} (found modality {', '.join(mods)}); "
+                f"ingest expects CT in HU - to read it anyway pass allow_modalities (--allow-modality {mods[0]})"
+            )
+        top = [s for s in allowed if len(s.files) == len(allowed[0].files)]
+        if len(top) > 1:
+            raise CtsplatError(
+                f"{len(allowed)} series in {folder} and no unique largest one; choose with series_uid "
+                f"(--series-uid): {listing}"
+            )
+        pick = allowed[0]
+        if len(series) > 1:
+            log.warning("several series in %s; using the largest %s CT series: %s", folder, pick.label(), listing)
+    if pick.modality.upper() not in {m.upper() for m in allow_modalities}:
+        raise CtsplatError(
+            f"series {pick.label()} has modality {pick.modality or '?'}, not {'/'.join(allow_modalities)}; ingest "
+            f"expects CT in HU - pass allow_modalities (--allow-modality {pick.modality}) to read it anyway"
+        )
+    return pick
+
+
+def _check_decoder(ds: Any, path: Path) -> None:
+    """Fail with the package to install when a compressed transfer syntax cannot be decoded."""
+    ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+    if ts is None or not ts.is_compressed:
+        return
+    from pydicom.pixels.decoders.base import get_decoder
+
+    try:
+        decoder = get_decoder(ts)
+    except NotImplementedError:
+        raise CtsplatError(f"{path}: transfer syntax {ts.name} ({ts}) is not supported by pydicom") from None
+    if not decoder.is_available:
+        pkg = _DECODER_PACKAGES.get(str(ts), "a pydicom pixel-data plugin (pylibjpeg or gdcm)")
+        raise CtsplatError(
+            f"{path} is compressed ({ts.name}) and no decoder is installed; install {pkg} "
+            f"(pip install 'ctsplat[j2k]')"
+        )
+
+
+def _vec(ds: Any, key: str, n: int, path: Path) -> np.ndarray:
+    value = ds.get(key)
+    if value is None or len(value) != n:
+        hint = {
+            "ImagePositionPatient": "slice positions cannot be derived; re-export the series with geometry tags",
+            "ImageOrientationPatient": "slice orientation is unknown; re-export the series with geometry tags",
+            "PixelSpacing": "pixel size is unknown; re-export the series with PixelSpacing",
+        }[key]
+        raise CtsplatError(f"{path} has no {key}: {hint}")
+    return np.asarray([float(v) for v in value], dtype=float)
+
+
+def read_dicom_series(
+    folder: str | Path,
+    *,
+    series_uid: str | None = None,
+    allow_modalities: Sequence[str] = ("CT",),
+    skip_corrupt: bool = False,
+) -> SliceStack:
+    """Read one DICOM series from a folder (searched recursively) into a :class:`SliceStack`.
+
+    Steps: group files by SeriesInstanceUID, choose the series (``series_uid`` = UID or
+    SeriesNumber; otherwise the allowed-modality series with most files, an error when that is
+    ambiguous), check the geometry is consistent, order slices by ``IPP · n`` with
+    ``n = row_cos × col_cos`` (never by file name, InstanceNumber or SliceLocation), apply
+    ``HU = stored * RescaleSlope + RescaleIntercept``, convert LPS -> RAS.
+
+    Oblique orientations and gantry tilt are supported: the full per-slice geometry is kept and
+    resampled exactly by :func:`ctsplat.volume.resample_stack`. Multi-frame (enhanced) objects and
+    slices with differing orientations are rejected with a message.
+
+    Parameters
+    ----------
+    folder : path
+        Folder holding the series (sub-folders are searched).
+    series_uid : str, optional
+        SeriesInstanceUID or SeriesNumber of the series to read.
+    allow_modalities : sequence of str
+        Modalities accepted (default CT only; values of other modalities are not HU).
+    skip_corrupt : bool
+        Skip unreadable/truncated files with a warning instead of failing.
+
+    Returns
+    -------
+    SliceStack
+        ``data`` (Columns, Rows, K) float32 in HU (``units="hu"`` for CT, else ``"raw"``).
+    """
+    folder = Path(folder)
+    skipped: list[Path] = []
+    series = find_dicom_series(folder, skip_corrupt=skip_corrupt, _skipped=skipped)
+    pick = _choose_series(series, series_uid, allow_modalities, folder)
+
+    slices: list[tuple[Path, Any, np.ndarray]] = []
+    ref: dict[str, Any] = {}
+    for path in pick.files:
+        try:
+            ds = _dcmread(path, stop_before_pixels=False)
+            if ds is None:
+                raise ValueError("not readable as DICOM")
+        except Exception as exc:  # noqa: BLE001
+            _handle_corrupt(path, f"{type(exc).__name__}: {exc}".split("\n")[0][:120], skip_corrupt, skipped)
+            continue
+        if int(ds.get("NumberOfFrames", 1) or 1) > 1:
+            raise CtsplatError(
+                f"{path} is a multi-frame (enhanced) image; only one-slice-per-file series are supported - "
+                f"convert it to a NIfTI (e.g. dcm2niix) and ingest that"
+            )
+        if int(ds.get("SamplesPerPixel", 1) or 1) != 1:
+            raise CtsplatError(f"{path} is not a greyscale image (SamplesPerPixel != 1); CT slices are greyscale")
+        _check_decoder(ds, path)
+        _vec(ds, "ImagePositionPatient", 3, path)  # fail early when missing
+        iop = _vec(ds, "ImageOrientationPatient", 6, path)
+        ps = _vec(ds, "PixelSpacing", 2, path)
+        rows, cols = int(ds.Rows), int(ds.Columns)
+        if not ref:
+            ref = {"iop": iop, "ps": ps, "rows": rows, "cols": cols, "path": path}
+        else:
+            if (rows, cols) != (ref["rows"], ref["cols"]):
+                raise CtsplatError(
+                    f"inconsistent slice size in series: {path} is {rows}x{cols}, {ref['path']} is "
+                    f"{ref['rows']}x{ref['cols']} (rows x columns); remove the odd slices or choose another series"
+                )
+            if not np.allclose(ps, ref["ps"], rtol=_SPACING_RTOL, atol=0):
+                raise CtsplatError(
+                    f"inconsistent PixelSpacing in series: {path} has {ps.tolist()}, {ref['path']} has "
+                    f"{ref['ps'].tolist()} mm; remove the odd slices or choose another series"
+                )
+            if not np.allclose(iop, ref["iop"], atol=_ORIENT_TOL):
+                raise CtsplatError(
+                    f"slices with different ImageOrientationPatient in one series ({path} vs {ref['path']}); "
+                    f"not supported - split the series or re-export it"
+                )
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                pixels = ds.pixel_array
+        except Exception as exc:  # noqa: BLE001 - truncated pixel data, bad encapsulation ...
+            msg = str(exc).split("\n")[0][:160]
+            if "missing" in msg.lower() and "plugin" in msg.lower():
+                pkg = _DECODER_PACKAGES.get(str(ds.file_meta.TransferSyntaxUID), "pylibjpeg")
+                raise CtsplatError(f"{path}: no decoder for its compressed pixel data; install {pkg}") from None
+            _handle_corrupt(path, f"{type(exc).__name__}: {msg}", skip_corrupt, skipped)
+            continue
+        if pixels.shape != (rows, cols):
+            _handle_corrupt(path, f"pixel array shape {pixels.shape} != {(rows, cols)}", skip_corrupt, skipped)
+            continue
+        slope = float(ds.get("RescaleSlope", 1.0) or 1.0)
+        intercept = float(ds.get("RescaleIntercept", 0.0) or 0.0)
+        values = pixels.astype(np.float32) * np.float32(slope) + np.float32(intercept)
+        slices.append((path, ds, values.T))  # (Columns, Rows): i along row_dir, j along col_dir
+
+    if len(slices) < 2:
+        what = "a single slice" if len(slices) == 1 else "no readable slices"
+        raise CtsplatError(
+            f"series {pick.label()} in {folder} has {what}; a volume needs at least 2 slices "
+            f"(check the folder holds the whole series)"
+        )
+
+    iop = ref["iop"]
+    row_lps, col_lps = iop[:3], iop[3:]
+    if abs(np.linalg.norm(row_lps) - 1) > 1e-3 or abs(np.linalg.norm(col_lps) - 1) > 1e-3 or abs(
+        row_lps @ col_lps
+    ) > 1e-3:
+        raise CtsplatError(f"ImageOrientationPatient {iop.tolist()} is not 2 orthonormal unit vectors; fix the header")
+    row_lps = row_lps / np.linalg.norm(row_lps)
+    col_lps = col_lps / np.linalg.norm(col_lps)
+    normal_lps = np.cross(row_lps, col_lps)
+    ipps = np.stack([_vec(ds, "ImagePositionPatient", 3, p) for p, ds, _ in slices])
+    pos = ipps @ normal_lps
+    order = np.argsort(pos, kind="stable")
+    pos_sorted = pos[order]
+    gaps = np.diff(pos_sorted)
+    dup = np.flatnonzero(gaps < _DUPLICATE_TOL_MM)
+    if dup.size:
+        a, b = slices[order[dup[0]]][0], slices[order[dup[0] + 1]][0]
+        raise CtsplatError(
+            f"duplicate slice position {pos_sorted[dup[0]]:.3f} mm along the normal in {a} and {b} "
+            f"({dup.size} duplicate pair(s)); remove the duplicate files or choose the right series"
+        )
+
+    data = np.stack([slices[o][2] for o in order], axis=2).astype(np.float32, copy=False)
+    first = slices[order[0]][1]
+    ts = getattr(getattr(first, "file_meta", None), "TransferSyntaxUID", None)
+    modality = str(first.get("Modality", "") or "")
+    units = "hu" if modality.upper() == "CT" else "raw"
+    stack = SliceStack(
+        data=data,
+        row_dir=lps_to_ras(row_lps),
+        col_dir=lps_to_ras(col_lps),
+        spacing_ij=(float(ref["ps"][1]), float(ref["ps"][0])),  # PixelSpacing = [row spacing, column spacing]
+        origins=lps_to_ras(ipps[order]),
+        units=units,
+    )
+    rounded_gaps = sorted({round(float(g), 3) for g in gaps})
+    study_uid = str(first.get("StudyInstanceUID", "") or "")
+    stack.source = {
+        "kind": "dicom",
+        "series_uid_hash": salted_hash(pick.uid) if pick.uid else None,
+        "study_uid_hash": salted_hash(study_uid) if study_uid else None,
+        "modality": modality,
+        "manufacturer": str(first.get("Manufacturer", "") or ""),
+        "model": str(first.get("ManufacturerModelName", "") or ""),
+        "kvp": float(first.KVP) if first.get("KVP") not in (None, "") else None,
+        "transfer_syntax": ts.name if ts is not None else None,
+        "n_series_found": len(series),
+        "n_slices": len(slices),
+        "n_files_skipped": len(skipped),
+        "rows": ref["rows"],
+        "columns": ref["cols"],
+        "pixel_spacing_mm": [float(v) for v in ref["ps"]],
+        "slice_thickness_mm": float(first.SliceThickness) if first.get("SliceThickness") not in (None, "") else None,
+        "slice_gaps_mm": rounded_gaps,
+        "uniform_spacing": bool(np.ptp(gaps) < 1e-3),
+        "axial_coverage_mm": float(pos_sorted[-1] - pos_sorted[0]),
+        "image_orientation_patient": [float(v) for v in iop],
+        "gantry_tilt_deg": round(stack.tilt_deg, 4),
+        "value_range": [float(data.min()), float(data.max())],
+        "units": units,
+    }
+    log.info(
+        "read %d slices %dx%d (%s), gaps %s mm, tilt %.2f deg",
+        len(slices), ref["cols"], ref["rows"], modality, rounded_gaps, stack.tilt_deg,
+    )
+    return stack
+
+
+# --------------------------------------------------------------------------------------------------
+# NIfTI and TIFF
+# --------------------------------------------------------------------------------------------------
+
+
+def _stack_from_affine(data: np.ndarray, affine: np.ndarray, units: str, source: dict[str, Any]) -> SliceStack:
+    """Regular grid with a (possibly sheared along k) affine -> SliceStack (slices ascending)."""
+    a = np.asarray(affine, float)
+    di, dj = np.linalg.norm(a[:3, 0]), np.linalg.norm(a[:3, 1])
+    if di <= 0 or dj <= 0 or np.linalg.norm(a[:3, 2]) <= 0:
+        raise CtsplatError("volume affine has a zero-length axis; fix the NIfTI header (qform/sform)")
+    u, v = a[:3, 0] / di, a[:3, 1] / dj
+    if abs(u @ v) > 1e-4:
+        raise CtsplatError("volume affine has non-orthogonal in-plane axes; resample it to an orthogonal grid first")
+    k = np.arange(data.shape[2])
+    origins = a[:3, 3][None, :] + k[:, None] * a[:3, 2][None, :]
+    n = np.cross(u, v)
+    if float(a[:3, 2] @ n) < 0:
+        data, origins = data[:, :, ::-1], origins[::-1]
+    if abs(a[:3, 2] @ n) < 1e-6:
+        raise CtsplatError("volume affine's third axis lies in the slice plane; fix the NIfTI header")
+    return SliceStack(
+        data=np.ascontiguousarray(data, dtype=np.float32),
+        row_dir=u,
+        col_dir=v,
+        spacing_ij=(float(di), float(dj)),
+        origins=np.asarray(origins, float),
+        units=units,
+        source=source,
+    )
+
+
+def read_nifti(path: str | Path, *, units: str = "hu") -> SliceStack:
+    """Read a 3D NIfTI volume (world frame = its RAS affine); values assumed HU unless ``units="raw"``."""
+    import nibabel as nib
+
+    path = Path(path)
+    try:
+        img = nib.load(str(path))
+        data = np.asarray(img.dataobj, dtype=np.float32)  # applies scl_slope/scl_inter
+    except Exception as exc:  # noqa: BLE001
+        raise CtsplatError(f"cannot read NIfTI {path} ({type(exc).__name__}: {exc}); is the file complete?") from None
+    data = np.squeeze(data) if data.ndim > 3 else data
+    if data.ndim != 3 or min(data.shape) < 2:
+        raise CtsplatError(f"NIfTI {path} has shape {data.shape}; ingest needs a 3D volume with >= 2 slices")
+    source = {
+        "kind": "nifti",
+        "shape": list(data.shape),
+        "zooms_mm": [float(z) for z in img.header.get_zooms()[:3]],
+        "value_range": [float(data.min()), float(data.max())],
+        "units": units,
+    }
+    return _stack_from_affine(data, img.affine, units, source)
+
+
+def _natural_key(p: Path) -> list[Any]:
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", p.name)]
+
+
+def read_tiff_stack(
+    path: str | Path, voxel_size_mm: float | Sequence[float] | None, *, units: str = "raw"
+) -> SliceStack:
+    """Read a TIFF slice stack: one multi-page file, or a folder of 2D TIFFs (natural name order).
+
+    TIFFs carry no patient geometry: slice ``k`` is page/file ``k``, image rows are ``j``, columns
+    ``i``; axes are taken as world +x, +y, +z (RAS) with the volume centred on the origin.
+
+    Parameters
+    ----------
+    voxel_size_mm : float or (3,) floats
+        Voxel size (x, y, z) in mm; required (HiP-CT style stacks ship it in their metadata).
+    """
+    import tifffile
+
+    path = Path(path)
+    if voxel_size_mm is None:
+        raise CtsplatError(f"TIFF stack {path} has no patient geometry; give its voxel size (--tiff-voxel-size MM)")
+    vs = np.broadcast_to(np.asarray(voxel_size_mm, float), (3,)).copy()
+    if np.any(vs <= 0):
+        raise CtsplatError(f"TIFF voxel size must be positive, got {vs.tolist()}")
+    try:
+        if path.is_dir():
+            files = sorted(
+                (p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff") and not p.name.startswith(".")),
+                key=_natural_key,
+            )
+            if not files:
+                raise CtsplatError(f"folder {path} holds no .tif/.tiff files")
+            pages = [tifffile.imread(p) for p in files]
+            if len({p.shape for p in pages}) != 1:
+                raise CtsplatError(f"TIFF slices in {path} differ in size; all slices must have the same shape")
+            arr = np.stack(pages, axis=0)
+        else:
+            arr = tifffile.imread(path)
+    except CtsplatError:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        raise CtsplatError(f"cannot read TIFF stack {path} ({type(exc).__name__}: {exc})") from None
+    if arr.ndim != 3 or arr.shape[0] < 2:
+        raise CtsplatError(f"TIFF stack {path} has shape {arr.shape}; need >= 2 greyscale slices (Z, Y, X)")
+    data = np.ascontiguousarray(arr.transpose(2, 1, 0), dtype=np.float32)  # (X, Y, Z)
+    shape = np.asarray(data.shape, float)
+    affine = np.diag([*vs, 1.0])
+    affine[:3, 3] = -(shape - 1) / 2 * vs
+    source = {
+        "kind": "tiff",
+        "shape": list(data.shape),
+        "voxel_size_mm": vs.tolist(),
+        "value_range": [float(data.min()), float(data.max())],
+        "units": units,
+    }
+    return _stack_from_affine(data, affine, units, source)
+
+
+def read_source(
+    source: str | Path,
+    *,
+    series_uid: str | None = None,
+    allow_modalities: Sequence[str] = ("CT",),
+    skip_corrupt: bool = False,
+    tiff_voxel_size_mm: float | Sequence[float] | None = None,
+) -> SliceStack:
+    """Dispatch on the input: ``.nii``/``.nii.gz`` file, ``.tif``/``.tiff`` file or folder of TIFFs, else DICOM."""
+    source = Path(source)
+    name = source.name.lower()
+    if not source.exists():
+        raise CtsplatError(f"input {source} does not exist; give a DICOM folder, a .nii/.nii.gz file or a TIFF stack")
+    if source.is_file():
+        if name.endswith((".nii", ".nii.gz")):
+            return read_nifti(source)
+        if name.endswith((".tif", ".tiff")):
+            return read_tiff_stack(source, tiff_voxel_size_mm)
+        raise CtsplatError(
+            f"input file {source} is not a .nii/.nii.gz or .tif stack; for DICOM give the folder holding the slices"
+        )
+    entries = [p for p in source.iterdir() if not p.name.startswith(".")]
+    if entries and all(p.is_file() and p.suffix.lower() in (".tif", ".tiff") for p in entries):
+        return read_tiff_stack(source, tiff_voxel_size_mm)
+    return read_dicom_series(
+        source, series_uid=series_uid, allow_modalities=allow_modalities, skip_corrupt=skip_corrupt
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Writing (phantom and tests)
+# --------------------------------------------------------------------------------------------------
+
+
+def write_dicom_series(
+    hu: np.ndarray,
+    out_dir: str | Path,
+    *,
+    spacing_mm: Sequence[float],
+    origin_lps: Sequence[float],
+    row_dir_lps: Sequence[float] = (1.0, 0.0, 0.0),
+    col_dir_lps: Sequence[float] = (0.0, 1.0, 0.0),
+    slice_positions_mm: Sequence[float] | None = None,
+    slice_step_lps: Sequence[float] | None = None,
+    modality: str = "CT",
+    uid_seed: str = "ctsplat",
+    patient_name: str = "Phantom^Ctsplat",
+    patient_id: str = "CTSPLAT-PHANTOM",
+    series_description: str = "ctsplat synthetic CT",
+    filename: str = "slice_{k:04d}.dcm",
+    intercept: float = -1024.0,
+) -> list[Path]:
+    """Write a volume of HU values as a real single-frame DICOM CT series (one file per slice).
+
+    Geometry (DICOM LPS, mm): pixel ``(row j, column i)`` of slice ``k`` lies at
+    ``IPP_k + i * spacing_mm[0] * row_dir + j * spacing_mm[1] * col_dir`` with
+    ``IPP_k = origin_lps + positions[k] * n`` (``n = row_dir × col_dir``) unless ``slice_step_lps``
+    (a full 3-vector per slice, e.g. for gantry tilt) is given: ``IPP_k = origin_lps + k * step``.
+    Values are stored as uint16 with ``RescaleIntercept = intercept`` (slope 1), so ``hu`` is
+    rounded to whole HU and must lie within ``[intercept, intercept + 65535]``.
+
+    Parameters
+    ----------
+    hu : ndarray, shape (I, J, K)
+        HU values indexed ``[column, row, slice]``.
+    spacing_mm : (3,) floats
+        Column spacing, row spacing, slice spacing (the last is used only when neither
+        ``slice_positions_mm`` nor ``slice_step_lps`` is given).
+
+    Returns
+    -------
+    list of Path
+        The files written, in slice order.
+    """
+    import pydicom
+    from pydicom.dataset import FileDataset, FileMetaDataset
+    from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, MRImageStorage, generate_uid
+
+    hu = np.asarray(hu)
+    if hu.ndim != 3:
+        raise CtsplatError(f"write_dicom_series needs a 3D array, got shape {hu.shape}")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    n_i, n_j, n_k = hu.shape
+    row = np.asarray(row_dir_lps, float)
+    col = np.asarray(col_dir_lps, float)
+    normal = np.cross(row, col)
+    origin = np.asarray(origin_lps, float)
+    if slice_step_lps is not None:
+        ipps = origin[None] + np.arange(n_k)[:, None] * np.asarray(slice_step_lps, float)[None]
+    else:
+        pos = np.arange(n_k) * float(spacing_mm[2]) if slice_positions_mm is None else np.asarray(slice_positions_mm)
+        ipps = origin[None] + np.asarray(pos, float)[:, None] * normal[None]
+    stored = np.rint(hu - intercept)
+    if stored.min() < 0 or stored.max() > 65535:
+        raise CtsplatError(f"HU values out of the storable range [{intercept}, {intercept + 65535}]")
+    stored = stored.astype(np.uint16)
+
+    def uid(*parts: object) -> str:
+        return generate_uid(entropy_srcs=[uid_seed, *map(str, parts)])
+
+    study, series, frame = uid("study"), uid("series"), uid("frame")
+    sop_class = CTImageStorage if modality.upper() == "CT" else MRImageStorage
+    paths = []
+    for k in range(n_k):
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = sop_class
+        meta.MediaStorageSOPInstanceUID = uid("instance", k)
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        path = out_dir / filename.format(k=k)
+        ds = FileDataset(str(path), {}, file_meta=meta, preamble=b"\0" * 128)
+        ds.SOPClassUID = sop_class
+        ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+        ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study, series, frame
+        ds.Modality = modality
+        ds.Manufacturer = "ctsplat"
+        ds.PatientName = patient_name
+        ds.PatientID = patient_id
+        ds.PatientPosition = "HFS"
+        ds.SeriesNumber = 1
+        ds.InstanceNumber = k + 1
+        ds.SeriesDescription = series_description
+        ds.ImageType = ["DERIVED", "SECONDARY", "AXIAL"]
+        ds.ImagePositionPatient = [f"{v:.6f}" for v in ipps[k]]
+        ds.ImageOrientationPatient = [f"{v:.8f}" for v in (*row, *col)]
+        ds.PixelSpacing = [f"{float(spacing_mm[1]):.6f}", f"{float(spacing_mm[0]):.6f}"]
+        ds.SliceThickness = f"{float(spacing_mm[2]):.6f}"
+        ds.SliceLocation = f"{float(ipps[k] @ normal):.6f}"
+        ds.Rows, ds.Columns = n_j, n_i
+        ds.SamplesPerPixel = 1
+        ds.PhotometricInterpretation = "MONOCHROME2"
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 0
+        ds.RescaleIntercept = f"{intercept:g}"
+        ds.RescaleSlope = "1"
+        ds.RescaleType = "HU"
+        ds.PixelData = np.ascontiguousarray(stored[:, :, k].T).tobytes()  # rows x columns
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            pydicom.dcmwrite(path, ds, enforce_file_format=True)
+        paths.append(path)
+    return paths
