@@ -662,6 +662,7 @@ def write_dicom_series(
     series_description: str = "ctsplat synthetic CT",
     filename: str = "slice_{k:04d}.dcm",
     intercept: float = -1024.0,
+    transfer_syntax: str | None = None,
 ) -> list[Path]:
     """Write a volume of HU values as a real single-frame DICOM CT series (one file per slice).
 
@@ -670,7 +671,9 @@ def write_dicom_series(
     ``IPP_k = origin_lps + positions[k] * n`` (``n = row_dir × col_dir``) unless ``slice_step_lps``
     (a full 3-vector per slice, e.g. for gantry tilt) is given: ``IPP_k = origin_lps + k * step``.
     Values are stored as uint16 with ``RescaleIntercept = intercept`` (slope 1), so ``hu`` is
-    rounded to whole HU and must lie within ``[intercept, intercept + 65535]``.
+    rounded to whole HU and must lie within ``[intercept, intercept + 65535]``. ``transfer_syntax``
+    (a UID, e.g. JPEG 2000 lossless ``1.2.840.10008.1.2.4.90``) compresses the pixel data with
+    pydicom's encoders (JPEG 2000 needs pylibjpeg-openjpeg and images of at least 32x32).
 
     Parameters
     ----------
@@ -749,6 +752,8 @@ def write_dicom_series(
         ds.PixelData = np.ascontiguousarray(stored[:, :, k].T).tobytes()  # rows x columns
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
+            if transfer_syntax is not None:
+                ds.compress(transfer_syntax)
             pydicom.dcmwrite(path, ds, enforce_file_format=True)
         paths.append(path)
     return paths

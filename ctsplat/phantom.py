@@ -1,0 +1,368 @@
+"""Built-in 3D Shepp–Logan head phantom: analytic ellipsoids in world mm, written as a real DICOM CT series.
+
+Parameterisation (the contract used for exact line integrals)
+-------------------------------------------------------------
+The phantom is a sum of solid ellipsoids with additive values::
+
+    r(x) = Σ_e value_e · 1[ ‖ diag(1 / semi_axes_e) · R_eᵀ (x − centre_e) ‖² ≤ 1 ]
+
+- ``x``, ``centre_e``: world position (mm) in the ctsplat world frame (RAS+, the NIfTI frame of
+  the ingested volume; see ``docs/conventions.md``). The phantom centre is the world origin.
+- ``semi_axes_e`` (mm): semi-axis lengths along the ellipsoid's own axes.
+- ``R_e`` (3x3 rotation, det +1): its *columns* are the ellipsoid's principal axes in world
+  coordinates, column ``m`` carrying ``semi_axes_e[m]``. (Shepp–Logan ellipsoids are rotated about
+  world z by ``phi``: ``R = [[cos φ, −sin φ, 0], [sin φ, cos φ, 0], [0, 0, 1]]``.)
+- ``value_e`` (dimensionless): additive attenuation **relative to water**, so ``r = μ / μ_water``:
+  air (outside) 0, water 1, the skull shell 2 (Kak & Slaney's table is defined this way).
+
+Units downstream:
+- HU written to the DICOM files: ``HU = 1000 (r − 1)`` (partial-volume averaged, rounded).
+- Attenuation (1/mm): ``μ(x) = μ_water · r(x)`` with the ``mu_water_per_mm`` used at ingestion
+  (default 0.019). A ray's exact line integral is ``∫ μ dl = μ_water Σ_e value_e · chord_e`` (mm).
+- After ingestion with the default ``intensity: attenuation``, the normalised volume equals
+  ``clip(r, 0, 1 + hu_max/1000) / (1 + hu_max/1000)``, i.e. ``μ / mu_scale_per_mm``.
+
+Geometry of the default phantom: Kak & Slaney's 3D head (Principles of Computerized Tomographic
+Imaging, 1988, p. 102) with normalised unit = ``scale_mm`` = 110 mm, giving a head of about
+152 mm (left–right) x 202 mm (antero–posterior) x 198 mm (cranio–caudal). Optional beads are small
+dense spheres (default radius 3 mm, value +2.0, i.e. ~2000 HU inside brain) at seeded random
+positions inside the brain, as fiducial markers for feature matching.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctsplat.io import LPS_TO_RAS, write_dicom_series
+from ctsplat.utils import CtsplatError, code_version
+
+__all__ = [
+    "Ellipsoid",
+    "PHANTOM_DEFAULTS",
+    "shepp_logan_ellipsoids",
+    "relative_attenuation",
+    "rasterize",
+    "write_phantom_dicom",
+    "load_phantom_ellipsoids",
+]
+
+log = logging.getLogger(__name__)
+
+#: Defaults of the ``phantom`` config section.
+PHANTOM_DEFAULTS: dict[str, Any] = {
+    "size": 128,
+    "fov_mm": 240.0,
+    "beads": True,
+    "n_beads": 12,
+    "bead_radius_mm": 3.0,
+    "seed": 0,
+    "variant": "kak_slaney",
+    "supersample": 2,
+}
+
+# Kak & Slaney 3D Shepp–Logan head, normalised units: semi-axes (a, b, c), centre (x, y, z),
+# rotation phi (degrees, about z), value relative to water.
+_KAK_SLANEY = [
+    ("skull", (0.6900, 0.920, 0.900), (0.00, 0.000, 0.000), 0.0, 2.00),
+    ("brain", (0.6624, 0.874, 0.880), (0.00, 0.000, 0.000), 0.0, -0.98),
+    ("ventricle_right", (0.4100, 0.160, 0.210), (-0.22, 0.000, -0.250), 108.0, -0.02),
+    ("ventricle_left", (0.3100, 0.110, 0.220), (0.22, 0.000, -0.250), 72.0, -0.02),
+    ("lesion_large", (0.2100, 0.250, 0.500), (0.00, 0.350, -0.250), 0.0, 0.02),
+    ("lesion_small", (0.0460, 0.046, 0.046), (0.00, 0.100, -0.250), 0.0, 0.02),
+    ("feature_1", (0.0460, 0.023, 0.020), (-0.08, -0.650, -0.250), 0.0, 0.01),
+    ("feature_2", (0.0460, 0.023, 0.020), (0.06, -0.650, -0.250), 90.0, 0.01),
+    ("feature_3", (0.0560, 0.040, 0.100), (0.06, -0.105, 0.625), 90.0, 0.02),
+    ("feature_4", (0.0560, 0.056, 0.100), (0.00, 0.100, 0.625), 0.0, -0.02),
+]
+# Same geometry, contrast of Yu, Ye & Wang (2004) scaled x2 so the skull stays at 2 x water.
+_HIGH_CONTRAST = [2.0, -1.6, -0.4, -0.4, 0.4, 0.4, 0.2, 0.2, 0.4, -0.4]
+
+
+@dataclass(frozen=True)
+class Ellipsoid:
+    """One solid ellipsoid of the phantom (see the module docstring for the exact definition).
+
+    Attributes
+    ----------
+    centre_mm : ndarray, shape (3,)
+        Centre in world RAS (mm).
+    semi_axes_mm : ndarray, shape (3,)
+        Semi-axis lengths (mm) along the columns of ``rotation``.
+    rotation : ndarray, shape (3, 3)
+        Columns = principal axes in world coordinates (orthonormal, det +1).
+    value : float
+        Additive attenuation relative to water (μ / μ_water).
+    name : str
+    """
+
+    centre_mm: np.ndarray
+    semi_axes_mm: np.ndarray
+    rotation: np.ndarray
+    value: float
+    name: str = ""
+
+    def quadratic_form(self) -> np.ndarray:
+        """``Q = R diag(1/s²) Rᵀ`` (1/mm²): ``x`` is inside iff ``(x − c)ᵀ Q (x − c) ≤ 1``."""
+        return self.rotation @ np.diag(1.0 / np.asarray(self.semi_axes_mm, float) ** 2) @ self.rotation.T
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """Boolean mask of ``points`` (..., 3) (world mm) inside the ellipsoid (boundary included)."""
+        d = np.asarray(points, float) - self.centre_mm
+        body = d @ self.rotation / self.semi_axes_mm
+        return np.einsum("...i,...i->...", body, body) <= 1.0
+
+    def bounding_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned world bounds (lo, hi), each (3,): ``c ± sqrt(diag(R diag(s²) Rᵀ))``."""
+        half = np.sqrt(np.sum((self.rotation * self.semi_axes_mm[None, :]) ** 2, axis=1))
+        return self.centre_mm - half, self.centre_mm + half
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "centre_mm": [float(x) for x in self.centre_mm],
+            "semi_axes_mm": [float(x) for x in self.semi_axes_mm],
+            "rotation": np.asarray(self.rotation, float).tolist(),
+            "value": float(self.value),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Ellipsoid:
+        return cls(
+            centre_mm=np.asarray(d["centre_mm"], float),
+            semi_axes_mm=np.asarray(d["semi_axes_mm"], float),
+            rotation=np.asarray(d["rotation"], float),
+            value=float(d["value"]),
+            name=str(d.get("name", "")),
+        )
+
+
+def _rot_z(phi_deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(phi_deg)), np.sin(np.radians(phi_deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def shepp_logan_ellipsoids(
+    *,
+    scale_mm: float = 110.0,
+    beads: bool = True,
+    n_beads: int = 12,
+    bead_radius_mm: float = 3.0,
+    bead_value: float = 2.0,
+    seed: int = 0,
+    variant: str = "kak_slaney",
+) -> list[Ellipsoid]:
+    """The analytic 3D Shepp–Logan head (plus optional beads) in world mm; see the module docstring.
+
+    Parameters
+    ----------
+    scale_mm : float
+        Millimetres per normalised phantom unit (110 -> a head about 200 mm long).
+    beads : bool
+        Add ``n_beads`` spheres of radius ``bead_radius_mm`` and value ``bead_value`` at seeded
+        random positions inside the brain (at least 6 radii apart).
+    variant : {"kak_slaney", "high_contrast"}
+        Kak & Slaney's physical values (skull 2.0, brain 1.02, ventricles 1.00 x water), or the same
+        geometry with Yu–Ye–Wang contrast x2 (brain 0.4, ventricles 0.0).
+
+    Returns
+    -------
+    list of Ellipsoid
+        Shepp–Logan ellipsoids first, then beads (names ``bead_00``...).
+    """
+    if variant not in ("kak_slaney", "high_contrast"):
+        raise CtsplatError(f"phantom variant {variant!r} unknown; allowed: kak_slaney, high_contrast")
+    out = []
+    for m, (name, axes, centre, phi, value) in enumerate(_KAK_SLANEY):
+        out.append(
+            Ellipsoid(
+                centre_mm=np.asarray(centre, float) * scale_mm,
+                semi_axes_mm=np.asarray(axes, float) * scale_mm,
+                rotation=_rot_z(phi),
+                value=float(value if variant == "kak_slaney" else _HIGH_CONTRAST[m]),
+                name=name,
+            )
+        )
+    if beads and n_beads > 0:
+        rng = np.random.default_rng(seed)
+        brain = out[1]
+        limit = brain.semi_axes_mm * 0.8
+        min_dist = 6.0 * bead_radius_mm
+        centres: list[np.ndarray] = []
+        for _ in range(100_000):
+            p = rng.uniform(-limit, limit)
+            if np.sum((p / limit) ** 2) > 1.0:
+                continue
+            if all(np.linalg.norm(p - q) >= min_dist for q in centres):
+                centres.append(p)
+            if len(centres) == n_beads:
+                break
+        if len(centres) < n_beads:
+            raise CtsplatError(f"cannot place {n_beads} beads of radius {bead_radius_mm} mm; use fewer or smaller")
+        for b, c in enumerate(centres):
+            out.append(Ellipsoid(c, np.full(3, float(bead_radius_mm)), np.eye(3), float(bead_value), f"bead_{b:02d}"))
+    return out
+
+
+def relative_attenuation(points: np.ndarray, ellipsoids: Sequence[Ellipsoid]) -> np.ndarray:
+    """``r(x) = μ / μ_water`` at world points ``(..., 3)`` (mm): the sum of the containing values."""
+    points = np.asarray(points, float)
+    out = np.zeros(points.shape[:-1])
+    for e in ellipsoids:
+        out += e.value * e.contains(points)
+    return out
+
+
+def rasterize(
+    ellipsoids: Sequence[Ellipsoid], shape: Sequence[int], affine: np.ndarray, *, supersample: int = 2
+) -> np.ndarray:
+    """Voxel averages of ``r = μ / μ_water`` on a grid, by ``supersample³`` point samples per voxel.
+
+    Parameters
+    ----------
+    shape : (3,) ints
+        Grid shape (I, J, K).
+    affine : ndarray, shape (4, 4)
+        Voxel index -> world RAS mm (any orientation); voxel ``(i, j, k)`` covers index range
+        ``[i − ½, i + ½]`` etc.; sub-samples sit at offsets ``(m + ½)/s − ½``, ``m = 0..s−1``.
+
+    Returns
+    -------
+    ndarray, shape (I, J, K), float32
+    """
+    shape = tuple(int(x) for x in shape)
+    affine = np.asarray(affine, float)
+    s = int(supersample)
+    offs = (np.arange(s) + 0.5) / s - 0.5
+    sub = [(np.arange(n)[:, None] + offs[None, :]).ravel() for n in shape]  # sub-sample index coordinates
+    acc = np.zeros([n * s for n in shape], np.float32)
+    inv = np.linalg.inv(affine)
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
+    for e in ellipsoids:
+        lo, hi = e.bounding_box()
+        box = lo + corners * (hi - lo)
+        idx = box @ inv[:3, :3].T + inv[:3, 3]
+        rng = [
+            (int(np.searchsorted(c, idx[:, a].min(), "left")), int(np.searchsorted(c, idx[:, a].max(), "right")))
+            for a, c in enumerate(sub)
+        ]
+        if any(a >= b for a, b in rng):
+            continue
+        q = e.quadratic_form()
+        ci = [c[a:b] for c, (a, b) in zip(sub, rng, strict=True)]
+        # d = a_i + b_j + c_k (world offsets from the centre, separable in the index axes), so
+        # dᵀQd = aQa + bQb + cQc + 2 aQb + 2 aQc + 2 bQc: six broadcast adds instead of a 3D quadratic form.
+        a = ci[0][:, None] * affine[:3, 0][None, :]
+        b = ci[1][:, None] * affine[:3, 1][None, :]
+        c = ci[2][:, None] * affine[:3, 2][None, :] + (affine[:3, 3] - e.centre_mm)[None, :]
+        qa, qb, qc = (np.einsum("ni,ij,nj->n", x, q, x) for x in (a, b, c))
+        ab, ac, bc = 2 * a @ q @ b.T, 2 * a @ q @ c.T, 2 * b @ q @ c.T
+        base = qa[:, None] + qb[None, :] + ab
+        step = max(1, int(2_000_000 // max(1, base.size)))
+        for k0 in range(0, len(ci[2]), step):
+            k1 = min(len(ci[2]), k0 + step)
+            val = (
+                base[:, :, None]
+                + (qc[k0:k1][None, None, :] + ac[:, None, k0:k1] + bc[None, :, k0:k1])
+            ) <= 1.0
+            acc[rng[0][0]:rng[0][1], rng[1][0]:rng[1][1], rng[2][0] + k0:rng[2][0] + k1] += np.float32(e.value) * val
+    return acc.reshape(shape[0], s, shape[1], s, shape[2], s).mean(axis=(1, 3, 5), dtype=np.float32)
+
+
+def write_phantom_dicom(
+    out_dir: str | Path,
+    *,
+    size: int = 128,
+    beads: bool = True,
+    seed: int = 0,
+    fov_mm: float = 240.0,
+    n_beads: int = 12,
+    bead_radius_mm: float = 3.0,
+    variant: str = "kak_slaney",
+    supersample: int = 2,
+) -> Path:
+    """Write the Shepp–Logan head as a real DICOM CT series (``size`` slices of ``size²`` pixels).
+
+    The series is axial, head-first-supine: ImageOrientationPatient ``[1,0,0, 0,1,0]`` (LPS), voxel
+    ``fov_mm / size`` mm isotropic, the grid centred on the phantom centre, which ingestion maps to
+    the world origin (RAS). HU are partial-volume averages (``supersample³`` samples per voxel),
+    stored as uint16 with RescaleIntercept −1024. ``out_dir/phantom.json`` lists the ellipsoids in
+    world mm (see :func:`load_phantom_ellipsoids`). The folder is built under a temporary name and
+    renamed into place (an existing ``out_dir`` is replaced).
+
+    Returns
+    -------
+    Path
+        ``out_dir``.
+    """
+    if not isinstance(size, int) or size < 8:
+        raise CtsplatError(f"phantom size must be an integer >= 8, got {size!r}")
+    if not fov_mm > 0:
+        raise CtsplatError(f"phantom fov_mm must be > 0, got {fov_mm!r}")
+    ellipsoids = shepp_logan_ellipsoids(
+        beads=beads, n_beads=n_beads, bead_radius_mm=bead_radius_mm, seed=seed, variant=variant
+    )
+    h = float(fov_mm) / size
+    origin_lps = np.full(3, -(size - 1) / 2 * h)
+    affine_lps = np.eye(4)
+    affine_lps[:3, :3] = np.eye(3) * h
+    affine_lps[:3, 3] = origin_lps
+    affine_ras = np.eye(4)
+    affine_ras[:3, :] = LPS_TO_RAS @ affine_lps[:3, :]
+    r = rasterize(ellipsoids, (size, size, size), affine_ras, supersample=supersample)
+    hu = 1000.0 * (r.astype(np.float64) - 1.0)
+
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
+    try:
+        write_dicom_series(
+            hu, tmp, spacing_mm=(h, h, h), origin_lps=origin_lps, uid_seed=f"ctsplat-phantom-{seed}-{size}-{variant}",
+            series_description=f"Shepp-Logan head phantom {variant} {size}^3{' + beads' if beads else ''}",
+        )
+        info = {
+            "format_version": 1,
+            "created_by": "ctsplat.phantom.write_phantom_dicom",
+            "code_version": code_version(),
+            "frame": "world RAS mm; phantom centre at the origin; ingested volumes share this frame",
+            "value_units": "additive attenuation relative to water (mu / mu_water); HU = 1000 * (sum - 1)",
+            "inside_test": "|| diag(1/semi_axes) @ rotation.T @ (x - centre) ||^2 <= 1 (rotation columns = axes)",
+            "parameters": {
+                "size": size, "fov_mm": fov_mm, "voxel_mm": h, "beads": beads, "n_beads": n_beads if beads else 0,
+                "bead_radius_mm": bead_radius_mm, "seed": seed, "variant": variant, "supersample": supersample,
+            },
+            "ellipsoids": [e.to_dict() for e in ellipsoids],
+        }
+        (tmp / "phantom.json").write_text(json.dumps(info, indent=2) + "\n")
+        os.chmod(tmp, 0o755)
+        if out_dir.exists():
+            trash = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".old", dir=out_dir.parent))
+            os.replace(out_dir, trash / "old")
+            os.replace(tmp, out_dir)
+            shutil.rmtree(trash, ignore_errors=True)
+        else:
+            os.replace(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    log.info("wrote Shepp-Logan phantom %d^3 (%.3f mm voxels, %d ellipsoids) to %s", size, h, len(ellipsoids), out_dir)
+    return out_dir
+
+
+def load_phantom_ellipsoids(path: str | Path) -> list[Ellipsoid]:
+    """Ellipsoids from a phantom folder's ``phantom.json`` (or that file itself), world mm."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "phantom.json"
+    if not path.exists():
+        raise CtsplatError(f"{path} not found; write the phantom with `ctsplat phantom OUT_DIR` first")
+    return [Ellipsoid.from_dict(d) for d in json.loads(path.read_text())["ellipsoids"]]
