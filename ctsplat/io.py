@@ -187,9 +187,8 @@ def _dcmread(path: Path, *, stop_before_pixels: bool) -> Any:
 
 
 def _is_image_sop(ds: Any) -> bool:
-    sop = ds.get("SOPClassUID") or getattr(getattr(ds, "file_meta", None), "MediaStorageSOPClassUID", None)
-    name = getattr(sop, "name", "") or ""
-    return "Image Storage" in name
+    sops = (ds.get("SOPClassUID"), getattr(getattr(ds, "file_meta", None), "MediaStorageSOPClassUID", None))
+    return any("Image Storage" in (getattr(sop, "name", "") or "") for sop in sops)
 
 
 def _walk_files(folder: Path) -> list[Path]:

@@ -1,0 +1,365 @@
+"""DICOM / NIfTI / TIFF reading on small synthetic series written with pydicom (fast), incl. every bad input."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pydicom
+import pytest
+import tifffile
+
+from ctsplat.io import (
+    LPS_TO_RAS,
+    find_dicom_series,
+    read_dicom_series,
+    read_nifti,
+    read_source,
+    read_tiff_stack,
+    write_dicom_series,
+)
+from ctsplat.utils import CtsplatError
+from ctsplat.volume import ingest, resample_stack
+
+F = LPS_TO_RAS
+
+
+def linear_hu(p_lps: np.ndarray) -> np.ndarray:
+    """An HU field linear in LPS world position: geometry errors of half a voxel show up as >= 2 HU."""
+    return 10.0 * p_lps[..., 0] + 7.0 * p_lps[..., 1] + 5.0 * p_lps[..., 2] + 200.0
+
+
+def rotation(axis, deg):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    a = np.radians(deg)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(a) * k + (1 - np.cos(a)) * k @ k
+
+
+def make_series(
+    folder: Path,
+    *,
+    shape=(8, 6, 5),
+    spacing=(1.5, 2.0, 2.5),
+    origin=(-5.0, 3.0, 20.0),
+    row=(1.0, 0.0, 0.0),
+    col=(0.0, 1.0, 0.0),
+    positions=None,
+    step=None,
+    field=linear_hu,
+    **kw,
+) -> list[Path]:
+    """Write a series whose HU = ``field(LPS position)`` at every pixel centre."""
+    row, col = np.asarray(row, float), np.asarray(col, float)
+    n_i, n_j, n_k = shape
+    normal = np.cross(row, col)
+    if step is not None:
+        ipps = np.asarray(origin)[None] + np.arange(n_k)[:, None] * np.asarray(step)[None]
+    else:
+        pos = np.arange(n_k) * spacing[2] if positions is None else np.asarray(positions, float)
+        ipps = np.asarray(origin)[None] + pos[:, None] * normal[None]
+    i, j = np.meshgrid(np.arange(n_i), np.arange(n_j), indexing="ij")
+    pts = (
+        ipps[None, None, :, :]
+        + (i[..., None, None] * spacing[0]) * row
+        + (j[..., None, None] * spacing[1]) * col
+    )
+    hu = field(pts)
+    return write_dicom_series(
+        hu, folder, spacing_mm=spacing, origin_lps=origin, row_dir_lps=row, col_dir_lps=col,
+        slice_positions_mm=positions, slice_step_lps=step, **kw,
+    )
+
+
+def assert_fails_cleanly(source, tmp_path: Path, match: str, **kw) -> str:
+    """Ingest must raise a one-line CtsplatError matching ``match`` and leave the output folder empty."""
+    out = tmp_path / "out"
+    with pytest.raises(CtsplatError, match=match) as err:
+        ingest(source, out / "volume.nii.gz", {"grid": 8}, **kw)
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert not out.exists() or not any(out.iterdir()), list(out.iterdir())
+    return msg
+
+
+# ------------------------------------------------------------------------------------------ geometry
+
+
+def test_reader_geometry_matches_written_positions(tmp_path):
+    files = make_series(tmp_path / "s")
+    stack = read_dicom_series(tmp_path / "s")
+    assert stack.data.shape == (8, 6, 5)
+    for k, f in enumerate(files):
+        ds = pydicom.dcmread(f)
+        ipp_ras = F @ np.asarray(ds.ImagePositionPatient, float)
+        np.testing.assert_allclose(stack.origins[k], ipp_ras, atol=1e-5)
+        hu = ds.pixel_array.astype(float) * float(ds.RescaleSlope) + float(ds.RescaleIntercept)
+        np.testing.assert_array_equal(stack.data[:, :, k], hu.T)
+    np.testing.assert_allclose(stack.row_dir, [-1, 0, 0])
+    np.testing.assert_allclose(stack.col_dir, [0, -1, 0])
+    assert stack.spacing_ij == (1.5, 2.0)
+    assert stack.units == "hu"
+
+
+def test_order_is_by_position_not_filename_or_instance_number(tmp_path):
+    files = make_series(tmp_path / "s")
+    ref = read_dicom_series(tmp_path / "s")
+    # scramble: reversed file names, wrong InstanceNumber, identical SliceLocation
+    other = tmp_path / "t"
+    other.mkdir()
+    for k, f in enumerate(files):
+        ds = pydicom.dcmread(f)
+        ds.InstanceNumber = 1
+        ds.SliceLocation = "0"
+        ds.save_as(other / f"z{len(files) - k:02d}.dcm")
+    stack = read_dicom_series(other)
+    np.testing.assert_array_equal(stack.data, ref.data)
+    np.testing.assert_allclose(stack.origins, ref.origins)
+
+
+def world_points(affine, shape):
+    idx = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1)
+    return idx @ affine[:3, :3].T + affine[:3, 3]
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["axial", "nonuniform", "oblique", "tilt", "feet_first_reversed"],
+)
+def test_resampled_values_match_world_field(tmp_path, case):
+    """The resampled volume at each output voxel centre equals the analytic field at that world point.
+
+    Linear interpolation reproduces a linear field exactly, so any error in ordering, spacing,
+    LPS->RAS conversion, oblique orientation or tilt shows up as a mismatch (values are stored
+    rounded to 1 HU, hence the 0.5 HU tolerance).
+    """
+    kw: dict = {}
+    if case == "nonuniform":
+        kw["positions"] = [0.0, 2.5, 5.0, 6.0, 9.5]
+    elif case == "oblique":
+        r = rotation([1, 2, 0.5], 25)
+        kw.update(row=r @ [1, 0, 0], col=r @ [0, 1, 0])
+    elif case == "tilt":  # gantry tilt 15 deg: each slice drifts along the column direction
+        kw["step"] = np.array([0.0, 2.5 * np.tan(np.radians(15)), 2.5])
+    elif case == "feet_first_reversed":
+        kw.update(row=(-1.0, 0.0, 0.0), col=(0.0, 1.0, 0.0))
+    make_series(tmp_path / "s", **kw)
+    stack = read_dicom_series(tmp_path / "s")
+    if case == "tilt":
+        assert stack.tilt_deg == pytest.approx(15.0, abs=1e-3)
+    vol, affine, _ = resample_stack(stack, voxel_size_mm=1.0)
+    pts = world_points(affine, vol.shape)
+    expected = linear_hu(pts @ F)  # RAS -> LPS is the same flip
+    # interior: points whose in-plane and along-normal coordinates lie between source voxel centres
+    u, v, n = stack.row_dir, stack.col_dir, stack.normal
+    inside = (pts @ n >= stack.positions_mm[0] - 1e-6) & (pts @ n <= stack.positions_mm[-1] + 1e-6)
+    for o in stack.origins:
+        cu, cv = (pts - o) @ u, (pts - o) @ v
+        inside &= (cu >= -1e-6) & (cu <= (stack.data.shape[0] - 1) * stack.spacing_ij[0] + 1e-6)
+        inside &= (cv >= -1e-6) & (cv <= (stack.data.shape[1] - 1) * stack.spacing_ij[1] + 1e-6)
+    assert inside.sum() > 20
+    err = np.abs(vol - expected)[inside]
+    assert err.max() <= 0.5 + 1e-3, err.max()
+    # output grid is RAS-closest with a positive diagonal (no flips left)
+    assert np.all(np.diag(affine[:3, :3]) > 0)
+
+
+def test_native_grid_keeps_source_voxel_centres(tmp_path):
+    make_series(tmp_path / "s")
+    stack = read_dicom_series(tmp_path / "s")
+    vol, affine, info = resample_stack(stack)
+    assert info["mode"] == "native spacing"
+    np.testing.assert_allclose(sorted(np.linalg.norm(affine[:3, :3], axis=0)), sorted([1.5, 2.0, 2.5]))
+    # the source pixel (i, j, k) is an exact voxel of the output, with the same value
+    for i, j, k in [(0, 0, 0), (3, 2, 4), (7, 5, 1)]:
+        p = stack.origins[k] + i * 1.5 * stack.row_dir + j * 2.0 * stack.col_dir
+        idx = np.linalg.solve(affine[:3, :3], p - affine[:3, 3])
+        np.testing.assert_allclose(idx, np.round(idx), atol=1e-6)
+        assert vol[tuple(np.round(idx).astype(int))] == pytest.approx(stack.data[i, j, k], abs=1e-3)
+
+
+def test_grid_mode_is_isotropic_cube_padded_with_air(tmp_path):
+    make_series(tmp_path / "s", field=lambda p: np.zeros(p.shape[:-1]) + 40.0)
+    stack = read_dicom_series(tmp_path / "s")
+    stack.data[0, 0, 0] = -1000.0  # air sample sets the fill value
+    vol, affine, _ = resample_stack(stack, grid=16)
+    assert vol.shape == (16, 16, 16)
+    sp = np.linalg.norm(affine[:3, :3], axis=0)
+    np.testing.assert_allclose(sp, sp[0])
+    # largest extent (slices: 5 * 2.5 = 12.5 mm vs 12 and 12 mm in-plane) fits exactly
+    assert sp[0] == pytest.approx(12.5 / 16)
+    assert vol.min() == pytest.approx(-1000.0)  # padding outside the scan is air
+
+
+# ------------------------------------------------------------------------------------------ other formats
+
+
+def test_nifti_input_roundtrip_and_flipped_slice_axis(tmp_path):
+    rng = np.random.default_rng(0)
+    data = rng.normal(size=(6, 5, 4)).astype(np.float32) * 100
+    aff = np.array([[0, 0, 2.0, -3], [1.5, 0, 0, 4], [0, -1.2, 0, 7], [0, 0, 0, 1]])
+    nib.save(nib.Nifti1Image(data, aff), tmp_path / "x.nii.gz")
+    stack = read_nifti(tmp_path / "x.nii.gz")
+    # every voxel keeps its world position
+    for i, j, k in [(0, 0, 0), (5, 4, 3), (2, 1, 3)]:
+        p = aff[:3, :3] @ [i, j, k] + aff[:3, 3]
+        kk = int(np.argmin(np.abs(stack.positions_mm - p @ stack.normal)))
+        q = stack.origins[kk] + i * stack.spacing_ij[0] * stack.row_dir + j * stack.spacing_ij[1] * stack.col_dir
+        np.testing.assert_allclose(q, p, atol=1e-6)
+        assert stack.data[i, j, kk] == data[i, j, k]
+    assert np.all(np.diff(stack.positions_mm) > 0)
+    vol, affine, _ = resample_stack(stack)
+    # native resampling of a regular grid is the identity up to axis permutation/flip
+    np.testing.assert_allclose(np.sort(vol.ravel()), np.sort(data.ravel()), atol=1e-3)
+
+
+def test_tiff_stack_file_and_folder(tmp_path):
+    arr = np.arange(4 * 5 * 6, dtype=np.uint16).reshape(4, 5, 6)  # (Z, Y, X)
+    tifffile.imwrite(tmp_path / "stack.tif", arr, photometric="minisblack")
+    folder = tmp_path / "slices"
+    folder.mkdir()
+    for z in range(4):  # natural order: 2 < 10
+        tifffile.imwrite(folder / f"img_{[1, 2, 10, 11][z]}.tif", arr[z])
+    for src in (tmp_path / "stack.tif", folder):
+        stack = read_source(src, tiff_voxel_size_mm=(0.5, 0.6, 0.7))
+        assert stack.units == "raw"
+        np.testing.assert_array_equal(stack.data, arr.transpose(2, 1, 0))
+        assert stack.spacing_ij == (0.5, 0.6)
+        np.testing.assert_allclose(np.diff(stack.positions_mm), 0.7)
+    with pytest.raises(CtsplatError, match="voxel size"):
+        read_tiff_stack(tmp_path / "stack.tif", None)
+
+
+# ------------------------------------------------------------------------------------------ compressed
+
+
+def test_jpeg2000_series_decodes(tmp_path):
+    pytest.importorskip("openjpeg")
+    make_series(tmp_path / "plain", shape=(32, 32, 3))
+    make_series(tmp_path / "j2k", shape=(32, 32, 3), transfer_syntax="1.2.840.10008.1.2.4.90")
+    a, b = read_dicom_series(tmp_path / "plain"), read_dicom_series(tmp_path / "j2k")
+    assert "JPEG 2000" in b.source["transfer_syntax"]
+    np.testing.assert_array_equal(a.data, b.data)
+
+
+def test_compressed_without_decoder_names_the_package(tmp_path, monkeypatch):
+    pytest.importorskip("openjpeg")
+    from pydicom.pixels.decoders.base import Decoder
+
+    make_series(tmp_path / "j2k", shape=(32, 32, 3), transfer_syntax="1.2.840.10008.1.2.4.90")
+    monkeypatch.setattr(Decoder, "is_available", property(lambda self: False))
+    msg = assert_fails_cleanly(tmp_path / "j2k", tmp_path, "no decoder")
+    assert "pylibjpeg-openjpeg" in msg
+
+
+# ------------------------------------------------------------------------------------------ bad input
+
+
+def test_missing_input_and_empty_folder(tmp_path):
+    (tmp_path / "empty").mkdir()
+    assert_fails_cleanly(tmp_path / "empty", tmp_path, "is empty")
+    assert_fails_cleanly(tmp_path / "nope", tmp_path, "does not exist")
+
+
+def test_non_dicom_files_only(tmp_path):
+    d = tmp_path / "junk"
+    d.mkdir()
+    (d / "notes.txt").write_text("not a scan\n" * 20)
+    (d / "image.bin").write_bytes(bytes(range(256)) * 4)
+    assert_fails_cleanly(d, tmp_path, "no DICOM image files")
+
+
+@pytest.mark.parametrize("cut", ["pixels", "header"])
+def test_truncated_file_named_and_skippable(tmp_path, caplog, cut):
+    files = make_series(tmp_path / "s", shape=(8, 6, 6))
+    bad = files[2]
+    raw = bad.read_bytes()
+    bad.write_bytes(raw[:-40] if cut == "pixels" else raw[:400])
+    msg = assert_fails_cleanly(tmp_path / "s", tmp_path, "corrupt or truncated")
+    assert str(bad) in msg and "skip" in msg
+    with caplog.at_level(logging.WARNING, logger="ctsplat.io"):
+        vol = ingest(tmp_path / "s", tmp_path / "ok" / "volume.nii.gz", {"grid": 8}, skip_corrupt=True)
+    assert any(str(bad) in r.getMessage() for r in caplog.records)
+    assert vol.meta["source"]["n_slices"] == 5
+    assert vol.meta["source"]["n_files_skipped"] == 1
+
+
+def test_mixed_series_without_choice_lists_them(tmp_path):
+    make_series(tmp_path / "mix" / "a", uid_seed="a")
+    make_series(tmp_path / "mix" / "b", uid_seed="b", filename="b_{k:04d}.dcm")
+    series = find_dicom_series(tmp_path / "mix")
+    assert len(series) == 2
+    msg = assert_fails_cleanly(tmp_path / "mix", tmp_path, "no unique largest")
+    for s in series:
+        assert s.uid in msg
+    stack = read_dicom_series(tmp_path / "mix", series_uid=series[1].uid)
+    assert stack.data.shape[2] == 5
+
+
+def test_mixed_series_picks_largest_with_warning(tmp_path, caplog):
+    make_series(tmp_path / "mix" / "a", uid_seed="a")
+    make_series(tmp_path / "mix" / "b", uid_seed="b", shape=(8, 6, 3))
+    with caplog.at_level(logging.WARNING, logger="ctsplat.io"):
+        stack = read_dicom_series(tmp_path / "mix")
+    assert stack.data.shape[2] == 5
+    assert any("several series" in r.getMessage() for r in caplog.records)
+
+
+def test_missing_image_position(tmp_path):
+    files = make_series(tmp_path / "s")
+    ds = pydicom.dcmread(files[3])
+    del ds.ImagePositionPatient
+    ds.save_as(files[3])
+    msg = assert_fails_cleanly(tmp_path / "s", tmp_path, "ImagePositionPatient")
+    assert str(files[3]) in msg
+
+
+def test_single_slice(tmp_path):
+    make_series(tmp_path / "s", shape=(8, 6, 1))
+    assert_fails_cleanly(tmp_path / "s", tmp_path, "single slice")
+
+
+def test_inconsistent_rows_columns(tmp_path):
+    make_series(tmp_path / "s", uid_seed="same")
+    make_series(tmp_path / "s", uid_seed="same", shape=(7, 6, 1), origin=(-5.0, 3.0, 40.0), filename="odd_{k}.dcm")
+    assert_fails_cleanly(tmp_path / "s", tmp_path, "inconsistent slice size")
+
+
+def test_inconsistent_pixel_spacing(tmp_path):
+    files = make_series(tmp_path / "s")
+    ds = pydicom.dcmread(files[1])
+    ds.PixelSpacing = ["2.0", "1.0"]
+    ds.save_as(files[1])
+    assert_fails_cleanly(tmp_path / "s", tmp_path, "inconsistent PixelSpacing")
+
+
+def test_duplicate_positions_name_both_files(tmp_path):
+    files = make_series(tmp_path / "s")
+    shutil.copy(files[2], tmp_path / "s" / "copy_of_2.dcm")
+    msg = assert_fails_cleanly(tmp_path / "s", tmp_path, "duplicate slice position")
+    assert str(files[2]) in msg and "copy_of_2.dcm" in msg
+
+
+def test_mr_rejected_unless_allowed(tmp_path):
+    make_series(tmp_path / "mr", modality="MR")
+    msg = assert_fails_cleanly(tmp_path / "mr", tmp_path, "MR")
+    assert "--allow-modality" in msg
+    stack = read_dicom_series(tmp_path / "mr", allow_modalities=("CT", "MR"))
+    assert stack.units == "raw"
+    with pytest.raises(CtsplatError, match="needs HU"):
+        ingest(tmp_path / "mr", tmp_path / "o" / "v.nii.gz", {"intensity": "window"}, allow_modalities=("MR",))
+    vol = ingest(tmp_path / "mr", tmp_path / "o" / "v.nii.gz", {"grid": 8}, allow_modalities=("MR",))
+    assert vol.meta["intensity"]["kind"] == "minmax_normalised"
+    assert 0.0 <= vol.data.min() and vol.data.max() <= 1.0
+
+
+def test_different_orientations_rejected(tmp_path):
+    files = make_series(tmp_path / "s")
+    ds = pydicom.dcmread(files[4])
+    r = rotation([0, 0, 1], 10)
+    ds.ImageOrientationPatient = [f"{x:.6f}" for x in (*(r @ [1, 0, 0]), *(r @ [0, 1, 0]))]
+    ds.save_as(files[4])
+    assert_fails_cleanly(tmp_path / "s", tmp_path, "different ImageOrientationPatient")
