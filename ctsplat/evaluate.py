@@ -297,7 +297,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto", 
     if sel is None:
         raise CtsplatError(f"unknown split {split!r}; allowed: test, val, train")
     rk = train_mod.render_kwargs(cfg, g, scene)
-    preds = render_views(g, scene.camera, sel.Rs, sel.ts, rk)
+    preds = render_views(g, sel.camera, sel.Rs, sel.ts, rk)
     vm = view_metrics(preds, sel.images, with_lpips=True)
     vol = voxelize_model(g, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
     res = {

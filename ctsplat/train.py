@@ -953,9 +953,8 @@ def _finalize(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: Pat
     uses_ref = cfg["init"] == "volume"
     g = as_gaussians({k: v.detach() for k, v in state.params.items()})
     g.meta.update(config_hash=chash, uses_reference_volume=uses_ref, init=cfg["init"], compositor=cfg["compositor"])
-    rk = {"compositor": cfg["compositor"], "mip_2d": bool(cfg["mip"])}
-    if cfg["mip"]:
-        rk["filter_3d_var"] = state.filter_var
+    # final 3D filter from the final means (what ``evaluate`` recomputes from model.pt)
+    rk = render_kwargs(cfg, g, scene)
     test = scene.test
     preds = ev.render_views(g, test.camera, test.Rs, test.ts, rk)
     vm = ev.view_metrics(preds, test.images, with_lpips=True)

@@ -1,0 +1,441 @@
+"""Training on a tiny scene: outputs and log format, determinism, resume after a kill, NaN guard, densification,
+view sampling, init strategies, poses: colmap, and bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ctsplat import train as tr
+from ctsplat.utils import CtsplatError
+
+N = 20  # voxels per side
+MU = 0.02  # mu_scale_per_mm
+
+
+def _phantom() -> tuple[np.ndarray, np.ndarray]:
+    x = np.stack(np.meshgrid(*[np.arange(N)] * 3, indexing="ij"), -1).astype(float)
+    c = (N - 1) / 2
+    outer = np.linalg.norm((x - c) / np.array([7.0, 6.0, 5.0]), axis=-1) < 1
+    inner = np.linalg.norm((x - np.array([7.0, 9.0, 10.0])) / 2.5, axis=-1) < 1
+    data = (0.6 * outer + 0.4 * inner).astype(np.float32)
+    aff = np.diag([2.0, 2.0, 2.0, 1.0])
+    aff[:3, 3] = -19.0
+    return data, aff
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory) -> Path:
+    from ctsplat.projector import render_radiographs
+    from ctsplat.volume import Volume, save_volume
+
+    root = tmp_path_factory.mktemp("scene")
+    data, aff = _phantom()
+    save_volume(Volume(data, aff, {"volume_id": "tiny01", "intensity": {"mu_scale_per_mm": MU}}),
+                root / "volume.nii.gz")
+    render_radiographs(root / "volume.nii.gz", root / "rad",
+                       {"detector_width": 24, "detector_height": 24, "n_views": 12, "device": "cpu"})
+    return root
+
+
+def _cfg(scene: Path, **kw) -> dict:
+    cfg = {
+        "volume": str(scene / "volume.nii.gz"), "radiographs": str(scene / "rad"), "init": "volume",
+        "n_init": 300, "iterations": 30, "eval_every": 10, "checkpoint_every": 10, "device": "cpu",
+        "densify": {"interval": 10, "start": 10}, "figures": False, "fps_width": 32, "fps_height": 18,
+        "progress": False,
+    }
+    cfg.update(kw)
+    return cfg
+
+
+def _metric_rows(path: Path) -> list[tuple]:
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    drop = {"timestamp", "iters_per_s"}
+    return [tuple((k, v) for k, v in r.items() if k not in drop) for r in rows]
+
+
+@pytest.fixture(scope="module")
+def full_run(scene_dir: Path, tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("run_full")
+    res = tr.train(_cfg(scene_dir, figures=True, turntable_frames=4), out)
+    return out, res
+
+
+# ------------------------------------------------------------------------------------------ outputs
+def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
+    out, res = full_run
+    with open(out / "train_log.csv", newline="") as fh:
+        header = next(csv.reader(fh))
+    assert header[:6] == ["iteration", "timestamp", "psnr2d", "ssim2d", "psnr3d", "ssim3d"]
+    assert {"loss", "n_gaussians", "lr_means", "iters_per_s"} <= set(header[6:])
+    rows = list(csv.DictReader(open(out / "train_log.csv", newline="")))
+    assert [int(r["iteration"]) for r in rows] == [10, 20, 30]
+    ts = [float(r["timestamp"]) for r in rows]
+    assert ts == sorted(ts) and ts[0] >= 0
+    # the model learns: 2D PSNR on validation views improves
+    assert float(rows[-1]["psnr2d"]) > float(rows[0]["psnr2d"])
+    pv = list(csv.DictReader(open(out / "per_view.csv", newline="")))
+    assert list(pv[0]) == ["iteration", "view_id", "azimuth_deg", "elevation_deg", "split", "psnr2d", "ssim2d"]
+    assert {r["split"] for r in pv} == {"val", "test"}
+    m = json.loads((out / "metrics.json").read_text())
+    for key in ("psnr2d", "ssim2d", "lpips", "lpips_reason", "psnr3d", "ssim3d", "wall_time_s", "iters_per_s",
+                "time_to_psnr2d_30_s", "time_to_ssim2d_090_s", "fps_forward", "peak_memory_mb", "n_gaussians",
+                "model_size_bytes", "uses_reference_volume", "config_hash", "code_version"):
+        assert key in m, key
+    assert m["uses_reference_volume"] is True
+    assert m["lpips"] is None or math.isfinite(m["lpips"])
+    if m["lpips"] is None:
+        assert m["lpips_reason"]
+    assert m["model_size_bytes"] == os.path.getsize(out / "model.pt")
+    for name in ("model.pt", "model.ply", "model_volume.nii.gz", "gallery.png", "slices.png", "turntable.gif",
+                 "config.json"):
+        assert (out / name).stat().st_size > 0, name
+    # test metrics recomputed independently from the written files
+    from ctsplat.gaussians import Gaussians
+    from ctsplat.metrics import psnr3d
+    from ctsplat.volume import load_volume
+
+    g = Gaussians.load(out / "model.pt")
+    assert len(g) == m["n_gaussians"]
+    mv = load_volume(out / "model_volume.nii.gz")
+    ref = load_volume(scene_dir / "volume.nii.gz")
+    assert mv.meta["uses_reference_volume"] is True
+    assert psnr3d(mv.data, ref.data) == pytest.approx(m["psnr3d"], abs=1e-4)
+    import imageio.v3 as iio
+
+    assert iio.imread(out / "turntable.gif").shape[0] == 4
+    # evaluate() reproduces the final test metrics from model.pt
+    from ctsplat.evaluate import evaluate
+
+    e = evaluate(out, device="cpu")
+    assert e["psnr2d"] == pytest.approx(m["psnr2d"], abs=1e-6)
+    assert e["psnr3d"] == pytest.approx(m["psnr3d"], abs=1e-6)
+    assert (out / "eval_test.json").exists()
+
+
+def test_deterministic_and_resume_after_kill(full_run, scene_dir: Path, tmp_path: Path) -> None:
+    ref_out, ref_res = full_run
+    # same config + seed -> same CSV values (the figures flag does not touch training)
+    again = tmp_path / "again"
+    res2 = tr.train(_cfg(scene_dir), again)
+    assert _metric_rows(again / "train_log.csv") == _metric_rows(ref_out / "train_log.csv")
+    assert res2["psnr3d"] == ref_res["psnr3d"]
+    # kill a run (SIGKILL) right after the checkpoint at iteration 20, then resume
+    killed = tmp_path / "killed"
+    code = (
+        "import os, signal, json, sys\n"
+        "from ctsplat.train import train\n"
+        "cfg = json.loads(sys.argv[1])\n"
+        "def cb(it, state):\n"
+        "    if it == 20: os.kill(os.getpid(), signal.SIGKILL)\n"
+        "train(cfg, sys.argv[2], callback=cb)\n"
+    )
+    cfg = _cfg(scene_dir)
+    env = dict(os.environ, OMP_NUM_THREADS="2")
+    proc = subprocess.run([sys.executable, "-c", code, json.dumps(cfg), str(killed)], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == -9, proc.stderr
+    assert not (killed / "metrics.json").exists()
+    assert tr.latest_checkpoint(killed).name == "ckpt_00000020.pt"
+    res3 = tr.train(cfg, killed, resume=True)
+    assert _metric_rows(killed / "train_log.csv") == _metric_rows(ref_out / "train_log.csv")
+    assert res3["psnr3d"] == ref_res["psnr3d"] and res3["psnr2d"] == ref_res["psnr2d"]
+    assert res3["n_gaussians"] == ref_res["n_gaussians"]
+    # resuming with a different config is refused
+    with pytest.raises(CtsplatError, match="different config"):
+        tr.train({**cfg, "lambda_ssim": 0.3}, killed, resume=True)
+
+
+# ------------------------------------------------------------------------------------------ NaN guard
+def test_nan_guard_rolls_back_and_lowers_lr(scene_dir: Path, tmp_path: Path) -> None:
+    def poison_once(it: int, state: tr.TrainState) -> None:
+        if it == 5:
+            with torch.no_grad():
+                state.params["means"][0, 0] = float("nan")
+
+    res = tr.train(_cfg(scene_dir, iterations=12, eval_every=12), tmp_path / "a", callback=poison_once)
+    assert res["nan_events"] == 1
+    assert math.isfinite(res["psnr3d"])
+    rows = list(csv.DictReader(open(tmp_path / "a" / "train_log.csv", newline="")))
+    assert int(rows[-1]["nan_events"]) == 1
+    base = _cfg(scene_dir)["lr"] if "lr" in _cfg(scene_dir) else tr.TRAIN_DEFAULTS["lr"]
+    # learning rate halved relative to the schedule: lr_means at 12 < schedule value / 1.9
+    voxel = 2.0
+    sched = base["means"] * voxel * tr._cosine(11, 12, tr.TRAIN_DEFAULTS["lr_final_factor"])
+    assert float(rows[-1]["lr_means"]) == pytest.approx(0.5 * sched, rel=1e-6)
+
+    def poison_always(it: int, state: tr.TrainState) -> None:
+        with torch.no_grad():
+            state.params["density_raw"][:] = float("inf")
+
+    with pytest.raises(CtsplatError, match="3 non-finite steps in a row"):
+        tr.train(_cfg(scene_dir, iterations=12), tmp_path / "b", callback=poison_always)
+
+
+# ------------------------------------------------------------------------------------------ densification
+def _state_from(means, scales, dens, cfg) -> tr.TrainState:
+    from ctsplat.seeding import Seed
+
+    seed = Seed(np.asarray(means, np.float32), np.asarray(scales, np.float32), np.asarray(dens, np.float32),
+                False, "test")
+    params = tr.init_params(seed, cfg, torch.device("cpu"))
+    opt = tr._make_optimizer(params, cfg, 2.0)
+    n = len(seed)
+    return tr.TrainState(params=params, opt=opt, grad_accum=torch.zeros(n), grad_count=torch.ones(n))
+
+
+def test_densify_clone_split_prune_and_cap(scene_dir: Path) -> None:
+    cfg = tr.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "clone_max_scale_voxels": 1.5,
+                                                     "prune_density": 1e-3, "max_gaussians": 100}))
+    scene = tr.load_scene(cfg)
+    means = [[0, 0, 0], [5, 0, 0], [-5, 3, 0], [0, 0, 4], [200, 0, 0]]
+    scales = [[1, 1, 1], [6, 4, 4], [1, 2, 1], [1, 1, 1], [1, 1, 1]]
+    dens = [0.8, 0.6, 0.5, 1e-4, 0.7]
+    st = _state_from(means, scales, dens, cfg)
+    st.grad_accum = torch.tensor([2.0, 3.0, 0.5, 0.1, 0.1])  # 0 cloned (small), 1 split (large)
+    gen = torch.Generator().manual_seed(0)
+    counts = tr.densify_and_prune(st, cfg, scene, gen)
+    assert counts["cloned"] == 1 and counts["split"] == 1
+    # pruned: the low-density one (3) and the out-of-volume one (4)
+    assert counts["pruned"] == 2
+    g = tr.as_gaussians({k: v.detach() for k, v in st.params.items()})
+    m = g.means.numpy()
+    d = g.densities.numpy()
+    s = g.scales.numpy()
+    assert len(g) == 5  # 0, 2 kept + clone of 0 + two halves of 1
+    # clone: exact copy at the same place with half the density each -> mass conserved
+    at0 = np.all(np.isclose(m, 0.0, atol=1e-6), axis=1)
+    assert at0.sum() == 2 and np.allclose(d[at0], 0.4, rtol=1e-5)
+    assert np.allclose(s[at0], 1.0)
+    # untouched Gaussian keeps its values
+    k2 = np.all(np.isclose(m, [-5, 3, 0], atol=1e-6), axis=1)
+    assert k2.sum() == 1 and np.isclose(d[k2][0], 0.5, rtol=1e-5)
+    # split: two children with scales / 1.6 and half density, drawn from the parent
+    kids = np.isclose(s[:, 0], 6 / 1.6, rtol=1e-5)
+    assert kids.sum() == 2
+    assert np.allclose(s[kids], np.array([6, 4, 4]) / 1.6, rtol=1e-5)
+    assert np.allclose(d[kids], 0.3, rtol=1e-5)
+    assert not np.allclose(m[kids][0], m[kids][1])
+    assert st.params["means"].shape[0] == st.grad_accum.shape[0] == 5
+    # the optimiser follows the new parameter tensors
+    assert all(g_["params"][0] is st.params[g_["name"]] for g_ in st.opt.param_groups)
+
+    # cap: only the highest-gradient candidate may grow when one slot is left
+    cfg2 = tr.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "max_gaussians": 4}))
+    st2 = _state_from(means[:3], scales[:3], dens[:3], cfg2)
+    st2.grad_accum = torch.tensor([2.0, 3.0, 1.5])
+    c2 = tr.densify_and_prune(st2, cfg2, scene, gen)
+    assert c2["cloned"] + c2["split"] == 1 and c2["split"] == 1 and c2["n"] == 4
+
+
+def test_alpha_mode_split_keeps_density(scene_dir: Path) -> None:
+    cfg = tr.resolve_config(_cfg(scene_dir, compositor="alpha", densify={"grad_threshold": 1.0}))
+    scene = tr.load_scene(cfg)
+    st = _state_from([[0, 0, 0]], [[1, 1, 1]], [0.8], cfg)
+    st.grad_accum = torch.tensor([5.0])
+    tr.densify_and_prune(st, cfg, scene, torch.Generator().manual_seed(0))
+    d = torch.nn.functional.softplus(st.params["density_raw"]).detach().numpy()
+    assert d.shape == (2,) and np.allclose(d, 0.8, rtol=1e-5)
+
+
+def test_view_sampler_is_stratified() -> None:
+    az = np.arange(12) * 30.0
+    s = tr.ViewSampler(az, np.zeros(12), batch=3)
+    rng = np.random.default_rng(0)
+    epoch = s.refill(rng)
+    assert sorted(v for b in epoch for v in b) == list(range(12))
+    for b in epoch:  # one view from each 120-degree sector
+        assert sorted(az[i] // 120 for i in b) == [0, 1, 2]
+    one = tr.ViewSampler(az, np.zeros(12), batch=1).refill(rng)
+    assert sorted(b[0] for b in one) == list(range(12))
+
+
+def test_cosine_schedule() -> None:
+    assert tr._cosine(0, 100, 0.1) == pytest.approx(1.0)
+    assert tr._cosine(50, 100, 0.1) == pytest.approx(0.55)
+    assert tr._cosine(100, 100, 0.1) == pytest.approx(0.1)
+
+
+# ------------------------------------------------------------------------------------------ variants
+@pytest.mark.parametrize("kw", [
+    {"init": "uniform", "supervision": "transmission", "batch_views": 2},
+    {"init": "uniform", "compositor": "alpha", "mip": True, "lambda_tv": 0.1, "tv_size": 6},
+])
+def test_variants_run_and_learn(scene_dir: Path, tmp_path: Path, kw: dict) -> None:
+    res = tr.train(_cfg(scene_dir, iterations=20, **kw), tmp_path / "v")
+    rows = list(csv.DictReader(open(tmp_path / "v" / "train_log.csv", newline="")))
+    assert res["uses_reference_volume"] is False
+    assert all(math.isfinite(float(r["loss"])) for r in rows)
+    assert float(rows[-1]["loss"]) < float(rows[0]["loss"]) * 1.5
+    if kw.get("lambda_tv"):
+        assert float(rows[-1]["tv"]) > 0
+
+
+def test_fbp_init_uses_training_projections_only(scene_dir: Path, tmp_path: Path) -> None:
+    pytest.importorskip("ctsplat.baselines")
+    cfg = tr.resolve_config(_cfg(scene_dir, init="fbp"))
+    scene = tr.load_scene(cfg)
+    # the reference voxel values are not read: zero them and the seed is unchanged
+    rng_a, rng_b = np.random.default_rng(0), np.random.default_rng(0)
+    a = tr.make_seed(cfg, scene, rng_a)
+    scene.volume.data = np.zeros_like(scene.volume.data)
+    b = tr.make_seed(cfg, scene, rng_b)
+    assert not a.uses_reference_volume
+    assert np.array_equal(a.means, b.means) and np.array_equal(a.densities, b.densities)
+    res = tr.train(_cfg(scene_dir, init="fbp", iterations=10), tmp_path / "f")
+    assert res["init"] == "fbp" and res["uses_reference_volume"] is False
+
+
+def test_sfm_init_reads_points(scene_dir: Path, tmp_path: Path) -> None:
+    from ctsplat.seeding import read_ply_points
+
+    sfm = tmp_path / "sfm"
+    sfm.mkdir()
+    pts = np.random.default_rng(0).uniform(-10, 10, size=(40, 3)).astype(np.float32)
+    head = "ply\nformat binary_little_endian 1.0\nelement vertex 40\nproperty float x\nproperty float y\n" \
+           "property float z\nend_header\n"
+    (sfm / "points3d.ply").write_bytes(head.encode() + pts.tobytes())
+    assert np.allclose(read_ply_points(sfm / "points3d.ply"), pts)
+    cfg = tr.resolve_config(_cfg(scene_dir, init="sfm", sfm_dir=str(sfm), n_init=100))
+    seed = tr.make_seed(cfg, tr.load_scene(cfg), np.random.default_rng(0))
+    assert len(seed) == 100 and np.allclose(seed.means[:40], pts)
+
+
+# ------------------------------------------------------------------------------------------ poses: colmap
+def _fake_sfm(scene_dir: Path, sfm: Path, keep_ids: list[int], rate: float, ok: bool = True) -> None:
+    """An sfm folder in the sfm step's layout: aligned_views.json (registered subset, perturbed poses),
+    summary.json, and views.json + line_integrals.tif with the true poses and targets."""
+    import tifffile
+
+    from ctsplat.geometry import ViewSet
+    from ctsplat.projector import load_radiographs
+
+    sfm.mkdir(parents=True, exist_ok=True)
+    images, vs = load_radiographs(scene_dir / "rad")
+    train_rows = [i for i, v in enumerate(vs.views) if v.split == "train"]
+    true = ViewSet(vs.camera, [vs.views[i] for i in train_rows], vs.volume_id, vs.isocenter_mm, {})
+    true.save(sfm / "views.json")
+    tifffile.imwrite(sfm / "line_integrals.tif", images[train_rows])
+    aligned = ViewSet(vs.camera, [v for v in true.views if v.id in keep_ids], vs.volume_id, vs.isocenter_mm, {})
+    for v in aligned.views:
+        v.t = v.t + 0.1
+    aligned.save(sfm / "aligned_views.json")
+    (sfm / "summary.json").write_text(json.dumps({"n_views": len(train_rows), "registration_rate": rate, "ok": ok,
+                                                  "reason": "" if ok else "too few"}))
+
+
+def test_colmap_poses_drop_unregistered(scene_dir: Path, tmp_path: Path) -> None:
+    keep = [0, 1, 2, 4, 5, 6, 7, 9, 10, 11]
+    _fake_sfm(scene_dir, tmp_path / "sfm", keep, rate=10 / 12)
+    cfg = tr.resolve_config(_cfg(scene_dir, poses="colmap", sfm_dir=str(tmp_path / "sfm")))
+    scene = tr.load_scene(cfg)
+    assert list(scene.train.ids) == keep
+    assert scene.info["views_dropped_unregistered"] == 2
+    # the poses are the COLMAP ones (perturbed), the targets the true-pose images divided by mu_scale
+    from ctsplat.projector import load_radiographs
+
+    images, vs = load_radiographs(scene_dir / "rad")
+    by_id = {v.id: (i, v) for i, v in enumerate(vs.views)}
+    i4, v4 = by_id[4]
+    assert np.allclose(scene.train.ts[3], v4.t + 0.1)
+    assert np.allclose(scene.train.images[3], images[i4] / MU, rtol=1e-6)
+    res = tr.train(_cfg(scene_dir, poses="colmap", sfm_dir=str(tmp_path / "sfm"), iterations=10), tmp_path / "r")
+    assert res["views_dropped_unregistered"] == 2 and res["poses"] == "colmap"
+
+
+def test_colmap_poses_fail_on_low_registration(scene_dir: Path, tmp_path: Path) -> None:
+    _fake_sfm(scene_dir, tmp_path / "sfm", [0, 1, 2], rate=0.25, ok=False)
+    cfg = _cfg(scene_dir, poses="colmap", sfm_dir=str(tmp_path / "sfm"))
+    with pytest.raises(CtsplatError, match=r"registered only 25% of 12 views"):
+        tr.train(cfg, tmp_path / "r")
+    assert not (tmp_path / "r" / "metrics.json").exists()
+
+
+# ------------------------------------------------------------------------------------------ bad input
+def test_unknown_config_key_names_key_and_allowed(scene_dir: Path, tmp_path: Path) -> None:
+    with pytest.raises(CtsplatError, match=r"train\.learning_rate.*allowed keys in train: .*batch_views"):
+        tr.train(_cfg(scene_dir, learning_rate=1.0), tmp_path / "r")
+    with pytest.raises(CtsplatError, match=r"train\.densify\.intervall.*interval"):
+        tr.train(_cfg(scene_dir, densify={"intervall": 3}), tmp_path / "r")
+    with pytest.raises(CtsplatError, match="unknown train.init 'random'; allowed: volume, uniform, fbp, sfm"):
+        tr.train(_cfg(scene_dir, init="random"), tmp_path / "r")
+    assert not (tmp_path / "r").exists() or not any((tmp_path / "r").iterdir())
+
+
+def test_missing_and_mismatched_inputs(scene_dir: Path, tmp_path: Path) -> None:
+    from ctsplat.volume import Volume, load_volume, save_volume
+
+    with pytest.raises(CtsplatError, match="does not exist"):
+        tr.train(_cfg(scene_dir, radiographs=str(tmp_path / "nope")), tmp_path / "r")
+    with pytest.raises(CtsplatError, match="does not exist"):
+        tr.train(_cfg(scene_dir, volume=str(tmp_path / "nope.nii.gz")), tmp_path / "r")
+    ref = load_volume(scene_dir / "volume.nii.gz")
+    other = Volume(ref.data[:16, :16, :16].copy(), ref.affine, {**ref.meta, "volume_id": "other02"})
+    save_volume(other, tmp_path / "other.nii.gz")
+    with pytest.raises(CtsplatError, match="rendered from volume tiny01, but train.volume is other02"):
+        tr.train(_cfg(scene_dir, volume=str(tmp_path / "other.nii.gz")), tmp_path / "r")
+    assert not (tmp_path / "r" / "train_log.csv").exists()
+
+
+def test_empty_train_split(scene_dir: Path, tmp_path: Path) -> None:
+    rad = tmp_path / "rad"
+    shutil.copytree(scene_dir / "rad", rad)
+    d = json.loads((rad / "views.json").read_text())
+    for v in d["views"]:
+        if v["split"] == "train":
+            v["split"] = "test"
+    (rad / "views.json").write_text(json.dumps(d))
+    with pytest.raises(CtsplatError, match="empty train split"):
+        tr.train(_cfg(scene_dir, radiographs=str(rad)), tmp_path / "r")
+
+
+def test_unwritable_output_folder(scene_dir: Path, tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(CtsplatError, match="not writable"):
+        tr.train(_cfg(scene_dir), blocker / "run")
+    if os.geteuid() != 0:  # permissions do not stop root
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o500)
+        try:
+            with pytest.raises(CtsplatError, match="not writable"):
+                tr.train(_cfg(scene_dir), ro)
+        finally:
+            ro.chmod(0o700)
+
+
+def test_cli_train_and_evaluate(scene_dir: Path, tmp_path: Path, capsys) -> None:
+    import yaml
+
+    from ctsplat.cli import main
+
+    cfg = _cfg(scene_dir, iterations=10)
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump({"train": cfg}))
+    rc = main(["train", "--config", str(tmp_path / "c.yaml"), "--out", str(tmp_path / "run"),
+               "--set", "densify.interval=5", "--quiet"])
+    assert rc == 0
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert printed["psnr3d"] == m["psnr3d"]
+    cfg_used = json.loads((tmp_path / "run" / "config.json").read_text())["config"]
+    assert cfg_used["densify"]["interval"] == 5
+    rc = main(["evaluate", str(tmp_path / "run"), "--device", "cpu"])
+    assert rc == 0
+    ev = json.loads(capsys.readouterr().out)
+    assert ev["psnr3d"] == pytest.approx(m["psnr3d"], abs=1e-6)
+    rc = main(["train", "--config", str(tmp_path / "c.yaml"), "--out", str(tmp_path / "r2"), "--set", "bogus=1"])
+    assert rc == 2
+    assert "unknown config key train.bogus" in capsys.readouterr().err
