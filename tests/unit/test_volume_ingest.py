@@ -1,0 +1,236 @@
+"""Preprocessing steps, ingest provenance/atomicity/determinism and the ``ctsplat ingest`` CLI (synthetic data)."""
+
+from __future__ import annotations
+
+import json
+
+import nibabel as nib
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from ctsplat.cli import main
+from ctsplat.io import SliceStack
+from ctsplat.utils import CtsplatError
+from ctsplat.volume import (
+    PREPROCESSING_DEFAULTS,
+    WINDOW_PRESETS,
+    apply_window,
+    body_mask,
+    compute_volume_id,
+    denoise,
+    hu_to_attenuation,
+    ingest,
+    json_path_for,
+    load_volume,
+)
+
+
+def nifti_input(tmp_path, data, spacing=(1.0, 1.0, 1.0), name="scan.nii.gz"):
+    aff = np.diag([*spacing, 1.0])
+    aff[:3, 3] = [-10.0, 5.0, 30.0]
+    path = tmp_path / name
+    nib.save(nib.Nifti1Image(np.asarray(data, np.float32), aff), path)
+    return path
+
+
+def head_like(n=24, seed=0):
+    """Air (-1000) box with a noisy tissue ball (40 HU), an air cavity inside, and a separate 'table'."""
+    rng = np.random.default_rng(seed)
+    x = np.stack(np.meshgrid(*[np.arange(n) - (n - 1) / 2] * 3, indexing="ij"), -1)
+    r = np.linalg.norm(x, axis=-1)
+    hu = np.full((n, n, n), -1000.0)
+    ball = r < n * 0.32
+    hu[ball] = 40.0
+    hu[np.linalg.norm(x - [2, 0, 0], axis=-1) < 2.5] = -1000.0  # cavity inside the ball
+    hu[:, -2:, :] = 200.0  # table slab, not touching the ball
+    hu += rng.normal(0, 20, hu.shape)
+    return hu, ball
+
+
+# ------------------------------------------------------------------------------------------ intensity
+
+
+def test_hu_to_attenuation_formula_and_clipping():
+    hu = np.array([-1024.0, -1000.0, 0.0, 1000.0, 3000.0, 3500.0])
+    mu_w, hu_max = 0.0195, 3000.0
+    norm, scale = hu_to_attenuation(hu, mu_w, hu_max)
+    mu = mu_w * (1 + hu / 1000)  # independent restatement of mu = mu_water (1 + HU/1000)
+    assert scale == pytest.approx(mu_w * 4.0)
+    np.testing.assert_allclose(norm * scale, np.clip(mu, 0, scale), rtol=1e-6, atol=1e-9)
+    assert norm.min() == 0.0 and norm.max() == 1.0 and norm.dtype == np.float32
+    assert norm[2] * scale == pytest.approx(mu_w)  # water
+
+
+@pytest.mark.parametrize("preset", list(WINDOW_PRESETS))
+def test_window_presets(preset):
+    level, width = WINDOW_PRESETS[preset]
+    hu = np.array([level - width, level - width / 2, level, level + width / 4, level + width / 2, level + width])
+    out = apply_window(hu, level, width)
+    np.testing.assert_allclose(out, [0.0, 0.0, 0.5, 0.75, 1.0, 1.0], atol=1e-6)
+    assert WINDOW_PRESETS["brain"] == (40.0, 80.0)
+
+
+# ------------------------------------------------------------------------------------------ mask / denoise
+
+
+def test_body_mask_keeps_body_fills_cavities_drops_table():
+    hu, ball = head_like()
+    m = body_mask(hu, "otsu")
+    assert m[ball].all()  # ball incl. its internal cavity
+    assert not m[:, -2:, :].any()  # table removed (not the largest component)
+    assert m.sum() == pytest.approx(ball.sum(), rel=0.05)
+    hull = body_mask(hu, "convex_hull")
+    assert np.all(hull >= m) and hull.sum() >= m.sum()
+
+
+def test_ingest_with_mask_sets_air_outside(tmp_path):
+    hu, ball = head_like()
+    vol = ingest(nifti_input(tmp_path, hu), tmp_path / "o" / "v.nii.gz", {"grid": None, "mask": "otsu"})
+    assert vol.shape == hu.shape
+    eroded = ndimage.binary_erosion(ball, iterations=1)
+    outside = ~ndimage.binary_dilation(ball, iterations=1)
+    assert np.all(vol.data[outside] == 0.0)  # air (and the table) -> exactly 0 attenuation
+    tissue = vol.data[eroded & (hu > -500)]
+    np.testing.assert_allclose(np.median(tissue), 1040 / 4000, atol=0.01)  # 40 HU through the default mapping
+    assert [s["step"] for s in vol.meta["steps"]] == ["read", "resample", "intensity", "mask"]
+
+
+@pytest.mark.parametrize("method,weight", [("tv", 0.05), ("bilateral", 0.1)])
+def test_denoise_reduces_noise_keeps_edges(method, weight):
+    rng = np.random.default_rng(1)
+    clean = np.zeros((24, 24, 6), np.float32)
+    clean[12:] = 0.5
+    noisy = clean + rng.normal(0, 0.03, clean.shape).astype(np.float32)
+    out = denoise(noisy, method, weight)
+    flat = (slice(2, 9), slice(None), slice(None))
+    assert out[flat].std() < 0.5 * noisy[flat].std()
+    np.testing.assert_allclose(out[flat].mean(), 0.0, atol=0.01)
+    profile = out.mean(axis=(1, 2))
+    assert profile[10] < 0.15 and profile[13] > 0.35  # the step stays at the same place and stays sharp
+
+
+# ------------------------------------------------------------------------------------------ ingest output
+
+
+def test_ingest_writes_nifti_and_provenance(tmp_path):
+    hu, _ = head_like()
+    out = tmp_path / "res" / "volume.nii.gz"
+    vol = ingest(nifti_input(tmp_path, hu, spacing=(1.0, 1.0, 2.0)), out, {"grid": 16})
+    meta = json.loads(json_path_for(out).read_text())
+    loaded = load_volume(out)
+    np.testing.assert_array_equal(loaded.data, vol.data)
+    np.testing.assert_array_equal(loaded.affine, vol.affine)
+    assert meta["volume_id"] == compute_volume_id(loaded.data, loaded.affine) == loaded.volume_id
+    assert loaded.mu_scale_per_mm == pytest.approx(0.019 * 4.0)
+    assert meta["intensity"]["mu_scale_per_mm"] == loaded.mu_scale_per_mm
+    assert meta["shape"] == [16, 16, 16] and meta["preprocessing"]["grid"] == 16
+    assert meta["source_value_range"] == [pytest.approx(float(hu.min()), abs=1e-3), pytest.approx(float(hu.max()),
+                                                                                                   abs=1e-3)]
+    assert 0.0 <= loaded.data.min() and loaded.data.max() <= 1.0
+    img = nib.load(out)
+    assert int(img.header["sform_code"]) == 1 and int(img.header["qform_code"]) == 1
+    assert img.header.get_xyzt_units()[0] == "mm"
+    np.testing.assert_allclose(img.header.get_best_affine(), vol.affine, atol=1e-4)
+    # the largest extent is along k: 24 slices * 2 mm = 48 mm over 16 voxels -> 3 mm isotropic
+    np.testing.assert_allclose(loaded.spacing_mm, 3.0)
+    # centre of the grid is the centre of the scan's extent
+    src_centre = np.array([-10.0, 5.0, 30.0]) + (np.array(hu.shape) - 1) / 2 * [1.0, 1.0, 2.0]
+    np.testing.assert_allclose(loaded.center_mm(), src_centre, atol=1e-4)
+    assert sorted(p.name for p in out.parent.iterdir()) == ["volume.json", "volume.nii.gz"]
+
+
+def test_ingest_is_deterministic(tmp_path):
+    hu, _ = head_like()
+    src = nifti_input(tmp_path, hu)
+    a = ingest(src, tmp_path / "a" / "v.nii.gz", {"grid": 12, "denoise": "tv"})
+    b = ingest(src, tmp_path / "b" / "v.nii.gz", {"grid": 12, "denoise": "tv"})
+    np.testing.assert_array_equal(a.data, b.data)
+    assert a.volume_id == b.volume_id
+    c = ingest(src, tmp_path / "c" / "v.nii.gz", {"grid": 12})
+    assert c.volume_id != a.volume_id
+
+
+def test_intensity_modes_record_mu_scale(tmp_path):
+    hu, _ = head_like()
+    src = nifti_input(tmp_path, hu)
+    w = ingest(src, tmp_path / "w" / "v.nii.gz", {"grid": 8, "intensity": "window", "window": "soft_tissue"})
+    level, width = WINDOW_PRESETS["soft_tissue"]
+    assert w.mu_scale_per_mm == pytest.approx(0.019 * (1 + (level + width / 2) / 1000))
+    m = ingest(src, tmp_path / "m" / "v.nii.gz", {"grid": 8, "intensity": "mu"})
+    a = ingest(src, tmp_path / "a" / "v.nii.gz", {"grid": 8})
+    assert m.mu_scale_per_mm == 1.0
+    np.testing.assert_allclose(m.data, a.data * a.mu_scale_per_mm, rtol=1e-5, atol=1e-8)
+    h = ingest(src, tmp_path / "h" / "v.nii.gz", {"grid": 8, "intensity": "hu"})
+    np.testing.assert_allclose(a.data, np.clip((1000 + h.data) / 4000, 0, 1), atol=1e-6)
+
+
+def test_failed_write_leaves_nothing_and_keeps_previous(tmp_path, monkeypatch):
+    hu, _ = head_like()
+    src = nifti_input(tmp_path, hu)
+    out = tmp_path / "o" / "volume.nii.gz"
+    first = ingest(src, out, {"grid": 8})
+    before = {p.name: p.read_bytes() for p in out.parent.iterdir()}
+
+    def boom(img, filename):
+        with open(filename, "wb") as fh:
+            fh.write(b"partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(nib, "save", boom)
+    with pytest.raises(OSError, match="disk full"):
+        ingest(src, out, {"grid": 12})
+    after = {p.name: p.read_bytes() for p in out.parent.iterdir()}
+    assert after == before  # no temp files, previous outputs untouched
+    assert load_volume(out).volume_id == first.volume_id
+
+
+@pytest.mark.parametrize(
+    "cfg,match",
+    [
+        ({"voxel_sise_mm": 1.0}, "unknown config key preprocessing.voxel_sise_mm"),
+        ({"intensity": "density"}, "intensity"),
+        ({"intensity": "window", "window": "liver"}, "unknown window preset"),
+        ({"grid": 1}, "grid"),
+        ({"voxel_size_mm": -1}, "voxel_size_mm"),
+        ({"mask": "magic"}, "mask"),
+        ({"denoise": "nlm"}, "denoise"),
+    ],
+)
+def test_bad_config_is_one_line_and_writes_nothing(tmp_path, cfg, match):
+    hu, _ = head_like(8)
+    src = nifti_input(tmp_path, hu)
+    with pytest.raises(CtsplatError, match=match) as err:
+        ingest(src, tmp_path / "o" / "v.nii.gz", cfg)
+    assert "\n" not in str(err.value)
+    assert not (tmp_path / "o").exists()
+
+
+def test_defaults_are_json_serialisable():
+    assert json.loads(json.dumps(PREPROCESSING_DEFAULTS)) == PREPROCESSING_DEFAULTS
+
+
+def test_stack_normal_points_along_slices():
+    s = SliceStack(
+        data=np.zeros((2, 2, 3), np.float32), row_dir=np.array([1.0, 0, 0]), col_dir=np.array([0, 1.0, 0]),
+        spacing_ij=(1.0, 1.0), origins=np.array([[0, 0, 5.0], [0, 0, 3.0], [0, 0, 1.0]]),
+    )
+    np.testing.assert_allclose(s.normal, [0, 0, -1])
+    assert np.all(np.diff(s.positions_mm) > 0)
+
+
+# ------------------------------------------------------------------------------------------ CLI
+
+
+def test_cli_ingest_and_errors(tmp_path, capsys):
+    hu, _ = head_like(12)
+    src = nifti_input(tmp_path, hu)
+    out = tmp_path / "cli" / "volume.nii.gz"
+    assert main(["ingest", str(src), str(out), "--voxel-size", "2", "--intensity", "window", "--window", "40,80"]) == 0
+    vol = load_volume(out)
+    np.testing.assert_allclose(vol.spacing_mm, 2.0)
+    assert vol.meta["intensity"]["level_hu"] == 40 and vol.meta["intensity"]["width_hu"] == 80
+    assert main(["ingest", str(tmp_path / "missing"), str(tmp_path / "x" / "v.nii.gz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not exist" in err[0]
+    assert not (tmp_path / "x").exists()
