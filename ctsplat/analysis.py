@@ -65,11 +65,10 @@ METRICS_2D3D: tuple[str, ...] = ("psnr2d", "ssim2d", "psnr3d", "ssim3d")
 # Workflow config section -> (module, DEFAULTS attribute, path inside the section that holds the settings).
 LIBRARY_SECTIONS: dict[str, tuple[str, str]] = {
     "preprocessing": ("ctsplat.volume", "PREPROCESSING_DEFAULTS"),
-    "radiographs": ("ctsplat.geometry", "RADIOGRAPHS_DEFAULTS"),
+    "radiographs": ("ctsplat.projector", "RADIOGRAPHS_DEFAULTS"),
     "baselines": ("ctsplat.baselines", "BASELINES_DEFAULTS"),
     "sfm": ("ctsplat.sfm", "SFM_DEFAULTS"),
     "train": ("ctsplat.train", "TRAIN_DEFAULTS"),
-    "evaluation": ("ctsplat.evaluate", "EVALUATE_DEFAULTS"),
 }
 
 SCHEMA_PATH = Path(__file__).resolve().parent.parent / "workflow" / "schemas" / "config.schema.yaml"
@@ -148,6 +147,8 @@ def check_library_sections(config: Mapping[str, Any], *, modules: Mapping[str, t
     modules = LIBRARY_SECTIONS if modules is None else modules
 
     def defaults_of(section: str) -> dict[str, Any] | None:
+        if section not in modules:
+            return None
         mod_name, attr = modules[section]
         try:
             mod = importlib.import_module(mod_name)
@@ -171,7 +172,6 @@ def _library_section_values(config: Mapping[str, Any]) -> list[tuple[str, str, d
     out.append(("baselines.settings", "baselines", config.get("baselines", {}).get("settings", {})))
     out.append(("sfm.settings", "sfm", config.get("sfm", {}).get("settings", {})))
     out.append(("train", "train", config.get("train", {})))
-    out.append(("evaluation", "evaluation", config.get("evaluation", {})))
     return out
 
 
@@ -352,15 +352,17 @@ def read_train_log(path: str | os.PathLike[str], *, max_gap_iters: int = 10) -> 
 
 
 def read_per_view(path: str | os.PathLike[str]) -> pd.DataFrame:
-    """Read ``per_view.csv`` (iteration, view, azimuth, elevation, split, psnr2d, ssim2d); rows missing the
-    iteration, view or both metrics are dropped."""
+    """Read ``per_view.csv`` (iteration, view, azimuth, elevation, split, psnr2d, ssim2d; ``view_id``,
+    ``azimuth_deg``, ``elevation_deg`` accepted as aliases); rows missing the iteration, view or both metrics are
+    dropped."""
     path = Path(path)
     try:
         df = pd.read_csv(path)
     except (OSError, pd.errors.EmptyDataError) as exc:
         raise CtsplatError(f"cannot read per-view log {path}: {exc}") from exc
-    if "view_id" in df.columns and "view" not in df.columns:
-        df = df.rename(columns={"view_id": "view"})
+    # ctsplat.train writes view_id / azimuth_deg / elevation_deg
+    aliases = {"view_id": "view", "azimuth_deg": "azimuth", "elevation_deg": "elevation"}
+    df = df.rename(columns={k: v for k, v in aliases.items() if k in df.columns and v not in df.columns})
     missing = [c for c in PER_VIEW_COLUMNS if c not in df.columns]
     if missing:
         raise CtsplatError(f"{path}: missing column {missing[0]!r}; expected {','.join(PER_VIEW_COLUMNS)}")
@@ -444,7 +446,7 @@ def velocity_curve(
     it, v = it[ok], v[ok]
     rows = []
     if it.size >= 2:
-        block = np.floor(it[1:] / per_iters)  # a step belongs to the block of its end point
+        block = np.floor(it[:-1] / per_iters)  # a step belongs to the block where it starts
         rate = np.diff(v) / np.where(np.diff(it) > 0, np.diff(it), np.nan) * per_iters
         for b in np.unique(block):
             r = rate[(block == b) & np.isfinite(rate)]

@@ -11,5 +11,5 @@ with logged(snakemake):  # noqa: F821
     config = dict(sm.params.train)
     config["volume"] = sm.input.volume
     config["radiographs"] = str(Path(sm.input.views).parent)
-    config["sfm_dir"] = str(Path(sm.input.sfm).parent) if "sfm" in sm.input.keys() else None
+    config["sfm_dir"] = str(Path(sm.input.sfm).parent) if "sfm" in sm.input.keys() else ""
     train(config, Path(sm.output.model).parent)

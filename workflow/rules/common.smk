@@ -50,6 +50,8 @@ def all_targets():
     targets += [f"{RESULTS}/figures/{fname}" for fname, _ in ANALYSIS_OUTPUTS.values()]
     for rd in run_dirs():
         targets += [f"{rd}/metrics.json", f"{rd}/figures/convergence.png"]
+        if CFG["evaluation"]["enabled"]:
+            targets.append(f"{rd}/eval_{CFG['evaluation']['split']}.json")
     for v in VOLUMES:
         if needs_sfm(v):
             targets.append(f"{RESULTS}/{v}/sfm/summary.json")
@@ -92,7 +94,12 @@ def phantom_params(wildcards):
 
 
 def radiographs_params(wildcards):
-    return dict(CFG["radiographs"][wildcards.geometry])
+    """The geometry's radiographs settings; the projector runs on the workflow's device unless set there."""
+    settings = dict(CFG["radiographs"][wildcards.geometry])
+    user = config.get("radiographs", {}).get(wildcards.geometry) or {}
+    if "device" not in user:
+        settings["device"] = CFG["device"]
+    return settings
 
 
 def baselines_params(wildcards):
@@ -144,7 +151,7 @@ def train_hash(wildcards):
 
 
 def evaluation_params(wildcards):
-    return dict(CFG["evaluation"])
+    return {"split": CFG["evaluation"]["split"], "device": CFG["device"]}
 
 
 def train_gpu(wildcards):

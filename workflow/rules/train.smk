@@ -8,6 +8,8 @@ rule train:
         log=f"{RUN_PATTERN}/train_log.csv",
         per_view=f"{RUN_PATTERN}/per_view.csv",
         model=f"{RUN_PATTERN}/model.pt",
+        metrics=f"{RUN_PATTERN}/metrics.json",
+        run_config=f"{RUN_PATTERN}/config.json",
     log:
         f"{RUN_PATTERN}/logs/train.log",
     benchmark:
@@ -29,13 +31,13 @@ rule train:
 rule evaluate:
     input:
         model=f"{RUN_PATTERN}/model.pt",
-        log=f"{RUN_PATTERN}/train_log.csv",
+        run_config=f"{RUN_PATTERN}/config.json",
     output:
-        metrics=f"{RUN_PATTERN}/metrics.json",
+        metrics=f"{RUN_PATTERN}/eval_{{split}}.json",
     log:
-        f"{RUN_PATTERN}/logs/evaluate.log",
+        f"{RUN_PATTERN}/logs/evaluate_{{split}}.log",
     benchmark:
-        f"{RUN_PATTERN}/logs/evaluate_benchmark.tsv"
+        f"{RUN_PATTERN}/logs/evaluate_{{split}}_benchmark.tsv"
     conda:
         "../../envs/ctsplat.yaml"
     threads: rule_resources("evaluate")["threads"]

@@ -1,0 +1,143 @@
+"""Workflow config validation (JSON schema, defaults, key paths), library-defaults mirror, grid expansion."""
+
+from __future__ import annotations
+
+import importlib
+import itertools
+from pathlib import Path
+
+import pytest
+import yaml
+
+from ctsplat import analysis as an
+from ctsplat.utils import CtsplatError
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIGS = sorted((ROOT / "config").glob("*.yaml"))
+
+
+def test_defaults_filled_from_empty_config():
+    cfg = an.validate_config({})
+    assert cfg["volumes"] == {"phantom": {"source": "phantom", "phantom": {"size": 64, "beads": True, "seed": 0},
+                                          "series_uid": None, "allow_modalities": ["CT"], "skip_corrupt": False,
+                                          "tiff_voxel_size_mm": None, "preprocessing": {}}}
+    assert cfg["grid"]["axes"]["init"] == ["fbp"] and cfg["grid"]["exclude"] == []
+    assert cfg["analysis"]["milestones"] == {"psnr2d": 30.0, "ssim2d": 0.9}
+    assert cfg["resources"]["train"]["mem_mb"] > 0
+    # nested library defaults are filled too (radiographs geometry -> split fractions)
+    assert cfg["radiographs"]["circular"]["split"]["train"] == pytest.approx(0.7)
+
+
+@pytest.mark.parametrize(
+    ("config", "where"),
+    [
+        ({"grid": {"axes": {"views": ["ten"]}}}, "grid.axes.views[0]"),
+        ({"grid": {"axes": {"init": ["magic"]}}}, "grid.axes.init[0]"),
+        ({"grid": {"axes": {"seed": []}}}, "grid.axes.seed"),
+        ({"train": {"iterations": "many"}}, "train.iterations"),
+        ({"train": {"lr": {"means": "x"}}}, "train.lr.means"),
+        ({"train": {"init": "fbp"}}, "train"),  # grid-controlled key
+        ({"radiographs": {"c": {"camera": "fisheye"}}}, "radiographs.c.camera"),
+        ({"volumes": {"v": {"source": "x", "phantom": {"size": 2}}}}, "volumes.v.phantom.size"),
+        ({"volumes": {"bad/name": {"source": "x"}}}, "volumes"),
+        ({"volumes": {"v": {"source": "x", "preprocessing": {"gird": 64}}}}, "volumes.v.preprocessing"),
+        ({"device": "tpu"}, "device"),
+        ({"analysis": {"window": 0}}, "analysis.window"),
+    ],
+)
+def test_bad_values_name_the_key_path(config, where):
+    with pytest.raises(CtsplatError) as err:
+        an.validate_config(config)
+    assert f"invalid config at {where}:" in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_unknown_key_lists_allowed_keys():
+    with pytest.raises(CtsplatError, match=r"invalid config at grid: .*'axis'.*allowed: axes, exclude, geometry"):
+        an.validate_config({"grid": {"axis": {}}})
+    with pytest.raises(CtsplatError, match=r"invalid config at <config>: .*'trian'"):
+        an.validate_config({"trian": {}})
+
+
+def test_validate_does_not_mutate_input():
+    cfg = {"grid": {"axes": {"views": [5]}}}
+    an.validate_config(cfg)
+    assert cfg == {"grid": {"axes": {"views": [5]}}}
+
+
+@pytest.mark.parametrize(
+    ("section", "module", "attr", "path"),
+    [
+        ("preprocessing", "ctsplat.volume", "PREPROCESSING_DEFAULTS", ("preprocessing",)),
+        ("radiographs", "ctsplat.projector", "RADIOGRAPHS_DEFAULTS", ("radiographs", "circular")),
+        ("sfm", "ctsplat.sfm", "SFM_DEFAULTS", ("sfm", "settings")),
+        ("train", "ctsplat.train", "TRAIN_DEFAULTS", ("train",)),
+    ],
+)
+def test_schema_defaults_mirror_library_defaults(section, module, attr, path):
+    """The schema's library sections fill exactly the owning module's DEFAULTS (minus grid-controlled keys)."""
+    mod = pytest.importorskip(module)
+    defaults = getattr(mod, attr)
+    filled = an.validate_config({})
+    for p in path:
+        filled = filled[p]
+    grid_keys = {"volume", "radiographs", "sfm_dir", "init", "compositor", "mip", "poses", "views", "seed", "device"}
+    expect = {k: v for k, v in defaults.items() if not (section == "train" and k in grid_keys)}
+    assert filled == expect
+
+
+def test_check_library_sections_uses_module_defaults(monkeypatch):
+    fake = type("M", (), {"FAKE_DEFAULTS": {"alpha": 1}})
+    monkeypatch.setattr(importlib, "import_module", lambda name: fake)
+    cfg = {"train": {"alpha": 2}}
+    an.check_library_sections(cfg, modules={"train": ("fake", "FAKE_DEFAULTS")})
+    with pytest.raises(CtsplatError, match="unknown config key train.beta"):
+        an.check_library_sections({"train": {"beta": 1}}, modules={"train": ("fake", "FAKE_DEFAULTS")})
+
+
+def test_expand_grid_product_and_exclusions():
+    axes = {"init": ["fbp", "volume"], "compositor": ["radiative", "alpha"], "mip": [True, "off"],
+            "poses": ["gt", "colmap"], "views": [25, 50], "seed": [0]}
+    full = an.expand_grid(axes, ["a", "b"])
+    assert len(full) == 2 * 2 * 2 * 2 * 2 * 2
+    assert set(full["mip"]) == {"on", "off"}
+    expect = set(itertools.product(["a", "b"], ["fbp", "volume"], ["radiative", "alpha"], ["on", "off"],
+                                   ["gt", "colmap"], [25, 50], [0]))
+    assert set(map(tuple, full.itertuples(index=False))) == expect
+    ex = an.expand_grid(axes, ["a", "b"], exclude=[{"poses": "colmap", "init": ["volume"]},
+                                                   {"volume": "b", "views": 50}, {"mip": False}])
+    n = sum(1 for r in expect if not ((r[4] == "colmap" and r[1] == "volume") or (r[0] == "b" and r[5] == 50)
+                                      or r[3] == "off"))
+    assert len(ex) == n
+    assert not ((ex["poses"] == "colmap") & (ex["init"] == "volume")).any()
+    assert not (ex["mip"] == "off").any()
+
+
+def test_empty_grid_is_an_error():
+    axes = {"init": ["fbp"], "compositor": ["radiative"], "mip": ["on"], "poses": ["gt"], "views": [5], "seed": [0]}
+    with pytest.raises(CtsplatError, match="expands to zero runs"):
+        an.expand_grid(axes, ["a"], exclude=[{"init": "fbp"}])
+    with pytest.raises(CtsplatError, match="expands to zero runs"):
+        an.prepare_config({"grid": {"exclude": [{"seed": 0}]}})
+
+
+def test_missing_volume_source_is_reported_with_key(tmp_path):
+    with pytest.raises(CtsplatError, match=r"volumes\.head\.source: 'nope/ct'"):
+        an.prepare_config({"volumes": {"head": {"source": "nope/ct"}}}, base_dir=tmp_path)
+    (tmp_path / "ct").mkdir()
+    cfg = an.prepare_config({"volumes": {"head": {"source": "ct"}}}, base_dir=tmp_path)
+    assert cfg["grid"]["geometry"] == "circular"
+
+
+def test_grid_geometry_must_exist():
+    with pytest.raises(CtsplatError, match="grid.geometry: 'cone' is not a radiographs geometry"):
+        an.prepare_config({"grid": {"geometry": "cone"}})
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
+def test_shipped_configs_validate(path):
+    with open(path) as fh:
+        config = yaml.safe_load(fh)
+    cfg = an.validate_config(config)
+    runs = an.expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
+    assert len(runs) >= 1
