@@ -518,7 +518,7 @@ def _map_intensity(values: np.ndarray, cfg: dict[str, Any], units: str) -> tuple
 
 
 def ingest(
-    source: str | Path,
+    source: str | Path | Any,
     out_path: str | Path,
     preprocessing: dict[str, Any] | None = None,
     *,
@@ -536,8 +536,9 @@ def ingest(
 
     Parameters
     ----------
-    source : path
-        DICOM folder (searched recursively), ``.nii``/``.nii.gz`` file, ``.tif`` stack or folder of TIFFs.
+    source : path or SliceStack
+        DICOM folder (searched recursively), ``.nii``/``.nii.gz`` file, ``.tif`` stack or folder of
+        TIFFs; or a :class:`ctsplat.io.SliceStack` already read.
     out_path : path
         Output ``.nii.gz`` (or ``.nii``) file.
     preprocessing : dict, optional
@@ -556,7 +557,7 @@ def ingest(
     Volume
         The volume written (``data`` float32 (I, J, K), ``affine``, ``meta``).
     """
-    from ctsplat.io import read_source
+    from ctsplat.io import SliceStack, read_source
 
     out_path = Path(out_path)
     if not out_path.name.endswith((".nii.gz", ".nii")):
@@ -564,10 +565,13 @@ def ingest(
     cfg = merge_config("preprocessing", preprocessing, PREPROCESSING_DEFAULTS)
     _check_preprocessing(cfg)
     t0 = time.perf_counter()
-    stack = read_source(
-        source, series_uid=series_uid, allow_modalities=allow_modalities, skip_corrupt=skip_corrupt,
-        tiff_voxel_size_mm=tiff_voxel_size_mm,
-    )
+    if isinstance(source, SliceStack):
+        stack = source
+    else:
+        stack = read_source(
+            source, series_uid=series_uid, allow_modalities=allow_modalities, skip_corrupt=skip_corrupt,
+            tiff_voxel_size_mm=tiff_voxel_size_mm,
+        )
     t_read = time.perf_counter()
     steps: list[dict[str, Any]] = [
         {"step": "read", "kind": stack.source.get("kind"), "lps_to_ras": stack.source.get("kind") == "dicom"}
