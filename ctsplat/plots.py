@@ -10,6 +10,7 @@ tests can inspect its artists without a display). Per-run figures: :func:`plot_c
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -282,7 +283,9 @@ def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fig
                 _empty(ax, "no runs")
                 continue
             order = sorted(sub["value"].unique(), key=_natural)
-            sns.boxplot(data=sub, x="value", y="score", order=order, ax=ax, color="0.85", fliersize=0)
+            with warnings.catch_warnings():  # seaborn 0.13 passes matplotlib's deprecated `vert`
+                warnings.simplefilter("ignore", DeprecationWarning)
+                sns.boxplot(data=sub, x="value", y="score", order=order, ax=ax, color="0.85", fliersize=0)
             sns.stripplot(data=sub, x="value", y="score", order=order, ax=ax, color="C0", size=4, jitter=0.15)
             ax.set_xlabel(axis if i == len(metrics) - 1 else "")
             ax.set_ylabel(METRIC_LABELS.get(m, m) if j == 0 else "")

@@ -1,0 +1,93 @@
+"""``ctsplat gather`` (summary.csv, one row per run) and ``ctsplat analyse`` (the results-chapter figures)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ctsplat.utils import CtsplatError
+
+
+def _thresholds(items: list[str] | None) -> dict[str, float]:
+    out = {"psnr2d": 30.0, "ssim2d": 0.9}
+    for item in items or []:
+        key, sep, val = item.partition("=")
+        if not sep:
+            raise CtsplatError(f"milestone {item!r} must look like metric=value, e.g. psnr2d=30")
+        try:
+            out[key] = float(val)
+        except ValueError as exc:
+            raise CtsplatError(f"milestone {item!r}: {val!r} is not a number") from exc
+    return out
+
+
+def _run_dirs(paths: list[str]) -> list[Path]:
+    """Run folders from the arguments: a run folder itself, or any folder searched for ``train_log.csv``."""
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if not p.exists():
+            raise CtsplatError(f"{p} does not exist")
+        if (p / "train_log.csv").exists() or (p / "metrics.json").exists():
+            out.append(p)
+        else:
+            found = sorted({q.parent for q in p.rglob("train_log.csv")} | {q.parent for q in p.rglob("metrics.json")
+                                                                            if "~" in q.parent.name})
+            if not found:
+                raise CtsplatError(f"no run folders (with train_log.csv or metrics.json) under {p}")
+            out += found
+    return out
+
+
+def run_gather(args: argparse.Namespace) -> None:
+    from ctsplat.analysis import gather
+
+    thresholds = _thresholds(args.milestone)
+    df = gather(_run_dirs(args.runs), args.out, thresholds=thresholds,
+                max_gap_iters=args.max_gap_iters, per_iters=args.velocity_per_iters)
+    print(f"{args.out}: {len(df)} runs")
+
+
+def run_analyse(args: argparse.Namespace) -> None:
+    from ctsplat.plots import ANALYSIS_OUTPUTS, analyse
+
+    out_dir = Path(args.out_dir)
+    outputs = {name: out_dir / fname for name, (fname, _) in ANALYSIS_OUTPUTS.items()}
+    if not Path(args.summary).exists():
+        raise CtsplatError(f"summary {args.summary} does not exist; run `ctsplat gather` first")
+    analyse(args.summary, outputs, baselines_csvs=args.baselines or [],
+            analysis={"window": args.window, "max_gap_iters": args.max_gap_iters,
+                      "velocity_per_iters": args.velocity_per_iters, "acf_max_lag": args.acf_max_lag,
+                      "kde_windows": args.kde_windows, "milestones": _thresholds(args.milestone)})
+    for path in outputs.values():
+        print(path)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--max-gap-iters", type=int, default=10,
+                   help="forward-fill missing metrics from a value fewer than this many iterations earlier")
+    p.add_argument("--velocity-per-iters", type=int, default=1000, help="velocity unit: gain per N iterations")
+    p.add_argument("--milestone", action="append", metavar="METRIC=VALUE",
+                   help="milestone threshold (repeatable; default psnr2d=30, ssim2d=0.9)")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    g = subparsers.add_parser("gather", help="one row per training run -> summary.csv",
+                              description="Collect run folders (results/{volume}/runs/init~.../seed~N) into a "
+                                          "summary CSV: axis values, metrics.json, final logged metrics, "
+                                          "milestones, convergence velocity.")
+    g.add_argument("runs", nargs="+", help="run folders, or folders to search for them (e.g. results/)")
+    g.add_argument("--out", default="results/summary.csv", help="output CSV (default: %(default)s)")
+    _common(g)
+    g.set_defaults(func=run_gather)
+
+    a = subparsers.add_parser("analyse", help="results figures and tables from summary.csv",
+                              description="Convergence by ablation axis, velocity, ACF, KDE windows, 2D-3D "
+                                          "correlations, milestones, ablation box plots, Gaussian vs FBP/SART.")
+    a.add_argument("summary", help="summary.csv written by `ctsplat gather`")
+    a.add_argument("--out-dir", default="results/figures", help="output folder (default: %(default)s)")
+    a.add_argument("--baselines", nargs="*", help="baselines.csv files from `ctsplat baseline`")
+    a.add_argument("--window", type=int, default=25, help="centred rolling-mean window (evaluations)")
+    a.add_argument("--acf-max-lag", type=int, default=40)
+    a.add_argument("--kde-windows", type=int, default=4)
+    _common(a)
+    a.set_defaults(func=run_analyse)

@@ -1,0 +1,50 @@
+"""`ctsplat gather` / `ctsplat analyse` on synthetic run folders."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+
+from ctsplat import analysis as an
+from ctsplat.cli import main
+from ctsplat.plots import ANALYSIS_OUTPUTS
+
+
+def _run(root, seed):
+    cell = {"init": "fbp", "compositor": "radiative", "mip": "on", "poses": "gt", "views": 8, "seed": seed}
+    rd = root / "results" / "phantom" / "runs" / an.run_relpath(cell)
+    rd.mkdir(parents=True)
+    it = np.arange(0, 501, 50)
+    pd.DataFrame({"iteration": it, "timestamp": it / 10, "psnr2d": 20 + it / 25, "ssim2d": 0.5 + it / 1000,
+                  "psnr3d": 15 + it / 100, "ssim3d": 0.4 + it / 2000}).to_csv(rd / "train_log.csv", index=False)
+    (rd / "metrics.json").write_text(json.dumps({"psnr3d": 20.0 + seed}))
+    return rd
+
+
+def test_gather_searches_folders_and_analyse_writes_figures(tmp_path, capsys):
+    for s in (0, 1):
+        _run(tmp_path, s)
+    out = tmp_path / "summary.csv"
+    assert main(["gather", str(tmp_path / "results"), "--out", str(out), "--milestone", "psnr2d=35"]) == 0
+    df = pd.read_csv(out)
+    assert sorted(df["seed"]) == [0, 1]
+    # psnr2d = 20 + it/25 >= 35 first at it = 375 -> logged at 400
+    assert (df["iter_to_psnr2d_35"] == 400).all()
+    figs = tmp_path / "figs"
+    assert main(["analyse", str(out), "--out-dir", str(figs), "--window", "3"]) == 0
+    assert all((figs / fname).exists() for fname, _ in ANALYSIS_OUTPUTS.values())
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    assert main(["gather", str(tmp_path / "nothing")]) == 2
+    assert main(["gather", str(tmp_path)]) == 2
+    assert "no run folders" in capsys.readouterr().err
+    assert main(["analyse", str(tmp_path / "missing.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "run `ctsplat gather` first" in err and "\n" not in err
+    _run(tmp_path, 0)
+    assert main(["gather", str(tmp_path), "--out", str(tmp_path / "s.csv"), "--milestone", "psnr2d"]) == 2
+    assert "must look like metric=value" in capsys.readouterr().err
+    assert not (tmp_path / "s.csv").exists()

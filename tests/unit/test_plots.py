@@ -1,0 +1,166 @@
+"""ctsplat.plots: figures carry exactly the data of ctsplat.analysis (checked on the returned artists) and PNGs."""
+
+from __future__ import annotations
+
+import json
+
+import imageio.v3 as iio
+import numpy as np
+import pandas as pd
+import pytest
+
+from ctsplat import analysis as an
+from ctsplat import plots
+from ctsplat.utils import CtsplatError
+
+
+def _log(n=41, step=50, seed=0):
+    rng = np.random.default_rng(seed)
+    it = np.arange(n) * step
+    return pd.DataFrame({
+        "iteration": it,
+        "timestamp": it * 0.1,
+        "psnr2d": 18 + 12 * (1 - np.exp(-it / 600)) + rng.normal(0, 0.3, n),
+        "ssim2d": 0.5 + 0.45 * (1 - np.exp(-it / 600)) + rng.normal(0, 0.01, n),
+        "psnr3d": 15 + 10 * (1 - np.exp(-it / 800)),
+        "ssim3d": 0.4 + 0.4 * (1 - np.exp(-it / 800)),
+        "loss": np.linspace(1, 0.1, n),
+    })
+
+
+def _per_view(iterations=(0, 100, 200), views=5):
+    rows = []
+    for it in iterations:
+        for v in range(views):
+            rows.append({"iteration": it, "view_id": v, "azimuth_deg": (v * 77) % 360, "elevation_deg": 0.0,
+                         "split": "val", "psnr2d": 20 + v + it / 100, "ssim2d": 0.5 + 0.01 * v})
+    return pd.DataFrame(rows)
+
+
+def _is_png(path):
+    img = iio.imread(path)
+    return img.ndim == 3 and img.shape[0] > 50 and img.shape[1] > 50
+
+
+def _make_run(root, init="fbp", compositor="radiative", views=8, seed=0):
+    cell = {"init": init, "compositor": compositor, "mip": "on", "poses": "gt", "views": views, "seed": seed}
+    rd = root / "phantom" / "runs" / an.run_relpath(cell)
+    rd.mkdir(parents=True)
+    _log(seed=seed).to_csv(rd / "train_log.csv", index=False)
+    _per_view().to_csv(rd / "per_view.csv", index=False)
+    (rd / "metrics.json").write_text(json.dumps({"psnr3d": 24.0 + views / 10 + seed, "ssim3d": 0.7,
+                                                 "psnr2d": 30.0, "ssim2d": 0.9}))
+    return rd
+
+
+def test_convergence_raw_thin_and_centred_mean_thick(tmp_path):
+    log = _log()
+    fig = plots.plot_convergence(log, tmp_path / "c.png", window=5)
+    assert _is_png(tmp_path / "c.png")
+    ax = fig.axes[0]
+    raw, smooth = ax.get_lines()
+    np.testing.assert_allclose(raw.get_ydata(), log["psnr2d"])
+    np.testing.assert_allclose(smooth.get_ydata(), an.rolling_centered(log["psnr2d"], 5))
+    assert smooth.get_linewidth() > 2 * raw.get_linewidth()
+    assert [a.get_ylabel() for a in fig.axes[:4]] == [plots.METRIC_LABELS[m] for m in an.METRICS_2D3D]
+
+
+def test_convergence_with_missing_3d_metrics(tmp_path):
+    log = _log()
+    log["psnr3d"] = np.nan
+    fig = plots.plot_convergence(log, tmp_path / "c.png")
+    assert not fig.axes[2].get_lines()  # an empty panel with a note, not a crash
+    assert _is_png(tmp_path / "c.png")
+
+
+def test_porkchop_heatmap_holds_the_pivot_table(tmp_path):
+    pv = an.read_per_view(_write(tmp_path / "pv.csv", _per_view()))
+    fig = plots.plot_porkchop(pv, tmp_path / "p.png", split="val")
+    mesh = fig.axes[0].collections[0]
+    table = an.porkchop_table(pv, "psnr2d", split="val")
+    np.testing.assert_allclose(np.asarray(mesh.get_array()).reshape(table.shape), table.to_numpy())
+    assert _is_png(tmp_path / "p.png")
+
+
+def _write(path, df):
+    df.to_csv(path, index=False)
+    return path
+
+
+def test_acf_plot_values(tmp_path):
+    log = _log()
+    fig = plots.plot_acf(log, tmp_path / "a.png", max_lag=10)
+    pts = fig.axes[0].get_lines()[0]
+    np.testing.assert_allclose(pts.get_ydata(), an.acf(log["psnr2d"], 10))
+
+
+def test_kde_windows_one_curve_per_window(tmp_path):
+    fig = plots.plot_kde_windows(_log(), tmp_path / "k.png", n_windows=3)
+    assert len(fig.axes[0].get_lines()) == 3
+    assert _is_png(tmp_path / "k.png")
+
+
+def test_convergence_by_axis_colours_runs_by_axis_value(tmp_path):
+    runs = [_make_run(tmp_path, init=i, seed=s) for i in ("fbp", "uniform") for s in (0, 1)]
+    summary = an.gather(runs, tmp_path / "summary.csv")
+    logs = an.load_runs(summary)
+    fig = plots.plot_convergence_by_axis(logs, "init", tmp_path / "ci.png", window=3)
+    lines = fig.axes[0].get_lines()
+    assert len(lines) == 4
+    colours = {tuple(line.get_color()) for line in lines}
+    assert len(colours) == 2  # one colour per init value
+    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == ["init=fbp", "init=uniform"]
+
+
+def test_velocity_plot_matches_velocity_curve(tmp_path):
+    runs = [_make_run(tmp_path)]
+    logs = an.load_runs(an.gather(runs, tmp_path / "s.csv"))
+    fig = plots.plot_velocity(logs, tmp_path / "v.png", per_iters=500)
+    line = fig.axes[0].get_lines()[0]
+    vc = an.velocity_curve(logs["iteration"], logs["psnr2d"], 500)
+    np.testing.assert_allclose(line.get_ydata(), vc["velocity"])
+
+
+def test_baselines_plot_has_gs_and_classical_lines(tmp_path):
+    summary = pd.DataFrame({"volume": ["p"] * 4, "init": ["fbp"] * 4, "compositor": ["radiative"] * 4,
+                            "mip": ["on"] * 4, "poses": ["gt"] * 4, "views": [8, 8, 16, 16], "seed": [0, 1, 0, 1],
+                            "psnr3d": [20.0, 22.0, 25.0, 27.0]})
+    base = pd.DataFrame({"method": ["fbp", "fbp", "sart", "sart"], "filter": ["ramp", "ramp", None, None],
+                         "iterations": [0, 0, 3, 3], "n_views": [8, 16, 8, 16], "psnr3d": [15.0, 18.0, 17.0, 19.0],
+                         "ssim3d": [0.1] * 4})
+    fig = plots.plot_baselines(summary, base, tmp_path / "b.png")
+    labels = {line.get_label(): line for line in fig.axes[0].get_lines()}
+    assert set(labels) == {"fbp (ramp)", "sart", "GS fbp/radiative/on/gt"}
+    np.testing.assert_allclose(labels["GS fbp/radiative/on/gt"].get_ydata(), [21.0, 26.0])  # mean over seeds
+    np.testing.assert_allclose(labels["sart"].get_ydata(), [17.0, 19.0])
+
+
+def test_ablation_plot_panels_for_varying_axes(tmp_path):
+    runs = [_make_run(tmp_path, init=i, views=v) for i in ("fbp", "uniform") for v in (8, 16)]
+    summary = an.gather(runs, tmp_path / "s.csv")
+    fig = plots.plot_ablation(summary, tmp_path / "ab.png")
+    titles = {ax.get_xlabel() for ax in fig.axes}
+    assert {"init", "views"} <= titles  # only the two axes that vary
+    assert _is_png(tmp_path / "ab.png")
+
+
+def test_analyse_and_run_figures_write_every_output(tmp_path):
+    runs = [_make_run(tmp_path, init=i, compositor=c) for i in ("fbp", "uniform") for c in ("radiative", "alpha")]
+    an.gather(runs, tmp_path / "summary.csv")
+    base = tmp_path / "phantom" / "baselines" / "circular" / "baselines.csv"
+    base.parent.mkdir(parents=True)
+    pd.DataFrame({"method": ["fbp"], "filter": ["ramp"], "iterations": [0], "n_views": [8], "psnr3d": [15.0],
+                  "ssim3d": [0.3], "seconds": [0.1]}).to_csv(base, index=False)
+    outputs = {name: tmp_path / "figures" / fname for name, (fname, _) in plots.ANALYSIS_OUTPUTS.items()}
+    plots.analyse(tmp_path / "summary.csv", outputs, baselines_csvs=[base], analysis={"window": 3})
+    for name, path in outputs.items():
+        assert path.exists(), name
+    ms = pd.read_csv(outputs["milestones"])
+    assert len(ms) == 4 and {"iter_to_psnr2d_30", "iters_per_s"} <= set(ms.columns)
+    corr = pd.read_csv(outputs["correlations"])
+    assert len(corr) == 2 * 5 and set(corr["run_dir"]) >= {"all"}
+    run_out = {name: runs[0] / "figures" / f"{name}.png" for name in plots.RUN_FIGURES}
+    plots.run_figures(runs[0], run_out, {"window": 3})
+    assert all(_is_png(p) for p in run_out.values())
+    with pytest.raises(CtsplatError, match="unknown analysis output 'nope'"):
+        plots.analyse(tmp_path / "summary.csv", {"nope": tmp_path / "x.png"})
