@@ -252,6 +252,14 @@ def _interp_matrix(src: np.ndarray, dst: np.ndarray, sigma: float, lo: float, hi
     return sparse.csr_matrix(lmat, dtype=np.float32)
 
 
+def _is_identity(w: sparse.csr_matrix) -> bool:
+    """True when a resampling matrix is exactly the identity (output samples = source samples)."""
+    if w.shape[0] != w.shape[1] or w.nnz < w.shape[0]:
+        return False
+    diag = w.diagonal()
+    return bool(np.all(diag == 1.0) and abs(w).sum() == w.shape[0])
+
+
 def _grid_axes(
     lo: np.ndarray, hi: np.ndarray, first_centre: np.ndarray, last_centre: np.ndarray, native: np.ndarray,
     voxel_size_mm: float | None, grid: int | Sequence[int] | None, axis_out: np.ndarray,
@@ -351,25 +359,35 @@ def resample_stack(
     inter = np.empty((counts[0], counts[1], n_k), dtype=np.float32)
     cov_inter = np.empty_like(inter)
     keys = np.round(np.stack([su, sv], 1), 6)
-    for key in np.unique(keys, axis=0):
-        ks = np.flatnonzero(np.all(keys == key, axis=1))
+    groups = np.unique(keys, axis=0)
+    for key in groups:
+        ks: Any = np.flatnonzero(np.all(keys == key, axis=1))
+        if len(groups) == 1:
+            ks = slice(None)  # no tilt: one group, views instead of fancy-indexed copies
+        n_g = n_k if len(groups) == 1 else len(ks)
         src_u = key[0] + np.arange(n_i) * di
         src_v = key[1] + np.arange(n_j) * dj
         wu = _interp_matrix(src_u, out_u, max(0.0, (h[0] - di) / 2), src_u[0] - di / 2, src_u[-1] + di / 2)
         wv = _interp_matrix(src_v, out_v, max(0.0, (h[1] - dj) / 2), src_v[0] - dj / 2, src_v[-1] + dj / 2)
-        sub = data[:, :, ks]
-        t = np.asarray(wu @ sub.reshape(n_i, -1), np.float32).reshape(counts[0], n_j, len(ks))
-        t = np.ascontiguousarray(t.transpose(1, 0, 2)).reshape(n_j, -1)
-        t = np.asarray(wv @ t, np.float32).reshape(counts[1], counts[0], len(ks)).transpose(1, 0, 2)
-        inter[:, :, ks] = t
+        sub = np.ascontiguousarray(data[:, :, ks])
+        if _is_identity(wu) and _is_identity(wv):
+            inter[:, :, ks] = sub  # output pixels coincide with the source pixels (native spacing)
+        else:
+            t = np.asarray(wu @ sub.reshape(n_i, -1), np.float32).reshape(counts[0], n_j, n_g)
+            t = np.ascontiguousarray(t.transpose(1, 0, 2)).reshape(n_j, -1)
+            t = np.asarray(wv @ t, np.float32).reshape(counts[1], counts[0], n_g).transpose(1, 0, 2)
+            inter[:, :, ks] = t
         cov = np.outer(np.asarray(wu.sum(axis=1)).ravel(), np.asarray(wv.sum(axis=1)).ravel())
         cov_inter[:, :, ks] = cov[:, :, None]
 
     # 2) along the normal, between the true (possibly non-uniform) slice positions
     wn = _interp_matrix(s, out_n, max(0.0, (h[2] - gap) / 2), s[0] - gap / 2, s[-1] + gap / 2)
-    wnt = wn.T.toarray().astype(np.float32)  # (K, C)
-    out = (inter.reshape(-1, n_k) @ wnt).reshape(counts[0], counts[1], counts[2])
-    cov = (cov_inter.reshape(-1, n_k) @ wnt).reshape(out.shape)
+    if _is_identity(wn):
+        out, cov = inter, cov_inter
+    else:
+        wnt = wn.T.toarray().astype(np.float32)  # (K, C)
+        out = (inter.reshape(-1, n_k) @ wnt).reshape(counts[0], counts[1], counts[2])
+        cov = (cov_inter.reshape(-1, n_k) @ wnt).reshape(out.shape)
     out += np.float32(fill) * (1.0 - cov)
 
     affine = np.eye(4)
