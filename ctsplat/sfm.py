@@ -1,0 +1,849 @@
+"""SfM-guided poses: COLMAP (pycolmap) on synthetic cone-beam radiographs, Sim(3) alignment, pose accuracy.
+
+Axial CT slices share no features, so classical structure-from-motion fails on them. Cone-beam radiographs
+rendered over a designed orbit with dense angular sampling and an elevation wobble do share features (bone
+edges, beads), and COLMAP recovers their poses. This module
+
+1. designs the orbit (:func:`design_orbit`) and renders the views with :mod:`ctsplat.projector`,
+2. enhances them for feature detection (:func:`enhance_for_features`: CLAHE, 8-bit),
+3. runs pycolmap (:func:`colmap_reconstruct`: SIFT, exhaustive / sequential(+loop) / spatial matching,
+   incremental or global mapping) with the *known* pinhole intrinsics held fixed,
+4. merges partial models that share images (:func:`merge_models`),
+5. aligns recovered camera centres to the true ones with a robust Sim(3) (:func:`robust_sim3`) and measures
+   per-view rotation / centre / reprojection errors (:func:`evaluate_poses`),
+6. writes ``sparse/0`` (binary and text COLMAP model), ``poses.csv``, ``summary.json``, ``points3d.ply`` and
+   ``aligned_views.json`` (:func:`run_sfm`).
+
+Conventions (``docs/conventions.md``): world mm, ``x_cam = R x_world + t`` (OpenCV / COLMAP), cone-beam
+pinhole intrinsics ``fx = fy = DSD / pitch``, ``cx = W/2``, ``cy = H/2``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctsplat.utils import CtsplatError, atomic_path, code_version, merge_config, write_json_atomic
+
+__all__ = [
+    "SFM_DEFAULTS",
+    "design_orbit",
+    "support_radius_mm",
+    "enhance_for_features",
+    "write_pngs",
+    "colmap_reconstruct",
+    "merge_models",
+    "umeyama",
+    "robust_sim3",
+    "rotation_error_deg",
+    "evaluate_poses",
+    "summarize",
+    "write_points_ply",
+    "run_sfm",
+    "run_sfm_on_images",
+    "naive_slices_sfm",
+]
+
+log = logging.getLogger(__name__)
+
+#: Defaults of the ``sfm`` config section (JSON-serialisable).
+SFM_DEFAULTS: dict[str, Any] = {
+    # --- designed orbit (cone beam) ---
+    "n_views": 120,  # views over `arc_deg`
+    "arc_deg": 360.0,  # azimuth range; 360 closes the loop
+    "wobble_deg": 15.0,  # elevation amplitude: el = wobble * sin(wobble_cycles * az)
+    "wobble_cycles": 2.0,
+    "detector_px": 192,  # square detector W = H
+    "dso_mm": 600.0,  # source -> isocentre
+    "dsd_mm": 1000.0,  # source -> detector
+    "pitch_mm": None,  # detector pixel pitch; None: fit the volume bounding sphere * fov_margin
+    "fov_margin": 1.0,
+    "step_voxels": 0.5,  # projector sampling step
+    # --- contrast enhancement ---
+    "clahe_clip": 0.01,  # skimage equalize_adapthist clip_limit
+    "clahe_kernel_frac": 0.125,  # kernel size as a fraction of the image size
+    "percentile_low": 0.0,  # per-view intensity window before CLAHE (percent)
+    "percentile_high": 100.0,
+    # --- features and matching ---
+    "max_num_features": 4096,
+    "peak_threshold": 0.004,  # SIFT DoG threshold (radiographs are low-contrast)
+    "edge_threshold": 16.0,
+    "upright": True,  # the orbit keeps world up at image top: skip SIFT orientation (more distinctive)
+    "matching": "exhaustive",  # exhaustive | sequential | spatial
+    "sequential_overlap": 12,  # neighbours matched in `sequential` (cyclic: the orbit closes)
+    "max_ratio": 0.8,
+    "max_distance": 0.7,
+    "min_num_inliers": 15,  # two-view geometry
+    "max_error_px": 4.0,  # RANSAC threshold (px)
+    # --- mapping ---
+    "mapper": "incremental",  # incremental | global
+    "init_min_num_inliers": 50,
+    "init_min_tri_angle_deg": 4.0,
+    "abs_pose_min_num_inliers": 15,
+    "abs_pose_min_inlier_ratio": 0.15,
+    "filter_min_tri_angle_deg": 0.5,
+    "triangulation_min_angle_deg": 0.5,
+    "min_model_size": 3,
+    "pose_prior": "designed",  # none | designed: designed-orbit source positions as COLMAP position priors
+    "prior_sigma_mm": 5.0,  # std of the position prior (mm)
+    "orbit_jitter_deg": 0.0,  # true views deviate from the design by N(0, σ) in azimuth and elevation
+    "merge_models": True,
+    "min_shared_images": 3,  # to merge two partial models
+    "num_threads": 1,
+    # --- alignment and verdict ---
+    "align_inlier_threshold_frac": 0.02,  # RANSAC inlier threshold as a fraction of DSO
+    "align_iterations": 500,
+    "min_registration_rate": 0.8,  # ok needs at least this fraction of views in the main model
+    "max_median_rotation_error_deg": 2.0,  # ... and at most this median rotation error
+    "naive_slices": False,  # also run SfM on the raw axial slices (the failure case) and report it
+    "keep_work": False,  # keep the COLMAP database and PNGs (otherwise PNGs are kept, database dropped)
+}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Orbit and images
+# ----------------------------------------------------------------------------------------------------------
+def design_orbit(n_views: int, arc_deg: float, wobble_deg: float, wobble_cycles: float, dso_mm: float,
+                 isocenter_mm: np.ndarray | None = None, *, jitter_deg: float = 0.0, seed: int = 0
+                 ) -> dict[str, np.ndarray]:
+    """Designed cone-beam orbit around the world z axis with a sinusoidal elevation wobble.
+
+    Source position of view ``i`` (azimuth φ_i = i · arc / n for a full circle, or evenly spaced
+    including both ends for a partial arc; elevation θ_i = wobble · sin(cycles · φ_i)), plus, with
+    ``jitter_deg > 0``, independent N(0, jitter²) deviations of φ_i and θ_i (a real orbit off its design):
+    ``c_i = iso + DSO (cos θ cos φ, cos θ sin φ, sin θ)``; the camera looks at the isocentre.
+
+    Returns
+    -------
+    dict with ``Rs`` (V, 3, 3), ``ts`` (V, 3) world->camera, ``centres`` (V, 3) mm, ``azimuth_deg`` (V,),
+    ``elevation_deg`` (V,).
+    """
+    if n_views < 2:
+        raise CtsplatError(f"sfm.n_views must be >= 2, got {n_views}")
+    if not 0 < arc_deg <= 360:
+        raise CtsplatError(f"sfm.arc_deg must be in (0, 360], got {arc_deg}")
+    if abs(wobble_deg) >= 80:
+        raise CtsplatError(f"sfm.wobble_deg must be < 80 degrees, got {wobble_deg}")
+    iso = np.zeros(3) if isocenter_mm is None else np.asarray(isocenter_mm, float)
+    full = math.isclose(arc_deg, 360.0)
+    az = np.arange(n_views) * arc_deg / n_views if full else np.linspace(0.0, arc_deg, n_views)
+    el = wobble_deg * np.sin(np.deg2rad(wobble_cycles * az))
+    if jitter_deg > 0:
+        rng = np.random.default_rng(seed)
+        az = az + rng.normal(0.0, jitter_deg, n_views)
+        el = el + rng.normal(0.0, jitter_deg, n_views)
+    a, e = np.deg2rad(az), np.deg2rad(el)
+    dirs = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1)
+    centres = iso + dso_mm * dirs
+    from ctsplat.geometry import look_at
+
+    Rs, ts = zip(*(look_at(c, iso) for c in centres), strict=True)
+    return {"Rs": np.stack(Rs), "ts": np.stack(ts), "centres": centres, "azimuth_deg": az, "elevation_deg": el}
+
+
+def enhance_for_features(images: np.ndarray, *, clip: float = 0.01, kernel_frac: float = 0.125,
+                         p_low: float = 0.5, p_high: float = 99.5) -> np.ndarray:
+    """Contrast-enhance radiographs for SIFT: per-view percentile window, CLAHE, 8-bit.
+
+    Parameters
+    ----------
+    images : ndarray (V, H, W) or (H, W), float
+        Line integrals ``p`` (or any intensity); higher = more attenuation (shown bright, like bone).
+
+    Returns
+    -------
+    ndarray (V, H, W) uint8
+        ``round(255 · CLAHE(clip((p - P_low) / (P_high - P_low), 0, 1)))`` per view
+        (``skimage.exposure.equalize_adapthist`` with ``kernel_size = kernel_frac · max(H, W)``).
+    """
+    from skimage.exposure import equalize_adapthist
+
+    arr = np.asarray(images, dtype=np.float64)
+    if arr.ndim == 2:
+        arr = arr[None]
+    if arr.ndim != 3 or not np.all(np.isfinite(arr)):
+        raise CtsplatError("enhance_for_features: expected finite images of shape (V, H, W)")
+    out = np.empty(arr.shape, np.uint8)
+    ks = max(8, int(round(kernel_frac * max(arr.shape[1:]))))
+    for i, im in enumerate(arr):
+        lo, hi = np.percentile(im, [p_low, p_high])
+        x = np.clip((im - lo) / (hi - lo), 0.0, 1.0) if hi > lo else np.zeros_like(im)
+        if hi > lo:
+            x = equalize_adapthist(x, kernel_size=ks, clip_limit=clip)
+        out[i] = np.round(np.clip(x, 0, 1) * 255).astype(np.uint8)
+    return out
+
+
+def write_pngs(images: np.ndarray, out_dir: str | Path, prefix: str = "view") -> list[str]:
+    """Write uint8 images (V, H, W) as ``{prefix}_{i:04d}.png``; return the file names (COLMAP image names)."""
+    import imageio.v3 as iio
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = []
+    for i, im in enumerate(images):
+        name = f"{prefix}_{i:04d}.png"
+        with atomic_path(out_dir / name) as tmp:
+            iio.imwrite(tmp, np.asarray(im, np.uint8), extension=".png")
+        names.append(name)
+    return names
+
+
+# ----------------------------------------------------------------------------------------------------------
+# COLMAP
+# ----------------------------------------------------------------------------------------------------------
+def _options(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
+    import pycolmap
+
+    nt = int(cfg["num_threads"])
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.num_threads = nt
+    ext.use_gpu = False
+    ext.sift.max_num_features = int(cfg["max_num_features"])
+    ext.sift.peak_threshold = float(cfg["peak_threshold"])
+    ext.sift.edge_threshold = float(cfg["edge_threshold"])
+    ext.sift.upright = bool(cfg["upright"])
+    mat = pycolmap.FeatureMatchingOptions()
+    mat.num_threads = nt
+    mat.use_gpu = False
+    mat.sift.max_ratio = float(cfg["max_ratio"])
+    mat.sift.max_distance = float(cfg["max_distance"])
+    ver = pycolmap.TwoViewGeometryOptions()
+    ver.min_num_inliers = int(cfg["min_num_inliers"])
+    ver.ransac.max_error = float(cfg["max_error_px"])
+    ver.ransac.random_seed = int(cfg.get("_seed", 0))
+    ver.detect_watermark = False  # radiographs are centred objects; "watermark" filtering rejects them
+    return ext, mat, ver
+
+
+def _incremental_options(cfg: dict[str, Any]):  # noqa: ANN202
+    import pycolmap
+
+    o = pycolmap.IncrementalPipelineOptions()
+    o.num_threads = int(cfg["num_threads"])
+    o.random_seed = int(cfg.get("_seed", 0))
+    o.min_num_matches = int(cfg["min_num_inliers"])
+    o.min_model_size = int(cfg["min_model_size"])
+    o.multiple_models = True
+    o.ba_refine_focal_length = False  # known intrinsics from the detector geometry
+    o.ba_refine_principal_point = False
+    o.ba_refine_extra_params = False
+    o.extract_colors = False
+    m = o.mapper
+    m.init_min_num_inliers = int(cfg["init_min_num_inliers"])
+    m.init_min_tri_angle = float(cfg["init_min_tri_angle_deg"])
+    m.abs_pose_min_num_inliers = int(cfg["abs_pose_min_num_inliers"])
+    m.abs_pose_min_inlier_ratio = float(cfg["abs_pose_min_inlier_ratio"])
+    m.abs_pose_refine_focal_length = False
+    m.abs_pose_refine_extra_params = False
+    m.filter_min_tri_angle = float(cfg["filter_min_tri_angle_deg"])
+    m.random_seed = int(cfg.get("_seed", 0))
+    m.num_threads = int(cfg["num_threads"])
+    o.triangulation.min_angle = float(cfg["triangulation_min_angle_deg"])
+    o.triangulation.random_seed = int(cfg.get("_seed", 0))
+    return o
+
+
+def _global_options(cfg: dict[str, Any]):  # noqa: ANN202
+    import pycolmap
+
+    o = pycolmap.GlobalPipelineOptions()
+    o.num_threads = int(cfg["num_threads"])
+    o.random_seed = int(cfg.get("_seed", 0))
+    o.min_num_matches = int(cfg["min_num_inliers"])
+    o.min_model_size = int(cfg["min_model_size"])
+    m = o.mapper
+    m.num_threads = int(cfg["num_threads"])
+    m.random_seed = int(cfg.get("_seed", 0))
+    m.bundle_adjustment.refine_focal_length = False
+    m.bundle_adjustment.refine_principal_point = False
+    m.bundle_adjustment.refine_extra_params = False
+    m.bundle_adjustment.ceres.use_gpu = False
+    m.global_positioning.use_gpu = False
+    m.min_tri_angle_deg = float(cfg["triangulation_min_angle_deg"])
+    return o
+
+
+def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics: tuple[float, float, float, float],
+                       work_dir: str | Path, config: dict[str, Any], prior_centres: np.ndarray | None = None
+                       ) -> tuple[dict[int, Any], dict[str, Any]]:
+    """Run pycolmap on ``image_names`` (all one PINHOLE camera with fixed ``(fx, fy, cx, cy)`` in px).
+
+    ``prior_centres`` (V, 3) mm, in the order of ``image_names``: camera-centre priors (the designed orbit)
+    written to the database as Cartesian pose priors with covariance ``prior_sigma_mm² I``; the incremental
+    mapper then uses them (``use_prior_position``, robust loss) and returns models in the prior frame.
+
+    Returns ``(models, stats)``: pycolmap reconstructions keyed by model index and statistics
+    (features per image, verified pairs, seconds per stage).
+    """
+    import pycolmap
+
+    cfg = config
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    db_path = work_dir / "database.db"
+    if db_path.exists():
+        db_path.unlink()
+    with contextlib.suppress(Exception):
+        pycolmap.set_random_seed(int(cfg.get("_seed", 0)))
+    ext, mat, ver = _options(cfg)
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"
+    reader.camera_params = ",".join(f"{v:.10g}" for v in intrinsics)
+    stats: dict[str, Any] = {}
+    t0 = time.perf_counter()
+    pycolmap.extract_features(db_path, image_dir, image_names=list(image_names),
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=ext, device=pycolmap.Device.cpu)
+    if prior_centres is not None:
+        _write_pose_priors(db_path, image_names, np.asarray(prior_centres, float), float(cfg["prior_sigma_mm"]))
+    t1 = time.perf_counter()
+    matching = cfg["matching"]
+    if matching == "exhaustive":
+        pycolmap.match_exhaustive(db_path, matching_options=mat, verification_options=ver, device=pycolmap.Device.cpu)
+    elif matching == "sequential":
+        pair = pycolmap.SequentialPairingOptions()
+        pair.overlap = int(cfg["sequential_overlap"])
+        pair.quadratic_overlap = False
+        pair.num_threads = int(cfg["num_threads"])
+        pycolmap.match_sequential(db_path, matching_options=mat, pairing_options=pair, verification_options=ver,
+                                  device=pycolmap.Device.cpu)
+        if float(cfg.get("arc_deg", 360.0)) >= 360.0:
+            _match_loop_closure(db_path, image_names, int(cfg["sequential_overlap"]), mat, ver)
+    else:
+        raise CtsplatError(f"unknown sfm.matching {matching!r}; allowed: exhaustive, sequential")
+    t2 = time.perf_counter()
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        n_kp = [db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()]
+        stats["verified_pairs"] = int(db.num_verified_image_pairs())
+        stats["matched_pairs"] = int(db.num_matched_image_pairs())
+    finally:
+        db.close()
+    stats["features_median"] = float(np.median(n_kp)) if n_kp else 0.0
+    out = work_dir / "models"
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir()
+    mapper = cfg["mapper"]
+    if mapper == "incremental":
+        opts = _incremental_options(cfg)
+        if prior_centres is not None:
+            opts.use_prior_position = True
+            opts.use_robust_loss_on_prior_position = True
+        models = pycolmap.incremental_mapping(db_path, image_dir, out, options=opts)
+    elif mapper == "global":
+        models = pycolmap.global_mapping(db_path, image_dir, out, options=_global_options(cfg))
+    else:
+        raise CtsplatError(f"unknown sfm.mapper {mapper!r}; allowed: incremental, global")
+    t3 = time.perf_counter()
+    stats.update(seconds_features=t1 - t0, seconds_matching=t2 - t1, seconds_mapping=t3 - t2)
+    return dict(models), stats
+
+
+def _write_pose_priors(db_path: Path, image_names: list[str], centres: np.ndarray, sigma_mm: float) -> None:
+    """Store Cartesian position priors (mm) with isotropic covariance ``σ² I`` for the named images."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        by_name = {im.name: im for im in db.read_all_images()}
+        for name, c in zip(image_names, centres, strict=True):
+            prior = pycolmap.PosePrior(position=np.asarray(c, float), position_covariance=np.eye(3) * sigma_mm**2,
+                                       coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
+                                       corr_data_id=by_name[name].data_id)
+            db.write_pose_prior(prior)
+    finally:
+        db.close()
+
+
+def _match_loop_closure(db_path: Path, image_names: list[str], overlap: int, mat: Any, ver: Any) -> None:
+    """Close a 360° orbit: match the last ``overlap`` images with the first ``overlap`` (cyclic neighbours)."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+    finally:
+        db.close()
+    n = len(image_names)
+    pairs = []
+    for i in range(n):
+        for d in range(1, overlap + 1):
+            j = i + d
+            if j >= n:
+                pairs.append((image_names[i], image_names[j - n]))
+    pairs = [(a, b) for a, b in pairs if a != b and a in ids and b in ids]
+    if not pairs:
+        return
+    with tempfile.NamedTemporaryFile("w", suffix=".txt", delete=False) as fh:
+        fh.write("\n".join(f"{a} {b}" for a, b in pairs) + "\n")
+        pair_file = fh.name
+    try:
+        popt = pycolmap.ImportedPairingOptions()
+        popt.match_list_path = pair_file
+        pycolmap.match_image_pairs(db_path, matching_options=mat, pairing_options=popt, verification_options=ver,
+                                   device=pycolmap.Device.cpu)
+    finally:
+        Path(pair_file).unlink(missing_ok=True)
+
+
+def _model_poses(rec: Any) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Image name -> (R (3,3), t (3,)) world->camera of the registered images of a pycolmap model."""
+    out = {}
+    for img in rec.images.values():
+        if not img.has_pose:
+            continue
+        m = img.cam_from_world().matrix()
+        out[img.name] = (np.asarray(m[:, :3], float), np.asarray(m[:, 3], float))
+    return out
+
+
+def merge_models(models: dict[int, Any], min_shared: int = 3) -> tuple[Any, dict[str, tuple[np.ndarray, np.ndarray]],
+                                                                        dict[str, Any]]:
+    """Keep the largest model and merge into its frame every other model sharing ``>= min_shared`` images.
+
+    The smaller model is mapped into the largest one's frame with the Sim(3) (Umeyama) aligning the centres
+    of the shared images; its extra images' poses are added (``R' = R S_R^T``, ``c' = s S_R c + S_t``).
+    Returns ``(largest pycolmap model, merged poses {name: (R, t)}, report)``; the COLMAP model itself
+    stays the largest one (points of merged models are not transferred).
+    """
+    if not models:
+        return None, {}, {"models_found": 0, "model_sizes": [], "merged": []}
+    order = sorted(models, key=lambda k: -models[k].num_reg_images())
+    main = models[order[0]]
+    poses = _model_poses(main)
+    sizes = [int(models[k].num_reg_images()) for k in order]
+    merged = []
+    changed = True
+    remaining = order[1:]
+    while changed and remaining:
+        changed = False
+        for k in list(remaining):
+            other = _model_poses(models[k])
+            shared = sorted(set(other) & set(poses))
+            if len(shared) < min_shared:
+                continue
+            src = np.stack([-other[n][0].T @ other[n][1] for n in shared])
+            dst = np.stack([-poses[n][0].T @ poses[n][1] for n in shared])
+            s, Rg, tg = umeyama(src, dst, with_scale=True)
+            resid = np.linalg.norm((s * src @ Rg.T + tg) - dst, axis=1)
+            spread = np.linalg.norm(dst - dst.mean(0), axis=1).mean()
+            if len(shared) >= 3 and np.median(resid) > 0.05 * max(spread, 1e-9):
+                continue  # inconsistent overlap: do not merge
+            added = 0
+            for n, (R, t) in other.items():
+                if n in poses:
+                    continue
+                c = -R.T @ t
+                c2 = s * Rg @ c + tg
+                R2 = R @ Rg.T
+                poses[n] = (R2, -R2 @ c2)
+                added += 1
+            merged.append({"model_size": int(models[k].num_reg_images()), "shared": len(shared), "added": added})
+            remaining.remove(k)
+            changed = True
+    report = {"models_found": len(models), "model_sizes": sizes, "merged": merged}
+    return main, poses, report
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Alignment and metrics
+# ----------------------------------------------------------------------------------------------------------
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity ``dst ≈ s R src + t`` (Umeyama 1991).
+
+    With centred ``X = src - μ_s``, ``Y = dst - μ_d`` and ``Σ = Yᵀ X / n = U D Vᵀ``:
+    ``R = U S Vᵀ`` (``S = diag(1, 1, det(U Vᵀ))``), ``s = tr(D S) / σ_s²`` (``σ_s² = |X|² / n``),
+    ``t = μ_d - s R μ_s``.
+
+    Parameters
+    ----------
+    src, dst : ndarray (N, 3), N >= 3 (not all collinear)
+
+    Returns
+    -------
+    s : float, R : ndarray (3, 3), t : ndarray (3,)
+    """
+    src = np.asarray(src, float)
+    dst = np.asarray(dst, float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[0] < 3:
+        raise CtsplatError(f"umeyama needs matching (N>=3, 3) point sets, got {src.shape} and {dst.shape}")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    X, Y = src - mu_s, dst - mu_d
+    sigma = Y.T @ X / len(src)
+    U, D, Vt = np.linalg.svd(sigma)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    var_s = (X**2).sum() / len(src)
+    s = float(np.trace(np.diag(D) @ S) / var_s) if with_scale and var_s > 0 else 1.0
+    t = mu_d - s * R @ mu_s
+    return s, R, t
+
+
+def robust_sim3(src: np.ndarray, dst: np.ndarray, threshold: float, *, iterations: int = 500,
+                seed: int = 0) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """RANSAC Sim(3) (minimal 3-point Umeyama samples), refit on the largest inlier set.
+
+    Inliers: ``|s R src_i + t - dst_i| <= threshold`` (units of ``dst``). Deterministic for a ``seed``.
+    Returns ``(s, R, t, inlier mask (N,))``. With fewer than 3 points raises ``CtsplatError``.
+    """
+    src = np.asarray(src, float)
+    dst = np.asarray(dst, float)
+    n = len(src)
+    if n < 3:
+        raise CtsplatError(f"robust_sim3 needs at least 3 correspondences, got {n}")
+    rng = np.random.default_rng(seed)
+    best = np.zeros(n, bool)
+    best_err = np.inf
+    for _ in range(iterations if n > 3 else 1):
+        idx = rng.choice(n, 3, replace=False) if n > 3 else np.arange(3)
+        a = src[idx]
+        if np.linalg.norm(np.cross(a[1] - a[0], a[2] - a[0])) < 1e-12:
+            continue
+        s, R, t = umeyama(a, dst[idx])
+        err = np.linalg.norm(s * src @ R.T + t - dst, axis=1)
+        inl = err <= threshold
+        score = np.minimum(err, threshold).sum()  # MSAC
+        if inl.sum() > best.sum() or (inl.sum() == best.sum() and score < best_err):
+            best, best_err = inl, score
+    if best.sum() < 3:
+        best = np.ones(n, bool)
+    for _ in range(3):  # refit and re-select
+        s, R, t = umeyama(src[best], dst[best])
+        err = np.linalg.norm(s * src @ R.T + t - dst, axis=1)
+        new = err <= threshold
+        if new.sum() < 3 or np.array_equal(new, best):
+            break
+        best = new
+    s, R, t = umeyama(src[best], dst[best])
+    return s, R, t, best
+
+
+def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
+    """Geodesic angle (degrees) between rotations: ``arccos((tr(R_aᵀ R_b) - 1) / 2)``; batched over (..., 3, 3)."""
+    Ra = np.asarray(R_a, float)
+    Rb = np.asarray(R_b, float)
+    tr = np.einsum("...ji,...ji->...", Ra, Rb)
+    return np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def evaluate_poses(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: list[str], Rs_true: np.ndarray,
+                   ts_true: np.ndarray, *, threshold_mm: float, iterations: int = 500, seed: int = 0
+                   ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Align recovered poses to the true ones (robust Sim(3) on centres) and measure per-view errors.
+
+    With the Sim(3) ``x_w = s R_g x_sfm + t_g``, a recovered camera ``(R, c)`` becomes
+    ``R_w = R R_gᵀ``, ``c_w = s R_g c + t_g`` (world mm). Per view: rotation error
+    ``∠(R_w, R_true)`` (deg), centre error ``|c_w - c_true|`` (mm).
+
+    Returns ``(rows, alignment)``; rows have ``view, name, registered, rot_err_deg, centre_err_mm,
+    R (aligned), t (aligned)`` (NaN / None when not registered); alignment has ``s, R, t, inliers``.
+    """
+    V = len(names)
+    centres_true = np.einsum("vji,vj->vi", Rs_true, -np.asarray(ts_true, float))  # c = -Rᵀ t
+    reg = [i for i, n in enumerate(names) if n in poses]
+    rows: list[dict[str, Any]] = []
+    align: dict[str, Any] = {"ok": False}
+    if len(reg) >= 3:
+        src = np.stack([-poses[names[i]][0].T @ poses[names[i]][1] for i in reg])
+        dst = centres_true[reg]
+        s, Rg, tg, inl = robust_sim3(src, dst, threshold_mm, iterations=iterations, seed=seed)
+        align = {"ok": True, "scale": s, "R": Rg, "t": tg, "n_inliers": int(inl.sum()), "n_used": len(reg)}
+    for i, n in enumerate(names):
+        row: dict[str, Any] = {"view": i, "name": n, "registered": n in poses, "rot_err_deg": np.nan,
+                               "centre_err_mm": np.nan, "R": None, "t": None}
+        if n in poses and align["ok"]:
+            R, t = poses[n]
+            c = -R.T @ t
+            Rw = R @ align["R"].T
+            cw = align["scale"] * align["R"] @ c + align["t"]
+            row.update(rot_err_deg=float(rotation_error_deg(Rw, Rs_true[i])),
+                       centre_err_mm=float(np.linalg.norm(cw - centres_true[i])), R=Rw, t=-Rw @ cw)
+        rows.append(row)
+    assert len(rows) == V
+    return rows, align
+
+
+def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str, Any]) -> dict[str, Any]:
+    """Summary numbers: registration rates, median / p90 errors, models, and the ``ok`` verdict."""
+    V = len(rows)
+    reg = [r for r in rows if r["registered"] and np.isfinite(r["rot_err_deg"])]
+    rot = np.array([r["rot_err_deg"] for r in reg])
+    cen = np.array([r["centre_err_mm"] for r in reg])
+    rep = np.array([r.get("reproj_err_px", np.nan) for r in reg], float)
+    sizes = report.get("model_sizes", [])
+
+    def q(a: np.ndarray, p: float) -> float | None:
+        a = a[np.isfinite(a)]
+        return float(np.percentile(a, p)) if a.size else None
+
+    out = {
+        "n_views": V,
+        "n_registered": len(reg),
+        "registration_rate": len(reg) / V if V else 0.0,
+        "largest_model_rate": (sizes[0] / V) if sizes and V else 0.0,
+        "models_found": int(report.get("models_found", 0)),
+        "model_sizes": sizes,
+        "merged": report.get("merged", []),
+        "rot_err_deg_median": q(rot, 50),
+        "rot_err_deg_p90": q(rot, 90),
+        "centre_err_mm_median": q(cen, 50),
+        "centre_err_mm_p90": q(cen, 90),
+        "reproj_err_px_median": q(rep, 50),
+    }
+    ok = (out["registration_rate"] >= cfg["min_registration_rate"] and out["rot_err_deg_median"] is not None
+          and out["rot_err_deg_median"] <= cfg["max_median_rotation_error_deg"])
+    out["ok"] = bool(ok)
+    if not ok:
+        out["reason"] = (f"registration rate {out['registration_rate']:.2f} (need >= {cfg['min_registration_rate']}),"
+                         f" median rotation error {out['rot_err_deg_median']} deg"
+                         f" (need <= {cfg['max_median_rotation_error_deg']})")
+    return out
+
+
+def _per_image_reproj(rec: Any) -> dict[str, float]:
+    """Mean reprojection error (px) of each registered image's observations in a pycolmap model."""
+    errs: dict[str, list[float]] = {}
+    for p in rec.points3D.values():
+        for el in p.track.elements:
+            img = rec.images[el.image_id]
+            uv = img.points2D[el.point2D_idx].xy
+            proj = img.project_point(p.xyz)
+            if proj is not None:
+                errs.setdefault(img.name, []).append(float(np.linalg.norm(np.asarray(proj) - np.asarray(uv))))
+    return {k: float(np.mean(v)) for k, v in errs.items()}
+
+
+def write_points_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> None:
+    """ASCII PLY of points (N, 3) mm with optional uint8 colours (N, 3), written atomically."""
+    xyz = np.asarray(xyz, float).reshape(-1, 3)
+    lines = ["ply", "format ascii 1.0", f"element vertex {len(xyz)}", "property float x", "property float y",
+             "property float z"]
+    if rgb is not None:
+        lines += ["property uchar red", "property uchar green", "property uchar blue"]
+    lines.append("end_header")
+    body = []
+    for i, p in enumerate(xyz):
+        s = f"{p[0]:.6f} {p[1]:.6f} {p[2]:.6f}"
+        if rgb is not None:
+            c = np.asarray(rgb[i]).astype(int)
+            s += f" {c[0]} {c[1]} {c[2]}"
+        body.append(s)
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines + body) + "\n")
+
+
+def _write_model(rec: Any, out_dir: Path) -> None:
+    """COLMAP model as binary (``out_dir``) and text (``out_dir/text``), replaced atomically."""
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".sparse.", dir=out_dir.parent))
+    try:
+        rec.write_binary(str(tmp))
+        (tmp / "text").mkdir()
+        rec.write_text(str(tmp / "text"))
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        tmp.rename(out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, float, float], Rs_true: np.ndarray,
+                      ts_true: np.ndarray, out_dir: str | Path, config: dict[str, Any], *, seed: int = 0,
+                      prefix: str = "view", scale_mm: float = 1.0, prior_centres: np.ndarray | None = None
+                      ) -> tuple[dict[str, Any], list[dict[str, Any]], Any]:
+    """COLMAP + merging + alignment on given 8-bit images with known true poses; no files beside the work dir.
+
+    Returns ``(summary, rows, model_or_None)``; rows are per view (see :func:`evaluate_poses`) plus
+    ``reproj_err_px``; the summary also holds COLMAP stage statistics. Never raises on too few registrations.
+    """
+    cfg = dict(config)
+    cfg["_seed"] = seed
+    out_dir = Path(out_dir)
+    img_dir = out_dir / "images"
+    names = write_pngs(images_u8, img_dir, prefix=prefix)
+    models, stats = colmap_reconstruct(img_dir, names, intrinsics, out_dir / "colmap", cfg,
+                                       prior_centres=prior_centres)
+    main, poses, report = merge_models(models, int(cfg["min_shared_images"])) if cfg["merge_models"] else \
+        merge_models({k: v for k, v in models.items() if k == max(models, key=lambda j: models[j].num_reg_images())}
+                     if models else {}, 3)
+    if not cfg["merge_models"] and models:
+        report["models_found"] = len(models)
+        report["model_sizes"] = sorted((int(m.num_reg_images()) for m in models.values()), reverse=True)
+    rows, align = evaluate_poses(poses, names, Rs_true, ts_true,
+                                 threshold_mm=float(cfg["align_inlier_threshold_frac"]) * scale_mm,
+                                 iterations=int(cfg["align_iterations"]), seed=seed)
+    reproj = _per_image_reproj(main) if main is not None else {}
+    for r in rows:
+        r["reproj_err_px"] = reproj.get(r["name"], np.nan)
+        r["in_main_model"] = r["name"] in reproj or (main is not None and main.find_image_with_name(r["name"])
+                                                       is not None and r["registered"] and r["name"] in
+                                                       _model_poses(main))
+    summary = summarize(rows, report, cfg)
+    summary["colmap"] = stats
+    summary["alignment"] = {k: v for k, v in align.items() if k in ("ok", "scale", "n_inliers", "n_used")}
+    return summary, rows, (main, align)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Step function
+# ----------------------------------------------------------------------------------------------------------
+def support_radius_mm(data: np.ndarray, affine: np.ndarray, centre_mm: np.ndarray, rel_threshold: float = 0.2
+                      ) -> float:
+    """Radius (mm) around ``centre_mm`` of the sphere holding every voxel above ``rel_threshold · max``.
+
+    Used to size the detector to the object rather than to the (mostly empty) volume box. Falls back to
+    the half-diagonal of the box for an empty volume.
+    """
+    data = np.asarray(data)
+    vmax = float(data.max()) if data.size else 0.0
+    ijk = np.argwhere(data > rel_threshold * vmax) if vmax > 0 else np.empty((0, 3))
+    if len(ijk) == 0:
+        ext = np.asarray(data.shape, float) * np.linalg.norm(np.asarray(affine)[:3, :3], axis=0)
+        return 0.5 * float(np.linalg.norm(ext))
+    xyz = ijk @ np.asarray(affine)[:3, :3].T + np.asarray(affine)[:3, 3]
+    vox = float(np.linalg.norm(np.linalg.norm(np.asarray(affine)[:3, :3], axis=0)))  # voxel diagonal
+    return float(np.linalg.norm(xyz - np.asarray(centre_mm), axis=1).max()) + vox
+
+
+def _pitch_mm(cfg: dict[str, Any], radius_mm: float) -> float:
+    """Detector pitch so that the object's bounding sphere (radius r) fits the detector with ``fov_margin``.
+
+    The sphere's cone half-angle is ``asin(r / DSO)``; on the detector it spans ``DSD · tan(asin(r/DSO))``.
+    """
+    if cfg["pitch_mm"] is not None:
+        return float(cfg["pitch_mm"])
+    half = cfg["dsd_mm"] * math.tan(math.asin(min(radius_mm / cfg["dso_mm"], 0.99)))
+    return 2.0 * half * float(cfg["fov_margin"]) / int(cfg["detector_px"])
+
+
+def run_sfm(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any] | None = None, seed: int = 0
+            ) -> dict[str, Any]:
+    """Render the SfM cone-beam view set, run COLMAP, align, and write the results into ``out_dir``.
+
+    Writes ``sparse/0/`` (binary COLMAP model + ``text/``), ``poses.csv``, ``summary.json``,
+    ``points3d.ply`` (aligned, world mm), ``aligned_views.json`` (registered views, B's ViewSet format)
+    and ``images/`` (the 8-bit PNGs). Too few registrations do not raise: ``summary["ok"]`` is False.
+    Returns the summary dict.
+    """
+    import pandas as pd
+    import torch
+
+    from ctsplat.geometry import VIEWSET_FORMAT, VIEWSET_FORMAT_VERSION, ConeCamera, View, ViewSet
+    from ctsplat.projector import line_integrals
+    from ctsplat.volume import load_volume
+
+    cfg = merge_config("sfm", config, SFM_DEFAULTS)
+    if cfg["matching"] not in ("exhaustive", "sequential"):
+        raise CtsplatError(f"unknown sfm.matching {cfg['matching']!r}; allowed: exhaustive, sequential")
+    if cfg["mapper"] not in ("incremental", "global"):
+        raise CtsplatError(f"unknown sfm.mapper {cfg['mapper']!r}; allowed: incremental, global")
+    if cfg["pose_prior"] not in ("none", "designed"):
+        raise CtsplatError(f"unknown sfm.pose_prior {cfg['pose_prior']!r}; allowed: none, designed")
+    if cfg["pose_prior"] == "designed" and cfg["mapper"] != "incremental":
+        raise CtsplatError("sfm.pose_prior 'designed' needs sfm.mapper 'incremental' (global mapping ignores priors)")
+    if cfg["dsd_mm"] <= cfg["dso_mm"]:
+        raise CtsplatError(f"sfm.dsd_mm ({cfg['dsd_mm']}) must exceed sfm.dso_mm ({cfg['dso_mm']})")
+    vol = load_volume(volume_path)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    iso = vol.center_mm()
+    radius = support_radius_mm(vol.data, vol.affine, iso)
+    if radius >= cfg["dso_mm"]:
+        raise CtsplatError(f"sfm.dso_mm ({cfg['dso_mm']}) must exceed the volume radius ({radius:.0f} mm)")
+    W = H = int(cfg["detector_px"])
+    cam = ConeCamera(width=W, height=H, pitch_mm=_pitch_mm(cfg, radius), dso_mm=float(cfg["dso_mm"]),
+                     dsd_mm=float(cfg["dsd_mm"]))
+    orbit_args = (int(cfg["n_views"]), float(cfg["arc_deg"]), float(cfg["wobble_deg"]), float(cfg["wobble_cycles"]),
+                  float(cfg["dso_mm"]), iso)
+    designed = design_orbit(*orbit_args)
+    orbit = design_orbit(*orbit_args, jitter_deg=float(cfg["orbit_jitter_deg"]), seed=seed)  # the true views
+    mu = torch.from_numpy(np.asarray(vol.data, np.float32) * vol.mu_scale_per_mm)
+    with torch.no_grad():
+        p = line_integrals(mu, np.asarray(vol.affine, float), cam, orbit["Rs"], orbit["ts"],
+                           step_voxels=float(cfg["step_voxels"]))
+    imgs = enhance_for_features(p.cpu().numpy(), clip=cfg["clahe_clip"], kernel_frac=cfg["clahe_kernel_frac"],
+                                p_low=cfg["percentile_low"], p_high=cfg["percentile_high"])
+    work = Path(tempfile.mkdtemp(prefix=".sfm_work.", dir=out_dir))
+    try:
+        summary, rows, (main, align) = run_sfm_on_images(
+            imgs, (cam.fx, cam.fy, cam.cx, cam.cy), orbit["Rs"], orbit["ts"], work, cfg, seed=seed,
+            scale_mm=float(cfg["dso_mm"]),
+            prior_centres=designed["centres"] if cfg["pose_prior"] == "designed" else None)
+        if main is not None:
+            _write_model(main, out_dir / "sparse" / "0")
+            if align["ok"]:
+                xyz = np.array([pt.xyz for pt in main.points3D.values()]).reshape(-1, 3)
+                write_points_ply(out_dir / "points3d.ply", align["scale"] * xyz @ align["R"].T + align["t"])
+        if (out_dir / "images").exists():
+            shutil.rmtree(out_dir / "images")
+        (work / "images").rename(out_dir / "images")
+    finally:
+        if cfg["keep_work"] and (work / "colmap").exists():
+            shutil.rmtree(out_dir / "colmap", ignore_errors=True)
+            (work / "colmap").rename(out_dir / "colmap")
+        shutil.rmtree(work, ignore_errors=True)
+
+    table = pd.DataFrame([{
+        "view": r["view"], "name": r["name"], "azimuth_deg": orbit["azimuth_deg"][r["view"]],
+        "elevation_deg": orbit["elevation_deg"][r["view"]], "registered": r["registered"],
+        "rot_err_deg": r["rot_err_deg"], "centre_err_mm": r["centre_err_mm"], "reproj_err_px": r["reproj_err_px"],
+    } for r in rows])
+    with atomic_path(out_dir / "poses.csv") as tmp:
+        table.to_csv(tmp, index=False)
+    views = [View(id=r["view"], R=r["R"], t=r["t"], azimuth_deg=float(orbit["azimuth_deg"][r["view"]]),
+                  elevation_deg=float(orbit["elevation_deg"][r["view"]]), split="train")
+             for r in rows if r["R"] is not None]
+    vs_meta = {"source": "sfm", "registration_rate": summary["registration_rate"], "ok": summary["ok"],
+               "n_views_designed": len(rows)}
+    if views:
+        ViewSet(camera=cam, views=views, volume_id=vol.volume_id, isocenter_mm=iso, meta=vs_meta).save(
+            out_dir / "aligned_views.json")
+    else:  # nothing registered: same format with no views (ViewSet.load then refuses it with a clear message)
+        write_json_atomic(out_dir / "aligned_views.json", {
+            "format": VIEWSET_FORMAT, "format_version": VIEWSET_FORMAT_VERSION, "volume_id": vol.volume_id,
+            "isocenter_mm": np.asarray(iso, float).tolist(), "camera": cam.to_dict(), "views": [], "meta": vs_meta})
+    if cfg["naive_slices"]:
+        summary["naive_slices"] = naive_slices_sfm(vol.data, out_dir / ".naive_work", cfg, seed=seed)
+        shutil.rmtree(out_dir / ".naive_work", ignore_errors=True)
+    summary.update(config=cfg, seed=seed, code_version=code_version(), volume_id=vol.volume_id,
+                   camera={"model": "PINHOLE", "width": W, "height": H, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
+                           "cy": cam.cy, "pitch_mm": cam.pitch_mm, "dso_mm": cam.dso_mm, "dsd_mm": cam.dsd_mm})
+    write_json_atomic(out_dir / "summary.json", summary)
+    return summary
+
+
+def naive_slices_sfm(volume_data: np.ndarray, work_dir: str | Path, config: dict[str, Any], seed: int = 0
+                     ) -> dict[str, Any]:
+    """The failure case: COLMAP on the raw axial slices (``data[:, :, k]``) treated as photographs.
+
+    The slices are windowed to 8 bit (same percentile + CLAHE enhancement as the radiographs) and fed to the
+    same pipeline with a guessed pinhole camera (``f = 1.2 · max(W, H)``, as COLMAP would guess). There is
+    no ground-truth pose, so only registration counts are reported.
+    """
+    cfg = dict(merge_config("sfm", {k: v for k, v in config.items() if not k.startswith("_")}, SFM_DEFAULTS))
+    cfg["_seed"] = seed
+    data = np.asarray(volume_data, float)
+    slices = np.moveaxis(data, 2, 0)  # (K, I, J)
+    imgs = enhance_for_features(slices, clip=cfg["clahe_clip"], kernel_frac=cfg["clahe_kernel_frac"],
+                                p_low=cfg["percentile_low"], p_high=cfg["percentile_high"])
+    work_dir = Path(work_dir)
+    names = write_pngs(imgs, work_dir / "images", prefix="slice")
+    H, W = imgs.shape[1:]
+    f = 1.2 * max(H, W)
+    models, stats = colmap_reconstruct(work_dir / "images", names, (f, f, W / 2, H / 2), work_dir / "colmap", cfg)
+    sizes = sorted((int(m.num_reg_images()) for m in models.values()), reverse=True)
+    return {"n_images": len(names), "models_found": len(models), "model_sizes": sizes,
+            "registration_rate": (sizes[0] / len(names)) if sizes else 0.0, "colmap": stats}
