@@ -1,0 +1,420 @@
+"""Renderer correctness against independent references: quadrature line integrals, analytic masses, the radiograph
+projector applied to the voxelised field, a brute-force alpha compositor, gradcheck, the fused kernel vs reference."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from ctsplat.gaussians import Gaussians
+from ctsplat.geometry import ConeCamera, ParallelCamera, camera_rays, pose_from_angles
+from ctsplat.render import EPS_2D, compute_3d_filter, render, voxelize
+from ctsplat.utils import CtsplatError
+
+D64 = torch.float64
+DIRECTIONS = [(0.0, 0.0), (37.0, 20.0), (100.0, -45.0), (210.0, 70.0)]
+
+
+def _pose(az: float, el: float, iso=(0.0, 0.0, 0.0), dist: float = 300.0):
+    R, t = pose_from_angles(az, el, iso, dist)
+    return torch.tensor(R, dtype=D64), torch.tensor(t, dtype=D64)
+
+
+def _mixture(n: int, seed: int, spread: float = 6.0, smin: float = 1.0, smax: float = 3.0, dtype=D64) -> Gaussians:
+    g = torch.Generator().manual_seed(seed)
+    means = (torch.rand(n, 3, generator=g, dtype=D64) - 0.5) * 2 * spread
+    scales = smin + (smax - smin) * torch.rand(n, 3, generator=g, dtype=D64)
+    dens = 0.2 + torch.rand(n, generator=g, dtype=D64)
+    quats = torch.randn(n, 4, generator=g, dtype=D64)
+    op = 0.2 + 0.5 * torch.rand(n, generator=g, dtype=D64)
+    cols = torch.rand(n, 1, generator=g, dtype=D64)
+    return Gaussians.from_values(means, scales, dens, quats, opacities=op, colors=cols, dtype=dtype)
+
+
+def _analytic_mass(g: Gaussians) -> float:
+    return float(g.masses().sum())
+
+
+# ------------------------------------------------------------------------------------------------ exactness
+@pytest.mark.parametrize("az,el", DIRECTIONS)
+def test_parallel_single_gaussian_matches_quadrature_line_integral(az, el):
+    """Rotated anisotropic Gaussian: every pixel equals a fine trapezoid line integral along its ray (1e-4 rel)."""
+    q = Rotation.from_euler("zyx", [30, 50, -20], degrees=True).as_quat()  # xyzw
+    g = Gaussians.from_values([[1.5, -2.0, 0.7]], [[4.0, 1.5, 2.5]], [0.8], [[q[3], q[0], q[1], q[2]]], dtype=D64)
+    cam = ParallelCamera(40, 36, 0.6)
+    R, t = _pose(az, el)
+    img = render(g, cam, R, t, sigma_cutoff=8.0).image.numpy()
+    # independent reference: sample μ along each pixel's ray (numpy, world frame)
+    o, d = camera_rays(cam, R.numpy(), t.numpy())
+    s = np.linspace(270.0, 330.0, 6001)  # ray origins 300 mm from the isocentre: cover ±30 mm (> 7σ) around it
+    m = g.means.detach().numpy()[0]
+    P = np.linalg.inv(g.covariances.detach().numpy()[0])
+    ref = np.zeros(img.shape)
+    for row in range(cam.height):
+        x = o[row][:, None, :] + s[None, :, None] * d[row][:, None, :] - m  # (W, S, 3)
+        f = 0.8 * np.exp(-0.5 * np.einsum("wsi,ij,wsj->ws", x, P, x))
+        ref[row] = np.trapezoid(f, s, axis=1)
+    assert ref.max() > 1.0  # the Gaussian is in view and the quadrature covers it
+    big = ref > 1e-3 * ref.max()
+    np.testing.assert_allclose(img[big], ref[big], rtol=1e-4)
+    np.testing.assert_allclose(img, ref, rtol=0, atol=1e-4 * ref.max())
+
+
+def _mass_scene() -> Gaussians:
+    # anisotropic, rotated, all inside the detector field of view; σ ≥ 1 mm = 2 px so pixel sums equal integrals
+    q = torch.tensor(Rotation.from_euler("xyz", [[10, 70, 30], [80, -20, 45], [0, 0, 0]], degrees=True).as_quat())
+    quats = q[:, [3, 0, 1, 2]]
+    return Gaussians.from_values(
+        [[0.0, 0.0, 0.0], [6.0, -4.0, 3.0], [-5.0, 5.0, -6.0]],
+        [[5.0, 1.0, 1.2], [1.0, 3.5, 1.0], [2.0, 2.0, 4.0]],
+        [1.0, 0.5, 2.0], quats, dtype=D64,
+    )
+
+
+@pytest.mark.parametrize("mip", [False, True])
+def test_rectified_parallel_conserves_mass_every_direction(mip):
+    g = _mass_scene()
+    cam = ParallelCamera(128, 128, 0.5)
+    fv = torch.full((3,), 0.8, dtype=D64) if mip else None  # a strong 3D filter (mm²) to make the point
+    target = _analytic_mass(g)
+    for az, el in DIRECTIONS:
+        R, t = _pose(az, el)
+        img = render(g, cam, R, t, filter_3d_var=fv, mip_2d=mip, sigma_cutoff=6.0).image
+        assert float(img.sum()) * 0.25 == pytest.approx(target, rel=1e-7)
+
+
+def test_rectified_default_cutoff_loses_at_most_the_documented_tail():
+    g = _mass_scene()
+    cam = ParallelCamera(128, 128, 0.5)
+    target = _analytic_mass(g)
+    for az, el in DIRECTIONS[:2]:
+        R, t = _pose(az, el)
+        mass = float(render(g, cam, R, t).image.sum()) * 0.25
+        # Šidák: the 3σ box keeps at least erf(3/√2)² of each Gaussian and at most one marginal's erf(3/√2)
+        deficit = (target - mass) / target
+        assert 1 - math.erf(3 / math.sqrt(2)) < deficit <= (1 - math.erf(3 / math.sqrt(2)) ** 2) * 1.0001
+
+
+def test_unrectified_violates_mass_conservation_for_anisotropic_gaussians():
+    g = _mass_scene()
+    cam = ParallelCamera(128, 128, 0.5)
+    masses = []
+    for az, el in DIRECTIONS:
+        R, t = _pose(az, el)
+        masses.append(float(render(g, cam, R, t, compositor="radiative_unrectified", sigma_cutoff=6).image.sum()))
+    masses = np.array(masses) * 0.25
+    assert masses.max() / masses.min() > 1.3  # view-dependent
+    assert np.all(np.abs(masses / _analytic_mass(g) - 1) > 0.05)
+
+
+@pytest.mark.parametrize("mip", [False, True])
+def test_rectified_cone_conserves_magnified_mass(mip):
+    """Cone beam: ∫ p dA_detector = Σ ρ (2π)^{3/2} |Σ|^{1/2} · DSD² r / z³ (solid-angle Jacobian at each centre)."""
+    g = _mass_scene()
+    cam = ConeCamera(160, 160, 0.8, 400.0, 800.0)
+    fv = torch.full((3,), 0.5, dtype=D64) if mip else None
+    for az, el in DIRECTIONS:
+        R, t = _pose(az, el, dist=400.0)
+        img = render(g, cam, R, t, filter_3d_var=fv, mip_2d=mip, sigma_cutoff=6.0).image
+        xc = g.means @ R.T + t
+        w = cam.dsd_mm**2 * xc.norm(dim=-1) / xc[:, 2] ** 3
+        target = float((g.masses() * w).sum())
+        assert float(img.sum()) * cam.pitch_mm**2 == pytest.approx(target, rel=1e-7)
+
+
+def test_large_gaussian_is_not_clipped():
+    """σ = 40 px: the footprint grows with the Gaussian (no fixed patch); far pixels carry the analytic value."""
+    g = Gaussians.from_values([[0.0, 0.0, 0.0]], [[20.0, 20.0, 5.0]], [1.0], dtype=D64)
+    cam = ParallelCamera(400, 400, 0.5)
+    R, t = torch.eye(3, dtype=D64), torch.tensor([0.0, 0.0, 100.0], dtype=D64)
+    out = render(g, cam, R, t)
+    img = out.image
+    assert int(out.radii[0]) >= 120
+    peak = 1.0 * math.sqrt(2 * math.pi) * 5.0
+    # pixel centre (300.5, 200.5) lies (100.5, 0.5) px (2.5 σ) from the projected mean (200, 200)
+    assert float(img[200, 300]) == pytest.approx(peak * math.exp(-0.5 * (100.5**2 + 0.5**2) / 40**2), rel=1e-4)
+    frac = math.erf(3 / math.sqrt(2)) ** 2  # mass inside the 3σ box
+    assert float(img.sum()) * 0.25 == pytest.approx(_analytic_mass(g) * frac, rel=2e-3)
+
+
+# ------------------------------------------------------------------------------------------------ vs projector
+@pytest.mark.parametrize("model", ["parallel", "cone"])
+def test_mixture_matches_projector_on_voxelised_field(model):
+    from ctsplat.projector import line_integrals
+
+    g = _mixture(8, seed=3, spread=8.0, smin=3.0, smax=5.0)
+    shape = (56, 56, 56)
+    affine = np.diag([1.0, 1.0, 1.0, 1.0])
+    affine[:3, 3] = -27.5  # centred grid, 1 mm voxels
+    mu = voxelize(g, shape, affine, sigma_cutoff=5.0)
+    if model == "parallel":
+        cam, dist = ParallelCamera(48, 48, 1.0), 300.0
+    else:
+        cam, dist = ConeCamera(48, 48, 2.0, 300.0, 600.0), 300.0
+    poses = [_pose(az, el, dist=dist) for az, el in DIRECTIONS[:3]]
+    Rs = np.stack([p[0].numpy() for p in poses])
+    ts = np.stack([p[1].numpy() for p in poses])
+    ref = line_integrals(mu.float(), affine, cam, Rs, ts, step_voxels=0.25).double()
+    for v, (R, t) in enumerate(poses):
+        img = render(g, cam, R, t, sigma_cutoff=5.0).image
+        err = float((img - ref[v]).norm() / ref[v].norm())
+        assert err < 0.01, (model, v, err)
+        bad = render(g, cam, R, t, compositor="radiative_unrectified", sigma_cutoff=5.0).image
+        assert float((bad - ref[v]).norm() / ref[v].norm()) > 0.2  # the test can tell a wrong model apart
+
+
+# ------------------------------------------------------------------------------------------------ alpha
+def _brute_alpha(g: Gaussians, cam, R: torch.Tensor, t: torch.Tensor, mip_2d: bool = False) -> np.ndarray:
+    """Independent per-pixel loop (numpy): EWA 2D covariance, 0.3 px low-pass, depth-sorted front to back."""
+    m = g.means.detach().numpy()
+    cov = g.covariances.detach().numpy()
+    op = g.opacities.detach().numpy()
+    col = g.colors.detach().numpy()[:, 0]
+    Rn, tn = R.numpy(), t.numpy()
+    xc = m @ Rn.T + tn
+    mus, covs = [], []
+    for i in range(len(m)):
+        x, y, z = xc[i]
+        if cam.model == "parallel":
+            J = np.diag([1 / cam.spacing_mm, 1 / cam.spacing_mm])
+            J = np.hstack([J, np.zeros((2, 1))])
+            mu2 = np.array([x / cam.spacing_mm + cam.cx, y / cam.spacing_mm + cam.cy])
+        else:
+            J = np.array([[cam.fx / z, 0, -cam.fx * x / z**2], [0, cam.fy / z, -cam.fy * y / z**2]])
+            mu2 = np.array([cam.fx * x / z + cam.cx, cam.fy * y / z + cam.cy])
+        c2 = J @ Rn @ cov[i] @ Rn.T @ J.T
+        k = (0.1 if mip_2d else 0.3) + EPS_2D  # documented low-pass / mip filter plus the numerical floor
+        c2f = c2 + k * np.eye(2)
+        o = op[i] * (math.sqrt(np.linalg.det(c2) / np.linalg.det(c2f)) if mip_2d else 1.0)
+        mus.append(mu2)
+        covs.append((np.linalg.inv(c2f), o))
+    order = np.argsort(xc[:, 2], kind="stable")
+    img = np.zeros((cam.height, cam.width))
+    for v in range(cam.height):
+        for u in range(cam.width):
+            T = 1.0
+            for i in order:
+                d = np.array([u + 0.5, v + 0.5]) - mus[i]
+                P, o = covs[i]
+                a = min(0.99, o * math.exp(-0.5 * d @ P @ d))
+                img[v, u] += T * a * col[i]
+                T *= 1 - a
+    return img
+
+
+@pytest.mark.parametrize("model", ["parallel", "cone"])
+@pytest.mark.parametrize("mip", [False, True])
+def test_alpha_matches_bruteforce_loop(model, mip):
+    g = _mixture(6, seed=1, spread=3.0, smin=0.5, smax=2.0)
+    cam = ParallelCamera(14, 12, 1.0) if model == "parallel" else ConeCamera(14, 12, 2.0, 100.0, 200.0)
+    R, t = _pose(40.0, 15.0, dist=100.0)
+    img = render(g, cam, R, t, compositor="alpha", mip_2d=mip, sigma_cutoff=30.0).image.numpy()
+    ref = _brute_alpha(g, cam, R, t, mip_2d=mip)
+    assert ref.max() > 0.3
+    np.testing.assert_allclose(img, ref, atol=1e-10)
+
+
+# ------------------------------------------------------------------------------------------------ gradients
+def _params(g: Gaussians, compositor: str) -> list[str]:
+    return ["means", "log_scales", "quats", "opacity_raw" if compositor == "alpha" else "density_raw"]
+
+
+@pytest.mark.parametrize("compositor", ["radiative", "radiative_unrectified", "alpha"])
+@pytest.mark.parametrize("model", ["parallel", "cone"])
+def test_gradcheck_small_scene(compositor, model):
+    g0 = _mixture(3, seed=7, spread=2.0, smin=0.8, smax=1.6)
+    cam = ParallelCamera(9, 8, 0.8) if model == "parallel" else ConeCamera(9, 8, 1.5, 80.0, 160.0)
+    R, t = _pose(25.0, 10.0, dist=80.0)
+    names = _params(g0, compositor)
+    fv = torch.full((3,), 0.05, dtype=D64)
+
+    def f(*tensors):
+        kw = dict(g0.tensors())
+        kw.update(dict(zip(names, tensors, strict=True)))
+        g = Gaussians(**kw)
+        a = render(g, cam, R, t, compositor=compositor, sigma_cutoff=12.0, backend="reference").image
+        b = render(g, cam, R, t, compositor=compositor, sigma_cutoff=12.0, filter_3d_var=fv, mip_2d=True).image
+        return a, b
+
+    inputs = tuple(getattr(g0, n).clone().requires_grad_(True) for n in names)
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+@pytest.mark.parametrize("model", ["parallel", "cone"])
+def test_kernel_matches_reference_forward_and_backward(model):
+    from ctsplat import _render_kernel
+
+    if not _render_kernel.available():
+        pytest.skip(f"C kernel unavailable: {_render_kernel._failed}")
+    for dtype, tol in ((D64, 1e-10), (torch.float32, 2e-4)):
+        g = _mixture(300, seed=11, spread=30.0, smin=0.3, smax=4.0, dtype=dtype)
+        for p in g.tensors().values():
+            p.requires_grad_(True)
+        cam = ParallelCamera(64, 48, 0.8) if model == "parallel" else ConeCamera(64, 48, 1.6, 200.0, 400.0)
+        R, t = _pose(60.0, -20.0, dist=200.0)
+        R, t = R.to(dtype), t.to(dtype)
+        w = torch.rand(48, 64, generator=torch.Generator().manual_seed(0), dtype=dtype)
+        res = {}
+        for backend in ("reference", "kernel"):
+            for comp in ("radiative", "radiative_unrectified"):
+                out = render(g, cam, R, t, compositor=comp, backend=backend, mip_2d=True)
+                grads = torch.autograd.grad((out.image * w).sum(), [g.means, g.log_scales, g.quats, g.density_raw])
+                res[backend, comp] = (out.image.detach(), grads)
+        for comp in ("radiative", "radiative_unrectified"):
+            a, ga = res["reference", comp]
+            b, gb = res["kernel", comp]
+            assert float(a.abs().max()) > 1.0
+            assert float((a - b).abs().max()) <= tol * float(a.abs().max())
+            for x, y in zip(ga, gb, strict=True):
+                assert float((x - y).abs().max()) <= tol * 10 * max(float(x.abs().max()), 1e-12)
+
+
+@pytest.mark.parametrize("compositor", ["radiative", "radiative_unrectified", "alpha"])
+def test_very_flat_gaussians_have_finite_gradients(compositor):
+    # pancakes (1e-5 mm thick) seen face-on, edge-on and obliquely; float32 as in training
+    q = torch.tensor(Rotation.from_euler("y", [[0], [90], [45]], degrees=True).as_quat())[:, [3, 0, 1, 2]]
+    g = Gaussians.from_values([[0.0, 0, 0], [3.0, 2, 0], [-3.0, -2, 1]], [[3.0, 3.0, 1e-5]] * 3, [1.0] * 3, q,
+                              opacities=[0.5] * 3)
+    for p in g.tensors().values():
+        p.requires_grad_(True)
+    for cam in (ParallelCamera(32, 32, 0.5), ConeCamera(32, 32, 1.0, 100.0, 200.0)):
+        for az in (0.0, 90.0, 33.0):
+            R, t = _pose(az, 0.0, dist=100.0)
+            out = render(g, cam, R.float(), t.float(), compositor=compositor, mip_2d=True)
+            assert torch.isfinite(out.image).all()
+            grads = torch.autograd.grad(out.image.sum(), [g.means, g.log_scales, g.quats, g.density_raw,
+                                                          g.opacity_raw], allow_unused=True)
+            for gr in grads:
+                assert gr is None or bool(torch.isfinite(gr).all())
+
+
+def test_means2d_keeps_its_gradient_for_densification():
+    g = _mixture(5, seed=2, dtype=torch.float32)
+    g.means.requires_grad_(True)
+    out = render(g, ParallelCamera(32, 32, 0.5), *_pose(0.0, 0.0))
+    out.image.sum().backward()
+    assert out.means2d.grad is not None and out.means2d.grad.shape == (5, 2)
+    assert bool(out.visible.all()) and bool((out.radii > 0).all())
+
+
+# ------------------------------------------------------------------------------------------------ bad input
+@pytest.mark.parametrize("name", ["means", "log_scales", "quats", "density_raw"])
+def test_nan_or_inf_parameter_raises_naming_it(name):
+    g = _mixture(4, seed=0)
+    bad = getattr(g, name).clone()
+    bad.view(-1)[2] = float("nan") if name != "log_scales" else float("inf")
+    setattr(g, name, bad)
+    with pytest.raises(CtsplatError, match=name):
+        render(g, ParallelCamera(16, 16, 1.0), *_pose(0.0, 0.0))
+
+
+def test_zero_gaussians_render_empty_image():
+    g = Gaussians.empty(dtype=D64)
+    for comp in ("radiative", "alpha"):
+        out = render(g, ConeCamera(20, 10, 1.0, 100.0, 200.0), *_pose(10.0, 0.0, dist=100.0), compositor=comp)
+        assert out.image.shape == (10, 20) and float(out.image.abs().sum()) == 0.0
+        assert out.means2d.shape == (0, 2) and out.visible.shape == (0,)
+
+
+def test_gaussians_behind_cone_source_are_culled():
+    cam = ConeCamera(32, 32, 1.0, 100.0, 200.0)
+    R, t = torch.eye(3, dtype=D64), torch.zeros(3, dtype=D64)  # source at the origin looking along +z
+    # one in front (z = 100 mm), one behind the source on the same axis (z = -100 mm)
+    g = Gaussians.from_values([[0.0, 0, 100], [0.0, 0, -100]], 2.0, [1.0, 5.0], opacities=0.5, dtype=D64)
+    for comp in ("radiative", "radiative_unrectified", "alpha"):
+        out = render(g, cam, R, t, compositor=comp)
+        assert out.visible.tolist() == [True, False] and int(out.radii[1]) == 0
+        front = render(g[torch.tensor([0])], cam, R, t, compositor=comp).image
+        assert torch.equal(out.image, front)
+
+
+def test_bad_compositor_and_transmission_and_mu_scale():
+    g = _mixture(3, seed=0)
+    cam, (R, t) = ParallelCamera(16, 16, 1.0), _pose(0.0, 0.0)
+    with pytest.raises(CtsplatError, match="compositor"):
+        render(g, cam, R, t, compositor="mip")
+    p = render(g, cam, R, t).image
+    tr = render(g, cam, R, t, transmission=True, mu_scale=0.02).image
+    torch.testing.assert_close(tr, torch.exp(-0.02 * p))
+
+
+# ------------------------------------------------------------------------------------------------ 3D filter, voxelizer
+def test_compute_3d_filter_uses_finest_sampling_of_the_cameras():
+    g = Gaussians.from_values([[0.0, 0, 0], [10.0, 0, 0], [0.0, 5000.0, 0]], 1.0, 1.0, dtype=D64)
+    par = ParallelCamera(64, 64, 0.7)
+    Rs = torch.stack([_pose(0, 0)[0], _pose(90, 0)[0]])
+    ts = torch.stack([_pose(0, 0)[1], _pose(90, 0)[1]])
+    v = compute_3d_filter(g, par, Rs, ts)
+    torch.testing.assert_close(v, torch.full((3,), 0.2 * 0.7**2, dtype=D64))
+    cone = ConeCamera(64, 64, 1.0, 200.0, 400.0)
+    (R1, t1), (R2, t2) = _pose(0, 0, dist=200.0), _pose(180, 0, dist=300.0)
+    v = compute_3d_filter(g, cone, torch.stack([R1, R2]), torch.stack([t1, t2]))
+    fx = cone.fx
+    # Gaussian 0 at the isocentre: nearer camera wins (z = 200 mm); Gaussian 1 at x=10 is nearer to camera 1 too
+    assert float(v[0]) == pytest.approx(0.2 * (200.0 / fx) ** 2)
+    z1 = float((g.means[1] @ R1.T + t1)[2])
+    assert float(v[1]) == pytest.approx(0.2 * (z1 / fx) ** 2)
+    assert float(v[2]) == pytest.approx(float(v.max()))  # unseen -> the largest interval among seen ones
+    assert float(v[2]) == pytest.approx(float(v[:2].max()))
+
+
+def _dense_field(g: Gaussians, shape, affine) -> torch.Tensor:
+    idx = torch.stack(torch.meshgrid(*[torch.arange(s, dtype=D64) for s in shape], indexing="ij"), -1)
+    A = torch.as_tensor(affine, dtype=D64)
+    pos = idx @ A[:3, :3].T + A[:3, 3]
+    P = torch.linalg.inv(g.covariances)
+    d = pos[..., None, :] - g.means
+    q = torch.einsum("...ni,nij,...nj->...n", d, P, d)
+    return (g.densities * torch.exp(-0.5 * q)).sum(-1)
+
+
+def test_voxelize_matches_dense_evaluation_and_chunks_and_regions():
+    g = _mixture(12, seed=5, spread=6.0, smin=0.6, smax=2.5)
+    shape = (20, 18, 16)
+    affine = np.array([[0.0, 0.9, 0.0, -8.0], [0.8, 0.0, 0.1, -7.0], [0.0, 0.0, 1.1, -9.0], [0, 0, 0, 1.0]])
+    for p in ("means", "log_scales", "quats", "density_raw"):
+        getattr(g, p).requires_grad_(True)
+    ref = _dense_field(g, shape, affine)
+    full = voxelize(g, shape, affine, sigma_cutoff=8.0)
+    torch.testing.assert_close(full, ref, rtol=1e-10, atol=1e-12)
+    chunked = voxelize(g, shape, affine, sigma_cutoff=8.0, chunk=500)
+    torch.testing.assert_close(chunked, ref, rtol=1e-10, atol=1e-12)
+    w = torch.rand(shape, generator=torch.Generator().manual_seed(1), dtype=D64)
+    params = [g.means, g.log_scales, g.quats, g.density_raw]
+    g_ref = torch.autograd.grad((ref * w).sum(), params)
+    g_chk = torch.autograd.grad((chunked * w).sum(), params)
+    for a, b in zip(g_ref, g_chk, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10)
+    region = ((3, 11), (0, 7), (5, 16))
+    sub = voxelize(g, shape, affine, sigma_cutoff=8.0, region=region, chunk=700)
+    torch.testing.assert_close(sub, ref[3:11, 0:7, 5:16], rtol=1e-10, atol=1e-12)
+    # the default 3σ cut only drops values below exp(-4.5) of each Gaussian's peak
+    cut = voxelize(g, shape, affine)
+    assert float((ref - cut).abs().max()) <= float(g.densities.detach().sum()) * math.exp(-4.5)
+    with pytest.raises(CtsplatError, match="region"):
+        voxelize(g, shape, affine, region=((0, 30), (0, 5), (0, 5)))
+
+
+def test_voxelize_with_3d_filter_conserves_mass():
+    g = _mixture(3, seed=9, spread=2.0, smin=0.8, smax=1.5)
+    shape = (40, 40, 40)
+    affine = np.diag([0.5, 0.5, 0.5, 1.0])
+    affine[:3, 3] = -9.75
+    fv = torch.tensor([0.3, 0.6, 1.0], dtype=D64)
+    vol = voxelize(g, shape, affine, filter_3d_var=fv, sigma_cutoff=6.0)
+    assert float(vol.sum()) * 0.125 == pytest.approx(_analytic_mass(g), rel=1e-6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+def test_cuda_matches_cpu():
+    g = _mixture(40, seed=4, spread=10.0)
+    for comp in ("radiative", "radiative_unrectified", "alpha"):
+        for cam in (ParallelCamera(40, 32, 0.5), ConeCamera(40, 32, 1.0, 150.0, 300.0)):
+            R, t = _pose(30.0, 10.0, dist=150.0)
+            a = render(g, cam, R, t, compositor=comp, mip_2d=True).image
+            b = render(g.to("cuda"), cam, R.cuda(), t.cuda(), compositor=comp, mip_2d=True).image.cpu()
+            torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
