@@ -6,8 +6,9 @@ For a detector ray ``x(s) = o + s d`` (``|d| = 1``, ``s`` in mm, ``s >= 0``) the
 
 μ(x) is the trilinear interpolant of the voxel values (zero outside the grid), whose support is the
 index box ``(-1, N)`` along each axis. Each ray is clipped to that box in index space (slab test), and
-the clipped segment ``[s0, s0 + L]`` is integrated by the midpoint rule with ``n`` equal steps
-``h = L / n <= step_voxels * min(spacing)``:
+the clipped segment ``[s0, s0 + L]`` is integrated by the midpoint rule with ``n = ceil(L / step)``
+equal steps ``h = L / n <= step = step_voxels * min(spacing)`` (per ray, so results do not depend on
+batching):
 
     p ≈ h Σ_k μ(x(s0 + (k + ½) h)),   k = 0 .. n-1,
 
@@ -22,7 +23,6 @@ Noise (optional, seeded): counts ``N = Poisson(I0 exp(-p)) + Normal(0, σ_e)``; 
 from __future__ import annotations
 
 import logging
-import math
 import os
 import shutil
 import tempfile
@@ -190,23 +190,26 @@ def line_integrals(
         s0_all, len_all = clip_rays_to_box(o_all, d_all, lo, hi)
         hit = np.flatnonzero(len_all > 0)
         hit = hit[np.argsort(-len_all[hit], kind="stable")]  # similar lengths share a chunk
+        n_all = np.maximum(np.ceil(len_all / step_mm), 1).astype(np.int64)  # samples per ray
         start = 0
         while start < hit.size:
-            n = max(1, math.ceil(len_all[hit[start]] / step_mm))
+            n = int(n_all[hit[start]])  # the longest ray of the chunk sets its sample count
             n_rays = max(1, batch_samples // n)
             idx = hit[start : start + n_rays]
             start += n_rays
             o = torch.as_tensor(o_all[idx], dtype=torch.float32, device=device)
             d = torch.as_tensor(d_all[idx], dtype=torch.float32, device=device)
             s0 = torch.as_tensor(s0_all[idx], dtype=torch.float32, device=device)
-            h = torch.as_tensor(len_all[idx] / n, dtype=torch.float32, device=device)
-            k = torch.arange(n, dtype=torch.float32, device=device) + 0.5
-            s = s0[:, None] + k[None, :] * h[:, None]  # (R, n) mm
+            h = torch.as_tensor(len_all[idx] / n_all[idx], dtype=torch.float32, device=device)
+            n_ray = torch.as_tensor(n_all[idx], device=device)
+            k = torch.arange(n, device=device)
+            s = s0[:, None] + (k[None, :] + 0.5) * h[:, None]  # (R, n) mm
             p = o[:, None, :] + s[..., None] * d[:, None, :]  # (R, n, 3) index (i, j, k)
             grid = p.flip(-1) * norm - 1.0  # -> (k, j, i) in [-1, 1]
             vals = torch.nn.functional.grid_sample(
                 vol, grid[None, None], mode="bilinear", padding_mode="zeros", align_corners=True
             )[0, 0, 0]  # (R, n)
+            vals = torch.where(k[None, :] < n_ray[:, None], vals, torch.zeros((), device=device))
             pieces_idx.append(torch.as_tensor(idx + g0 * H * W, device=device))
             pieces_val.append(vals.sum(-1) * h)
     out = torch.zeros(V * H * W, dtype=torch.float32, device=device)

@@ -1,0 +1,337 @@
+"""Projector exactness against independent references (skimage radon, closed-form ellipsoid chords), noise, files."""
+
+from __future__ import annotations
+
+import functools
+import json
+import warnings
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+from skimage.transform import radon
+
+from ctsplat.geometry import ConeCamera, ParallelCamera, camera_rays, pose_from_angles
+from ctsplat.projector import (
+    RADIOGRAPHS_DEFAULTS,
+    add_noise,
+    clip_rays_to_box,
+    line_integrals,
+    load_radiographs,
+    render_radiographs,
+)
+from ctsplat.utils import CtsplatError
+from ctsplat.volume import Volume, load_volume, save_volume
+
+# ------------------------------------------------------------------------------ analytic ellipsoids
+# 3D Shepp–Logan-like phantom IN WORLD mm: (centre, semi-axes, rotation (ZYX Euler, deg), value in 1/mm).
+# Each ellipsoid adds its value inside {x : |diag(1/a) Q^T (x - c)| <= 1}.
+C0 = np.array([5.0, -3.0, 20.0])
+S = 28.0
+ELLIPSOIDS = [
+    ((0.0, 0.0, 0.0), (0.69, 0.92, 0.81), (0, 0, 0), 0.020),
+    ((0.0, -0.0184, 0.0), (0.6624, 0.874, 0.78), (0, 0, 0), -0.016),
+    ((0.22, 0.0, 0.0), (0.11, 0.31, 0.22), (-18, 0, 10), -0.004),
+    ((-0.22, 0.0, 0.0), (0.16, 0.41, 0.28), (18, 0, 0), -0.004),
+    ((0.0, 0.35, -0.15), (0.21, 0.25, 0.41), (0, 25, 0), 0.004),
+    ((0.0, 0.1, 0.25), (0.046, 0.046, 0.05), (0, 0, 0), 0.006),
+    ((-0.08, -0.605, 0.0), (0.046, 0.023, 0.05), (0, 0, 30), 0.006),
+]
+
+
+def _rot(zyx_deg) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("ZYX", zyx_deg, degrees=True).as_matrix()
+
+
+def ellipsoid_list():
+    """(centre mm, semi-axes mm, rotation matrix, value 1/mm) — A's ``shepp_logan_ellipsoids`` once it exists."""
+    return [(C0 + S * np.array(c), S * np.array(a), _rot(r), v) for c, a, r, v in ELLIPSOIDS]
+
+
+def chord_integrals(origins: np.ndarray, dirs: np.ndarray, ellipsoids) -> np.ndarray:
+    """Exact ∫ μ ds along rays ``o + s d`` (s >= 0, |d| = 1): Σ value × chord length through each ellipsoid.
+
+    In the ellipsoid's unit-sphere frame ``p = A^-1 Q^T (o - c)``, ``q = A^-1 Q^T d``; the chord is the
+    interval where ``|p + s q|^2 <= 1``: length ``2 sqrt(b^2 - |q|^2 (|p|^2 - 1)) / |q|^2`` with ``b = p.q``.
+    """
+    total = np.zeros(origins.shape[:-1])
+    for c, a, Q, val in ellipsoids:
+        p = ((origins - c) @ Q) / a
+        q = (dirs @ Q) / a
+        qq = np.sum(q * q, -1)
+        b = np.sum(p * q, -1)
+        disc = b * b - qq * (np.sum(p * p, -1) - 1.0)
+        root = np.sqrt(np.maximum(disc, 0.0))
+        s0 = np.maximum((-b - root) / qq, 0.0)
+        s1 = np.maximum((-b + root) / qq, 0.0)
+        total += val * np.where(disc > 0, s1 - s0, 0.0)
+    return total
+
+
+def voxelize(ellipsoids, affine: np.ndarray, shape, supersample: int = 3) -> np.ndarray:
+    """Average of the ellipsoid indicator over ``supersample^3`` points per voxel (voxel = unit index cube)."""
+    offs = (np.arange(supersample) + 0.5) / supersample - 0.5
+    idx = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3).astype(float)
+    out = np.zeros(len(idx))
+    for dx in offs:
+        for dy in offs:
+            for dz in offs:
+                x = (idx + [dx, dy, dz]) @ affine[:3, :3].T + affine[:3, 3]
+                for c, a, Q, val in ellipsoids:
+                    out += val * (np.sum((((x - c) @ Q) / a) ** 2, -1) <= 1.0)
+    return (out / supersample**3).reshape(shape).astype(np.float32)
+
+
+def oblique_affine(n: int, side_mm: float) -> np.ndarray:
+    """Voxel grid covering a cube of ``side_mm`` around C0 with permuted and flipped axes (i -> -y, j -> +x)."""
+    h = side_mm / n
+    M = np.array([[0.0, h, 0.0], [-h, 0.0, 0.0], [0.0, 0.0, h]])
+    A = np.eye(4)
+    A[:3, :3] = M
+    A[:3, 3] = C0 - M @ np.full(3, (n - 1) / 2)
+    return A
+
+
+# ---------------------------------------------------------------------------------- exactness tests
+def test_parallel_circular_orbit_equals_skimage_radon_per_slice():
+    n, h = 33, 1.5  # odd size: skimage's rotation centre (n // 2) is the voxel centre (n - 1) / 2
+    g = np.arange(n) - n // 2
+    I, J, K = np.meshgrid(g, g, g, indexing="ij")
+    vol = np.exp(-((I - 3) ** 2 / 30 + (J + 2) ** 2 / 60 + K**2 / 80))
+    vol += 0.6 * np.exp(-((I + 5) ** 2 + (J - 4) ** 2 + (K - 3) ** 2) / 10)
+    vol = (vol * (I**2 + J**2 < 15**2)).astype(np.float32)  # zero outside the reconstruction circle
+    affine = np.diag([h, h, h, 1.0])  # axes (+x, +y, +z): slice [i, j] is radon's [row, col]
+    affine[:3, 3] = [10.0, -20.0, 5.0]
+    iso = affine[:3, :3] @ np.full(3, n // 2) + affine[:3, 3]
+    theta = np.linspace(0.0, 360.0, 24, endpoint=False)
+    poses = [pose_from_angles(a, 0.0, iso, 200.0) for a in theta]
+    p = line_integrals(vol, affine, ParallelCamera(n, n, h), np.stack([R for R, _ in poses]),
+                       np.stack([t for _, t in poses])).numpy()
+    interior = slice(2, n - 2)
+    for k in range(2, n - 2):
+        ref = radon(vol[:, :, k], theta=theta, circle=True) * h  # (detector, angle), pixel units -> mm
+        mine = p[:, n - 1 - k, :].T  # image row v = n-1-k holds slice k (superior at the top)
+        err = np.linalg.norm(mine[interior] - ref[interior]) / np.linalg.norm(ref[interior])
+        assert err < 0.01, (k, err)
+
+
+def _views(n_views: int, dist: float):
+    poses = [pose_from_angles(az, el, C0, dist) for az, el in ((0, 0), (37, 20), (101, -35), (200, 5))[:n_views]]
+    return np.stack([R for R, _ in poses]), np.stack([t for _, t in poses])
+
+
+def _phantom(name: str):
+    ells = ellipsoid_list()
+    if name == "no_skull":  # outer ellipsoid filled with the brain value
+        ells = [ells[0][:3] + (ells[0][3] + ells[1][3],)] + ells[2:]
+    return ells
+
+
+@functools.cache
+def _voxelized(name: str, n: int) -> np.ndarray:
+    return voxelize(_phantom(name), oblique_affine(n, 64.0), (n, n, n), supersample=2)
+
+
+@pytest.mark.parametrize("model", ["parallel", "cone"])
+@pytest.mark.parametrize(("phantom", "bound"), [("shepp_logan", 0.13), ("no_skull", 0.035)])
+def test_ellipsoid_chord_lengths_error_shrinks_with_voxel_size(model, phantom, bound):
+    """Projections of voxelised ellipsoids converge to the exact chord integrals (first order in the voxel size).
+
+    The Shepp–Logan skull (0.8 mm thick) is thinner than the voxels, so it dominates the error; without it
+    (outer ellipsoid filled with the brain value) the error is ~3% at 48^3 and halves with the voxel size.
+    """
+    ells = _phantom(phantom)
+    if model == "parallel":
+        cam, dist = ParallelCamera(24, 24, 2.8), 200.0
+    else:
+        cam, dist = ConeCamera(24, 24, 4.5, 150.0, 250.0), 150.0
+    Rs, ts = _views(4, dist)
+    exact = np.stack([chord_integrals(*camera_rays(cam, R, t), ells) for R, t in zip(Rs, ts, strict=True)])
+    assert exact.max() > 0.2  # the rays do cross the phantom
+    errors = []
+    for n in (24, 48):
+        A = oblique_affine(n, 64.0)
+        p = line_integrals(_voxelized(phantom, n), A, cam, Rs, ts).numpy()
+        errors.append(np.linalg.norm(p - exact) / np.linalg.norm(exact))
+    assert errors[1] < 0.7 * errors[0], errors
+    assert errors[1] < bound, errors
+
+
+def test_cone_beam_converges_to_parallel_as_dso_grows():
+    n, h = 24, 2.0
+    A = oblique_affine(n, n * h)
+    vol = voxelize(ellipsoid_list(), A, (n, n, n), supersample=1)
+    par = ParallelCamera(20, 20, 2.5)
+    Rs, ts = _views(3, 500.0)
+    ref = line_integrals(vol, A, par, Rs, ts).numpy()
+    errs = []
+    for dso in (200.0, 2000.0, 20000.0):
+        cone = ConeCamera(20, 20, 2.5 * 1.5, dso, 1.5 * dso)  # magnification 1.5: same pixel size at the isocentre
+        Rc, tc = _views(3, dso)
+        errs.append(np.linalg.norm(line_integrals(vol, A, cone, Rc, tc).numpy() - ref) / np.linalg.norm(ref))
+    assert errs[0] > errs[1] > errs[2], errs
+    assert errs[2] < 2e-3, errs
+
+
+def test_clip_rays_to_box_against_brute_force():
+    rng = np.random.default_rng(0)
+    o = rng.uniform(-3, 3, (500, 3))
+    d = rng.normal(size=(500, 3))
+    d[:20, 0] = 0.0  # axis-parallel rays
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    lo, hi = np.array([-1.0, -0.5, 0.0]), np.array([1.0, 2.0, 1.5])
+    s0, length = clip_rays_to_box(o, d, lo, hi)
+    s = np.linspace(0, 12, 12001)
+    pts = o[:, None] + s[None, :, None] * d[:, None]
+    inside = np.all((pts > lo) & (pts < hi), -1)
+    np.testing.assert_allclose(length, inside.sum(1) * (s[1] - s[0]), atol=3e-3)
+    hit = length > 0
+    first = np.argmax(inside, axis=1)
+    np.testing.assert_allclose(s0[hit], s[first[hit]], atol=3e-3)
+
+
+def test_batching_misses_and_step_are_consistent():
+    n = 16
+    A = oblique_affine(n, 40.0)
+    vol = voxelize(ellipsoid_list(), A, (n, n, n), supersample=1) + 0.001
+    cam = ParallelCamera(30, 30, 2.5)  # wider than the volume: border rays miss it
+    Rs, ts = _views(2, 200.0)
+    p = line_integrals(vol, A, cam, Rs, ts)
+    p_small = line_integrals(vol, A, cam, Rs, ts, batch_samples=500)
+    torch.testing.assert_close(p, p_small, rtol=1e-6, atol=1e-6)
+    assert p[:, 0, 0].abs().max() == 0.0 and p[:, 15, 15].min() > 0
+    p_fine = line_integrals(vol, A, cam, Rs, ts, step_voxels=0.1)
+    assert float((p - p_fine).abs().max() / p_fine.max()) < 0.02
+    # constant volume: the line integral is the chord length through the interpolant's support
+    ones = np.ones((n, n, n), np.float32)
+    R, t = pose_from_angles(90.0, 0.0, A[:3, :3] @ np.full(3, 7.5) + A[:3, 3], 200.0)
+    p1 = line_integrals(ones, A, ParallelCamera(2, 2, 0.5), R[None], t[None]).numpy()
+    np.testing.assert_allclose(p1, n * 40.0 / n, rtol=1e-5)  # n voxels of 2.5 mm: n - 1 + 2 half ramps
+    with pytest.raises(CtsplatError, match="step_voxels"):
+        line_integrals(vol, A, cam, Rs, ts, step_voxels=2.0)
+    with pytest.raises(CtsplatError, match="empty view set"):
+        line_integrals(vol, A, cam, np.zeros((0, 3, 3)), np.zeros((0, 3)))
+
+
+def test_line_integrals_are_differentiable_and_linear():
+    """Autograd gives the adjoint: <A x, y> = <x, A^T y> with A^T y = grad of <A x, y>."""
+    n = 10
+    A = oblique_affine(n, 20.0)
+    rng = np.random.default_rng(1)
+    x = torch.tensor(rng.uniform(0, 1, (n, n, n)), dtype=torch.float32, requires_grad=True)
+    cam = ConeCamera(8, 8, 3.0, 100.0, 150.0)
+    Rs, ts = _views(2, 100.0)
+    y = torch.tensor(rng.normal(size=(2, 8, 8)), dtype=torch.float32)
+    Ax = line_integrals(x, A, cam, Rs, ts)
+    (Ax * y).sum().backward()
+    assert torch.isclose((Ax * y).sum(), (x * x.grad).sum(), rtol=1e-4)
+    Ax2 = line_integrals(2 * x.detach() + 1, A, cam, Rs, ts)
+    ones = line_integrals(torch.ones(n, n, n), A, cam, Rs, ts)
+    torch.testing.assert_close(Ax2, 2 * Ax.detach() + ones, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
+def test_cuda_matches_cpu():
+    n = 24
+    A = oblique_affine(n, 64.0)
+    vol = voxelize(ellipsoid_list(), A, (n, n, n), supersample=1)
+    cam = ConeCamera(24, 24, 4.5, 150.0, 250.0)
+    Rs, ts = _views(4, 150.0)
+    cpu = line_integrals(vol, A, cam, Rs, ts)
+    gpu = line_integrals(vol, A, cam, Rs, ts, device="cuda")
+    assert gpu.device.type == "cuda"
+    torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-4, atol=1e-4)
+
+
+# ------------------------------------------------------------------------------------------ noise
+def test_noise_statistics_seed_and_clipping():
+    p = np.full((200, 200), 2.0)
+    a, _ = add_noise(p, 1e5, 0.0, np.random.default_rng(0))
+    b, _ = add_noise(p, 1e5, 0.0, np.random.default_rng(0))
+    c, _ = add_noise(p, 1e5, 0.0, np.random.default_rng(1))
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+    # delta method: var(ln N) = 1 / (I0 e^-p) for Poisson counts
+    expected_std = 1.0 / np.sqrt(1e5 * np.exp(-2.0))
+    assert a.std() == pytest.approx(expected_std, rel=0.05)
+    assert a.mean() == pytest.approx(2.0, abs=3 * expected_std / 200)
+    # very few photons plus electronic noise: non-positive counts are clipped, results stay finite
+    q, counts = add_noise(np.full((100, 100), 8.0), 100.0, 2.0, np.random.default_rng(2))
+    assert counts.min() == 1.0 and np.isfinite(q).all() and q.max() == pytest.approx(np.log(100.0))
+    with pytest.raises(CtsplatError, match="i0"):
+        add_noise(p, 0.0, 0.0, np.random.default_rng(0))
+    with pytest.raises(CtsplatError, match="electronic_sigma"):
+        add_noise(p, 10.0, -1.0, np.random.default_rng(0))
+
+
+# ------------------------------------------------------------------------------------- the files
+@pytest.fixture()
+def small_volume(tmp_path):
+    n = 20
+    A = oblique_affine(n, 64.0)
+    data = voxelize(ellipsoid_list(), A, (n, n, n), supersample=1) / 0.02  # normalised-ish
+    path = tmp_path / "vol" / "volume.nii.gz"
+    save_volume(Volume(data, A, {"volume_id": "phantom01", "intensity": {"mu_scale_per_mm": 0.02}}), path)
+    return path, data, A
+
+
+def test_render_radiographs_writes_the_contract(tmp_path, small_volume):
+    vol_path, data, A = small_volume
+    out = tmp_path / "radiographs"
+    cfg = {"n_views": 14, "detector_width": 32, "detector_height": 24, "pixel_spacing_mm": 2.5}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the detector covers the object: no FOV warning
+        vs = render_radiographs(vol_path, out, cfg, seed=3)
+    p, vs2 = load_radiographs(out)
+    assert p.shape == (len(vs), 24, 32) and p.dtype == np.float32
+    assert len(vs) == 14 + 3 + 3 and vs2.volume_id == "phantom01"
+    vol = load_volume(vol_path)  # the NIfTI affine is stored in float32
+    np.testing.assert_allclose(vol.affine, A, atol=1e-5)
+    expected = line_integrals(data * 0.02, vol.affine, vs.camera, vs.Rs(), vs.ts()).numpy()
+    np.testing.assert_allclose(p, expected, rtol=1e-5, atol=1e-6)
+    png = iio.imread(out / "png" / f"view_{vs.views[5].id:04d}.png")
+    assert png.dtype == np.uint16 and png.shape == (24, 32)
+    np.testing.assert_allclose(png / 65535.0, np.exp(-p[5]), atol=1.0 / 65535)
+    prov = json.loads((out / "radiographs.json").read_text())
+    assert prov["seed"] == 3 and prov["config"]["n_views"] == 14 and prov["volume_id"] == "phantom01"
+    assert prov["mu_scale_per_mm"] == 0.02 and "code_version" in prov
+    assert prov["splits"] == {"train": 14, "val": 3, "test": 3}
+    assert sorted(x.name for x in out.iterdir()) == ["line_integrals.tif", "png", "radiographs.json", "views.json"]
+    # noise: seeded and reproducible
+    noisy = {"noise": {"enabled": True, "i0": 1e4, "electronic_sigma": 1.0}}
+    render_radiographs(vol_path, tmp_path / "n1", {**cfg, **noisy}, seed=1)
+    render_radiographs(vol_path, tmp_path / "n2", {**cfg, **noisy}, seed=1)
+    render_radiographs(vol_path, tmp_path / "n3", {**cfg, **noisy}, seed=2)
+    n1, n2, n3 = (load_radiographs(tmp_path / f"n{i}")[0] for i in (1, 2, 3))
+    np.testing.assert_array_equal(n1, n2)
+    assert not np.array_equal(n1, n3)
+    assert 0 < np.abs(n1 - p).mean() < 0.1
+
+
+def test_render_radiographs_bad_input(tmp_path, small_volume):
+    vol_path, _, _ = small_volume
+    with pytest.warns(UserWarning, match=r"% of the object lies outside the field of view"):
+        render_radiographs(vol_path, tmp_path / "fov", {"n_views": 7, "detector_width": 8, "detector_height": 8,
+                                                        "pixel_spacing_mm": 2.0})
+    prov = json.loads((tmp_path / "fov" / "radiographs.json").read_text())
+    assert 0 < prov["fov_outside_fraction_worst_view"] < 1
+    bad = [
+        ({"camera": "cone", "dso_mm": 500.0, "dsd_mm": 400.0}, "must be larger than dso_mm"),
+        ({"camera": "cone", "dso_mm": -5.0}, "dso_mm"),
+        ({"pixel_spacing_mm": 0.0}, "spacing_mm"),
+        ({"n_views": 0}, "empty view set"),
+        ({"orbit": "sphere", "n_views": 4}, "split leaves"),
+        ({"orbit": "helix"}, "unknown orbit"),
+        ({"n_veiws": 3}, "unknown config key radiographs.n_veiws"),
+    ]
+    for cfg, match in bad:
+        with pytest.raises(CtsplatError, match=match):
+            render_radiographs(vol_path, tmp_path / "bad", {"detector_width": 8, "detector_height": 8, **cfg})
+        assert not (tmp_path / "bad").exists() or not any((tmp_path / "bad").iterdir())
+    with pytest.raises(CtsplatError, match="does not exist"):
+        load_radiographs(tmp_path / "nothing")
+    assert set(RADIOGRAPHS_DEFAULTS) >= {"camera", "orbit", "n_views", "split", "noise"}
+    json.dumps(RADIOGRAPHS_DEFAULTS)
