@@ -1,0 +1,197 @@
+"""SfM helpers: Sim(3) alignment, rotation metric, orbit design, enhancement, pose evaluation (no COLMAP run)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from ctsplat.geometry import ConeCamera, project_points
+from ctsplat.sfm import (
+    SFM_DEFAULTS,
+    design_orbit,
+    enhance_for_features,
+    evaluate_poses,
+    robust_sim3,
+    rotation_error_deg,
+    summarize,
+    support_radius_mm,
+    umeyama,
+    write_points_ply,
+)
+from ctsplat.utils import CtsplatError, merge_config
+
+
+def _random_sim3(rng: np.random.Generator) -> tuple[float, np.ndarray, np.ndarray]:
+    return float(rng.uniform(0.2, 5.0)), Rotation.random(random_state=rng.integers(1 << 31)).as_matrix(), \
+        rng.normal(0, 100, 3)
+
+
+def test_umeyama_recovers_known_sim3_exactly() -> None:
+    rng = np.random.default_rng(1)
+    src = rng.normal(0, 50, (20, 3))
+    s, R, t = _random_sim3(rng)
+    dst = s * src @ R.T + t
+    s2, R2, t2 = umeyama(src, dst)
+    assert s2 == pytest.approx(s, rel=1e-10)
+    np.testing.assert_allclose(R2, R, atol=1e-10)
+    np.testing.assert_allclose(t2, t, atol=1e-8)
+    assert np.linalg.det(R2) == pytest.approx(1.0)
+
+
+def test_umeyama_never_returns_a_reflection() -> None:
+    # dst is a mirror image of src: the best *proper* rotation must be returned (det = +1)
+    rng = np.random.default_rng(2)
+    src = rng.normal(0, 1, (10, 3))
+    dst = src * np.array([1.0, 1.0, -1.0])
+    _, R, _ = umeyama(src, dst)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_robust_sim3_recovers_exactly_despite_outliers() -> None:
+    rng = np.random.default_rng(3)
+    src = rng.normal(0, 100, (40, 3))
+    s, R, t = _random_sim3(rng)
+    dst = s * src @ R.T + t
+    bad = rng.choice(40, 12, replace=False)  # 30 % gross outliers
+    dst[bad] += rng.normal(0, 300, (12, 3)) + 200.0
+    # plain least squares is pulled away by the outliers ...
+    s_ls, R_ls, _ = umeyama(src, dst)
+    assert rotation_error_deg(R_ls, R) > 1.0 or abs(s_ls - s) > 0.05 * s
+    # ... the robust fit recovers the exact transform and flags exactly the outliers
+    s2, R2, t2, inl = robust_sim3(src, dst, threshold=1.0, iterations=300, seed=0)
+    assert s2 == pytest.approx(s, rel=1e-9)
+    np.testing.assert_allclose(R2, R, atol=1e-9)
+    np.testing.assert_allclose(t2, t, atol=1e-6)
+    expected = np.ones(40, bool)
+    expected[bad] = False
+    np.testing.assert_array_equal(inl, expected)
+
+
+def test_robust_sim3_needs_three_points() -> None:
+    with pytest.raises(CtsplatError, match="at least 3"):
+        robust_sim3(np.zeros((2, 3)), np.zeros((2, 3)), threshold=1.0)
+
+
+def test_rotation_error_matches_axis_angle() -> None:
+    rng = np.random.default_rng(4)
+    R0 = Rotation.random(random_state=5).as_matrix()
+    for angle in (0.0, 0.3, 7.5, 90.0, 179.0):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        dR = Rotation.from_rotvec(np.deg2rad(angle) * axis).as_matrix()
+        assert rotation_error_deg(R0, dR @ R0) == pytest.approx(angle, abs=1e-5)
+        assert rotation_error_deg(dR @ R0, R0) == pytest.approx(angle, abs=1e-5)
+    batch = rotation_error_deg(np.stack([R0, R0]), np.stack([R0, R0.T @ R0 @ R0]))
+    assert batch.shape == (2,)
+
+
+def test_design_orbit_geometry() -> None:
+    iso = np.array([5.0, -3.0, 12.0])
+    orb = design_orbit(24, 360.0, 15.0, 2.0, 500.0, iso)
+    cam = ConeCamera(width=64, height=48, pitch_mm=2.0, dso_mm=500.0, dsd_mm=900.0)
+    assert orb["Rs"].shape == (24, 3, 3)
+    for R, t, c, az, el in zip(orb["Rs"], orb["ts"], orb["centres"], orb["azimuth_deg"], orb["elevation_deg"],
+                               strict=True):
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(-R.T @ t, c, atol=1e-9)  # centre
+        assert np.linalg.norm(c - iso) == pytest.approx(500.0)
+        assert np.degrees(np.arcsin((c - iso)[2] / 500.0)) == pytest.approx(el)
+        assert el == pytest.approx(15.0 * np.sin(np.deg2rad(2.0 * az)))
+        uv, depth = project_points(cam, R, t, iso[None])
+        np.testing.assert_allclose(uv[0], [cam.cx, cam.cy], atol=1e-9)  # isocentre on the axis
+        assert depth[0] == pytest.approx(500.0)
+        up = project_points(cam, R, t, (iso + [0, 0, 10.0])[None])[0][0]
+        assert up[1] < cam.cy  # world up is image up
+    np.testing.assert_allclose(np.diff(orb["azimuth_deg"]), 15.0)
+    jit = design_orbit(24, 360.0, 15.0, 2.0, 500.0, iso, jitter_deg=1.0, seed=3)
+    d = jit["azimuth_deg"] - orb["azimuth_deg"]
+    assert 0.3 < np.std(d) < 2.0
+    with pytest.raises(CtsplatError):
+        design_orbit(1, 360.0, 0.0, 1.0, 500.0)
+
+
+def test_enhance_for_features_is_8bit_and_uses_the_range() -> None:
+    yy, xx = np.mgrid[:64, :64]
+    im = np.exp(-((xx - 30) ** 2 + (yy - 34) ** 2) / 200.0) + 0.1 * np.sin(xx / 3.0)
+    out = enhance_for_features(np.stack([im, 2 * im + 1, np.zeros_like(im)]))
+    assert out.dtype == np.uint8 and out.shape == (3, 64, 64)
+    assert out[0].min() == 0 and out[0].max() == 255
+    np.testing.assert_array_equal(out[0], out[1])  # per-view window: affine intensity changes do not matter
+    assert not out[2].any()  # blank view stays blank, no crash
+    with pytest.raises(CtsplatError, match="finite"):
+        enhance_for_features(np.full((2, 8, 8), np.nan))
+
+
+def test_support_radius_measures_the_object_not_the_box() -> None:
+    aff = np.diag([2.0, 2.0, 2.0, 1.0])
+    aff[:3, 3] = -31.0
+    data = np.zeros((32, 32, 32), np.float32)
+    ax = np.arange(32) * 2.0 - 31.0
+    X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
+    data[X**2 + Y**2 + Z**2 <= 20.0**2] = 1.0
+    r = support_radius_mm(data, aff, np.zeros(3))
+    assert 19.0 <= r <= 20.0 + 2 * np.sqrt(3) + 1e-9
+    assert support_radius_mm(np.zeros_like(data), aff, np.zeros(3)) == pytest.approx(np.sqrt(3) * 32.0)
+
+
+def test_evaluate_poses_undoes_an_unknown_similarity() -> None:
+    rng = np.random.default_rng(7)
+    orb = design_orbit(12, 360.0, 10.0, 2.0, 400.0)
+    s, Rg, tg = _random_sim3(rng)  # maps SfM frame -> world: x_w = s Rg x + tg
+    names = [f"view_{i:04d}.png" for i in range(12)]
+    poses = {}
+    for i in range(12):
+        if i == 5:
+            continue  # not registered
+        c_w = orb["centres"][i]
+        c = Rg.T @ (c_w - tg) / s
+        R = orb["Rs"][i] @ Rg
+        if i == 7:  # a badly recovered view: 3 degrees off, centre 30 mm (world) off
+            R = Rotation.from_rotvec([0, 0, np.deg2rad(3.0)]).as_matrix() @ R
+            c = c + Rg.T @ np.array([30.0, 0, 0]) / s
+        poses[names[i]] = (R, -R @ c)
+    rows, align = evaluate_poses(poses, names, orb["Rs"], orb["ts"], threshold_mm=5.0, seed=0)
+    assert align["scale"] == pytest.approx(s, rel=1e-9)
+    assert align["n_inliers"] == 10
+    assert not rows[5]["registered"] and np.isnan(rows[5]["rot_err_deg"]) and rows[5]["R"] is None
+    for i, r in enumerate(rows):
+        if i in (5, 7):
+            continue
+        assert r["rot_err_deg"] < 1e-5 and r["centre_err_mm"] < 1e-6
+        np.testing.assert_allclose(r["R"], orb["Rs"][i], atol=1e-9)
+        np.testing.assert_allclose(r["t"], orb["ts"][i], atol=1e-6)
+    assert rows[7]["rot_err_deg"] == pytest.approx(3.0, abs=1e-6)
+    assert rows[7]["centre_err_mm"] == pytest.approx(30.0, abs=1e-6)
+    for r in rows:
+        r["reproj_err_px"] = 0.5
+    cfg = merge_config("sfm", {}, SFM_DEFAULTS)
+    summ = summarize(rows, {"models_found": 1, "model_sizes": [11]}, cfg)
+    assert summ["n_registered"] == 11 and summ["registration_rate"] == pytest.approx(11 / 12)
+    assert summ["rot_err_deg_median"] == pytest.approx(0.0, abs=1e-5)
+    assert summ["ok"] is True
+
+
+def test_evaluate_poses_with_too_few_registrations_reports_not_ok() -> None:
+    orb = design_orbit(10, 360.0, 0.0, 1.0, 400.0)
+    names = [f"v{i}" for i in range(10)]
+    poses = {names[0]: (orb["Rs"][0], orb["ts"][0]), names[1]: (orb["Rs"][1], orb["ts"][1])}
+    rows, align = evaluate_poses(poses, names, orb["Rs"], orb["ts"], threshold_mm=5.0)
+    assert not align["ok"]
+    assert all(np.isnan(r["rot_err_deg"]) for r in rows)
+    summ = summarize(rows, {"models_found": 1, "model_sizes": [2]}, merge_config("sfm", {}, SFM_DEFAULTS))
+    assert summ["ok"] is False and summ["registration_rate"] == 0.0 and "registration rate" in summ["reason"]
+
+
+def test_write_points_ply_roundtrip(tmp_path) -> None:
+    xyz = np.array([[0.0, 1.5, -2.25], [10.0, 20.0, 30.0]])
+    write_points_ply(tmp_path / "p.ply", xyz)
+    lines = (tmp_path / "p.ply").read_text().splitlines()
+    assert "element vertex 2" in lines
+    body = np.array([[float(v) for v in ln.split()] for ln in lines[lines.index("end_header") + 1:]])
+    np.testing.assert_allclose(body, xyz)
+
+
+def test_unknown_config_key_is_rejected() -> None:
+    with pytest.raises(CtsplatError, match="sfm.nviews"):
+        merge_config("sfm", {"nviews": 3}, SFM_DEFAULTS)
