@@ -11,6 +11,8 @@ import numpy as np
 import pydicom
 import pytest
 import tifffile
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from ctsplat.io import (
     LPS_TO_RAS,
@@ -363,3 +365,29 @@ def test_different_orientations_rejected(tmp_path):
     ds.ImageOrientationPatient = [f"{x:.6f}" for x in (*(r @ [1, 0, 0]), *(r @ [0, 1, 0]))]
     ds.save_as(files[4])
     assert_fails_cleanly(tmp_path / "s", tmp_path, "different ImageOrientationPatient")
+
+
+def test_grid_list_is_in_output_axis_order(tmp_path):
+    # oblique-ish series whose row direction is LPS +y: output axes get permuted to RAS order
+    make_series(tmp_path / "s", row=(0.0, 1.0, 0.0), col=(1.0, 0.0, 0.0))
+    stack = read_dicom_series(tmp_path / "s")
+    vol, affine, _ = resample_stack(stack, grid=[8, 10, 12])
+    assert vol.shape == (8, 10, 12)
+    assert np.all(np.diag(affine[:3, :3]) > 0)
+
+
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(order=st.permutations(range(5)))
+def test_property_any_file_order_gives_the_same_stack(tmp_path, order):
+    src = tmp_path / "src"
+    if not src.exists():
+        make_series(src, positions=[0.0, 2.5, 5.0, 6.0, 9.5])
+    ref = read_dicom_series(src)
+    files = sorted(src.iterdir())
+    dst = tmp_path / ("perm_" + "".join(map(str, order)))
+    dst.mkdir(exist_ok=True)
+    for n, m in enumerate(order):
+        shutil.copy(files[m], dst / f"{n:02d}_{m}.dcm")
+    stack = read_dicom_series(dst)
+    np.testing.assert_array_equal(stack.data, ref.data)
+    np.testing.assert_allclose(stack.origins, ref.origins)
