@@ -357,6 +357,8 @@ def read_dicom_series(
     SliceStack
         ``data`` (Columns, Rows, K) float32 in HU (``units="hu"`` for CT, else ``"raw"``).
     """
+    from pydicom.pixels import pixel_array
+
     folder = Path(folder)
     skipped: list[Path] = []
     series = find_dicom_series(folder, skip_corrupt=skip_corrupt, _skipped=skipped)
@@ -405,7 +407,7 @@ def read_dicom_series(
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                pixels = ds.pixel_array
+                pixels = pixel_array(ds)  # no cached copy on the dataset
         except Exception as exc:  # noqa: BLE001 - truncated pixel data, bad encapsulation ...
             msg = str(exc).split("\n")[0][:160]
             if "missing" in msg.lower() and "plugin" in msg.lower():
@@ -419,6 +421,7 @@ def read_dicom_series(
         slope = float(ds.get("RescaleSlope", 1.0) or 1.0)
         intercept = float(ds.get("RescaleIntercept", 0.0) or 0.0)
         values = pixels.astype(np.float32) * np.float32(slope) + np.float32(intercept)
+        del ds.PixelData  # keep only the header in memory
         slices.append((path, ds, values.T))  # (Columns, Rows): i along row_dir, j along col_dir
 
     if len(slices) < 2:

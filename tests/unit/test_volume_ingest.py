@@ -234,3 +234,17 @@ def test_cli_ingest_and_errors(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "does not exist" in err[0]
     assert not (tmp_path / "x").exists()
+
+
+def test_cli_config_file_and_native(tmp_path):
+    hu, _ = head_like(10)
+    src = nifti_input(tmp_path, hu, spacing=(1.0, 1.0, 2.0))
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("preprocessing:\n  intensity: mu\n  hu_max: 2000\n")
+    out = tmp_path / "o" / "v.nii.gz"
+    assert main(["ingest", str(src), str(out), "--config", str(cfg), "--native"]) == 0
+    vol = load_volume(out)
+    assert vol.shape == hu.shape
+    np.testing.assert_allclose(sorted(vol.spacing_mm), [1.0, 1.0, 2.0])
+    assert vol.meta["preprocessing"]["hu_max"] == 2000 and vol.mu_scale_per_mm == 1.0
+    np.testing.assert_allclose(vol.data, np.clip(0.019 * (1 + hu / 1000), 0, 0.019 * 3), rtol=1e-5, atol=1e-7)
