@@ -49,6 +49,7 @@ __all__ = [
     "convergence_velocity",
     "velocity_curve",
     "milestones",
+    "threshold_tag",
     "correlations",
     "window_labels",
     "porkchop_table",
@@ -458,21 +459,22 @@ def velocity_curve(
 def milestones(log: pd.DataFrame, thresholds: Mapping[str, float]) -> dict[str, float | None]:
     """First iteration and time (s) at which each metric reaches ``>= threshold``, and iterations/s.
 
-    Returns keys ``iter_to_{metric}_{thr}``, ``time_to_{metric}_{thr}`` (None when never reached; ``thr`` printed
-    with :func:`_fmt_thr`, e.g. ``psnr2d_30``, ``ssim2d_0.9``) and ``iters_per_s`` = last iteration / last timestamp.
+    Returns keys ``iter_to_{metric}_{tag}`` and ``time_to_{metric}_{tag}_s`` (None when never reached), named as in
+    ``metrics.json`` of :func:`ctsplat.train.train` (tag :func:`threshold_tag`: ``psnr2d_30``, ``ssim2d_090``), and
+    ``iters_per_s`` = last iteration / last timestamp.
     """
     out: dict[str, float | None] = {}
     for metric, thr in thresholds.items():
-        key = f"{metric}_{_fmt_thr(thr)}"
+        key = f"{metric}_{threshold_tag(thr)}"
         hit = log[log[metric] >= thr] if metric in log else log.iloc[0:0]
         if len(hit):
             first = hit.iloc[0]
             out[f"iter_to_{key}"] = int(first["iteration"])
             ts = first["timestamp"]
-            out[f"time_to_{key}"] = float(ts) if pd.notna(ts) else None
+            out[f"time_to_{key}_s"] = float(ts) if pd.notna(ts) else None
         else:
             out[f"iter_to_{key}"] = None
-            out[f"time_to_{key}"] = None
+            out[f"time_to_{key}_s"] = None
     timed = log.dropna(subset=["timestamp"])
     timed = timed[timed["timestamp"] > 0]
     out["iters_per_s"] = (
@@ -481,8 +483,9 @@ def milestones(log: pd.DataFrame, thresholds: Mapping[str, float]) -> dict[str, 
     return out
 
 
-def _fmt_thr(thr: float) -> str:
-    return f"{thr:g}"
+def threshold_tag(thr: float) -> str:
+    """``30 -> "30"``, ``0.9 -> "090"`` (fractions as hundredths, three digits), ``32.5 -> "32.5"``."""
+    return f"{round(thr * 100):03d}" if 0 < thr < 1 else f"{thr:g}"
 
 
 def correlations(

@@ -101,9 +101,9 @@ def test_milestones_first_crossing_and_iters_per_s():
     first_p = int(it[np.argmax(psnr >= 30)])
     first_s = int(it[np.argmax(ssim >= 0.9)])
     assert m["iter_to_psnr2d_30"] == first_p == 700
-    assert m["time_to_psnr2d_30"] == pytest.approx(first_p * 0.25)
-    assert m["iter_to_ssim2d_0.9"] == first_s == 900
-    assert m["iter_to_psnr3d_99"] is None and m["time_to_psnr3d_99"] is None
+    assert m["time_to_psnr2d_30_s"] == pytest.approx(first_p * 0.25)
+    assert m["iter_to_ssim2d_090"] == first_s == 900
+    assert m["iter_to_psnr3d_99"] is None and m["time_to_psnr3d_99_s"] is None
     assert m["iters_per_s"] == pytest.approx(4.0)
 
 
