@@ -374,13 +374,8 @@ def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> np.ndarray:
     views = [View(int(i), R, t, float(a), float(e), "train")
              for i, R, t, a, e in zip(tr.ids, tr.Rs, tr.ts, tr.azimuth_deg, tr.elevation_deg, strict=True)]
     vs = ViewSet(tr.camera, views, scene.volume.volume_id, scene.volume.center_mm(), {})
-    meta = {k: v for k, v in scene.volume.meta.items() if k != "intensity"}
-    meta["intensity"] = {"mu_scale_per_mm": 1.0}  # targets are normalised already
-    grid = Volume(np.zeros(scene.volume.shape, np.float32), np.asarray(scene.volume.affine, float), meta)
-    try:
-        recon = fbp_volume(tr.images, vs, grid, filter_name=filter_name)
-    except TypeError:  # older signature without filter_name
-        recon = fbp_volume(tr.images, vs, grid)
+    grid = Volume(np.zeros(scene.volume.shape, np.float32), np.asarray(scene.volume.affine, float), {})
+    recon = fbp_volume(tr.images, vs, grid, filter_name=filter_name, mu_scale_per_mm=1.0)  # targets normalised
     return np.asarray(recon, np.float32)
 
 
