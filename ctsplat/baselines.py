@@ -31,7 +31,16 @@ import numpy as np
 from ctsplat.geometry import ViewSet
 from ctsplat.utils import CtsplatError, atomic_path, code_version, merge_config, write_json_atomic
 
-__all__ = ["BASELINE_DEFAULTS", "FBP_FILTERS", "circular_sinograms", "fbp_volume", "sart_volumes", "run_baselines"]
+__all__ = [
+    "BASELINE_DEFAULTS",
+    "BASELINES_DEFAULTS",
+    "FBP_FILTERS",
+    "select_views",
+    "circular_sinograms",
+    "fbp_volume",
+    "sart_volumes",
+    "run_baselines",
+]
 
 log = logging.getLogger(__name__)
 
@@ -42,9 +51,13 @@ BASELINE_DEFAULTS: dict[str, Any] = {
     "sart_max_iterations": 5,  # SART runs 1..N iterations and keeps the best (3D PSNR)
     "sart_relaxation": 0.15,
     "split": "train",  # which views of the radiographs to reconstruct from
+    # number(s) of views: null/0 = all views of the split; an int or a list of ints = that many views spread
+    # evenly over the split sorted by azimuth (the same subset `train.views` uses), one result row each
+    "n_views": None,
     "clip": True,  # clip reconstructions to the normalised range [0, 1]
     "save_volumes": True,
 }
+BASELINES_DEFAULTS = BASELINE_DEFAULTS  # the name the workflow's config section uses
 
 
 @dataclass
@@ -213,14 +226,32 @@ def sart_volumes(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, 
         yield it, (np.clip(vol, 0.0, 1.0) if clip else vol)
 
 
+def select_views(view_set: ViewSet, split: str, n: int) -> np.ndarray:
+    """Row indices of ``n`` views of ``split`` spread evenly in azimuth order (all when ``n`` is 0 or too large).
+
+    Same rule as training's ``views`` setting: sort the split's views by ``azimuth mod 360`` and take
+    positions ``floor(m * N / n)``, ``m = 0..n-1``.
+    """
+    rows = view_set.indices(split)
+    if rows.size == 0:
+        raise CtsplatError(f"view set has no '{split}' views; re-render with a non-zero {split} fraction")
+    order = np.argsort(np.mod([view_set.views[i].azimuth_deg for i in rows], 360.0), kind="stable")
+    rows = rows[order]
+    if n <= 0 or n >= rows.size:
+        return rows
+    return rows[np.floor(np.arange(n) * rows.size / n).astype(int)]
+
+
 def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir: str | Path,
                   config: dict[str, Any] | None = None) -> Any:
     """FBP (each filter) and SART (best of 1..N iterations) from the training views, with 3D metrics.
 
-    Writes ``out_dir/baselines.csv`` (columns method, filter, iterations, n_views, psnr3d, ssim3d, seconds),
-    ``out_dir/sart_iterations.csv`` (PSNR of every SART iteration), the volumes ``fbp_{filter}.nii.gz`` and
-    ``sart.nii.gz`` (normalised, reference grid) and ``baselines.json`` (provenance). Returns the table as
-    a ``pandas.DataFrame``.
+    For each view count in ``config["n_views"]`` (views chosen by :func:`select_views`) writes one row per
+    FBP filter and one SART row (best 3D PSNR over 1..``sart_max_iterations``) to ``out_dir/baselines.csv``
+    (columns method, filter, iterations, n_views, psnr3d, ssim3d, seconds; ``seconds`` excludes metrics),
+    every SART iteration to ``out_dir/sart_iterations.csv``, the volumes ``fbp_{filter}_n{views:03d}.nii.gz``
+    and ``sart_n{views:03d}.nii.gz`` (normalised, reference grid) and ``baselines.json`` (provenance).
+    Returns the table as a ``pandas.DataFrame``.
     """
     import pandas as pd
 
@@ -238,39 +269,46 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
     if vs_all.volume_id != volume.volume_id:
         raise CtsplatError(f"radiographs in {radiographs_dir} were rendered from volume {vs_all.volume_id}, "
                            f"not {volume.volume_id} ({volume_path}); re-render them")
-    idx = vs_all.indices(cfg["split"])
-    vs = vs_all.subset(cfg["split"])
-    p = p_all[idx]
+    counts = cfg["n_views"]
+    counts = [0] if counts in (None, 0) else ([int(counts)] if isinstance(counts, int | float) else list(counts))
+    if any(int(c) < 0 for c in counts) or not counts:
+        raise CtsplatError(f"baselines.n_views must be null, a non-negative integer or a list of them, got {counts}")
     ref = volume.data
     rows: list[dict[str, Any]] = []
+    sart_rows: list[dict[str, Any]] = []
     volumes: dict[str, np.ndarray] = {}
-
-    for f in cfg["fbp_filters"]:
+    for requested in counts:
+        idx = select_views(vs_all, cfg["split"], int(requested))
+        if requested and len(idx) < requested:
+            log.warning("baselines: %d views requested but the %s split has %d; using all", requested,
+                        cfg["split"], len(idx))
+        vs = ViewSet(vs_all.camera, [vs_all.views[i] for i in idx], vs_all.volume_id, vs_all.isocenter_mm)
+        p = p_all[idx]
+        nv = len(vs)
+        for f in cfg["fbp_filters"]:
+            t0 = time.perf_counter()
+            rec = fbp_volume(p, vs, volume, filter_name=f, clip=cfg["clip"])
+            sec = time.perf_counter() - t0
+            rows.append({"method": "fbp", "filter": f, "iterations": 0, "n_views": nv,
+                         "psnr3d": psnr3d(rec, ref), "ssim3d": ssim3d(rec, ref), "seconds": sec})
+            volumes[f"fbp_{f}_n{nv:03d}"] = rec
+            log.info("FBP %s, %d views: PSNR %.2f dB (%.1f s)", f, nv, rows[-1]["psnr3d"], sec)
+        best: tuple[float, int, np.ndarray, float] | None = None
         t0 = time.perf_counter()
-        rec = fbp_volume(p, vs, volume, filter_name=f, clip=cfg["clip"])
-        sec = time.perf_counter() - t0
-        rows.append({"method": "fbp", "filter": f, "iterations": 0, "n_views": len(vs),
-                     "psnr3d": psnr3d(rec, ref), "ssim3d": ssim3d(rec, ref), "seconds": sec})
-        volumes[f"fbp_{f}"] = rec
-        log.info("FBP %s: PSNR %.2f dB (%.1f s)", f, rows[-1]["psnr3d"], sec)
-
-    sart_rows = []
-    best: tuple[float, int, np.ndarray, float] | None = None
-    t0 = time.perf_counter()
-    for it, rec in sart_volumes(p, vs, volume, iterations=cfg["sart_max_iterations"],
-                                relaxation=cfg["sart_relaxation"], clip=cfg["clip"]):
-        elapsed = time.perf_counter() - t0
-        psnr = psnr3d(rec, ref)
-        sart_rows.append({"iterations": it, "n_views": len(vs), "psnr3d": psnr, "seconds": elapsed})
-        if best is None or psnr > best[0]:
-            best = (psnr, it, rec, elapsed)
-        t_metric = time.perf_counter() - t0 - elapsed
-        t0 += t_metric  # keep metric time out of the SART timing
-    assert best is not None
-    rows.append({"method": "sart", "filter": "", "iterations": best[1], "n_views": len(vs), "psnr3d": best[0],
-                 "ssim3d": ssim3d(best[2], ref), "seconds": best[3]})
-    volumes["sart"] = best[2]
-    log.info("SART best at %d iterations: PSNR %.2f dB", best[1], best[0])
+        for it, rec in sart_volumes(p, vs, volume, iterations=cfg["sart_max_iterations"],
+                                    relaxation=cfg["sart_relaxation"], clip=cfg["clip"]):
+            elapsed = time.perf_counter() - t0
+            t1 = time.perf_counter()
+            psnr = psnr3d(rec, ref)
+            sart_rows.append({"n_views": nv, "iterations": it, "psnr3d": psnr, "seconds": elapsed})
+            if best is None or psnr > best[0]:
+                best = (psnr, it, rec, elapsed)
+            t0 += time.perf_counter() - t1  # keep metric time out of the SART timing
+        assert best is not None
+        rows.append({"method": "sart", "filter": "", "iterations": best[1], "n_views": nv, "psnr3d": best[0],
+                     "ssim3d": ssim3d(best[2], ref), "seconds": best[3]})
+        volumes[f"sart_n{nv:03d}"] = best[2]
+        log.info("SART, %d views: best at %d iterations, PSNR %.2f dB", nv, best[1], best[0])
 
     df = pd.DataFrame(rows, columns=["method", "filter", "iterations", "n_views", "psnr3d", "ssim3d", "seconds"])
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -278,14 +316,13 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
         for name, rec in volumes.items():
             meta = {"volume_id": f"{volume.volume_id}-{name}", "reference_volume_id": volume.volume_id,
                     "intensity": {"mu_scale_per_mm": volume.mu_scale_per_mm, "normalised": True},
-                    "baseline": name, "n_views": len(vs), "code_version": code_version()}
+                    "baseline": name, "code_version": code_version()}
             save_volume(Volume(rec, volume.affine, meta), out_dir / f"{name}.nii.gz")
     with atomic_path(out_dir / "sart_iterations.csv") as tmp:
         pd.DataFrame(sart_rows).to_csv(tmp, index=False)
     write_json_atomic(out_dir / "baselines.json", {
         "config": cfg, "code_version": code_version(), "volume_path": str(volume_path),
-        "volume_id": volume.volume_id, "radiographs_dir": str(radiographs_dir), "n_views": len(vs),
-        "view_ids": [v.id for v in vs.views], "results": rows,
+        "volume_id": volume.volume_id, "radiographs_dir": str(radiographs_dir), "results": rows,
     })
     with atomic_path(out_dir / "baselines.csv") as tmp:
         df.to_csv(tmp, index=False)

@@ -9,7 +9,14 @@ import pandas as pd
 import pytest
 from skimage.transform import iradon, iradon_sart, radon
 
-from ctsplat.baselines import BASELINE_DEFAULTS, circular_sinograms, fbp_volume, run_baselines, sart_volumes
+from ctsplat.baselines import (
+    BASELINE_DEFAULTS,
+    circular_sinograms,
+    fbp_volume,
+    run_baselines,
+    sart_volumes,
+    select_views,
+)
 from ctsplat.geometry import ConeCamera, ParallelCamera, ViewSet, circular_orbit
 from ctsplat.metrics import psnr3d, ssim3d
 from ctsplat.projector import line_integrals, render_radiographs
@@ -99,28 +106,41 @@ def test_run_baselines_writes_csv_volumes_and_metrics(tmp_path):
     rad = tmp_path / "rad"
     render_radiographs(vol_path, rad, {"n_views": 36, "detector_width": 24, "detector_height": 40})
     out = tmp_path / "baselines"
-    df = run_baselines(vol_path, rad, out, {"sart_max_iterations": 3})
+    df = run_baselines(vol_path, rad, out, {"sart_max_iterations": 3, "n_views": [12, 36, 99]})
     assert list(df.columns) == ["method", "filter", "iterations", "n_views", "psnr3d", "ssim3d", "seconds"]
-    assert list(df["method"]) == ["fbp", "fbp", "sart"] and list(df["filter"][:2]) == ["ramp", "shepp-logan"]
-    assert (df["n_views"] == 36).all()
+    assert list(df["method"]) == ["fbp", "fbp", "sart"] * 3 and list(df["filter"][:2]) == ["ramp", "shepp-logan"]
+    assert list(df["n_views"]) == [12] * 3 + [36] * 6  # 99 > 36 training views: all of them
     csv = pd.read_csv(out / "baselines.csv", keep_default_na=False)
-    assert len(csv) == 3
+    assert len(csv) == 9 and list(csv["n_views"]) == list(df["n_views"])
     iters = pd.read_csv(out / "sart_iterations.csv")
-    assert list(iters["iterations"]) == [1, 2, 3]
-    sart = df[df.method == "sart"].iloc[0]
-    assert sart["psnr3d"] == pytest.approx(iters["psnr3d"].max())
-    assert sart["iterations"] == iters["iterations"][iters["psnr3d"].idxmax()]
+    assert list(iters["iterations"]) == [1, 2, 3] * 3
+    sart = df[(df.method == "sart") & (df.n_views == 36)].iloc[0]
+    it36 = iters[iters.n_views == 36].reset_index(drop=True)
+    assert sart["psnr3d"] == pytest.approx(it36["psnr3d"].max())
+    assert sart["iterations"] == it36["iterations"][it36["psnr3d"].idxmax()]
+    fbp12, fbp36 = df[df["filter"] == "ramp"]["psnr3d"].iloc[:2]
+    assert fbp36 > fbp12  # more views, better FBP
     ref = load_volume(vol_path).data
-    for name, row in (("fbp_ramp", df.iloc[0]), ("fbp_shepp-logan", df.iloc[1]), ("sart", sart)):
+    for name, row in (("fbp_ramp_n036", df.iloc[3]), ("fbp_shepp-logan_n036", df.iloc[4]), ("sart_n036", sart)):
         rec = load_volume(out / f"{name}.nii.gz")
         assert rec.shape == ref.shape and np.allclose(rec.affine, vol.affine, atol=1e-5)
         assert psnr3d(rec.data, ref) == pytest.approx(row["psnr3d"], abs=1e-3)
         assert ssim3d(rec.data, ref) == pytest.approx(row["ssim3d"], abs=1e-3)
         assert rec.data.min() >= 0 and rec.data.max() <= 1
-    assert (df["psnr3d"] > 18).all(), df
+    assert (df[df.n_views == 36]["psnr3d"] > 20).all(), df
     prov = json.loads((out / "baselines.json").read_text())
-    assert prov["n_views"] == 36 and prov["volume_id"] == "ph24"
+    assert prov["volume_id"] == "ph24" and len(prov["results"]) == 9
     json.dumps(BASELINE_DEFAULTS)
+
+
+def test_select_views_matches_the_training_subset_rule():
+    views = circular_orbit(40, np.zeros(3), 100.0, start_deg=200.0, seed=0)
+    vs = ViewSet(ParallelCamera(8, 8, 1.0), views)
+    rows = select_views(vs, "train", 10)
+    az = np.array([vs.views[i].azimuth_deg for i in rows])
+    np.testing.assert_allclose(np.sort(az), 2.0 + np.arange(10) * 36.0)  # every 4th of 200 + 9 k mod 360
+    assert all(vs.views[i].split == "train" for i in rows)
+    assert len(select_views(vs, "train", 0)) == 40 and len(select_views(vs, "test", 0)) == 9
 
 
 def test_baselines_bad_input(tmp_path):
