@@ -1,0 +1,42 @@
+"""``ctsplat project`` / ``ctsplat baseline`` through the real command-line entry point."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+
+from ctsplat.cli import main
+from ctsplat.projector import load_radiographs
+from ctsplat.volume import Volume, save_volume
+
+
+def test_project_and_baseline_commands(tmp_path, capsys):
+    n = 16
+    g = (np.arange(n) - (n - 1) / 2) / (n / 2)
+    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
+    data = (0.5 * (X**2 + Y**2 + Z**2 < 0.6)).astype(np.float32)
+    vol = tmp_path / "volume.nii.gz"
+    meta = {"volume_id": "cli", "intensity": {"mu_scale_per_mm": 0.02}}
+    save_volume(Volume(data, np.diag([2.0, 2.0, 2.0, 1.0]), meta), vol)
+    cfg = tmp_path / "rad.yaml"
+    cfg.write_text("radiographs:\n  detector_width: 16\n  detector_height: 18\n")
+    rad = tmp_path / "rad"
+    assert main(["project", "--volume", str(vol), "--out", str(rad), "--config", str(cfg),
+                 "--set", "n_views=20", "--set", "noise.enabled=false", "--seed", "4"]) == 0
+    p, vs = load_radiographs(rad)
+    assert p.shape == (20 + 4 + 4, 18, 16) and len(vs.indices("train")) == 20
+    assert json.loads((rad / "radiographs.json").read_text())["seed"] == 4
+    out = tmp_path / "base"
+    assert main(["baseline", "--volume", str(vol), "--radiographs", str(rad), "--out", str(out),
+                 "--set", "sart_max_iterations=2", "--set", "n_views=[10,20]"]) == 0
+    df = pd.read_csv(out / "baselines.csv", keep_default_na=False)
+    assert list(df["n_views"]) == [10, 10, 10, 20, 20, 20]
+    assert "psnr3d" in capsys.readouterr().out
+    # user errors: one line, exit status 2, nothing written
+    assert main(["project", "--volume", str(vol), "--out", str(tmp_path / "bad"), "--set", "camera=cone",
+                 "--set", "dsd_mm=10", "--set", "dso_mm=20"]) == 2
+    assert "must be larger than dso_mm" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+    assert main(["project", "--volume", str(tmp_path / "missing.nii.gz"), "--out", str(tmp_path / "x")]) == 2
