@@ -21,7 +21,11 @@ STEP_MODULES = ["data", "radiographs", "render", "train", "sfm", "analysis"]
 def build_parser() -> argparse.ArgumentParser:
     from ctsplat import __version__
 
-    parser = argparse.ArgumentParser(prog="ctsplat", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="ctsplat",
+        description="CT scans -> synthetic radiographs -> rectified radiative Gaussian splatting. "
+        "Each subcommand is one workflow step; see `ctsplat COMMAND --help`.",
+    )
     parser.add_argument("--version", action="version", version=f"ctsplat {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
