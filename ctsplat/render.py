@@ -29,10 +29,11 @@ Pipeline (all vectorised over Gaussians; no Python loop over Gaussians)
 3. **Rasterise**: each Gaussian touches only the pixels of its ``sigma_cutoff``-σ axis-aligned bounding box in the image
    (half widths ``k sqrt(Σ̂_00)``, ``k sqrt(Σ̂_11)`` px), so footprints adapt to the Gaussian's size -- a large Gaussian
    is never clipped and a small one costs a few pixels. (Gaussian, pixel) pairs are generated with
-   ``repeat_interleave`` and scattered with ``index_add`` (reference path), or by a fused C kernel with a hand-written
-   backward (fast CPU path for the additive compositors, :mod:`ctsplat._render_kernel`, tested against the
-   reference). The bounding box truncates the tails: with the default ``k = 3`` the lost mass of a Gaussian is
-   at most ``1 - erf(3/√2)² ≈ 0.54 %``; pass ``sigma_cutoff=5`` for ~1e-6.
+   ``repeat_interleave`` and scattered with ``index_add`` (reference path), or -- fast CPU path for the additive
+   compositors -- projection and rasterisation run as fused C++ kernels with hand-written backward passes
+   (:mod:`ctsplat._render_kernel`, tested against the reference and by gradcheck). The bounding box truncates
+   the tails: with the default ``k = 3`` the lost mass of a Gaussian is between ``1 - erf(3/√2) ≈ 0.27 %`` and
+   ``1 - erf(3/√2)² ≈ 0.54 %`` (Šidák); pass ``sigma_cutoff=5`` for ~1e-6.
 
 Mip filter (Mip-Splatting), mass-conserving in radiative mode
 -------------------------------------------------------------
@@ -63,9 +64,12 @@ Notes for training (engineer D)
 * Densities are in normalised-volume units; render against targets divided by ``mu_scale_per_mm`` or pass
   ``mu_scale``. ``compute_3d_filter`` once per densification step (cameras are fixed), then pass its result to every
   :func:`render` and to :func:`voxelize` (``filter_3d_var``) so the volume read-out matches the rendered field.
-* ``backend="auto"`` uses the fused C kernel for ``radiative``/``radiative_unrectified`` on CPU when a C compiler is
-  available (compiled once into ``~/.cache/ctsplat``), else the pure-PyTorch reference. Both are differentiable
-  w.r.t. means, log-scales, quats, density/opacity (and colours).
+* ``backend="auto"`` uses the fused kernels for ``radiative``/``radiative_unrectified`` on CPU when a C++ compiler
+  is available (compiled once into ``~/.cache/ctsplat``), else the pure-PyTorch reference (always used for
+  ``alpha`` and on CUDA). Both are differentiable w.r.t. means, log-scales, quats, density_raw (alpha: also
+  opacity_raw, colours, sh_rest). float32 and float64.
+* Thread count = ``torch.get_num_threads()``. On a heavily shared CPU, ``torch.set_num_threads(1)`` can be faster
+  (torch's OpenMP workers spin while waiting for a core).
 """
 
 from __future__ import annotations
@@ -181,6 +185,15 @@ def _det2(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
 
 
 # ---------------------------------------------------------------------------------------------- projection
+def _dilation(compositor: str, mip_2d: bool) -> float:
+    """2D filter variance (px²) added to Σ̂: alpha low-pass 0.3 / mip 0.1 / radiative 0, plus the ``EPS_2D`` floor."""
+    if compositor == "alpha":
+        k2 = MIP_2D_VAR if mip_2d else LOWPASS_ALPHA
+    else:
+        k2 = MIP_2D_VAR if mip_2d else 0.0
+    return k2 + EPS_2D
+
+
 def project(
     gaussians: Gaussians,
     camera: Any,
@@ -255,12 +268,9 @@ def project(
         detj2 = torch.linalg.det(J) ** 2
 
     # |Σ̂| (unfiltered 2D); the floor keeps sqrt differentiable for degenerate (edge-on flat) Gaussians
+    # |Σ̂| (unfiltered 2D); the floor keeps sqrt differentiable for degenerate (edge-on flat) Gaussians
     det_hat = _det2(c00, c01, c11).clamp_min(1e-20)
-    if compositor == "alpha":
-        k2 = MIP_2D_VAR if mip_2d else LOWPASS_ALPHA
-    else:
-        k2 = MIP_2D_VAR if mip_2d else 0.0
-    k2 = k2 + EPS_2D
+    k2 = _dilation(compositor, mip_2d)
     f00, f01, f11 = c00 + k2, c01, c11 + k2
     det_f = _det2(f00, f01, f11)
     conics = torch.stack([f11 / det_f, -f01 / det_f, f00 / det_f], dim=-1)
@@ -458,8 +468,16 @@ def render(
     _check_inputs(gaussians, filter_3d_var)
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
-    proj = project(gaussians, camera, R, t, compositor=compositor, filter_3d_var=filter_3d_var, mip_2d=mip_2d,
-                   sigma_cutoff=sigma_cutoff)
+    use_kernel = False
+    if compositor != "alpha" and backend != "reference" and gaussians.means.device.type == "cpu":
+        from ctsplat import _render_kernel
+
+        use_kernel = _render_kernel.available() if backend == "auto" else True
+    if use_kernel:
+        proj = _project_kernel(gaussians, cam, R, t, compositor, filter_3d_var, mip_2d, sigma_cutoff)
+    else:
+        proj = project(gaussians, camera, R, t, compositor=compositor, filter_3d_var=filter_3d_var,
+                       mip_2d=mip_2d, sigma_cutoff=sigma_cutoff)
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
     bb = proj.bbox
@@ -475,11 +493,6 @@ def render(
         if img.shape[-1] == 1:
             img = img[..., 0]
     else:
-        use_kernel = False
-        if backend != "reference" and proj.amps.device.type == "cpu":
-            from ctsplat import _render_kernel
-
-            use_kernel = _render_kernel.available() if backend == "auto" else True
         if use_kernel:
             from ctsplat._render_kernel import splat_additive_kernel
 
@@ -491,6 +504,29 @@ def render(
         if transmission:
             img = torch.exp(-img)
     return RenderOutput(image=img, means2d=proj.means2d, radii=radii, visible=visible, depths=proj.depths)
+
+
+def _project_kernel(
+    gaussians: Gaussians, cam: dict[str, Any], R: Any, t: Any, compositor: str, filter_3d_var: Any, mip_2d: bool,
+    sigma_cutoff: float,
+) -> Projection:
+    """:func:`project` through the fused C kernel (additive compositors, CPU, float32/float64)."""
+    from ctsplat._render_kernel import ProjectAdditive, camera_vector
+
+    means = gaussians.means
+    R_t, t_t = _as_pose(R, t, means)
+    fv = None
+    if filter_3d_var is not None:
+        fv = torch.as_tensor(filter_3d_var, dtype=means.dtype, device=means.device).reshape(-1)
+        if fv.shape[0] != means.shape[0]:
+            raise CtsplatError(f"filter_3d_var has {fv.shape[0]} entries for {means.shape[0]} Gaussians")
+    cam_vec = camera_vector(cam, R_t, t_t, _dilation(compositor, mip_2d), NEAR_MM, sigma_cutoff)
+    mode = 0 if compositor == "radiative" else 1
+    m2d, con, amp, depth, bb = ProjectAdditive.apply(
+        means, gaussians.log_scales, gaussians.quats, gaussians.density_raw, fv, cam_vec, mode, bool(mip_2d)
+    )
+    valid = depth > NEAR_MM if cam["model"] == "cone" else torch.ones_like(depth, dtype=torch.bool)
+    return Projection(means2d=m2d, conics=con, cov2d=torch.empty(0), amps=amp, depths=depth, valid=valid, bbox=bb)
 
 
 def render_reference(gaussians: Gaussians, camera: Any, R: Any, t: Any, **kwargs: Any) -> RenderOutput:
