@@ -16,6 +16,10 @@ sampled with ``torch.nn.functional.grid_sample`` (trilinear, ``align_corners=Tru
 length and processed in chunks of at most ``batch_samples`` samples, so memory stays bounded for any
 number of views; everything runs on the device of ``device`` (CUDA when given CUDA tensors).
 
+Parallel beams whose detector rows run along a voxel axis (circular orbits at elevation 0, the
+classical CT protocol) use an exact-in-the-limit slice-wise Joseph traversal instead, ~10x faster
+(see :func:`_joseph_slices`); ``method=`` picks explicitly.
+
 Noise (optional, seeded): counts ``N = Poisson(I0 exp(-p)) + Normal(0, σ_e)``; counts below one photon
 (including non-positive ones from electronic noise) are clipped to one photon, and ``p_noisy = ln(I0 / N)``.
 """
@@ -130,6 +134,7 @@ def line_integrals(
     step_voxels: float = 0.5,
     device: str | torch.device | None = None,
     batch_samples: int = 1 << 22,
+    method: str = "auto",
 ) -> torch.Tensor:
     """Line integrals ``p = ∫ μ dl`` through ``mu`` for every pixel of every view.
 
@@ -148,6 +153,11 @@ def line_integrals(
         Where to compute; default the device of ``mu`` (CPU for arrays).
     batch_samples : int
         Maximum number of samples evaluated at once (memory bound: ~40 bytes per sample).
+    method : {"auto", "trilinear", "joseph"}
+        ``trilinear``: midpoint rule at ``<= step_voxels`` steps (any camera). ``joseph``: the slice-wise
+        Joseph traversal (parallel beam whose detector rows run along one voxel axis, e.g. circular
+        orbits at elevation 0; see :func:`_joseph_slices`). ``auto``: ``joseph`` when the geometry
+        allows it, else ``trilinear``.
 
     Returns
     -------
@@ -168,6 +178,14 @@ def line_integrals(
     if len(Rs) == 0:
         raise CtsplatError("empty view set: nothing to project")
     A = np.asarray(affine, float)
+    if method not in ("auto", "trilinear", "joseph"):
+        raise CtsplatError(f"unknown projector method {method!r}; allowed: auto, trilinear, joseph")
+    slice_axis = _slice_axis(camera, Rs, A)
+    if method == "joseph" and slice_axis is None:
+        raise CtsplatError("the joseph projector needs a parallel beam whose detector rows run along a voxel axis "
+                           "(circular orbit at elevation 0); use method: trilinear")
+    if method != "trilinear" and slice_axis is not None:
+        return _joseph_slices(mu_t, A, camera, Rs, ts, slice_axis, batch_samples)
     Ainv = np.linalg.inv(A)
     spacing = np.linalg.norm(A[:3, :3], axis=0)
     step_mm = step_voxels * float(spacing.min())
@@ -216,6 +234,100 @@ def line_integrals(
     if pieces_idx:
         out = out.index_put((torch.cat(pieces_idx),), torch.cat(pieces_val))
     return out.reshape(V, H, W)
+
+
+def _slice_axis(camera: Camera, Rs: np.ndarray, A: np.ndarray) -> int | None:
+    """The voxel axis ``c`` along which every detector column runs (parallel beam only), else ``None``.
+
+    Needs ``y_cam = ±e_c`` in every view and ``e_c`` orthogonal to the other two voxel axes, so each
+    detector row integrates within one plane ``index_c = const`` and ``index_c`` depends on the row only.
+    """
+    if camera.model != "parallel":
+        return None
+    E = A[:3, :3] / np.linalg.norm(A[:3, :3], axis=0)
+    for c in range(3):
+        others = [a for a in range(3) if a != c]
+        if np.abs(E[:, others].T @ E[:, c]).max() > 1e-9:
+            continue
+        if np.abs(np.abs(Rs[:, 1] @ E[:, c]) - 1.0).max() < 1e-9:
+            return c
+    return None
+
+
+def _joseph_slices(mu: torch.Tensor, A: np.ndarray, camera: Camera, Rs: np.ndarray, ts: np.ndarray, c: int,
+                   batch_samples: int) -> torch.Tensor:
+    """Joseph's projector, slice by slice, for parallel beams whose detector rows lie in voxel planes.
+
+    Every ray of detector column ``u`` lies in the plane spanned by the other two voxel axes ``(p, q)``
+    (in-plane ray ``o + s d``, ``s`` in mm). With ``a`` the axis along which the ray advances fastest
+    (``|d_a|`` largest, in index units per mm), Joseph's method samples the ray where it crosses the
+    voxel-centre lines ``index_a = m`` (``m = 0 .. N_a - 1``, ``s >= 0``), linearly interpolating across
+    the other axis ``b``, and weights every sample by the path length per unit index, ``1 / |d_a|`` mm:
+
+        P_k(u) = (1 / |d_a|) Σ_m [(1 - f) μ_k(m, ⌊β⌋) + f μ_k(m, ⌊β⌋ + 1)],
+        β = o_b + (m - o_a) d_b / d_a,  f = β - ⌊β⌋,
+
+    which integrates the bilinear interpolant exactly along axis-aligned rays. These weights form a
+    sparse matrix (two entries per sample) applied to all slices at once: ``P = S @ μ[(p, q), k]``.
+    A detector row ``v`` at slice coordinate ``k(v)`` gets the linear interpolation of ``P_k`` between
+    the two nearest slices (zero beyond the support ``(-1, N_c)``), as trilinear interpolation does along
+    such a ray. Differentiable in ``mu`` (sparse @ dense).
+    """
+    device = mu.device
+    Ainv = np.linalg.inv(A)
+    p_ax, q_ax = [a for a in range(3) if a != c]
+    Nc, Np, Nq = (int(mu.shape[x]) for x in (c, p_ax, q_ax))
+    vol = mu.permute(p_ax, q_ax, c).reshape(Np * Nq, Nc)  # rows: in-plane voxel (p, q), columns: slices
+    V, W = len(Rs), camera.width
+    per_batch = max(1, int(batch_samples // max(1, W * max(Np, Nq))))
+    out = []
+    for g0 in range(0, V, per_batch):
+        r_idx, c_idx, w_all, rows = [], [], [], []
+        batch = list(zip(Rs[g0 : g0 + per_batch], ts[g0 : g0 + per_batch], strict=True))
+        for j, (R, t) in enumerate(batch):
+            o, d = camera_rays(camera, R, t)
+            o_idx = o @ Ainv[:3, :3].T + Ainv[:3, 3]  # (H, W, 3)
+            d_idx = d[0, 0] @ Ainv[:3, :3].T
+            o2 = o_idx[0][:, [p_ax, q_ax]]  # (W, 2) in-plane origins of the columns
+            d2 = d_idx[[p_ax, q_ax]]
+            a = int(np.argmax(np.abs(d2)))
+            b = 1 - a
+            n_a, n_b = (Np, Nq)[a], (Np, Nq)[b]
+            m = np.arange(n_a, dtype=float)
+            s = (m[None, :] - o2[:, a, None]) / d2[a]  # (W, n_a) mm along the ray
+            beta = o2[:, b, None] + s * d2[b]
+            b0 = np.floor(beta)
+            f = beta - b0
+            u = np.broadcast_to(np.arange(W)[:, None], s.shape)
+            mm = np.broadcast_to(m[None, :], s.shape).astype(np.int64)
+            for tap, wt in ((b0, 1.0 - f), (b0 + 1, f)):
+                ok = (s >= 0) & (tap >= 0) & (tap < n_b) & (wt > 0)
+                tb = tap[ok].astype(np.int64)
+                flat = mm[ok] * Nq + tb if a == 0 else tb * Nq + mm[ok]
+                r_idx.append(j * W + u[ok])
+                c_idx.append(flat)
+                w_all.append(wt[ok] / abs(d2[a]))
+            rows.append(o_idx[:, 0, c])  # (H,) slice coordinate of each detector row
+        S = torch.sparse_coo_tensor(
+            torch.as_tensor(np.stack([np.concatenate(r_idx), np.concatenate(c_idx)]), device=device),
+            torch.as_tensor(np.concatenate(w_all), dtype=torch.float32, device=device),
+            size=(len(batch) * W, Np * Nq),
+            check_invariants=False,
+        )
+        P = torch.sparse.mm(S, vol).reshape(len(batch), W, Nc)
+        # rows: linear interpolation between slices, as a (H, Nc + 2) matrix per view over the slices
+        # padded with zero planes at -1 and Nc (the support of the interpolant)
+        P = torch.nn.functional.pad(P, (1, 1))  # (B, W, Nc + 2)
+        Wk = np.zeros((len(batch), len(rows[0]), Nc + 2))
+        for j, kc in enumerate(rows):
+            inside = (kc > -1) & (kc < Nc)
+            k0 = np.floor(kc[inside]).astype(np.int64) + 1  # padded index of the slice below
+            f = kc[inside] - np.floor(kc[inside])
+            rr = np.flatnonzero(inside)
+            Wk[j, rr, k0] += 1.0 - f
+            Wk[j, rr, k0 + 1] += f  # k0 + 1 <= Nc + 1 since kc < Nc
+        out.append(torch.bmm(torch.as_tensor(Wk, dtype=torch.float32, device=device), P.transpose(1, 2)))
+    return torch.cat(out)
 
 
 def add_noise(p: np.ndarray, i0: float, electronic_sigma: float, rng: np.random.Generator

@@ -115,7 +115,7 @@ def _voxelized(name: str, n: int) -> np.ndarray:
     return voxelize(_phantom(name), oblique_affine(n, 64.0), (n, n, n), supersample=2)
 
 
-@pytest.mark.parametrize("model", ["parallel", "cone"])
+@pytest.mark.parametrize("model", ["parallel", "cone", "parallel_circular"])
 @pytest.mark.parametrize(("phantom", "bound"), [("shepp_logan", 0.07), ("no_skull", 0.035)])
 def test_ellipsoid_chord_lengths_error_shrinks_with_voxel_size(model, phantom, bound):
     """Projections of voxelised ellipsoids converge to the exact chord integrals (first order in the voxel size).
@@ -125,11 +125,14 @@ def test_ellipsoid_chord_lengths_error_shrinks_with_voxel_size(model, phantom, b
     halves with the voxel size.
     """
     ells = _phantom(phantom)
-    if model == "parallel":
-        cam, dist = ParallelCamera(24, 24, 2.8), 200.0
-    else:
+    if model == "cone":
         cam, dist = ConeCamera(24, 24, 4.5, 150.0, 250.0), 150.0
+    else:
+        cam, dist = ParallelCamera(24, 24, 2.8), 200.0
     Rs, ts = _views(4, dist)
+    if model == "parallel_circular":  # elevation 0 -> the slice-wise Joseph projector
+        poses = [pose_from_angles(az, 0.0, C0, dist) for az in (0.0, 37.0, 101.0, 200.0)]
+        Rs, ts = np.stack([R for R, _ in poses]), np.stack([t for _, t in poses])
     exact = np.stack([chord_integrals(*camera_rays(cam, R, t), ells) for R, t in zip(Rs, ts, strict=True)])
     assert exact.max() > 0.2  # the rays do cross the phantom
     errors = []
@@ -155,6 +158,26 @@ def test_cone_beam_converges_to_parallel_as_dso_grows():
         errs.append(np.linalg.norm(line_integrals(vol, A, cone, Rc, tc).numpy() - ref) / np.linalg.norm(ref))
     assert errs[0] > errs[1] > errs[2], errs
     assert errs[2] < 2e-3, errs
+
+
+def test_joseph_and_trilinear_agree_on_circular_orbits():
+    n = 24
+    A = oblique_affine(n, 64.0)
+    vol = _voxelized("no_skull", n)
+    for cam, el in ((ParallelCamera(30, 28, 2.5), 0.0), (ParallelCamera(17, 33, 3.1), 0.0)):
+        poses = [pose_from_angles(az, el, C0 + [1.0, -2.0, 0.7], 300.0) for az in np.linspace(0, 360, 13)]
+        Rs, ts = np.stack([R for R, _ in poses]), np.stack([t for _, t in poses])
+        jos = line_integrals(vol, A, cam, Rs, ts, method="joseph")
+        tri = line_integrals(vol, A, cam, Rs, ts, method="trilinear", step_voxels=0.25)
+        assert float(torch.linalg.norm(jos - tri) / torch.linalg.norm(tri)) < 0.01
+        torch.testing.assert_close(line_integrals(vol, A, cam, Rs, ts), jos)  # auto picks joseph
+        torch.testing.assert_close(line_integrals(vol, A, cam, Rs, ts, batch_samples=100), jos)
+    Rs, ts = _views(2, 300.0)  # elevation != 0: no slice structure
+    with pytest.raises(CtsplatError, match="joseph projector needs"):
+        line_integrals(vol, A, ParallelCamera(8, 8, 2.0), Rs, ts, method="joseph")
+    with pytest.raises(CtsplatError, match="joseph projector needs"):
+        line_integrals(vol, A, ConeCamera(8, 8, 2.0, 300.0, 400.0), Rs[:1] * 0 + np.eye(3)[[1, 2, 0]], ts[:1],
+                       method="joseph")
 
 
 def test_clip_rays_to_box_against_brute_force():
