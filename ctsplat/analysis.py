@@ -29,6 +29,8 @@ import pandas as pd
 from ctsplat.utils import CtsplatError, atomic_path, merge_config
 
 __all__ = [
+    "ANALYSIS_OUTPUTS",
+    "RUN_FIGURES",
     "GRID_AXES",
     "LOG_COLUMNS",
     "PER_VIEW_COLUMNS",
@@ -71,6 +73,21 @@ LIBRARY_SECTIONS: dict[str, tuple[str, str]] = {
     "sfm": ("ctsplat.sfm", "SFM_DEFAULTS"),
     "train": ("ctsplat.train", "TRAIN_DEFAULTS"),
 }
+
+# Grid-level outputs of `analyse`: name -> (file name under results/figures/, report category). A fixed set so the
+# workflow can declare them; written by ctsplat.plots.analyse.
+ANALYSIS_OUTPUTS: dict[str, tuple[str, str]] = {
+    **{f"convergence_by_{a}": (f"convergence_by_{a}.png", "Convergence") for a in GRID_AXES},
+    "velocity": ("velocity.png", "Convergence"),
+    "acf": ("acf.png", "Convergence"),
+    "kde": ("kde.png", "Convergence"),
+    "correlations_plot": ("correlations.png", "2D vs 3D"),
+    "correlations": ("correlations.csv", "2D vs 3D"),
+    "milestones": ("milestones.csv", "Milestones"),
+    "ablation": ("ablation.png", "Ablation"),
+    "baselines": ("baselines.png", "Baselines"),
+}
+RUN_FIGURES: tuple[str, ...] = ("convergence", "porkchop", "acf", "kde")
 
 SCHEMA_PATH = Path(__file__).resolve().parent.parent / "workflow" / "schemas" / "config.schema.yaml"
 
@@ -284,12 +301,11 @@ def parse_run_dir(path: str | os.PathLike[str]) -> dict[str, Any]:
 def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] = ".") -> dict[str, Any]:
     """Everything the workflow checks at parse time, before any job runs.
 
-    Validates against the schema (defaults filled), checks library sections against the modules' DEFAULTS,
-    checks volume sources exist, resolves ``grid.geometry`` and checks it names a radiographs geometry, and
+    Validates against the schema (defaults filled; its library sections mirror the modules' DEFAULTS, see
+    :func:`check_library_sections` for the import-time check), checks volume sources exist, resolves ``grid.geometry`` and checks it names a radiographs geometry, and
     expands the grid (zero runs is an error). Returns the filled config with ``grid.geometry`` set.
     """
-    cfg = validate_config(config)
-    check_library_sections(cfg)
+    cfg = validate_config(config)  # library sections are mirrored in the schema: no heavy imports at parse time
     check_volume_sources(cfg["volumes"], base_dir)
     geometries = list(cfg["radiographs"])
     if cfg["grid"]["geometry"] is None:

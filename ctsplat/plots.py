@@ -43,19 +43,8 @@ __all__ = [
     "analyse",
 ]
 
-# name -> (file name under results/figures/, report category). Fixed set so the workflow can declare outputs.
-ANALYSIS_OUTPUTS: dict[str, tuple[str, str]] = {
-    **{f"convergence_by_{a}": (f"convergence_by_{a}.png", "Convergence") for a in an.GRID_AXES},
-    "velocity": ("velocity.png", "Convergence"),
-    "acf": ("acf.png", "Convergence"),
-    "kde": ("kde.png", "Convergence"),
-    "correlations_plot": ("correlations.png", "2D vs 3D"),
-    "correlations": ("correlations.csv", "2D vs 3D"),
-    "milestones": ("milestones.csv", "Milestones"),
-    "ablation": ("ablation.png", "Ablation"),
-    "baselines": ("baselines.png", "Baselines"),
-}
-RUN_FIGURES: tuple[str, ...] = ("convergence", "porkchop", "acf", "kde")
+ANALYSIS_OUTPUTS = an.ANALYSIS_OUTPUTS
+RUN_FIGURES = an.RUN_FIGURES
 
 METRIC_LABELS = {"psnr2d": "PSNR 2D (dB)", "ssim2d": "SSIM 2D", "psnr3d": "PSNR 3D (dB)", "ssim3d": "SSIM 3D"}
 

@@ -18,9 +18,9 @@ CONFIGS = sorted((ROOT / "config").glob("*.yaml"))
 
 def test_defaults_filled_from_empty_config():
     cfg = an.validate_config({})
-    assert cfg["volumes"] == {"phantom": {"source": "phantom", "phantom": {"size": 64, "beads": True, "seed": 0},
-                                          "series_uid": None, "allow_modalities": ["CT"], "skip_corrupt": False,
-                                          "tiff_voxel_size_mm": None, "preprocessing": {}}}
+    vol = cfg["volumes"]["phantom"]
+    assert vol["source"] == "phantom" and vol["phantom"]["size"] == 64 and vol["phantom"]["beads"] is True
+    assert vol["series_uid"] is None and vol["allow_modalities"] == ["CT"] and vol["preprocessing"] == {}
     assert cfg["grid"]["axes"]["init"] == ["fbp"] and cfg["grid"]["exclude"] == []
     assert cfg["analysis"]["milestones"] == {"psnr2d": 30.0, "ssim2d": 0.9}
     assert cfg["resources"]["train"]["mem_mb"] > 0
@@ -72,6 +72,7 @@ def test_validate_does_not_mutate_input():
         ("radiographs", "ctsplat.projector", "RADIOGRAPHS_DEFAULTS", ("radiographs", "circular")),
         ("sfm", "ctsplat.sfm", "SFM_DEFAULTS", ("sfm", "settings")),
         ("train", "ctsplat.train", "TRAIN_DEFAULTS", ("train",)),
+        ("baselines", "ctsplat.baselines", "BASELINES_DEFAULTS", ("baselines", "settings")),
     ],
 )
 def test_schema_defaults_mirror_library_defaults(section, module, attr, path):
@@ -82,8 +83,23 @@ def test_schema_defaults_mirror_library_defaults(section, module, attr, path):
     for p in path:
         filled = filled[p]
     grid_keys = {"volume", "radiographs", "sfm_dir", "init", "compositor", "mip", "poses", "views", "seed", "device"}
-    expect = {k: v for k, v in defaults.items() if not (section == "train" and k in grid_keys)}
+    if section == "baselines":
+        grid_keys = {"n_views"}
+    elif section != "train":
+        grid_keys = set()
+    expect = {k: v for k, v in defaults.items() if k not in grid_keys}
     assert filled == expect
+
+
+def test_schema_phantom_defaults_mirror_write_phantom_dicom():
+    import inspect
+
+    phantom = pytest.importorskip("ctsplat.phantom")
+    sig = inspect.signature(phantom.write_phantom_dicom)
+    filled = an.validate_config({})["volumes"]["phantom"]["phantom"]
+    assert filled.keys() <= sig.parameters.keys()
+    assert {k: sig.parameters[k].default for k in filled if k != "size"} == {k: v for k, v in filled.items()
+                                                                             if k != "size"}
 
 
 def test_check_library_sections_uses_module_defaults(monkeypatch):

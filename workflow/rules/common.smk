@@ -5,8 +5,7 @@ from pathlib import Path
 
 from snakemake.utils import Paramspace
 
-from ctsplat.analysis import GRID_AXES, expand_grid, prepare_config
-from ctsplat.plots import ANALYSIS_OUTPUTS
+from ctsplat.analysis import ANALYSIS_OUTPUTS, GRID_AXES, expand_grid, prepare_config
 from ctsplat.utils import CtsplatError, config_hash
 
 try:

@@ -1,0 +1,105 @@
+"""Dry runs: exact job counts per rule on example grids, shipped configs, lint/format, bad input before any job."""
+
+from __future__ import annotations
+
+import itertools
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from smk_helpers import ROOT, SNAKEFILE, job_counts, snakemake, write_config
+
+pytestmark = pytest.mark.workflow
+
+
+def _cells(axes, volumes, drop):
+    keys = list(axes)
+    return [dict(zip(["volume", *keys], c, strict=True)) for c in itertools.product(volumes, *axes.values())
+            if not drop(dict(zip(["volume", *keys], c, strict=True)))]
+
+
+def test_large_grid_schedules_shared_work_once_and_training_per_cell(tmp_path):
+    (tmp_path / "ct").mkdir()  # a second volume from a (not yet read) DICOM folder
+    axes = {"init": ["fbp", "volume", "sfm"], "compositor": ["radiative", "alpha"], "mip": ["on", "off"],
+            "poses": ["gt", "colmap"], "views": [10, 20], "seed": [0, 1]}
+    config = {
+        "volumes": {"phantom": {"source": "phantom"}, "head": {"source": "ct"}},
+        "radiographs": {"circ": {"n_views": 40}, "unused": {"camera": "cone"}},
+        "sfm": {"enabled": False},
+        "grid": {"geometry": "circ", "axes": axes,
+                 "exclude": [{"poses": "colmap", "init": "volume"}, {"volume": "head", "views": [20]}]},
+    }
+    cfg = write_config(tmp_path / "grid.yaml", config)
+    counts = job_counts(snakemake(tmp_path, "-n", configfile=cfg).stdout)
+    cells = _cells(axes, ["phantom", "head"], lambda c: (c["poses"] == "colmap" and c["init"] == "volume")
+                   or (c["volume"] == "head" and c["views"] == 20))
+    n = len(cells)
+    assert n == 80 + 40
+    assert counts == {"phantom": 1, "ingest": 2, "project": 2, "baseline": 2, "sfm": 2, "train": n, "evaluate": n,
+                      "run_figures": n, "gather": 1, "analyse": 1, "all": 1, "total": 12 + 3 * n}
+    assert not (tmp_path / "results").exists()
+
+
+def test_optional_steps_switch_off(tmp_path):
+    config = {
+        "baselines": {"enabled": False}, "sfm": {"enabled": False}, "evaluation": {"enabled": False},
+        "grid": {"axes": {"init": ["fbp", "uniform"], "compositor": ["radiative"], "mip": ["on"], "poses": ["gt"],
+                          "views": [5, 6, 7], "seed": [3]}},
+    }
+    counts = job_counts(snakemake(tmp_path, "-n", configfile=write_config(tmp_path / "c.yaml", config)).stdout)
+    assert counts == {"phantom": 1, "ingest": 1, "project": 1, "train": 6, "run_figures": 6, "gather": 1,
+                      "analyse": 1, "all": 1, "total": 18}
+
+
+def test_default_config_grid(tmp_path):
+    counts = job_counts(snakemake(tmp_path, "-n", configfile=ROOT / "config" / "config.yaml").stdout)
+    assert counts["phantom"] == counts["ingest"] == counts["project"] == counts["gather"] == counts["analyse"] == 1
+    assert counts["train"] == counts["evaluate"] == counts["run_figures"] >= 2
+    assert counts.get("sfm", 0) == 1 and counts.get("baseline", 0) == 1
+
+
+@pytest.mark.parametrize("name", ["ct0051_head.yaml", "full_protocol.yaml"])
+def test_example_configs_dry_run(name, shared_data):
+    """The real-data examples resolve their sources relative to the repository root."""
+    if name == "full_protocol.yaml" and not (shared_data / "totalseg_abdomen_j2k").is_dir():
+        pytest.skip("totalseg_abdomen_j2k not present")
+    proc = snakemake(ROOT, "-n", "--nolock", configfile=ROOT / "config" / name)
+    counts = job_counts(proc.stdout)
+    assert counts["train"] >= 2 and counts["ingest"] >= 1
+
+
+def test_lint_passes():
+    proc = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(SNAKEFILE), "--lint", "--configfile",
+                           str(ROOT / "config" / "config.yaml")], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "Congratulations, your workflow is in a good condition" in proc.stdout + proc.stderr
+
+
+def test_snakefmt_formatted():
+    exe = shutil.which("snakefmt") or str(ROOT / ".venv" / "bin" / "snakefmt")
+    files = [str(SNAKEFILE), *map(str, sorted((ROOT / "workflow" / "rules").glob("*.smk")))]
+    proc = subprocess.run([exe, "--check", *files], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+# ------------------------------------------------------------------------------------------------ bad input
+
+
+@pytest.mark.parametrize(
+    ("config", "message"),
+    [
+        ({"grid": {"axes": {"views": ["ten"]}}}, "invalid config at grid.axes.views[0]: 'ten' is not of type"),
+        ({"train": {"iteratons": 5}}, "invalid config at train: Additional properties are not allowed ('iteratons'"),
+        ({"volumes": {"head": {"source": "missing/ct"}}}, "volume source not found at volumes.head.source"),
+        ({"grid": {"exclude": [{"init": "fbp"}]}}, "the ablation grid expands to zero runs"),
+    ],
+    ids=["bad-value", "unknown-key", "missing-source", "empty-grid"],
+)
+def test_bad_config_fails_before_any_job(tmp_path, config, message):
+    proc = snakemake(tmp_path, "--cores", "1", configfile=write_config(tmp_path / "bad.yaml", config), check=False)
+    assert proc.returncode != 0
+    assert message in proc.stderr + proc.stdout
+    assert not (tmp_path / "results").exists()  # nothing ran, nothing written
