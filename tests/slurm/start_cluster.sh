@@ -15,7 +15,7 @@
 #      of MemTotal, no cgroups (proctrack/linuxproc, task/none), no accounting (accounting_storage/none, so
 #      there is no slurmdbd and `sacct` does not work: use `squeue` for job status), MinJobAge = 600 s so that
 #      finished jobs stay visible to `squeue --states=all`, and $CTSPLAT_SLURM_GPUS fake `gpu` GRES
-#      (default nproc, one plain file each under the state directory; 0 disables them) so jobs asking for `--gpus=1` can be scheduled (no real device behind it);
+#      (default nproc, one fake device file each under the state directory; 0 disables them) so jobs asking for `--gpus=1` can be scheduled (no real device behind it);
 #      /etc/slurm/slurm.conf is written only when absent or written by this script before (marker line);
 #      it has to live there because the Snakemake jobstep plugin drops SLURM_CONF for its nested `srun`;
 #   3. starts munged (own socket and key under the state directory), slurmctld and slurmd as root, each as a
@@ -64,8 +64,10 @@ if ((${#missing[@]})); then
     rc=0
     {
         # `apt-get update` only when the package lists do not know the packages yet (fresh CI images).
+        # A failed install with lists present may mean stale lists: update once and retry.
         if ! apt-cache show slurmctld >/dev/null 2>&1; then apt-get update -q; fi
-        apt-get install -y -q --no-install-recommends "${PKGS[@]}"
+        apt-get install -y -q --no-install-recommends "${PKGS[@]}" \
+            || { apt-get update -q && apt-get install -y -q --no-install-recommends "${PKGS[@]}"; }
     } >"$apt_log" 2>&1 </dev/null || rc=$?
     ((policy_created)) && rm -f /usr/sbin/policy-rc.d
     if ((rc)); then
@@ -168,6 +170,7 @@ ReturnToService=2
 # Keep finished jobs in slurmctld for 10 min: the Snakemake plugin polls them with squeue.
 MinJobAge=600
 KillWait=5
+MailProg=/bin/true
 InactiveLimit=0
 SlurmctldTimeout=60
 SlurmdTimeout=60
@@ -178,12 +181,15 @@ EOF
 chmod 644 "$tmp_conf"
 mv -f "$tmp_conf" "$CONF"
 if ((GPUS > 0)); then
-    # Fake devices: plain files (slurmd only needs File= to exist; task/none confines nothing).
+    # Fake devices: character devices with /dev/null's numbers (1:3) where mknod is allowed, else plain files
+    # (slurmd then logs "not a valid character or block device" but counts them); task/none confines nothing.
     mkdir -p "$STATE_DIR/gpu"
     {
         echo "$MARKER"
         for ((g = 0; g < GPUS; g++)); do
-            : >"$STATE_DIR/gpu/fake$g"
+            if [[ ! -e $STATE_DIR/gpu/fake$g ]]; then
+                mknod -m 666 "$STATE_DIR/gpu/fake$g" c 1 3 2>/dev/null || : >"$STATE_DIR/gpu/fake$g"
+            fi
             echo "NodeName=$NODE Name=gpu File=$STATE_DIR/gpu/fake$g"
         done
     } >"$CONF_DIR/gres.conf"
