@@ -206,15 +206,12 @@ def line_integrals(
         o_all = np.concatenate(o_g)
         d_all = np.concatenate(d_g)
         s0_all, len_all = clip_rays_to_box(o_all, d_all, lo, hi)
-        hit = np.flatnonzero(len_all > 0)
-        hit = hit[np.argsort(-len_all[hit], kind="stable")]  # similar lengths share a chunk
+        hit = np.flatnonzero(len_all > 0)  # pixel order: neighbouring rays sample neighbouring voxels
         n_all = np.maximum(np.ceil(len_all / step_mm), 1).astype(np.int64)  # samples per ray
-        start = 0
-        while start < hit.size:
-            n = int(n_all[hit[start]])  # the longest ray of the chunk sets its sample count
-            n_rays = max(1, batch_samples // n)
+        n_rays = max(1, batch_samples // int(n_all[hit].max())) if hit.size else 1
+        for start in range(0, hit.size, n_rays):
             idx = hit[start : start + n_rays]
-            start += n_rays
+            n = int(n_all[idx].max())  # the longest ray of the chunk sets its sample count
             o = torch.as_tensor(o_all[idx], dtype=torch.float32, device=device)
             d = torch.as_tensor(d_all[idx], dtype=torch.float32, device=device)
             s0 = torch.as_tensor(s0_all[idx], dtype=torch.float32, device=device)
@@ -222,8 +219,10 @@ def line_integrals(
             n_ray = torch.as_tensor(n_all[idx], device=device)
             k = torch.arange(n, device=device)
             s = s0[:, None] + (k[None, :] + 0.5) * h[:, None]  # (R, n) mm
-            p = o[:, None, :] + s[..., None] * d[:, None, :]  # (R, n, 3) index (i, j, k)
-            grid = p.flip(-1) * norm - 1.0  # -> (k, j, i) in [-1, 1]
+            # grid_sample coordinates (k, j, i) in [-1, 1]: o' + s d' with o', d' rescaled once per ray
+            o_n = o.flip(-1) * norm - 1.0
+            d_n = d.flip(-1) * norm
+            grid = torch.addcmul(o_n[:, None, :], s[..., None], d_n[:, None, :])  # (R, n, 3)
             vals = torch.nn.functional.grid_sample(
                 vol, grid[None, None], mode="bilinear", padding_mode="zeros", align_corners=True
             )[0, 0, 0]  # (R, n)
