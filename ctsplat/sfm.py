@@ -38,6 +38,7 @@ __all__ = [
     "design_orbit",
     "support_radius_mm",
     "enhance_for_features",
+    "feature_masks",
     "write_pngs",
     "colmap_reconstruct",
     "merge_models",
@@ -72,6 +73,10 @@ SFM_DEFAULTS: dict[str, Any] = {
     "clahe_kernel_frac": 0.125,  # kernel size as a fraction of the image size
     "percentile_low": 0.0,  # per-view intensity window before CLAHE (percent)
     "percentile_high": 100.0,
+    "background_frac": 0.02,  # rays with p <= this · max are air: blanked (no static image-space features)
+    "silhouette_margin_frac": 0.0,  # mask features within this fraction of detector_px of the silhouette
+    "lowpass_px": 0.0,  # Gaussian pre-blur (px) against voxel moiré
+    "highpass_frac": 0.0,  # subtract a Gaussian blur of σ = highpass_frac · detector_px before the window
     # --- features and matching ---
     "max_num_features": 4096,
     "peak_threshold": 0.004,  # SIFT DoG threshold (radiographs are low-contrast)
@@ -92,9 +97,16 @@ SFM_DEFAULTS: dict[str, Any] = {
     "filter_min_tri_angle_deg": 0.5,
     "triangulation_min_angle_deg": 0.5,
     "min_model_size": 3,
-    "pose_prior": "designed",  # none | designed: designed-orbit source positions as COLMAP position priors
+    # pose priors from the designed orbit:
+    #   none     - plain SfM (incremental or global mapper), no prior knowledge of the poses
+    #   position - designed source positions as COLMAP position priors (incremental mapper, robust loss)
+    #   refine   - triangulate the matches from the designed poses, then bundle-adjust all poses freely
+    #              (intrinsics fixed), re-triangulating between rounds (C-arm style calibration refinement)
+    "pose_prior": "position",
+    "refine_rounds": 3,
     "prior_sigma_mm": 5.0,  # std of the position prior (mm)
     "orbit_jitter_deg": 0.0,  # true views deviate from the design by N(0, σ) in azimuth and elevation
+    "fix_reversal": True,  # try each model's depth-reversed twin; keep the one matching the designed orbit
     "merge_models": True,
     "min_shared_images": 3,  # to merge two partial models
     "num_threads": 1,
@@ -150,8 +162,9 @@ def design_orbit(n_views: int, arc_deg: float, wobble_deg: float, wobble_cycles:
 
 
 def enhance_for_features(images: np.ndarray, *, clip: float = 0.01, kernel_frac: float = 0.125,
-                         p_low: float = 0.5, p_high: float = 99.5) -> np.ndarray:
-    """Contrast-enhance radiographs for SIFT: per-view percentile window, CLAHE, 8-bit.
+                         p_low: float = 0.5, p_high: float = 99.5, highpass_frac: float = 0.0, lowpass_px: float = 0.0,
+                         background_frac: float = 0.0) -> np.ndarray:
+    """Contrast-enhance radiographs for SIFT: optional high-pass, per-view percentile window, CLAHE, 8-bit.
 
     Parameters
     ----------
@@ -161,9 +174,17 @@ def enhance_for_features(images: np.ndarray, *, clip: float = 0.01, kernel_frac:
     Returns
     -------
     ndarray (V, H, W) uint8
-        ``round(255 · CLAHE(clip((p - P_low) / (P_high - P_low), 0, 1)))`` per view
-        (``skimage.exposure.equalize_adapthist`` with ``kernel_size = kernel_frac · max(H, W)``).
+        ``round(255 · CLAHE(clip((q - P_low(q)) / (P_high(q) - P_low(q)), 0, 1)))`` per view
+        (``skimage.exposure.equalize_adapthist`` with ``kernel_size = kernel_frac · max(H, W)``), where
+        ``q = p - G_σ * p`` with a Gaussian of ``σ = highpass_frac · max(H, W)`` px when ``highpass_frac > 0``
+        (removes the smooth path-length component so small structures such as beads stand out), else ``q = p``;
+        ``p`` is first blurred by a Gaussian of ``lowpass_px`` px when ``lowpass_px > 0`` (suppresses voxel
+        staircase / moiré patterns that the high-pass would otherwise amplify into view-dependent features).
+        Pixels with ``p <= background_frac · max(p)`` (rays through air, when ``background_frac > 0``) are set
+        to 0 after the enhancement and excluded from the window: CLAHE would turn their flat noise into
+        features fixed in image space, which pull every camera towards "not moving".
     """
+    from scipy.ndimage import gaussian_filter
     from skimage.exposure import equalize_adapthist
 
     arr = np.asarray(images, dtype=np.float64)
@@ -174,11 +195,39 @@ def enhance_for_features(images: np.ndarray, *, clip: float = 0.01, kernel_frac:
     out = np.empty(arr.shape, np.uint8)
     ks = max(8, int(round(kernel_frac * max(arr.shape[1:]))))
     for i, im in enumerate(arr):
-        lo, hi = np.percentile(im, [p_low, p_high])
+        fg = im > background_frac * im.max() if background_frac > 0 else np.ones(im.shape, bool)
+        if lowpass_px > 0:
+            im = gaussian_filter(im, lowpass_px, mode="nearest")
+        if highpass_frac > 0:
+            im = im - gaussian_filter(im, highpass_frac * max(arr.shape[1:]), mode="nearest")
+        lo, hi = np.percentile(im[fg], [p_low, p_high]) if fg.any() else (0.0, 0.0)
         x = np.clip((im - lo) / (hi - lo), 0.0, 1.0) if hi > lo else np.zeros_like(im)
         if hi > lo:
             x = equalize_adapthist(x, kernel_size=ks, clip_limit=clip)
-        out[i] = np.round(np.clip(x, 0, 1) * 255).astype(np.uint8)
+        out[i] = np.where(fg, np.round(np.clip(x, 0, 1) * 255), 0).astype(np.uint8)
+    return out
+
+
+def feature_masks(images: np.ndarray, background_frac: float, margin_px: float) -> np.ndarray:
+    """Where SIFT features may be kept: the object's support eroded by ``margin_px`` pixels (uint8 0/255).
+
+    The support of a view is ``p > background_frac · max(p)``. Its outer boundary (the silhouette) and the
+    tangent rays just inside it give features that slide over the object's surface as the view turns; they
+    are not projections of fixed 3D points and bias bundle adjustment, so they are masked out.
+    Returns (V, H, W) uint8 (255 = keep); all 255 when ``margin_px <= 0``.
+    """
+    from scipy.ndimage import distance_transform_edt
+
+    arr = np.asarray(images, float)
+    if arr.ndim == 2:
+        arr = arr[None]
+    out = np.full(arr.shape, 255, np.uint8)
+    if margin_px <= 0:
+        return out
+    for i, im in enumerate(arr):
+        fg = im > background_frac * im.max()
+        dist = distance_transform_edt(np.pad(fg, 1))[1:-1, 1:-1]  # distance to the nearest background pixel
+        out[i] = np.where(dist > margin_px, 255, 0).astype(np.uint8)
     return out
 
 
@@ -273,13 +322,16 @@ def _global_options(cfg: dict[str, Any]):  # noqa: ANN202
 
 
 def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics: tuple[float, float, float, float],
-                       work_dir: str | Path, config: dict[str, Any], prior_centres: np.ndarray | None = None
+                       work_dir: str | Path, config: dict[str, Any], prior_centres: np.ndarray | None = None,
+                       prior_poses: tuple[np.ndarray, np.ndarray] | None = None, mask_dir: str | Path | None = None
                        ) -> tuple[dict[int, Any], dict[str, Any]]:
     """Run pycolmap on ``image_names`` (all one PINHOLE camera with fixed ``(fx, fy, cx, cy)`` in px).
 
     ``prior_centres`` (V, 3) mm, in the order of ``image_names``: camera-centre priors (the designed orbit)
     written to the database as Cartesian pose priors with covariance ``prior_sigma_mm² I``; the incremental
     mapper then uses them (``use_prior_position``, robust loss) and returns models in the prior frame.
+    ``prior_poses`` ``(Rs (V,3,3), ts (V,3))``: designed poses; instead of a mapper, the verified matches are
+    triangulated from them and all poses and points are bundle-adjusted (:func:`_refine_from_design`).
 
     Returns ``(models, stats)``: pycolmap reconstructions keyed by model index and statistics
     (features per image, verified pairs, seconds per stage).
@@ -298,12 +350,14 @@ def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
     reader.camera_params = ",".join(f"{v:.10g}" for v in intrinsics)
+    if mask_dir is not None:
+        reader.mask_path = str(mask_dir)  # <mask_dir>/<image name>.png; features on 0 pixels are dropped
     stats: dict[str, Any] = {}
     t0 = time.perf_counter()
     pycolmap.extract_features(db_path, image_dir, image_names=list(image_names),
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                               extraction_options=ext, device=pycolmap.Device.cpu)
-    if prior_centres is not None:
+    if prior_centres is not None and cfg.get("pose_prior") == "position":
         _write_pose_priors(db_path, image_names, np.asarray(prior_centres, float), float(cfg["prior_sigma_mm"]))
     t1 = time.perf_counter()
     matching = cfg["matching"]
@@ -334,9 +388,11 @@ def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics
         shutil.rmtree(out)
     out.mkdir()
     mapper = cfg["mapper"]
-    if mapper == "incremental":
+    if prior_poses is not None:
+        models = {0: _refine_from_design(db_path, image_dir, out, image_names, prior_poses, cfg)}
+    elif mapper == "incremental":
         opts = _incremental_options(cfg)
-        if prior_centres is not None:
+        if prior_centres is not None and cfg.get("pose_prior") == "position":
             opts.use_prior_position = True
             opts.use_robust_loss_on_prior_position = True
         models = pycolmap.incremental_mapping(db_path, image_dir, out, options=opts)
@@ -347,6 +403,134 @@ def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics
     t3 = time.perf_counter()
     stats.update(seconds_features=t1 - t0, seconds_matching=t2 - t1, seconds_mapping=t3 - t2)
     return dict(models), stats
+
+
+def _refine_from_design(db_path: Path, image_dir: Path, out: Path, image_names: list[str],
+                        poses: tuple[np.ndarray, np.ndarray], cfg: dict[str, Any]) -> Any:
+    """Triangulate from the designed poses, then alternate free-pose bundle adjustment and re-triangulation.
+
+    Bundle adjustment minimises the robust (Cauchy, 1 px) reprojection error over all poses and points with
+    the intrinsics fixed; the 7-DoF gauge is left to the damped solver and removed later by the Sim(3)
+    alignment. ``refine_rounds`` rounds of (triangulate with ``clear_points``, BA).
+    """
+    import pycolmap
+
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        cams = db.read_all_cameras()
+        images = db.read_all_images()
+    finally:
+        db.close()
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(cams[0])
+    index = {n: i for i, n in enumerate(image_names)}
+    Rs, ts = poses
+    for im in images:
+        i = index[im.name]
+        img = pycolmap.Image(name=im.name, camera_id=cams[0].camera_id, image_id=im.image_id)
+        rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(np.hstack([Rs[i], ts[i][:, None]])))
+    return _retriangulate_and_adjust(rec, db_path, image_dir, out, cfg)
+
+
+def _retriangulate_and_adjust(rec: Any, db_path: Path, image_dir: Path, out: Path, cfg: dict[str, Any]) -> Any:
+    """``refine_rounds`` rounds of (re-triangulate all verified matches from the current poses, free-pose BA)."""
+    import pycolmap
+
+    Path(out).mkdir(parents=True, exist_ok=True)
+    opts = _incremental_options(cfg)
+    ba = _ba_options(cfg)
+    for _ in range(max(1, int(cfg["refine_rounds"]))):
+        rec = pycolmap.triangulate_points(rec, db_path, image_dir, out, clear_points=True, options=opts)
+        if rec.num_points3D() == 0:
+            break
+        pycolmap.bundle_adjustment(rec, ba)
+    for img in list(rec.images.values()):  # views that observe no point are not registered
+        if img.has_pose and img.num_points3D == 0:
+            rec.deregister_frame(img.frame_id)
+    return rec
+
+
+def _ba_options(cfg: dict[str, Any]):  # noqa: ANN202
+    import pycolmap
+
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_focal_length = False
+    ba.refine_principal_point = False
+    ba.refine_extra_params = False
+    ba.print_summary = False
+    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    ba.ceres.loss_function_scale = 1.0
+    ba.ceres.solver_options.num_threads = int(cfg["num_threads"])
+    ba.ceres.solver_options.max_num_iterations = 100
+    return ba
+
+
+def reverse_depth(rec: Any) -> Any:
+    """The Necker-reversed twin of a reconstruction (in place), bundle-adjusted afterwards by the caller.
+
+    Transmission images have no occlusion, so under weak perspective a scene and its depth-reversed mirror
+    image explain the same feature positions: with the reflection ``M = diag(1, 1, -1)`` (world) and
+    ``D = diag(1, 1, -1)`` (camera), ``R' = D R M`` and ``X' = M X`` give ``(R' X')_{xy} = (R X)_{xy}``.
+    Each camera keeps its distance ``d`` to the points' centroid ``O``: ``c' = M O - d · z'`` (``z'`` the
+    third row of ``R'``). Returns ``rec``.
+    """
+    import pycolmap
+
+    M = np.diag([1.0, 1.0, -1.0])
+    xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+    O = xyz.mean(0) if len(xyz) else np.zeros(3)
+    for frame in rec.frames.values():
+        if not frame.has_pose:
+            continue
+        m = frame.rig_from_world.matrix()
+        R, t = m[:, :3], m[:, 3]
+        c = -R.T @ t
+        R2 = M @ R @ M  # D = M numerically
+        c2 = M @ O - np.linalg.norm(c - O) * R2[2]
+        frame.rig_from_world = pycolmap.Rigid3d(np.hstack([R2, (-R2 @ c2)[:, None]]))
+    for p in rec.points3D.values():
+        p.xyz = M @ p.xyz
+    return rec
+
+
+def _design_score(rec: Any, design: dict[str, tuple[np.ndarray, np.ndarray]], threshold: float) -> float:
+    """Median rotation error (deg) of a model's cameras against the designed poses after Sim(3) alignment."""
+    poses = _model_poses(rec)
+    names = [n for n in poses if n in design]
+    if len(names) < 3:
+        return float("inf")
+    rows, align = evaluate_poses(poses, names, np.stack([design[n][0] for n in names]),
+                                 np.stack([design[n][1] for n in names]), threshold_mm=threshold, iterations=200)
+    errs = [r["rot_err_deg"] for r in rows if np.isfinite(r["rot_err_deg"])]
+    return float(np.median(errs)) if errs else float("inf")
+
+
+def fix_reversal(models: dict[int, Any], design: dict[str, tuple[np.ndarray, np.ndarray]], cfg: dict[str, Any],
+                 threshold: float, work: tuple[Path, Path, Path] | None = None) -> list[dict[str, Any]]:
+    """For each model, keep it or its bundle-adjusted depth-reversed twin, whichever fits the design better.
+
+    The designed orbit only arbitrates between the two discrete SfM solutions (median rotation error after
+    Sim(3) alignment); poses are not pulled towards it. Returns one report entry per model.
+    """
+    import pycolmap
+
+    report = []
+    for k, rec in list(models.items()):
+        if rec.num_reg_images() < 3:
+            continue
+        before = _design_score(rec, design, threshold)
+        twin = pycolmap.Reconstruction(rec)
+        reverse_depth(twin)
+        pycolmap.bundle_adjustment(twin, _ba_options(cfg))
+        if work is not None:  # (database, images, scratch dir): re-triangulate the matches in the twin's frame
+            twin = _retriangulate_and_adjust(twin, *work, cfg)
+        after = _design_score(twin, design, threshold)
+        flipped = after < before
+        if flipped:
+            models[k] = twin
+        report.append({"model": int(k), "images": int(rec.num_reg_images()), "design_rot_err_deg": before,
+                       "reversed_design_rot_err_deg": after, "reversed": bool(flipped)})
+    return report
 
 
 def _write_pose_priors(db_path: Path, image_names: list[str], centres: np.ndarray, sigma_mm: float) -> None:
@@ -572,6 +756,21 @@ def evaluate_poses(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: list[
                        centre_err_mm=float(np.linalg.norm(cw - centres_true[i])), R=Rw, t=-Rw @ cw)
         rows.append(row)
     assert len(rows) == V
+    # residual global rotation: Δ = argmin_Δ Σ ||Δ R_true_i - R_w_i||_F (chordal mean, SVD projection onto SO(3))
+    # over the alignment inliers; "rot_err_rotalign_deg" = ∠(R_w_i, Δ R_true_i). Under weak perspective the
+    # camera distances (hence the centres) are poorly determined, so a centre-only Sim(3) can leave the whole
+    # recovered orbit tilted by a few degrees; this second number separates that tilt from per-view noise.
+    for r in rows:
+        r["rot_err_rotalign_deg"] = np.nan
+    if align["ok"]:
+        idx = [r["view"] for r in rows if r["R"] is not None]
+        M = sum(rows[i]["R"] @ Rs_true[i].T for i in idx)
+        U, _, Vt = np.linalg.svd(M)
+        D = np.diag([1.0, 1.0, np.linalg.det(U @ Vt)])
+        delta = U @ D @ Vt
+        align["residual_rotation_deg"] = float(rotation_error_deg(delta, np.eye(3)))
+        for i in idx:
+            rows[i]["rot_err_rotalign_deg"] = float(rotation_error_deg(rows[i]["R"], delta @ Rs_true[i]))
     return rows, align
 
 
@@ -598,6 +797,7 @@ def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str,
         "merged": report.get("merged", []),
         "rot_err_deg_median": q(rot, 50),
         "rot_err_deg_p90": q(rot, 90),
+        "rot_err_rotalign_deg_median": q(np.array([r.get("rot_err_rotalign_deg", np.nan) for r in reg], float), 50),
         "centre_err_mm_median": q(cen, 50),
         "centre_err_mm_p90": q(cen, 90),
         "reproj_err_px_median": q(rep, 50),
@@ -662,7 +862,9 @@ def _write_model(rec: Any, out_dir: Path) -> None:
 
 def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, float, float], Rs_true: np.ndarray,
                       ts_true: np.ndarray, out_dir: str | Path, config: dict[str, Any], *, seed: int = 0,
-                      prefix: str = "view", scale_mm: float = 1.0, prior_centres: np.ndarray | None = None
+                      prefix: str = "view", scale_mm: float = 1.0, prior_centres: np.ndarray | None = None,
+                      prior_poses: tuple[np.ndarray, np.ndarray] | None = None, masks: np.ndarray | None = None,
+                      design: tuple[np.ndarray, np.ndarray] | None = None
                       ) -> tuple[dict[str, Any], list[dict[str, Any]], Any]:
     """COLMAP + merging + alignment on given 8-bit images with known true poses; no files beside the work dir.
 
@@ -674,8 +876,18 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
     out_dir = Path(out_dir)
     img_dir = out_dir / "images"
     names = write_pngs(images_u8, img_dir, prefix=prefix)
+    mask_dir = None
+    if masks is not None:
+        mask_dir = out_dir / "masks"
+        for name, m in zip(names, write_pngs(masks, mask_dir, prefix=prefix), strict=True):
+            (mask_dir / m).rename(mask_dir / f"{name}.png")
     models, stats = colmap_reconstruct(img_dir, names, intrinsics, out_dir / "colmap", cfg,
-                                       prior_centres=prior_centres)
+                                       prior_centres=prior_centres, prior_poses=prior_poses, mask_dir=mask_dir)
+    reversal = []
+    if cfg["fix_reversal"] and design is not None and models:
+        reversal = fix_reversal(models, {n: (design[0][i], design[1][i]) for i, n in enumerate(names)}, cfg,
+                                float(cfg["align_inlier_threshold_frac"]) * scale_mm,
+                                work=(out_dir / "colmap" / "database.db", img_dir, out_dir / "colmap" / "twin"))
     main, poses, report = merge_models(models, int(cfg["min_shared_images"])) if cfg["merge_models"] else \
         merge_models({k: v for k, v in models.items() if k == max(models, key=lambda j: models[j].num_reg_images())}
                      if models else {}, 3)
@@ -693,7 +905,9 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
                                                        _model_poses(main))
     summary = summarize(rows, report, cfg)
     summary["colmap"] = stats
-    summary["alignment"] = {k: v for k, v in align.items() if k in ("ok", "scale", "n_inliers", "n_used")}
+    summary["reversal"] = reversal
+    summary["alignment"] = {k: v for k, v in align.items()
+                            if k in ("ok", "scale", "n_inliers", "n_used", "residual_rotation_deg")}
     return summary, rows, (main, align)
 
 
@@ -750,10 +964,10 @@ def run_sfm(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any]
         raise CtsplatError(f"unknown sfm.matching {cfg['matching']!r}; allowed: exhaustive, sequential")
     if cfg["mapper"] not in ("incremental", "global"):
         raise CtsplatError(f"unknown sfm.mapper {cfg['mapper']!r}; allowed: incremental, global")
-    if cfg["pose_prior"] not in ("none", "designed"):
-        raise CtsplatError(f"unknown sfm.pose_prior {cfg['pose_prior']!r}; allowed: none, designed")
-    if cfg["pose_prior"] == "designed" and cfg["mapper"] != "incremental":
-        raise CtsplatError("sfm.pose_prior 'designed' needs sfm.mapper 'incremental' (global mapping ignores priors)")
+    if cfg["pose_prior"] not in ("none", "position", "refine"):
+        raise CtsplatError(f"unknown sfm.pose_prior {cfg['pose_prior']!r}; allowed: none, position, refine")
+    if cfg["pose_prior"] == "position" and cfg["mapper"] != "incremental":
+        raise CtsplatError("sfm.pose_prior 'position' needs sfm.mapper 'incremental' (global mapping ignores priors)")
     if cfg["dsd_mm"] <= cfg["dso_mm"]:
         raise CtsplatError(f"sfm.dsd_mm ({cfg['dsd_mm']}) must exceed sfm.dso_mm ({cfg['dso_mm']})")
     vol = load_volume(volume_path)
@@ -775,13 +989,19 @@ def run_sfm(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any]
         p = line_integrals(mu, np.asarray(vol.affine, float), cam, orbit["Rs"], orbit["ts"],
                            step_voxels=float(cfg["step_voxels"]))
     imgs = enhance_for_features(p.cpu().numpy(), clip=cfg["clahe_clip"], kernel_frac=cfg["clahe_kernel_frac"],
-                                p_low=cfg["percentile_low"], p_high=cfg["percentile_high"])
+                                p_low=cfg["percentile_low"], p_high=cfg["percentile_high"],
+                                highpass_frac=cfg["highpass_frac"], lowpass_px=cfg["lowpass_px"],
+                                background_frac=cfg["background_frac"])
+    margin = float(cfg["silhouette_margin_frac"]) * W
+    masks = feature_masks(p.cpu().numpy(), float(cfg["background_frac"]) or 0.02, margin) if margin > 0 else None
     work = Path(tempfile.mkdtemp(prefix=".sfm_work.", dir=out_dir))
     try:
         summary, rows, (main, align) = run_sfm_on_images(
             imgs, (cam.fx, cam.fy, cam.cx, cam.cy), orbit["Rs"], orbit["ts"], work, cfg, seed=seed,
             scale_mm=float(cfg["dso_mm"]),
-            prior_centres=designed["centres"] if cfg["pose_prior"] == "designed" else None)
+            prior_centres=designed["centres"] if cfg["pose_prior"] == "position" else None,
+            prior_poses=(designed["Rs"], designed["ts"]) if cfg["pose_prior"] == "refine" else None,
+            masks=masks, design=(designed["Rs"], designed["ts"]))
         if main is not None:
             _write_model(main, out_dir / "sparse" / "0")
             if align["ok"]:
@@ -799,7 +1019,8 @@ def run_sfm(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any]
     table = pd.DataFrame([{
         "view": r["view"], "name": r["name"], "azimuth_deg": orbit["azimuth_deg"][r["view"]],
         "elevation_deg": orbit["elevation_deg"][r["view"]], "registered": r["registered"],
-        "rot_err_deg": r["rot_err_deg"], "centre_err_mm": r["centre_err_mm"], "reproj_err_px": r["reproj_err_px"],
+        "rot_err_deg": r["rot_err_deg"], "rot_err_rotalign_deg": r["rot_err_rotalign_deg"],
+        "centre_err_mm": r["centre_err_mm"], "reproj_err_px": r["reproj_err_px"],
     } for r in rows])
     with atomic_path(out_dir / "poses.csv") as tmp:
         table.to_csv(tmp, index=False)
@@ -838,7 +1059,9 @@ def naive_slices_sfm(volume_data: np.ndarray, work_dir: str | Path, config: dict
     data = np.asarray(volume_data, float)
     slices = np.moveaxis(data, 2, 0)  # (K, I, J)
     imgs = enhance_for_features(slices, clip=cfg["clahe_clip"], kernel_frac=cfg["clahe_kernel_frac"],
-                                p_low=cfg["percentile_low"], p_high=cfg["percentile_high"])
+                                p_low=cfg["percentile_low"], p_high=cfg["percentile_high"],
+                                highpass_frac=cfg["highpass_frac"], lowpass_px=cfg["lowpass_px"],
+                                background_frac=cfg["background_frac"])
     work_dir = Path(work_dir)
     names = write_pngs(imgs, work_dir / "images", prefix="slice")
     H, W = imgs.shape[1:]
