@@ -315,6 +315,13 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
             f"invalid config at grid.geometry: {cfg['grid']['geometry']!r} is not a radiographs geometry "
             f"(defined: {', '.join(geometries)})"
         )
+    if cfg["baselines"]["geometry"] is None:
+        cfg["baselines"]["geometry"] = cfg["grid"]["geometry"]
+    elif cfg["baselines"]["geometry"] not in geometries:
+        raise CtsplatError(
+            f"invalid config at baselines.geometry: {cfg['baselines']['geometry']!r} is not a radiographs geometry "
+            f"(defined: {', '.join(geometries)})"
+        )
     expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
     return cfg
 

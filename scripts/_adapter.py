@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import sys
 import warnings
 from collections.abc import Iterator
@@ -15,6 +16,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))  # fallback when ctsplat is not installed in the job's environment
+
+# Snakemake sets thread variables for shell jobs only: give script jobs (torch, BLAS) their `threads:` too,
+# before the step's imports, so parallel jobs do not oversubscribe the cores.
+_SM = getattr(sys.modules.get("__main__"), "snakemake", None)
+if _SM is not None:
+    for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[_var] = str(_SM.threads)
 
 
 @contextlib.contextmanager
@@ -28,7 +36,9 @@ def logged(snakemake) -> Iterator[logging.Logger]:  # noqa: ANN001 (the Snakemak
         logging.captureWarnings(True)
         warnings.simplefilter("default")
         log = logging.getLogger(f"ctsplat.workflow.{snakemake.rule}")
-        log.info("rule %s, wildcards %s", snakemake.rule, dict(snakemake.wildcards))
+        if "torch" in sys.modules:
+            sys.modules["torch"].set_num_threads(int(snakemake.threads))
+        log.info("rule %s, wildcards %s, threads %s", snakemake.rule, dict(snakemake.wildcards), snakemake.threads)
         try:
             yield log
         except Exception:

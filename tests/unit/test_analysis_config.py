@@ -157,3 +157,12 @@ def test_shipped_configs_validate(path):
     cfg = an.validate_config(config)
     runs = an.expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
     assert len(runs) >= 1
+
+
+def test_baselines_geometry_defaults_to_grid_geometry_and_must_exist():
+    cfg = an.prepare_config({"radiographs": {"sph": {"orbit": "sphere"}, "circ": {}}, "grid": {"geometry": "sph"}})
+    assert cfg["baselines"]["geometry"] == "sph"
+    cfg = an.prepare_config({"radiographs": {"sph": {}, "circ": {}}, "baselines": {"geometry": "circ"}})
+    assert cfg["baselines"]["geometry"] == "circ" and cfg["grid"]["geometry"] == "sph"
+    with pytest.raises(CtsplatError, match="baselines.geometry: 'nope' is not a radiographs geometry"):
+        an.prepare_config({"baselines": {"geometry": "nope"}})

@@ -15,6 +15,7 @@ except CtsplatError as exc:
 
 RESULTS = "results"
 GEOMETRY = CFG["grid"]["geometry"]
+BASELINE_GEOMETRY = CFG["baselines"]["geometry"]
 VOLUMES = list(CFG["volumes"])
 RUNS = expand_grid(CFG["grid"]["axes"], VOLUMES, CFG["grid"]["exclude"])
 PARAMSPACE = Paramspace(RUNS[list(GRID_AXES)].drop_duplicates(), param_sep="~")
@@ -55,7 +56,7 @@ def all_targets():
         if needs_sfm(v):
             targets.append(f"{RESULTS}/{v}/sfm/summary.json")
         if baselines_enabled():
-            targets.append(f"{RESULTS}/{v}/baselines/{GEOMETRY}/baselines.csv")
+            targets.append(f"{RESULTS}/{v}/baselines/{BASELINE_GEOMETRY}/baselines.csv")
     return targets
 
 
@@ -172,7 +173,7 @@ def all_logs():
 def all_baselines():
     if not baselines_enabled():
         return []
-    return [f"{RESULTS}/{v}/baselines/{GEOMETRY}/baselines.csv" for v in VOLUMES]
+    return [f"{RESULTS}/{v}/baselines/{BASELINE_GEOMETRY}/baselines.csv" for v in VOLUMES]
 
 
 def analysis_outputs():
