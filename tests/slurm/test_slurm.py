@@ -200,7 +200,6 @@ def test_ablation_grid_runs_through_sbatch(slurm_cluster: Path, tmp_path: Path) 
         assert ("gpu" in record["TresPerJob"]) == (rule in gpu_rules), f"Slurm job {slurm_id} ({rule}): {record}"
         assert log.slurm_logs[job].is_file(), f"missing Slurm log {log.slurm_logs[job]}"
     assert len({r["JobName"] for r in slurm.values()}) == 1, "jobs of one run must share the run's job name"
-    assert {"train"} <= gpu_rules, "the cluster profile should request a GPU for training"
 
     # The failure is reported: rule, Slurm job id, and the job's own stderr in its Slurm log; no output.
     assert log.failed == {fail_job: ("deliberate_failure", log.submitted[fail_job])}, f"failed: {log.failed}{tail}"
