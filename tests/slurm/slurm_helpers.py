@@ -58,6 +58,8 @@ def cluster_alive(directory: Path) -> bool:
         try:
             if Path(f"/proc/{pid}/comm").read_text().strip() != name:
                 return False
+            if re.search(r"^State:\s+Z", Path(f"/proc/{pid}/status").read_text(), re.M):
+                return False  # killed, not yet reaped
         except OSError:
             return False
     return True

@@ -24,7 +24,8 @@
 #
 # Needs root and Linux. Environment: CTSPLAT_SLURM_DIR, CTSPLAT_SLURM_GPUS, CTSPLAT_SLURM_TIMEOUT,
 # CTSPLAT_SLURMCTLD_PORT (6817), CTSPLAT_SLURMD_PORT (6818).
-# Exit status: 0 cluster up; 1 failure (message on stderr, daemon logs under the state directory).
+# Exit status: 0 cluster up; 1 failure (message on stderr, daemon logs under the state directory);
+# 3 the packages could not be installed (e.g. no network); 4 a Slurm set-up or daemon not ours is in the way.
 set -euo pipefail
 
 STATE_DIR=${CTSPLAT_SLURM_DIR:-/tmp/ctsplat-slurm}
@@ -37,7 +38,7 @@ CONF=$CONF_DIR/slurm.conf
 MARKER="# written by ctsplat tests/slurm/start_cluster.sh"
 PKGS=(slurmctld slurmd slurm-client munge)
 
-die() { echo "start_cluster.sh: error: $*" >&2; exit 1; }
+die() { echo "start_cluster.sh: error: $*" >&2; exit "${DIE_CODE:-1}"; }
 log() { echo "start_cluster.sh: $*" >&2; }
 
 [[ $(uname -s) == Linux ]] || die "needs Linux (found $(uname -s))"
@@ -50,7 +51,7 @@ for cmd in munged slurmctld slurmd sbatch squeue sinfo scontrol srun; do
 done
 export PATH="$PATH:/usr/sbin:/sbin"
 if ((${#missing[@]})); then
-    command -v apt-get >/dev/null 2>&1 || die "missing ${missing[*]} and no apt-get to install ${PKGS[*]}; install Slurm and munge by hand"
+    command -v apt-get >/dev/null 2>&1 || DIE_CODE=3 die "missing ${missing[*]} and no apt-get to install ${PKGS[*]}; install Slurm and munge by hand"
     log "installing ${PKGS[*]} (missing: ${missing[*]})"
     # Keep the packages' maintainer scripts from starting their own munged/slurmd: we start ours below.
     policy_created=0
@@ -72,15 +73,17 @@ if ((${#missing[@]})); then
     ((policy_created)) && rm -f /usr/sbin/policy-rc.d
     if ((rc)); then
         tail -20 "$apt_log" >&2
-        die "apt-get install ${PKGS[*]} failed (exit $rc); full log: $apt_log"
+        DIE_CODE=3 die "apt-get install ${PKGS[*]} failed (exit $rc); full log: $apt_log"
     fi
     rm -f "$apt_log"
 fi
 
 # --- helpers --------------------------------------------------------------------------------------------
 # alive NAME PID: the process PID exists and is the daemon NAME (guards against recycled PIDs).
+# A zombie (killed, not yet reaped) is not alive.
 alive() {
-    [[ -n ${2:-} && -r /proc/$2/comm ]] && [[ $(cat "/proc/$2/comm") == "$1" ]]
+    [[ -n ${2:-} && -r /proc/$2/comm ]] && [[ $(cat "/proc/$2/comm" 2>/dev/null) == "$1" ]] \
+        && ! grep -qE '^State:[[:space:]]+Z' "/proc/$2/status" 2>/dev/null
 }
 node_state() { sinfo -h -N -n "$NODE" -o '%T' 2>/dev/null | head -1; }
 
@@ -102,12 +105,14 @@ fi
 
 # Refuse to clobber a real Slurm set-up or fight a daemon that is not ours.
 if [[ -e $CONF ]] && ! grep -qF "$MARKER" "$CONF"; then
-    die "$CONF exists and was not written by this script; refusing to overwrite a real Slurm configuration"
+    DIE_CODE=4 die "$CONF exists and was not written by this script; refusing to overwrite a real Slurm configuration"
 fi
 for d in munged slurmctld slurmd; do
-    if pgrep -x "$d" >/dev/null 2>&1; then
-        die "a $d process not started by this script is running (pid $(pgrep -x "$d" | tr '\n' ' ')); stop it first"
-    fi
+    for pid in $(pgrep -x "$d" 2>/dev/null); do
+        if alive "$d" "$pid"; then
+            DIE_CODE=4 die "a $d process not started by this script is running (pid $pid); stop it first"
+        fi
+    done
 done
 
 # --- 2. configuration -----------------------------------------------------------------------------------

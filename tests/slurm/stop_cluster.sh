@@ -14,7 +14,10 @@ MARKER="# written by ctsplat tests/slurm/start_cluster.sh"
 export PATH="$PATH:/usr/sbin:/sbin"
 
 log() { echo "stop_cluster.sh: $*" >&2; }
-alive() { [[ -n ${2:-} && -r /proc/$2/comm ]] && [[ $(cat "/proc/$2/comm") == "$1" ]]; }
+alive() {  # alive NAME PID: PID is the daemon NAME and not a zombie
+    [[ -n ${2:-} && -r /proc/$2/comm ]] && [[ $(cat "/proc/$2/comm" 2>/dev/null) == "$1" ]] \
+        && ! grep -qE '^State:[[:space:]]+Z' "/proc/$2/status" 2>/dev/null
+}
 
 if [[ ! -f $STATE_DIR/pids ]]; then
     log "no $STATE_DIR/pids: nothing to stop"

@@ -17,7 +17,9 @@ deliberately failing job, and checks:
 * the failing job is reported as failed (Snakemake exits non-zero, names the rule and its Slurm job id, the
   job's own stderr is in its Slurm log) while the other results are complete (``--keep-going``).
 
-Skipped (with the reason) when not root, not Linux, or neither Slurm nor apt-get is available.
+Skipped (with the reason) when not root, not Linux, or neither Slurm nor apt-get is available; outside CI
+(``CI`` unset) also when the packages cannot be installed or a Slurm set-up that is not ours is in the way
+(in CI those fail the test).
 """
 
 from __future__ import annotations
@@ -64,6 +66,9 @@ def slurm_cluster():
     proc = subprocess.run(
         ["bash", str(START)], env=env, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=900
     )
+    if proc.returncode in (3, 4) and os.environ.get("CI", "").lower() not in ("1", "true", "yes"):
+        # Outside CI: packages not installable (no network) or a real Slurm set-up on this machine.
+        pytest.skip(f"single-node Slurm test skipped: {proc.stderr.strip().splitlines()[-1]}")
     if proc.returncode != 0:
         pytest.fail(f"start_cluster.sh failed (exit {proc.returncode}):\n{proc.stderr[-4000:]}", pytrace=False)
     try:
