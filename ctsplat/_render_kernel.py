@@ -40,7 +40,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "splat_additive_kernel", "SplatAdditive", "ProjectAdditive", "camera_vector"]
+__all__ = ["available", "splat_additive_kernel", "SplatAdditive", "ProjectAdditive", "AlphaComposite", "camera_vector"]
 
 _SRC = r"""
 #include <math.h>
@@ -236,7 +236,7 @@ static inline void proj_one(const Cam<T>& cam, const T* m, const T* ls, const T*
     S.D = S.f00 * S.f11 - S.f01 * S.f01;
     S.dh = S.c00 * S.c11 - S.c01 * S.c01;
     if (S.dh < (T)1e-20) S.dh = (T)1e-20;
-    S.rho = softplus_(draw);
+    S.rho = mode == 2 ? sigmoid_(draw) : softplus_(draw);  // mode 2 (alpha): opacity
     if (mode == 0) {
         // rho sqrt(2 pi |J|^2 prod(s2f) / D) * sqrt(prod(s2)/prod(s2f)) = rho sqrt(2 pi) |J| prod(s) / sqrt(D)
         S.amp = S.rho * std::sqrt((T)6.283185307179586 / S.D) * std::exp(S.logdetJ + ls[0] + ls[1] + ls[2]);
@@ -293,7 +293,7 @@ static void proj_bwd(int64_t n, const T* means, const T* ls, const T* quats, con
         T g_logdetJ = 0, gD = 0, gdh = 0;
         const T ga = gamp[i];
         // amplitude
-        const T drho_draw = sigmoid_(draw[i]);
+        const T drho_draw = mode == 2 ? S.rho * (1 - S.rho) : sigmoid_(draw[i]);
         T g_rho = 0;
         if (mode == 0) {
             g_rho = ga * S.amp / S.rho;
@@ -381,6 +381,118 @@ static void proj_bwd(int64_t n, const T* means, const T* ls, const T* quats, con
     });
 }
 
+// ---------------------------------------------------------------- alpha compositing (front to back)
+// per-pixel lists of Gaussians in depth order: counting sort by pixel, filled in depth order
+static void alpha_lists(int64_t n, const int64_t* order, const int64_t* bb, int64_t H, int64_t W,
+                        int64_t* offsets, int32_t* ids) {
+    const int64_t npx = H * W;
+    for (int64_t p = 0; p <= npx; ++p) offsets[p] = 0;
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t v = bb[4 * i + 2]; v < bb[4 * i + 3]; ++v)
+            for (int64_t u = bb[4 * i]; u < bb[4 * i + 1]; ++u) offsets[v * W + u + 1] += 1;
+    for (int64_t p = 0; p < npx; ++p) offsets[p + 1] += offsets[p];
+    std::vector<int64_t> fill(offsets, offsets + npx);
+    for (int64_t k = 0; k < n; ++k) {
+        const int64_t i = order[k];
+        for (int64_t v = bb[4 * i + 2]; v < bb[4 * i + 3]; ++v)
+            for (int64_t u = bb[4 * i]; u < bb[4 * i + 1]; ++u) ids[fill[v * W + u]++] = (int32_t)i;
+    }
+}
+
+template <typename T>
+static inline T alpha_of(const T* mean, const T* con, const T* op, int32_t i, T px, T py, T& e, T& dx, T& dy) {
+    dx = px - mean[2 * i]; dy = py - mean[2 * i + 1];
+    e = ex_((T)(-0.5) * (con[3 * i] * dx * dx + con[3 * i + 2] * dy * dy) - con[3 * i + 1] * dx * dy);
+    const T a = op[i] * e;
+    return a < (T)0.99 ? a : (T)0.99;
+}
+
+template <typename T>
+static void alpha_fwd(int64_t H, int64_t W, int C, const int64_t* offsets, const int32_t* ids, const T* mean,
+                      const T* con, const T* op, const T* col, T* out, int nt) {
+    parallel_for(H * W, nt, [&](int64_t p0, int64_t p1, int) {
+        for (int64_t p = p0; p < p1; ++p) {
+            const T px = (T)(p % W) + (T)0.5, py = (T)(p / W) + (T)0.5;
+            T Tr = 1;
+            for (int c = 0; c < C; ++c) out[p * C + c] = 0;
+            for (int64_t k = offsets[p]; k < offsets[p + 1]; ++k) {
+                const int32_t i = ids[k];
+                T e, dx, dy;
+                const T a = alpha_of(mean, con, op, i, px, py, e, dx, dy);
+                for (int c = 0; c < C; ++c) out[p * C + c] += Tr * a * col[i * C + c];
+                Tr *= 1 - a;
+            }
+        }
+    });
+}
+
+template <typename T>
+static void alpha_bwd(int64_t n, int64_t H, int64_t W, int C, const int64_t* offsets, const int32_t* ids,
+                      const T* mean, const T* con, const T* op, const T* col, const T* gout, T* gmean, T* gcon,
+                      T* gop, T* gcol, int nthreads) {
+    int nt = nthreads < 1 ? 1 : nthreads;
+    if (H * W < 4096) nt = 1;
+    const int64_t stride = 6 + C;  // per Gaussian: gmx, gmy, gA, gB, gC, gop, gcol[C]
+    std::vector<T> acc((size_t)nt * (size_t)n * (size_t)stride, (T)0);
+    parallel_for(H * W, nt, [&](int64_t p0, int64_t p1, int tid) {
+        T* g = acc.data() + (size_t)tid * (size_t)n * (size_t)stride;
+        std::vector<T> Ts, As, suffix(C);
+        for (int64_t p = p0; p < p1; ++p) {
+            const int64_t k0 = offsets[p], k1 = offsets[p + 1];
+            if (k1 == k0) continue;
+            const T px = (T)(p % W) + (T)0.5, py = (T)(p / W) + (T)0.5;
+            Ts.resize(k1 - k0); As.resize(k1 - k0);
+            T Tr = 1;
+            for (int64_t k = k0; k < k1; ++k) {
+                T e, dx, dy;
+                const T a = alpha_of(mean, con, op, ids[k], px, py, e, dx, dy);
+                Ts[k - k0] = Tr; As[k - k0] = a;
+                Tr *= 1 - a;
+            }
+            for (int c = 0; c < C; ++c) suffix[c] = 0;  // sum_{j>i} c_j a_j T_j
+            const T* go = gout + p * C;
+            for (int64_t k = k1 - 1; k >= k0; --k) {
+                const int32_t i = ids[k];
+                const T Ti = Ts[k - k0], a = As[k - k0];
+                T gdot = 0, sdot = 0;
+                for (int c = 0; c < C; ++c) {
+                    gdot += go[c] * col[i * C + c];
+                    sdot += go[c] * suffix[c];
+                    g[(size_t)i * stride + 6 + c] += go[c] * a * Ti;
+                    suffix[c] += col[i * C + c] * a * Ti;
+                }
+                const T ga = Ti * gdot - sdot / (1 - a);
+                T e, dx, dy;
+                alpha_of(mean, con, op, i, px, py, e, dx, dy);
+                if (op[i] * e >= (T)0.99) continue;  // clamped: no gradient to opacity / footprint
+                T* gi = g + (size_t)i * stride;
+                gi[5] += ga * e;
+                const T gq = ga * op[i] * e;  // d alpha / d q
+                const T A = con[3 * i], B = con[3 * i + 1], Cc = con[3 * i + 2];
+                gi[0] += gq * (A * dx + B * dy);
+                gi[1] += gq * (B * dx + Cc * dy);
+                gi[2] += gq * (T)(-0.5) * dx * dx;
+                gi[3] += gq * (-dx * dy);
+                gi[4] += gq * (T)(-0.5) * dy * dy;
+            }
+        }
+    });
+    for (int64_t i = 0; i < n; ++i) {
+        T s[64];
+        const int64_t m = stride < 64 ? stride : 64;
+        for (int64_t k = 0; k < m; ++k) s[k] = 0;
+        for (int t = 0; t < nt; ++t)
+            for (int64_t k = 0; k < m; ++k) s[k] += acc[((size_t)t * (size_t)n + (size_t)i) * (size_t)stride + k];
+        gmean[2 * i] = s[0]; gmean[2 * i + 1] = s[1];
+        gcon[3 * i] = s[2]; gcon[3 * i + 1] = s[3]; gcon[3 * i + 2] = s[4];
+        gop[i] = s[5];
+        for (int c = 0; c < C; ++c) gcol[i * C + c] = s[6 + c];
+    }
+}
+
+extern "C" void alpha_lists_c(int64_t n, const int64_t* order, const int64_t* bb, int64_t H, int64_t W,
+                              int64_t* offsets, int32_t* ids) { alpha_lists(n, order, bb, H, W, offsets, ids); }
+
 #define EXPORT(T, SUF)                                                                                          \
 extern "C" void splat_fwd_##SUF(int64_t n, const T* m, const T* c, const T* a, const int64_t* bb, int64_t H,     \
                                 int64_t W, T* out, int nt) { splat_fwd<T>(n, m, c, a, bb, H, W, out, nt); }      \
@@ -394,7 +506,14 @@ extern "C" void proj_fwd_##SUF(int64_t n, const T* means, const T* ls, const T* 
 extern "C" void proj_bwd_##SUF(int64_t n, const T* means, const T* ls, const T* q, const T* d, const T* fv,       \
                                const double* cam, int mode, int mip, const T* gm2d, const T* gcon,              \
                                const T* gamp, T* gmeans, T* gls, T* gq, T* gd, int nt) {                        \
-    proj_bwd<T>(n, means, ls, q, d, fv, cam, mode, mip, gm2d, gcon, gamp, gmeans, gls, gq, gd, nt); }
+    proj_bwd<T>(n, means, ls, q, d, fv, cam, mode, mip, gm2d, gcon, gamp, gmeans, gls, gq, gd, nt); }           \
+extern "C" void alpha_fwd_##SUF(int64_t H, int64_t W, int C, const int64_t* off, const int32_t* ids, const T* m, \
+                                const T* con, const T* op, const T* col, T* out, int nt) {                      \
+    alpha_fwd<T>(H, W, C, off, ids, m, con, op, col, out, nt); }                                                \
+extern "C" void alpha_bwd_##SUF(int64_t n, int64_t H, int64_t W, int C, const int64_t* off, const int32_t* ids,  \
+                                const T* m, const T* con, const T* op, const T* col, const T* g, T* gm, T* gc,  \
+                                T* gop, T* gcol, int nt) {                                                      \
+    alpha_bwd<T>(n, H, W, C, off, ids, m, con, op, col, g, gm, gc, gop, gcol, nt); }
 
 EXPORT(float, f32)
 EXPORT(double, f64)
@@ -434,8 +553,9 @@ def _build() -> ctypes.CDLL:
                 raise RuntimeError(f"render kernel compilation failed: {res.stderr.strip()[:500]}")
             os.replace(so, out)
     lib = ctypes.CDLL(str(out))
+    lib.alpha_lists_c.restype = None
     for suf in ("f32", "f64"):
-        for name in ("splat_fwd", "splat_bwd", "proj_fwd", "proj_bwd"):
+        for name in ("splat_fwd", "splat_bwd", "proj_fwd", "proj_bwd", "alpha_fwd", "alpha_bwd"):
             getattr(lib, f"{name}_{suf}").restype = None
     return lib
 
@@ -520,8 +640,9 @@ def splat_additive_kernel(proj, height: int, width: int) -> torch.Tensor:  # noq
 class ProjectAdditive(torch.autograd.Function):
     """Fused :func:`ctsplat.render.project` for the additive compositors (hand-written backward).
 
-    Inputs: means (N,3), log_scales (N,3), quats (N,4), density_raw (N,), filter_3d_var (N,) or None (constant),
-    cam: float64 parameter vector (see :func:`camera_vector`), mode 0 radiative / 1 unrectified, mip flag.
+    Inputs: means (N,3), log_scales (N,3), quats (N,4), density_raw (N,) (mode 2: opacity_raw), filter_3d_var (N,)
+    or None (constant), cam: float64 parameter vector (see :func:`camera_vector`), mode 0 radiative /
+    1 unrectified / 2 alpha (amplitude = sigmoid opacity, filters as unrectified), mip flag.
     Outputs: means2d (N,2), conics (N,3), amps (N,), depths (N,), bbox (N,4) int64 (no gradient).
     """
 
@@ -567,6 +688,59 @@ class ProjectAdditive(torch.autograd.Function):
             _ptr(gq), _ptr(gd), ctypes.c_int(torch.get_num_threads()),
         )
         return gm, gl, gq, gd, None, None, None, None
+
+
+class AlphaComposite(torch.autograd.Function):
+    """Front-to-back alpha compositing of per-pixel depth-sorted lists (same definition as
+    :func:`ctsplat.render.splat_alpha_reference`): ``C = Σ_i c_i α_i Π_{j<i}(1-α_j)``, ``α = min(0.99, o e^q)``.
+
+    Backward per pixel, back to front with the suffix ``S_i = Σ_{j>i} c_j α_j T_j``:
+    ``∂C/∂c_i = α_i T_i``, ``∂C/∂α_i = T_i c_i - S_i / (1 - α_i)`` (0 through the clamp), then through ``α = o e^q``
+    as in :class:`SplatAdditive`. Per-thread gradient buffers are summed in a fixed order.
+    """
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opac, colors, bbox, depths, height: int, width: int):  # noqa: ANN001
+        lib = _get_lib()
+        if lib is None:
+            raise RuntimeError(f"render kernel unavailable: {_failed}")
+        dt = opac.dtype
+        suf = _suffix(dt)
+        m, c, o = (t.detach().to(dt).contiguous() for t in (means2d, conics, opac))
+        col = colors.detach().to(dt).contiguous()
+        if col.shape[1] > 32:
+            raise ValueError(f"alpha kernel supports at most 32 colour channels, got {col.shape[1]}")
+        b = bbox.to(torch.int64).contiguous()
+        order = torch.argsort(depths.detach(), stable=True).to(torch.int64).contiguous()
+        counts = (b[:, 1] - b[:, 0]) * (b[:, 3] - b[:, 2])
+        total = int(counts.sum()) if counts.numel() else 0
+        if total >= 2**31:
+            raise ValueError("alpha kernel: more than 2^31 (Gaussian, pixel) pairs; render at a lower resolution")
+        offsets = torch.empty(height * width + 1, dtype=torch.int64)
+        ids = torch.empty(total, dtype=torch.int32)
+        lib.alpha_lists_c(_i64(m.shape[0]), _ptr(order), _ptr(b), _i64(height), _i64(width), _ptr(offsets),
+                          _ptr(ids))
+        out = torch.empty(height, width, col.shape[1], dtype=dt)
+        getattr(lib, f"alpha_fwd_{suf}")(
+            _i64(height), _i64(width), ctypes.c_int(col.shape[1]), _ptr(offsets), _ptr(ids), _ptr(m), _ptr(c),
+            _ptr(o), _ptr(col), _ptr(out), ctypes.c_int(torch.get_num_threads()),
+        )
+        ctx.save_for_backward(m, c, o, col, offsets, ids)
+        ctx.hw = (height, width)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):  # noqa: ANN001
+        m, c, o, col, offsets, ids = ctx.saved_tensors
+        height, width = ctx.hw
+        g = grad_out.to(o.dtype).contiguous()
+        gm, gc, go, gcol = torch.empty_like(m), torch.empty_like(c), torch.empty_like(o), torch.empty_like(col)
+        getattr(_get_lib(), f"alpha_bwd_{_suffix(o.dtype)}")(
+            _i64(m.shape[0]), _i64(height), _i64(width), ctypes.c_int(col.shape[1]), _ptr(offsets), _ptr(ids),
+            _ptr(m), _ptr(c), _ptr(o), _ptr(col), _ptr(g), _ptr(gm), _ptr(gc), _ptr(go), _ptr(gcol),
+            ctypes.c_int(torch.get_num_threads()),
+        )
+        return gm, gc, go, gcol, None, None, None, None
 
 
 def camera_vector(cam: dict, R: torch.Tensor, t: torch.Tensor, k2: float, near: float, cutoff: float) -> torch.Tensor:

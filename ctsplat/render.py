@@ -64,12 +64,13 @@ Notes for training (engineer D)
 * Densities are in normalised-volume units; render against targets divided by ``mu_scale_per_mm`` or pass
   ``mu_scale``. ``compute_3d_filter`` once per densification step (cameras are fixed), then pass its result to every
   :func:`render` and to :func:`voxelize` (``filter_3d_var``) so the volume read-out matches the rendered field.
-* ``backend="auto"`` uses the fused kernels for ``radiative``/``radiative_unrectified`` on CPU when a C++ compiler
-  is available (compiled once into ``~/.cache/ctsplat``), else the pure-PyTorch reference (always used for
-  ``alpha`` and on CUDA). Both are differentiable w.r.t. means, log-scales, quats, density_raw (alpha: also
-  opacity_raw, colours, sh_rest). float32 and float64.
-* Thread count = ``torch.get_num_threads()``. On a heavily shared CPU, ``torch.set_num_threads(1)`` can be faster
-  (torch's OpenMP workers spin while waiting for a core).
+* ``backend="auto"`` uses the fused C++ kernels (all compositors) on CPU when a C++ compiler is available
+  (compiled once into ``~/.cache/ctsplat``), else the pure-PyTorch reference (always used on CUDA). Both are
+  differentiable w.r.t. means, log-scales, quats, density_raw (alpha: also opacity_raw, colours, sh_rest);
+  float32 and float64.
+* Thread count = ``torch.get_num_threads()``. On a shared, overloaded CPU set ``OMP_WAIT_POLICY=PASSIVE`` in the
+  environment before starting Python: torch's idle OpenMP workers otherwise spin and steal the cores (measured
+  here: 2-thread fwd+bwd ~5x slower without it).
 """
 
 from __future__ import annotations
@@ -449,7 +450,7 @@ def render(
     sigma_cutoff : float
         Footprint half-width in standard deviations (bounding box).
     backend : "auto" | "reference" | "kernel"
-        "auto": fused C kernel for the additive compositors on CPU when available, else reference.
+        "auto": fused C++ kernels on CPU when available, else the pure-PyTorch reference.
 
     Returns
     -------
@@ -469,7 +470,7 @@ def render(
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
     use_kernel = False
-    if compositor != "alpha" and backend != "reference" and gaussians.means.device.type == "cpu":
+    if backend != "reference" and gaussians.means.device.type == "cpu":
         from ctsplat import _render_kernel
 
         use_kernel = _render_kernel.available() if backend == "auto" else True
@@ -489,7 +490,13 @@ def render(
     if compositor == "alpha":
         R_t, t_t = _as_pose(R, t, gaussians.means)
         cols = _colors_for_view(gaussians, R_t, t_t, cam["model"])
-        img = splat_alpha_reference(proj, cols, H, W)
+        if use_kernel:
+            from ctsplat._render_kernel import AlphaComposite
+
+            img = AlphaComposite.apply(proj.means2d, proj.conics, proj.amps, cols.to(proj.amps.dtype), proj.bbox,
+                                       proj.depths, H, W)
+        else:
+            img = splat_alpha_reference(proj, cols, H, W)
         if img.shape[-1] == 1:
             img = img[..., 0]
     else:
@@ -510,7 +517,7 @@ def _project_kernel(
     gaussians: Gaussians, cam: dict[str, Any], R: Any, t: Any, compositor: str, filter_3d_var: Any, mip_2d: bool,
     sigma_cutoff: float,
 ) -> Projection:
-    """:func:`project` through the fused C kernel (additive compositors, CPU, float32/float64)."""
+    """:func:`project` through the fused C kernel (CPU, float32/float64)."""
     from ctsplat._render_kernel import ProjectAdditive, camera_vector
 
     means = gaussians.means
@@ -521,9 +528,13 @@ def _project_kernel(
         if fv.shape[0] != means.shape[0]:
             raise CtsplatError(f"filter_3d_var has {fv.shape[0]} entries for {means.shape[0]} Gaussians")
     cam_vec = camera_vector(cam, R_t, t_t, _dilation(compositor, mip_2d), NEAR_MM, sigma_cutoff)
-    mode = 0 if compositor == "radiative" else 1
+    mode = {"radiative": 0, "radiative_unrectified": 1, "alpha": 2}[compositor]
+    raw = gaussians.density_raw
+    if compositor == "alpha":
+        # no opacity -> opacity 1 (sigmoid(40) == 1 in float32), as Gaussians.opacities says
+        raw = gaussians.opacity_raw if gaussians.opacity_raw is not None else torch.full_like(raw.detach(), 40.0)
     m2d, con, amp, depth, bb = ProjectAdditive.apply(
-        means, gaussians.log_scales, gaussians.quats, gaussians.density_raw, fv, cam_vec, mode, bool(mip_2d)
+        means, gaussians.log_scales, gaussians.quats, raw, fv, cam_vec, mode, bool(mip_2d)
     )
     valid = depth > NEAR_MM if cam["model"] == "cone" else torch.ones_like(depth, dtype=torch.bool)
     return Projection(means2d=m2d, conics=con, cov2d=torch.empty(0), amps=amp, depths=depth, valid=valid, bbox=bb)

@@ -236,6 +236,7 @@ def test_gradcheck_small_scene(compositor, model):
         kw = dict(g0.tensors())
         kw.update(dict(zip(names, tensors, strict=True)))
         g = Gaussians(**kw)
+        # reference path, and the default path (the fused kernels when available) with both mip filters
         a = render(g, cam, R, t, compositor=compositor, sigma_cutoff=12.0, backend="reference").image
         b = render(g, cam, R, t, compositor=compositor, sigma_cutoff=12.0, filter_3d_var=fv, mip_2d=True).image
         return a, b
@@ -279,6 +280,33 @@ def test_kernel_matches_reference_forward_and_backward(model):
                 assert torch.equal(a[2], b[2]) and torch.equal(a[3], b[3])
                 for x, y in zip(a[4:] + a[1:2], b[4:] + b[1:2], strict=True):
                     assert float((x - y).abs().max()) <= tol * 10 * float(x.abs().max()), (comp, mip, filt)
+
+
+@pytest.mark.parametrize("model", ["parallel", "cone"])
+def test_alpha_kernel_matches_reference(model):
+    from ctsplat import _render_kernel
+
+    if not _render_kernel.available():
+        pytest.skip(f"C kernel unavailable: {_render_kernel._failed}")
+    for dtype, tol in ((D64, 1e-10), (torch.float32, 2e-5)):
+        g = _mixture(300, seed=11, spread=30.0, smin=0.3, smax=4.0, dtype=dtype)
+        g.colors = torch.rand(300, 3, generator=torch.Generator().manual_seed(3), dtype=dtype)  # RGB
+        params = [g.means, g.log_scales, g.quats, g.opacity_raw, g.colors]
+        for p in params:
+            p.requires_grad_(True)
+        cam = ParallelCamera(64, 48, 0.8) if model == "parallel" else ConeCamera(64, 48, 1.6, 200.0, 400.0)
+        R, t = _pose(60.0, -20.0, dist=200.0 if model == "parallel" else 40.0)
+        R, t = R.to(dtype), t.to(dtype)
+        w = torch.rand(48, 64, 3, generator=torch.Generator().manual_seed(0), dtype=dtype)
+        for mip, filt in ((False, None), (True, torch.full((300,), 0.1, dtype=dtype))):
+            res = {}
+            for backend in ("reference", "kernel"):
+                out = render(g, cam, R, t, compositor="alpha", backend=backend, mip_2d=mip, filter_3d_var=filt)
+                assert out.image.shape == (48, 64, 3)
+                res[backend] = (out.image.detach(), *torch.autograd.grad((out.image * w).sum(), params))
+            assert float(res["reference"][0].max()) > 0.5
+            for x, y in zip(res["reference"], res["kernel"], strict=True):
+                assert float((x - y).abs().max()) <= tol * float(x.abs().max())
 
 
 @pytest.mark.parametrize("compositor", ["radiative", "radiative_unrectified", "alpha"])
