@@ -12,7 +12,8 @@ colour for the alpha compositor), each with its own learning rate decayed by a c
 ``lr × lr_final_factor``. Mean learning rates are given in voxels per step (multiplied by the mean voxel edge).
 
 Adaptive density control every ``densify.interval`` steps within ``[densify.start, densify.stop]``: Gaussians whose
-mean view-space positional gradient (px) exceeds ``densify.grad_threshold`` are cloned when small (max scale
+mean view-space positional gradient (norm of ∂L/∂(u, v) in 3DGS's NDC units, i.e. per-pixel gradient × W/2, H/2)
+exceeds ``densify.grad_threshold`` are cloned when small (max scale
 ≤ ``densify.clone_max_scale_voxels`` voxels) or split in two (samples from the Gaussian, scales / 1.6) when large;
 in the radiative compositors both copies get half the density (exact mass conservation for a clone; the split
 follows the method's rule). Then Gaussians with ρ < ``prune_density``, oversized ones (max scale >
@@ -66,7 +67,7 @@ POSES = ("gt", "colmap")
 SUPERVISIONS = ("line_integral", "transmission")
 LOG_COLUMNS = ["iteration", "timestamp", "psnr2d", "ssim2d", "psnr3d", "ssim3d"]
 LOG_EXTRAS = ["loss", "l1", "dssim", "density_reg", "scale_reg", "tv", "n_gaussians", "lr_means", "iters_per_s",
-              "nan_events"]
+              "nan_events", "cloned", "split", "pruned"]
 PER_VIEW_COLUMNS = ["iteration", "view_id", "azimuth_deg", "elevation_deg", "split", "psnr2d", "ssim2d"]
 
 TRAIN_DEFAULTS: dict[str, Any] = {
@@ -466,6 +467,7 @@ class TrainState:
     elapsed_s: float = 0.0
     queue: list[list[int]] = field(default_factory=list)
     filter_var: torch.Tensor | None = None
+    densify_counts: dict[str, int] = field(default_factory=lambda: {"cloned": 0, "split": 0, "pruned": 0})
 
 
 class ViewSampler:
@@ -642,6 +644,7 @@ def save_checkpoint(out_dir: Path, state: TrainState, rng: np.random.Generator, 
         "nan_consecutive": state.nan_consecutive,
         "elapsed_s": state.elapsed_s,
         "queue": state.queue,
+        "densify_counts": state.densify_counts,
         "np_rng": json.dumps(rng.bit_generator.state),
         "torch_gen": gen.get_state(),
         "torch_rng": torch.get_rng_state(),
@@ -674,7 +677,7 @@ def _load_checkpoint(path: Path, cfg: dict[str, Any], device: torch.device, rng:
         params=params, opt=opt, iteration=int(ck["iteration"]), grad_accum=ck["grad_accum"].to(device),
         grad_count=ck["grad_count"].to(device), lr_factor=float(ck["lr_factor"]), nan_events=int(ck["nan_events"]),
         nan_consecutive=int(ck["nan_consecutive"]), elapsed_s=float(ck["elapsed_s"]),
-        queue=[list(map(int, b)) for b in ck["queue"]],
+        queue=[list(map(int, b)) for b in ck["queue"]], densify_counts=dict(ck["densify_counts"]),
     )
 
 
@@ -817,6 +820,8 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
         targets_loss = targets / image_scale
     tr_R = torch.as_tensor(scene.train.Rs, dtype=torch.float32, device=device)
     tr_t = torch.as_tensor(scene.train.ts, dtype=torch.float32, device=device)
+    # positional gradients in 3DGS's NDC units (d/d ndc = d/d px * size / 2), so the threshold means the same
+    ndc_half = torch.tensor([0.5 * scene.train.camera.width, 0.5 * scene.train.camera.height], device=device)
     sampler = ViewSampler(scene.train.azimuth_deg, scene.train.elevation_deg, int(cfg["batch_views"]))
     d = cfg["densify"]
     total = int(cfg["iterations"])
@@ -882,7 +887,7 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
                     gm = out.means2d.grad
                     if gm is not None:
                         vis = out.visible
-                        state.grad_accum[vis] += gm[vis].norm(dim=-1)
+                        state.grad_accum[vis] += (gm[vis] * ndc_half).norm(dim=-1)
                         state.grad_count[vis] += 1
             state.opt.step()
             ok = _params_finite(state.params)
@@ -908,7 +913,9 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
         if ok and d["interval"] and d["start"] <= it <= d_stop and it % int(d["interval"]) == 0 and it < total:
             counts = densify_and_prune(state, cfg, scene, gen)
             densified = True
-            log.debug("densify at %d: %s", it, counts)
+            for k in state.densify_counts:
+                state.densify_counts[k] += counts[k]
+            log.info("densify at %d: %s", it, counts)
             if cfg["mip"]:
                 state.filter_var = render_kwargs(cfg, as_gaussians(state.params), scene)["filter_3d_var"]
         if ok and (densified or it % 10 == 0):
@@ -926,7 +933,7 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
                        density_reg=last_terms.get("density"), scale_reg=last_terms.get("scale"),
                        tv=last_terms.get("tv"), n_gaussians=int(state.params["means"].shape[0]),
                        lr_means=float(state.opt.param_groups[0]["lr"]), iters_per_s=round(ips, 3),
-                       nan_events=state.nan_events)
+                       nan_events=state.nan_events, **state.densify_counts)
             train_log.append([row])
             view_log.append(per_view)
             bar.set_postfix(loss=f"{last_loss:.4f}", psnr=f"{row['psnr2d']:.2f}", n=row["n_gaussians"])
