@@ -86,7 +86,7 @@ def run_one(n: int, width: int, height: int, mode: str, backend: str, compositor
         cpu.append(time.process_time() - c0)
     wall.sort()
     cpu.sort()
-    used_kernel = compositor != "alpha" and device == "cpu" and backend != "reference" and _render_kernel.available()
+    used_kernel = device == "cpu" and backend != "reference" and _render_kernel.available()
     peak = (torch.cuda.max_memory_allocated() / 2**20 if device.startswith("cuda")
             else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     return {

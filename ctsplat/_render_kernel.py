@@ -409,7 +409,7 @@ static inline T alpha_of(const T* mean, const T* con, const T* op, int32_t i, T 
 
 template <typename T>
 static void alpha_fwd(int64_t H, int64_t W, int C, const int64_t* offsets, const int32_t* ids, const T* mean,
-                      const T* con, const T* op, const T* col, T* out, int nt) {
+                      const T* con, const T* op, const T* col, T* out, T* alphas, int nt) {
     parallel_for(H * W, nt, [&](int64_t p0, int64_t p1, int) {
         for (int64_t p = p0; p < p1; ++p) {
             const T px = (T)(p % W) + (T)0.5, py = (T)(p / W) + (T)0.5;
@@ -419,6 +419,7 @@ static void alpha_fwd(int64_t H, int64_t W, int C, const int64_t* offsets, const
                 const int32_t i = ids[k];
                 T e, dx, dy;
                 const T a = alpha_of(mean, con, op, i, px, py, e, dx, dy);
+                alphas[k] = a;  // kept for the backward (no exp there)
                 for (int c = 0; c < C; ++c) out[p * C + c] += Tr * a * col[i * C + c];
                 Tr *= 1 - a;
             }
@@ -428,32 +429,30 @@ static void alpha_fwd(int64_t H, int64_t W, int C, const int64_t* offsets, const
 
 template <typename T>
 static void alpha_bwd(int64_t n, int64_t H, int64_t W, int C, const int64_t* offsets, const int32_t* ids,
-                      const T* mean, const T* con, const T* op, const T* col, const T* gout, T* gmean, T* gcon,
-                      T* gop, T* gcol, int nthreads) {
+                      const T* alphas, const T* mean, const T* con, const T* op, const T* col, const T* gout,
+                      T* gmean, T* gcon, T* gop, T* gcol, int nthreads) {
     int nt = nthreads < 1 ? 1 : nthreads;
     if (H * W < 4096) nt = 1;
     const int64_t stride = 6 + C;  // per Gaussian: gmx, gmy, gA, gB, gC, gop, gcol[C]
     std::vector<T> acc((size_t)nt * (size_t)n * (size_t)stride, (T)0);
     parallel_for(H * W, nt, [&](int64_t p0, int64_t p1, int tid) {
         T* g = acc.data() + (size_t)tid * (size_t)n * (size_t)stride;
-        std::vector<T> Ts, As, suffix(C);
+        std::vector<T> Ts, suffix(C);
         for (int64_t p = p0; p < p1; ++p) {
             const int64_t k0 = offsets[p], k1 = offsets[p + 1];
             if (k1 == k0) continue;
             const T px = (T)(p % W) + (T)0.5, py = (T)(p / W) + (T)0.5;
-            Ts.resize(k1 - k0); As.resize(k1 - k0);
+            Ts.resize(k1 - k0);
             T Tr = 1;
             for (int64_t k = k0; k < k1; ++k) {
-                T e, dx, dy;
-                const T a = alpha_of(mean, con, op, ids[k], px, py, e, dx, dy);
-                Ts[k - k0] = Tr; As[k - k0] = a;
-                Tr *= 1 - a;
+                Ts[k - k0] = Tr;
+                Tr *= 1 - alphas[k];
             }
             for (int c = 0; c < C; ++c) suffix[c] = 0;  // sum_{j>i} c_j a_j T_j
             const T* go = gout + p * C;
             for (int64_t k = k1 - 1; k >= k0; --k) {
                 const int32_t i = ids[k];
-                const T Ti = Ts[k - k0], a = As[k - k0];
+                const T Ti = Ts[k - k0], a = alphas[k];
                 T gdot = 0, sdot = 0;
                 for (int c = 0; c < C; ++c) {
                     gdot += go[c] * col[i * C + c];
@@ -462,12 +461,11 @@ static void alpha_bwd(int64_t n, int64_t H, int64_t W, int C, const int64_t* off
                     suffix[c] += col[i * C + c] * a * Ti;
                 }
                 const T ga = Ti * gdot - sdot / (1 - a);
-                T e, dx, dy;
-                alpha_of(mean, con, op, i, px, py, e, dx, dy);
-                if (op[i] * e >= (T)0.99) continue;  // clamped: no gradient to opacity / footprint
+                if (a >= (T)0.99) continue;  // clamped: no gradient to opacity / footprint
+                const T dx = px - mean[2 * i], dy = py - mean[2 * i + 1];
                 T* gi = g + (size_t)i * stride;
-                gi[5] += ga * e;
-                const T gq = ga * op[i] * e;  // d alpha / d q
+                gi[5] += op[i] > 0 ? ga * a / op[i] : (T)0;  // a = o e  ->  d a / d o = e
+                const T gq = ga * a;  // d alpha / d q = o e
                 const T A = con[3 * i], B = con[3 * i + 1], Cc = con[3 * i + 2];
                 gi[0] += gq * (A * dx + B * dy);
                 gi[1] += gq * (B * dx + Cc * dy);
@@ -508,12 +506,12 @@ extern "C" void proj_bwd_##SUF(int64_t n, const T* means, const T* ls, const T* 
                                const T* gamp, T* gmeans, T* gls, T* gq, T* gd, int nt) {                        \
     proj_bwd<T>(n, means, ls, q, d, fv, cam, mode, mip, gm2d, gcon, gamp, gmeans, gls, gq, gd, nt); }           \
 extern "C" void alpha_fwd_##SUF(int64_t H, int64_t W, int C, const int64_t* off, const int32_t* ids, const T* m, \
-                                const T* con, const T* op, const T* col, T* out, int nt) {                      \
-    alpha_fwd<T>(H, W, C, off, ids, m, con, op, col, out, nt); }                                                \
+                                const T* con, const T* op, const T* col, T* out, T* al, int nt) {               \
+    alpha_fwd<T>(H, W, C, off, ids, m, con, op, col, out, al, nt); }                                            \
 extern "C" void alpha_bwd_##SUF(int64_t n, int64_t H, int64_t W, int C, const int64_t* off, const int32_t* ids,  \
-                                const T* m, const T* con, const T* op, const T* col, const T* g, T* gm, T* gc,  \
-                                T* gop, T* gcol, int nt) {                                                      \
-    alpha_bwd<T>(n, H, W, C, off, ids, m, con, op, col, g, gm, gc, gop, gcol, nt); }
+                                const T* al, const T* m, const T* con, const T* op, const T* col, const T* g,   \
+                                T* gm, T* gc, T* gop, T* gcol, int nt) {                                        \
+    alpha_bwd<T>(n, H, W, C, off, ids, al, m, con, op, col, g, gm, gc, gop, gcol, nt); }
 
 EXPORT(float, f32)
 EXPORT(double, f64)
@@ -721,23 +719,24 @@ class AlphaComposite(torch.autograd.Function):
         lib.alpha_lists_c(_i64(m.shape[0]), _ptr(order), _ptr(b), _i64(height), _i64(width), _ptr(offsets),
                           _ptr(ids))
         out = torch.empty(height, width, col.shape[1], dtype=dt)
+        alphas = torch.empty(total, dtype=dt)
         getattr(lib, f"alpha_fwd_{suf}")(
             _i64(height), _i64(width), ctypes.c_int(col.shape[1]), _ptr(offsets), _ptr(ids), _ptr(m), _ptr(c),
-            _ptr(o), _ptr(col), _ptr(out), ctypes.c_int(torch.get_num_threads()),
+            _ptr(o), _ptr(col), _ptr(out), _ptr(alphas), ctypes.c_int(torch.get_num_threads()),
         )
-        ctx.save_for_backward(m, c, o, col, offsets, ids)
+        ctx.save_for_backward(m, c, o, col, offsets, ids, alphas)
         ctx.hw = (height, width)
         return out
 
     @staticmethod
     def backward(ctx, grad_out):  # noqa: ANN001
-        m, c, o, col, offsets, ids = ctx.saved_tensors
+        m, c, o, col, offsets, ids, alphas = ctx.saved_tensors
         height, width = ctx.hw
         g = grad_out.to(o.dtype).contiguous()
         gm, gc, go, gcol = torch.empty_like(m), torch.empty_like(c), torch.empty_like(o), torch.empty_like(col)
         getattr(_get_lib(), f"alpha_bwd_{_suffix(o.dtype)}")(
             _i64(m.shape[0]), _i64(height), _i64(width), ctypes.c_int(col.shape[1]), _ptr(offsets), _ptr(ids),
-            _ptr(m), _ptr(c), _ptr(o), _ptr(col), _ptr(g), _ptr(gm), _ptr(gc), _ptr(go), _ptr(gcol),
+            _ptr(alphas), _ptr(m), _ptr(c), _ptr(o), _ptr(col), _ptr(g), _ptr(gm), _ptr(gc), _ptr(go), _ptr(gcol),
             ctypes.c_int(torch.get_num_threads()),
         )
         return gm, gc, go, gcol, None, None, None, None
