@@ -50,7 +50,7 @@ def _scene(n: int, device: str, seed: int = 0):
 
 def run_one(n: int, width: int, height: int, mode: str, backend: str, compositor: str, device: str,
             threads: int, budget_s: float) -> dict:
-    """Time one configuration in this process; ``mode`` is 'fwdbwd' or 'fwd'."""
+    """Time one configuration in this process; ``mode`` is 'fwdbwd', 'fwd' or 'voxelize' (grid width³)."""
     import torch
 
     from ctsplat import _render_kernel
@@ -76,10 +76,23 @@ def run_one(n: int, width: int, height: int, mode: str, backend: str, compositor
             out.image.sum().backward()
         sync()
 
-    step()  # warm-up (kernel build / load, allocator)
+    if mode == "voxelize":
+        from ctsplat.render import voxelize
+
+        affine = torch.eye(4, dtype=torch.float64)
+        affine[:3, :3] *= FOV_MM / width  # grid covering the field of view
+        affine[:3, 3] = -FOV_MM / 2
+
+        def step() -> None:  # noqa: F811
+            vol = voxelize(gs, (width, width, width), affine)
+            (vol * vol).sum().backward()
+            sync()
+    else:
+        step()  # warm-up (kernel build / load, allocator)
     wall, cpu = [], []
     t_start = time.perf_counter()
-    while len(wall) < 3 or (time.perf_counter() - t_start < budget_s and len(wall) < 15):
+    min_reps = 1 if mode == "voxelize" else 3
+    while len(wall) < min_reps or (time.perf_counter() - t_start < budget_s and len(wall) < 15):
         c0, w0 = time.process_time(), time.perf_counter()
         step()
         wall.append(time.perf_counter() - w0)
@@ -128,6 +141,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--compositor", default="radiative")
     p.add_argument("--reference", action="store_true", help="also time the pure-PyTorch reference (N <= 50k)")
     p.add_argument("--budget-s", type=float, default=4.0, help="time budget per configuration (>= 3 reps)")
+    p.add_argument("--voxelize", type=str, default=None, metavar="N:S",
+                   help="also time voxelize fwd+bwd of N Gaussians on an S³ grid (peak memory), e.g. 500000:256")
+    p.add_argument("--only-voxelize", action="store_true", help="skip the render grid")
     a = p.parse_args(argv)
 
     import pandas as pd
@@ -137,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     sizes = [128, 256] if a.quick else [128, 256, 512]
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     jobs = []
-    for dev in devices:
+    for dev in devices if not a.only_voxelize else []:
         for n in ns:
             for s in sizes:
                 jobs.append((n, s, s, "fwdbwd", "auto", dev))
@@ -145,6 +161,9 @@ def main(argv: list[str] | None = None) -> int:
             for n in [n for n in ns if n <= 50_000]:
                 jobs.append((n, 256, 256, "fwdbwd", "reference", dev))
         jobs.append((50_000 if a.quick else 200_000, 1920, 1080, "fwd", "auto", dev))
+    if a.voxelize:
+        nv, sv = (int(x) for x in a.voxelize.split(":"))
+        jobs.append((nv, sv, sv, "voxelize", "auto", "cpu"))
     rows = []
     print(f"load average at start: {os.getloadavg()}; {os.cpu_count()} CPUs; threads={a.threads}", flush=True)
     for n, w, h, mode, backend, dev in jobs:
@@ -165,31 +184,37 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     df = pd.DataFrame(rows)
     OUT.mkdir(parents=True, exist_ok=True)
-    df.to_csv(OUT / "render.csv", index=False)
+    csv = OUT / ("render_voxelize.csv" if a.only_voxelize else "render.csv")
+    df.to_csv(csv, index=False)
     print()
     cols = ["device", "backend", "mode", "n_gaussians", "width", "height", "ms_median", "ms_min", "cpu_ms_median",
             "fps", "peak_mem_mb", "loadavg_1min"]
     print(df[cols].to_string(index=False, float_format=lambda x: f"{x:.1f}"))
-    # linear-scaling ratios: (time ratio) / (work ratio) between consecutive sizes; ~1 = linear
+    # linear-scaling ratios: (time ratio) / (work ratio) between consecutive sizes; ~1 = linear. Process CPU time
+    # is used: on a shared machine the wall time mostly measures the other users' load.
     fb = df[(df["mode"] == "fwdbwd") & (df["backend"] != "reference")]
-    print("\nscaling in N (per image size): t(N2)/t(N1) / (N2/N1)")
+    if fb.empty:
+        print(f"wrote {csv}")
+        return 0
+    print("\nscaling in N (per image size), CPU time: t(N2)/t(N1) / (N2/N1)")
     for (dev, w), grp in fb.groupby(["device", "width"]):
         grp = grp.sort_values("n_gaussians")
         r = [f"{b.n_gaussians // 1000}k/{a_.n_gaussians // 1000}k: "
-             f"{(b.ms_min / a_.ms_min) / (b.n_gaussians / a_.n_gaussians):.2f}"
+             f"{(b.cpu_ms_median / a_.cpu_ms_median) / (b.n_gaussians / a_.n_gaussians):.2f}"
              for a_, b in zip(grp.itertuples(), list(grp.itertuples())[1:], strict=False)]
         print(f"  {dev} {w}²: " + ", ".join(r))
-    print("scaling in pixels (per N): t(P2)/t(P1) / (P2/P1)")
+    print("scaling in pixels (per N), CPU time: t(P2)/t(P1) / (P2/P1)")
     for (dev, n), grp in fb.groupby(["device", "n_gaussians"]):
         grp = grp.sort_values("pixels")
-        r = [f"{b.width}²/{a_.width}²: {(b.ms_min / a_.ms_min) / (b.pixels / a_.pixels):.2f}"
+        r = [f"{b.width}²/{a_.width}²: {(b.cpu_ms_median / a_.cpu_ms_median) / (b.pixels / a_.pixels):.2f}"
              for a_, b in zip(grp.itertuples(), list(grp.itertuples())[1:], strict=False)]
         print(f"  {dev} N={n // 1000}k: " + ", ".join(r))
     target = fb[(fb["n_gaussians"] == 50_000) & (fb["width"] == 256) & (fb["device"] == "cpu")]
     if len(target):
-        print(f"\ntarget 50k @ 256² fwd+bwd <= 20 ms: median {float(target['ms_median'].iloc[0]):.1f} ms, "
-              f"min {float(target['ms_min'].iloc[0]):.1f} ms (load {float(target['loadavg_1min'].iloc[0]):.1f})")
-    print(f"wrote {OUT / 'render.csv'}")
+        tr = target.iloc[0]
+        print(f"\ntarget 50k @ 256² fwd+bwd <= 20 ms: median {tr['ms_median']:.1f} ms, min {tr['ms_min']:.1f} ms, "
+              f"CPU {tr['cpu_ms_median']:.1f} ms (load {tr['loadavg_1min']:.1f})")
+    print(f"wrote {csv}")
     return 0
 
 
