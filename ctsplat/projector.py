@@ -195,8 +195,9 @@ def line_integrals(
     norm = torch.as_tensor(2.0 / (shape[::-1] - 1.0), dtype=torch.float32, device=device)  # (k, j, i) scale
 
     views_per_group = max(1, (1 << 20) // (H * W))  # bounds the host memory of the ray arrays
-    pieces_idx, pieces_val = [], []
+    images = []
     for g0 in range(0, V, views_per_group):
+        pieces_idx, pieces_val = [], []
         # rays of this group of views in index space, clipped to the box
         o_g, d_g = [], []
         for R, t in zip(Rs[g0 : g0 + views_per_group], ts[g0 : g0 + views_per_group], strict=True):
@@ -227,12 +228,13 @@ def line_integrals(
                 vol, grid[None, None], mode="bilinear", padding_mode="zeros", align_corners=True
             )[0, 0, 0]  # (R, n)
             vals = torch.where(k[None, :] < n_ray[:, None], vals, torch.zeros((), device=device))
-            pieces_idx.append(torch.as_tensor(idx + g0 * H * W, device=device))
+            pieces_idx.append(torch.as_tensor(idx, device=device))
             pieces_val.append(vals.sum(-1) * h)
-    out = torch.zeros(V * H * W, dtype=torch.float32, device=device)
-    if pieces_idx:
-        out = out.index_put((torch.cat(pieces_idx),), torch.cat(pieces_val))
-    return out.reshape(V, H, W)
+        group = torch.zeros(len(o_g) * H * W, dtype=torch.float32, device=device)
+        if pieces_idx:
+            group = group.index_put((torch.cat(pieces_idx),), torch.cat(pieces_val))
+        images.append(group.reshape(len(o_g), H, W))
+    return torch.cat(images)
 
 
 def _slice_axis(camera: Camera, Rs: np.ndarray, A: np.ndarray) -> int | None:
