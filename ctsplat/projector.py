@@ -5,7 +5,8 @@ For a detector ray ``x(s) = o + s d`` (``|d| = 1``, ``s`` in mm, ``s >= 0``) the
     p = ∫ μ(x(s)) ds  (dimensionless; μ in 1/mm),   transmission I = I0 exp(-p).
 
 μ(x) is the trilinear interpolant of the voxel values (zero outside the grid), whose support is the
-index box ``(-1, N)`` along each axis. Each ray is clipped to that box in index space (slab test), and
+index box ``(-1, N)`` along each axis (narrowed to one voxel around the non-zero voxels when no gradient
+is needed). Each ray is clipped to that box in index space (slab test), and
 the clipped segment ``[s0, s0 + L]`` is integrated by the midpoint rule with ``n = ceil(L / step)``
 equal steps ``h = L / n <= step = step_voxels * min(spacing)`` (per ray, so results do not depend on
 batching):
@@ -190,6 +191,13 @@ def line_integrals(
     spacing = np.linalg.norm(A[:3, :3], axis=0)
     step_mm = step_voxels * float(spacing.min())
     lo, hi = np.full(3, -1.0), shape.copy()  # support of the trilinear interpolant, in index units
+    if not mu_t.requires_grad:  # clip to the support of the non-zero voxels (no samples in empty margins)
+        nonzero = mu_t != 0
+        for axis in range(3):
+            used = torch.nonzero(nonzero.any(dim=[a for a in range(3) if a != axis])).flatten()
+            if used.numel() == 0:
+                return torch.zeros(len(Rs), camera.height, camera.width, device=device)
+            lo[axis], hi[axis] = float(used.min()) - 1.0, float(used.max()) + 1.0
     V, H, W = len(Rs), camera.height, camera.width
     vol = mu_t[None, None]  # (1, 1, D=I, H=J, W=K); grid_sample's (x, y, z) index (K, J, I)
     norm = torch.as_tensor(2.0 / (shape[::-1] - 1.0), dtype=torch.float32, device=device)  # (k, j, i) scale

@@ -214,6 +214,16 @@ def test_batching_misses_and_step_are_consistent():
     R, t = pose_from_angles(90.0, 0.0, A[:3, :3] @ np.full(3, 7.5) + A[:3, 3], 200.0)
     p1 = line_integrals(ones, A, ParallelCamera(2, 2, 0.5), R[None], t[None]).numpy()
     np.testing.assert_allclose(p1, n * 40.0 / n, rtol=1e-5)  # n voxels of 2.5 mm: n - 1 + 2 half ramps
+    # zero margins: clipping to the non-zero support changes only the quadrature, not the integral
+    padded = np.zeros((n + 6, n + 6, n + 6), np.float32)
+    padded[3:-3, 2:-4, 4:-2] = vol
+    Ap = A.copy()
+    Ap[:3, 3] -= A[:3, :3] @ np.array([3.0, 2.0, 4.0])
+    tight = line_integrals(padded, Ap, cam, Rs, ts)
+    full = line_integrals(torch.tensor(padded, requires_grad=True), Ap, cam, Rs, ts).detach()  # whole box
+    assert float((tight - full).abs().max() / full.max()) < 0.01
+    torch.testing.assert_close(tight, p, rtol=0.01, atol=0.01 * float(p.max()))
+    assert float(line_integrals(np.zeros((4, 4, 4)), A, cam, Rs, ts).abs().max()) == 0.0
     with pytest.raises(CtsplatError, match="step_voxels"):
         line_integrals(vol, A, cam, Rs, ts, step_voxels=2.0)
     with pytest.raises(CtsplatError, match="empty view set"):
