@@ -123,8 +123,7 @@ class Gaussians:
     density_raw : Tensor (N,)
         ``ρ = softplus(density_raw)`` (normalised-volume units; see module docstring).
     opacity_raw : Tensor (N,) or None
-        ``opacity = sigmoid(opacity_raw)`` for the alpha compositor (``None`` -> opacity 1 - exp(-ρ·2σ̄)
-        is *not* assumed: the alpha compositor then requires it and raises).
+        ``opacity = sigmoid(opacity_raw)`` for the alpha compositor; ``None`` means opacity 1.
     colors : Tensor (N, C) or None
         Base colour (grey C=1, RGB C=3) for the alpha compositor; ``None`` means grey 1.
     sh_rest : Tensor (N, K-1, C) or None
