@@ -39,6 +39,7 @@ __all__ = [
     "circular_sinograms",
     "fbp_volume",
     "sart_volumes",
+    "sirt_volume",
     "run_baselines",
 ]
 
@@ -224,6 +225,60 @@ def sart_volumes(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, 
                    for s, img in zip(sino, current, strict=True)]
         vol = _to_reference(np.stack(current), grid)
         yield it, (np.clip(vol, 0.0, 1.0) if clip else vol)
+
+
+def sirt_volume(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *, iterations: int = 10,
+                relaxation: float = 1.0, mu_scale_per_mm: float | None = None, clip: bool = True,
+                device: str | None = None, views_per_batch: int = 8) -> np.ndarray:
+    """SIRT on the reference grid for *any* geometry (cone beam, sphere orbits), with the projector's adjoint.
+
+    ``x <- clip(x + λ C Aᵀ R (b - A x))`` with ``A`` = :func:`ctsplat.projector.line_integrals` (its
+    adjoint ``Aᵀ y = ∇_x <A x, y>`` by autograd), ``R = 1 / (A 1)`` per ray and ``C = 1 / (Aᵀ 1)`` per
+    voxel (zero where a ray or voxel is never hit), ``b`` = line integrals / ``mu_scale_per_mm``. Views
+    are processed ``views_per_batch`` at a time so memory stays bounded. A geometry-agnostic alternative
+    to :func:`fbp_volume` for ``init: fbp`` when the orbit is not circular parallel.
+
+    Parameters are as for :func:`fbp_volume`; returns the normalised volume (I, J, K) float32.
+    """
+    import torch
+
+    from ctsplat.projector import line_integrals as project
+
+    if int(iterations) < 1:
+        raise CtsplatError(f"SIRT iterations must be >= 1, got {iterations}")
+    affine, shape, scale = _reference_grid(reference)
+    scale = scale if mu_scale_per_mm is None else float(mu_scale_per_mm)
+    cam = view_set.camera
+    p = np.asarray(line_integrals, np.float32)
+    if p.shape != (len(view_set), cam.height, cam.width):
+        raise CtsplatError(f"line integrals of shape {p.shape} do not match the view set "
+                           f"({len(view_set)}, {cam.height}, {cam.width})")
+    dev = torch.device(device) if device else torch.device("cpu")
+    b = torch.as_tensor(p / scale, device=dev)
+    Rs, ts = view_set.Rs(), view_set.ts()
+    batches = [slice(i, i + views_per_batch) for i in range(0, len(view_set), views_per_batch)]
+
+    def forward(x: torch.Tensor, sl: slice) -> torch.Tensor:
+        with torch.no_grad():
+            return project(x, affine, cam, Rs[sl], ts[sl], device=dev, method="trilinear")
+
+    def adjoint(y: torch.Tensor, sl: slice) -> torch.Tensor:
+        x = torch.zeros(shape, device=dev, requires_grad=True)  # A is linear: the gradient does not depend on x
+        (project(x, affine, cam, Rs[sl], ts[sl], device=dev, method="trilinear") * y).sum().backward()
+        return x.grad
+
+    ones = torch.ones(shape, device=dev)
+    row = torch.cat([forward(ones, sl) for sl in batches])
+    rinv = torch.where(row > 1e-6, 1.0 / row.clamp_min(1e-6), torch.zeros((), device=dev))
+    col = sum(adjoint(torch.ones_like(b[sl]), sl) for sl in batches)
+    cinv = torch.where(col > 1e-6, 1.0 / col.clamp_min(1e-6), torch.zeros((), device=dev))
+    x = torch.zeros(shape, device=dev)
+    for _ in range(int(iterations)):
+        update = sum(adjoint((b[sl] - forward(x, sl)) * rinv[sl], sl) for sl in batches)
+        x = x + relaxation * cinv * update
+        if clip:
+            x = x.clamp(0.0, 1.0)
+    return x.cpu().numpy().astype(np.float32)
 
 
 def select_views(view_set: ViewSet, split: str, n: int) -> np.ndarray:
