@@ -29,11 +29,11 @@ Pipeline (all vectorised over Gaussians; no Python loop over Gaussians)
 3. **Rasterise**: each Gaussian touches only the pixels of its ``sigma_cutoff``-σ axis-aligned bounding box in the image
    (half widths ``k sqrt(Σ̂_00)``, ``k sqrt(Σ̂_11)`` px), so footprints adapt to the Gaussian's size -- a large Gaussian
    is never clipped and a small one costs a few pixels. (Gaussian, pixel) pairs are generated with
-   ``repeat_interleave`` and scattered with ``index_add`` (reference path), or -- fast CPU path for the additive
-   compositors -- projection and rasterisation run as fused C++ kernels with hand-written backward passes
-   (:mod:`ctsplat._render_kernel`, tested against the reference and by gradcheck). The bounding box truncates
-   the tails: with the default ``k = 3`` the lost mass of a Gaussian is between ``1 - erf(3/√2) ≈ 0.27 %`` and
-   ``1 - erf(3/√2)² ≈ 0.54 %`` (Šidák); pass ``sigma_cutoff=5`` for ~1e-6.
+   ``repeat_interleave`` and scattered with ``index_add`` (alpha: stably sorted by pixel, then depth) in the
+   reference path; the fast CPU path runs projection and rasterisation as fused C++ kernels with hand-written
+   backward passes (:mod:`ctsplat._render_kernel`; tested against the reference and by gradcheck).
+   The bounding box truncates the tails: with the default ``k = 3`` the lost mass of a Gaussian is between
+   ``1 - erf(3/√2) ≈ 0.27 %`` and ``1 - erf(3/√2)² ≈ 0.54 %`` (Šidák); pass ``sigma_cutoff=5`` for ~1e-6.
 
 Mip filter (Mip-Splatting), mass-conserving in radiative mode
 -------------------------------------------------------------
