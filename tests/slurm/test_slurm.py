@@ -3,8 +3,9 @@
 The session fixture starts the cluster with ``start_cluster.sh`` (installing Slurm 22.05 / munge from the
 distribution's packages when missing) and stops exactly the daemons it started afterwards. The test runs the
 repository's workflow on the tiny grid ``config/test_tiny.yaml`` (4 training runs) in a temporary directory with
-``snakemake --profile <test profile>``, the profile being ``profiles/slurm`` (the users' cluster template, GPU
-request for training included) overlaid with ``tests/slurm/profile/config.yaml`` (``slurm-status-command:
+``snakemake --profile slurm`` (a user profile, installed under ``$XDG_CONFIG_HOME/snakemake/slurm/`` as the
+README says), the profile being ``profiles/slurm`` (the users' cluster template, GPU request for training
+included) overlaid with ``tests/slurm/profile/config.yaml`` (``slurm-status-command:
 squeue``: there is no accounting database). Besides the grid (target ``results/summary.csv``) it asks for one
 deliberately failing job, and checks:
 
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -164,19 +166,24 @@ def test_ablation_grid_runs_through_sbatch(slurm_cluster: Path, tmp_path: Path) 
     work = tmp_path / "work"
     cells = _prepare_workdir(work)
     assert len(cells) >= 4, f"the test grid {CONFIG} should have >= 4 training runs, has {len(cells)}"
-    profile = _write_profile(tmp_path / "profile")
+    # Installed as the user profile `slurm` (README: ~/.config/snakemake/slurm/), so the command is the users'.
+    xdg = tmp_path / "xdg"
+    profile = _write_profile(xdg / "snakemake" / "slurm")
     gpu_rules = {rule for rule, res in profile["set-resources"].items() if res.get("gpu")}
 
-    cmd = [sys.executable, "-m", "snakemake", *TARGETS, "--configfile", CONFIG,
-           "--profile", str(tmp_path / "profile"), "--keep-going"]
+    cmd = [sys.executable, "-m", "snakemake", *TARGETS, "--configfile", CONFIG, "--profile", "slurm", "--keep-going"]
+    env = {**os.environ, "XDG_CONFIG_HOME": str(xdg)}
     with open(tmp_path / "snakemake.out", "w") as out:
-        proc = subprocess.run(cmd, cwd=work, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-                              text=True, timeout=SNAKEMAKE_TIMEOUT_S)
+        proc = subprocess.run(cmd, cwd=work, env=env, stdin=subprocess.DEVNULL, stdout=out,
+                              stderr=subprocess.STDOUT, text=True, timeout=SNAKEMAKE_TIMEOUT_S)
     console = (tmp_path / "snakemake.out").read_text()
     tail = f"\n--- Snakemake console (tail) ---\n{console[-6000:]}"
     logs = sorted((work / ".snakemake" / "log").glob("*.snakemake.log"))
     assert logs, f"no Snakemake log written{tail}"
     log = parse_snakemake_log(logs[-1].read_text())
+    # Snakemake names the profile it found; nothing called `slurm` beside the workflow, so it is the user's.
+    assert re.search(r"^Using profiles? slurm\b", console, re.M), f"profile `slurm` not used{tail}"
+    assert not (work / "slurm").exists()
 
     # The failing job makes the whole run fail (exit 1), after everything else was done.
     assert proc.returncode == 1, f"snakemake exit {proc.returncode}, expected 1 (one failed job){tail}"
