@@ -13,7 +13,7 @@
 #   2. writes a munge key and the daemons' state under $CTSPLAT_SLURM_DIR (default /tmp/ctsplat-slurm) and
 #      /etc/slurm/slurm.conf (+ gres.conf) for one node named $(hostname -s): CPUs = nproc, RealMemory = 90 %
 #      of MemTotal, no cgroups (proctrack/linuxproc, task/none), no accounting (accounting_storage/none, so
-#      there is no slurmdbd and `sacct` does not work: use `squeue` for job status), MinJobAge = 600 s so that
+#      there is no slurmdbd and `sacct` does not work: use `squeue` for job status), MinJobAge = 3600 s so that
 #      finished jobs stay visible to `squeue --states=all`, and $CTSPLAT_SLURM_GPUS fake `gpu` GRES
 #      (default nproc, one fake device file each under the state directory; 0 disables them) so jobs asking for `--gpus=1` can be scheduled (no real device behind it);
 #      /etc/slurm/slurm.conf is written only when absent or written by this script before (marker line);
@@ -172,8 +172,8 @@ SchedulerType=sched/builtin
 SelectType=select/cons_tres
 SelectTypeParameters=CR_Core
 ReturnToService=2
-# Keep finished jobs in slurmctld for 10 min: the Snakemake plugin polls them with squeue.
-MinJobAge=600
+# Keep finished jobs in slurmctld for 1 h: the plugin polls them with squeue, the test reads them afterwards.
+MinJobAge=3600
 KillWait=5
 MailProg=/bin/true
 InactiveLimit=0
