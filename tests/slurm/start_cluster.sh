@@ -166,7 +166,6 @@ TaskPlugin=task/none
 JobAcctGatherType=jobacct_gather/none
 AccountingStorageType=accounting_storage/none
 JobCompType=jobcomp/none
-SwitchType=switch/none
 MpiDefault=none
 SchedulerType=sched/builtin
 SelectType=select/cons_tres
