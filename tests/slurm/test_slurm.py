@@ -171,6 +171,8 @@ def test_ablation_grid_runs_through_sbatch(slurm_cluster: Path, tmp_path: Path) 
     profile = _write_profile(xdg / "snakemake" / "slurm")
     gpu_rules = {rule for rule, res in profile["set-resources"].items() if res.get("gpu")}
 
+    # --keep-going on the command line: profiles/default (the workflow profile) sets it false and, applied after
+    # --profile, wins over the profile's keep-going: true.
     cmd = [sys.executable, "-m", "snakemake", *TARGETS, "--configfile", CONFIG, "--profile", "slurm", "--keep-going"]
     env = {**os.environ, "XDG_CONFIG_HOME": str(xdg)}
     with open(tmp_path / "snakemake.out", "w") as out:
