@@ -14,11 +14,12 @@ colour for the alpha compositor), each with its own learning rate decayed by a c
 Adaptive density control every ``densify.interval`` steps within ``[densify.start, densify.stop]``: Gaussians whose
 mean view-space positional gradient (norm of ∂L/∂(u, v) in 3DGS's NDC units, i.e. per-pixel gradient × W/2, H/2)
 exceeds ``densify.grad_threshold`` are cloned when small (max scale
-≤ ``densify.clone_max_scale_voxels`` voxels) or split in two (samples from the Gaussian, scales / 1.6) when large;
-in the radiative compositors both copies get half the density (exact mass conservation for a clone; the split
-follows the method's rule). Then Gaussians with ρ < ``prune_density``, oversized ones (max scale >
-``prune_max_scale_fraction`` × volume extent) and those whose centre left the volume box are pruned; the total is
-capped at ``max_gaussians`` (largest gradients first).
+≤ ``densify.clone_max_scale_voxels`` voxels) or split in two (samples from the Gaussian, scales / 1.6) when large.
+In the radiative compositors mass is conserved: a clone and its original get half the density each; split children
+get ρ·1.6³/2 so the pair carries the parent's mass ``ρ (2π)^{3/2} Π s`` (``densify.split_mass: halve`` gives the
+literal ρ/2 rule, which removes 1 - 2/1.6³ ≈ 76 % of a split Gaussian's mass). Then Gaussians with
+ρ < ``prune_density``, oversized ones (max scale > ``prune_max_scale_fraction`` × volume extent) and those
+whose centre left the volume box are pruned; the total is capped at ``max_gaussians`` (largest gradients first).
 
 Robustness: a non-finite loss or parameter rolls back to the last good state, multiplies the learning rates by
 ``nan_lr_decay`` and is logged; ``nan_max_consecutive`` such events in a row stop the run with a ``CtsplatError``.
@@ -108,6 +109,7 @@ TRAIN_DEFAULTS: dict[str, Any] = {
         "prune_density": 1e-4,
         "prune_max_scale_fraction": 0.2,
         "max_gaussians": 200000,
+        "split_mass": "conserve",  # conserve | halve (radiative compositors; see densify_and_prune)
     },
     "eval_every": 250,
     "eval_views": 8,  # validation views per periodic evaluation (evenly spaced); 0 = all
@@ -141,6 +143,9 @@ def resolve_config(config: dict[str, Any] | None) -> dict[str, Any]:
     if cfg["supervision"] == "transmission" and cfg["compositor"] == "alpha":
         raise CtsplatError("supervision: transmission needs a radiative compositor (alpha images are not "
                            "line integrals)")
+    if cfg["densify"]["split_mass"] not in ("conserve", "halve"):
+        raise CtsplatError(f"unknown train.densify.split_mass {cfg['densify']['split_mass']!r}; allowed: conserve, "
+                           "halve")
     if not cfg["volume"]:
         raise CtsplatError("train.volume is empty: give the preprocessed reference volume (.nii.gz)")
     if not cfg["radiographs"]:
@@ -522,7 +527,11 @@ def densify_and_prune(state: TrainState, cfg: dict[str, Any], scene: Scene, gen:
         radiative = cfg["compositor"] != "alpha"
         new_dens = dens.clone()
         if radiative:
-            new_dens[clone | split] = dens[clone | split] * 0.5
+            new_dens[clone] = dens[clone] * 0.5
+            # each child has (1/1.6)^3 of the parent's volume: "conserve" keeps the pair's mass equal to the
+            # parent's (ρ_child = ρ 1.6^3 / 2); "halve" is the literal rule ρ/2 (loses 76 % of the mass)
+            grow = 1.6**3 if d["split_mass"] == "conserve" else 1.0
+            new_dens[split] = dens[split] * 0.5 * grow
         new_raw = inverse_softplus(new_dens.clamp_min(1e-12))
         # clones: exact copies (half density each in radiative mode)
         ci = torch.nonzero(clone).flatten()

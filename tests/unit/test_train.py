@@ -222,15 +222,24 @@ def test_densify_clone_split_prune_and_cap(scene_dir: Path) -> None:
     # untouched Gaussian keeps its values
     k2 = np.all(np.isclose(m, [-5, 3, 0], atol=1e-6), axis=1)
     assert k2.sum() == 1 and np.isclose(d[k2][0], 0.5, rtol=1e-5)
-    # split: two children with scales / 1.6 and half density, drawn from the parent
+    # split: two children with scales / 1.6 drawn from the parent; together they carry the parent's mass
     kids = np.isclose(s[:, 0], 6 / 1.6, rtol=1e-5)
     assert kids.sum() == 2
     assert np.allclose(s[kids], np.array([6, 4, 4]) / 1.6, rtol=1e-5)
-    assert np.allclose(d[kids], 0.3, rtol=1e-5)
+    mass = d * (2 * np.pi) ** 1.5 * s.prod(-1)
+    assert mass[kids].sum() == pytest.approx(0.6 * (2 * np.pi) ** 1.5 * 96, rel=1e-5)
+    assert mass[at0].sum() == pytest.approx(0.8 * (2 * np.pi) ** 1.5, rel=1e-5)
     assert not np.allclose(m[kids][0], m[kids][1])
     assert st.params["means"].shape[0] == st.grad_accum.shape[0] == 5
     # the optimiser follows the new parameter tensors
     assert all(g_["params"][0] is st.params[g_["name"]] for g_ in st.opt.param_groups)
+
+    # the literal "halve" rule for splits
+    cfg_h = tr.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "split_mass": "halve"}))
+    st_h = _state_from(means[1:2], scales[1:2], dens[1:2], cfg_h)
+    st_h.grad_accum = torch.tensor([3.0])
+    tr.densify_and_prune(st_h, cfg_h, scene, gen)
+    assert np.allclose(torch.nn.functional.softplus(st_h.params["density_raw"]).detach().numpy(), 0.3, rtol=1e-5)
 
     # cap: only the highest-gradient candidate may grow when one slot is left
     cfg2 = tr.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "max_gaussians": 4}))
