@@ -106,7 +106,7 @@ SFM_DEFAULTS: dict[str, Any] = {
     "refine_rounds": 3,
     "prior_sigma_mm": 5.0,  # std of the position prior (mm)
     "orbit_jitter_deg": 0.0,  # true views deviate from the design by N(0, σ) in azimuth and elevation
-    "fix_reversal": True,  # try each model's depth-reversed twin; keep the one matching the designed orbit
+    "fix_reversal": True,  # pose_prior none: try each model's depth-reversed twin, keep the one matching the design
     "merge_models": True,
     "min_shared_images": 3,  # to merge two partial models
     "num_threads": 1,
@@ -346,6 +346,7 @@ def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics
         db_path.unlink()
     with contextlib.suppress(Exception):
         pycolmap.set_random_seed(int(cfg.get("_seed", 0)))
+        pycolmap.logging.minloglevel = 1 if log.isEnabledFor(logging.DEBUG) else 2  # glog: 1 WARNING, 2 ERROR
     ext, mat, ver = _options(cfg)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
@@ -884,7 +885,7 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
     models, stats = colmap_reconstruct(img_dir, names, intrinsics, out_dir / "colmap", cfg,
                                        prior_centres=prior_centres, prior_poses=prior_poses, mask_dir=mask_dir)
     reversal = []
-    if cfg["fix_reversal"] and design is not None and models:
+    if cfg["fix_reversal"] and design is not None and models and prior_centres is None and prior_poses is None:
         reversal = fix_reversal(models, {n: (design[0][i], design[1][i]) for i, n in enumerate(names)}, cfg,
                                 float(cfg["align_inlier_threshold_frac"]) * scale_mm,
                                 work=(out_dir / "colmap" / "database.db", img_dir, out_dir / "colmap" / "twin"))

@@ -113,11 +113,11 @@ def test_aligned_points_are_in_world_mm_inside_the_volume(bead_run) -> None:
 
 
 def test_featureless_volume_records_failure_without_crashing(tmp_path: Path) -> None:
-    aff, (X, Y, Z) = _grid()
-    ball = (X**2 + Y**2 + Z**2 < 60.0**2).astype(np.float32)  # smooth: no features but the silhouette
-    save_volume(Volume(ball, aff, {"volume_id": "ball", "intensity": {"mu_scale_per_mm": 0.02}}),
-                tmp_path / "ball.nii.gz")
-    s = run_sfm(tmp_path / "ball.nii.gz", tmp_path / "out", {**CFG, "n_views": 8, "detector_px": 64})
+    aff, _ = _grid()
+    empty = np.zeros((N, N, N), np.float32)  # nothing to see: no features, no registration
+    save_volume(Volume(empty, aff, {"volume_id": "empty", "intensity": {"mu_scale_per_mm": 0.02}}),
+                tmp_path / "empty.nii.gz")
+    s = run_sfm(tmp_path / "empty.nii.gz", tmp_path / "out", {**CFG, "n_views": 8, "detector_px": 64})
     assert s["ok"] is False
     assert s["registration_rate"] < SFM_DEFAULTS["min_registration_rate"]
     assert "registration rate" in s["reason"]
