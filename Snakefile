@@ -5,7 +5,10 @@ from snakemake.utils import min_version
 min_version("9")
 
 
-configfile: "config/config.yaml"
+# The default grid, unless a config was given (--configfile/--config replace it rather than merge into it).
+if not config:
+
+    configfile: f"{workflow.basedir}/config/config.yaml"
 
 
 include: "workflow/rules/common.smk"

@@ -322,7 +322,16 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
             f"invalid config at baselines.geometry: {cfg['baselines']['geometry']!r} is not a radiographs geometry "
             f"(defined: {', '.join(geometries)})"
         )
-    expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
+    runs = expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
+    geo = cfg["radiographs"][cfg["grid"]["geometry"]]
+    # circular orbits have exactly n_views training angles; a sphere splits n_views into train/val/test
+    available = geo["n_views"] if geo["orbit"] == "circular" else int(geo["n_views"] * geo["split"]["train"])
+    if int(runs["views"].max()) > available:
+        raise CtsplatError(
+            f"invalid config at grid.axes.views: {int(runs['views'].max())} training views requested but geometry "
+            f"{cfg['grid']['geometry']!r} has only about {available} training views; raise "
+            f"radiographs.{cfg['grid']['geometry']}.n_views or lower the views axis"
+        )
     return cfg
 
 

@@ -166,3 +166,11 @@ def test_baselines_geometry_defaults_to_grid_geometry_and_must_exist():
     assert cfg["baselines"]["geometry"] == "circ" and cfg["grid"]["geometry"] == "sph"
     with pytest.raises(CtsplatError, match="baselines.geometry: 'nope' is not a radiographs geometry"):
         an.prepare_config({"baselines": {"geometry": "nope"}})
+
+
+def test_views_axis_must_fit_the_training_geometry():
+    with pytest.raises(CtsplatError, match="grid.axes.views: 60 training views requested but geometry 'circular'"):
+        an.prepare_config({"radiographs": {"circular": {"n_views": 50}}, "grid": {"axes": {"views": [25, 60]}}})
+    an.prepare_config({"radiographs": {"circular": {"n_views": 60}}, "grid": {"axes": {"views": [25, 60]}}})
+    with pytest.raises(CtsplatError, match="has only about 70 training views"):
+        an.prepare_config({"radiographs": {"s": {"orbit": "sphere", "n_views": 100}}, "grid": {"axes": {"views": [80]}}})
