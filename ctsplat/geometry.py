@@ -631,7 +631,7 @@ def sphere_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: float
 
 def circular_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: float, *,
                    split_fractions: dict[str, float] | None = None, wobble_deg: float = 0.0,
-                   start_deg: float = 0.0, seed: int = 0) -> list[View]:
+                   start_deg: float = 0.0, seed: int = 0, arc_deg: float = 360.0) -> list[View]:
     """Classical CT protocol: ``n_views`` training angles evenly over 360 deg plus random held-out angles.
 
     Training view ``k`` has azimuth ``start + 360 k / n_views`` about the world +z (axial) axis, so the
@@ -640,7 +640,14 @@ def circular_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: flo
     whole set follows ``split_fractions`` (train fraction = ``n_views`` / total; default 70/15/15, e.g.
     50 train + 11 val + 10 test). ``wobble_deg > 0`` adds an elevation ``wobble * sin(2 azimuth)`` to all
     views (a non-planar orbit; not usable for slice-wise FBP).
+
+    ``arc_deg`` (default 360) is the angular range of the training angles (``start + arc k / n_views``)
+    and of the held-out sectors. For *parallel* beams the views at ``a`` and ``a + 180`` are mirror images,
+    so over 360 deg an even ``n_views`` gives only ``n_views / 2`` distinct directions while an odd one
+    gives ``n_views`` interleaved ones; ``arc_deg=180`` gives ``n_views`` distinct directions for any count.
     """
+    if not 0 < arc_deg <= 360:
+        raise CtsplatError(f"arc_deg {arc_deg} must be in (0, 360]")
     if int(n_views) <= 0:
         raise CtsplatError(f"n_views must be a positive integer, got {n_views!r} (empty view set)")
     if abs(wobble_deg) >= 90:
@@ -658,12 +665,12 @@ def circular_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: flo
             raise CtsplatError(f"split leaves '{s}' empty: {n} training views with fractions {fr}; "
                                f"use more views or set {s}: 0")
     rng = np.random.default_rng(seed)
-    az = [np.mod(start_deg + 360.0 * np.arange(n) / n, 360.0)]
+    az = [np.mod(start_deg + arc_deg * np.arange(n) / n, 360.0)]
     splits = ["train"] * n
     for s in ("val", "test"):
         m = held[s]
         if m:
-            az.append(np.mod(start_deg + 360.0 * (np.arange(m) + rng.uniform(0, 1, m)) / m, 360.0))
+            az.append(np.mod(start_deg + arc_deg * (np.arange(m) + rng.uniform(0, 1, m)) / m, 360.0))
             splits += [s] * m
     azimuth = np.concatenate(az)
     elevation = wobble_deg * np.sin(np.radians(2.0 * azimuth)) if wobble_deg else np.zeros_like(azimuth)

@@ -58,6 +58,7 @@ __all__ = [
     "add_noise",
     "build_view_set",
     "render_radiographs",
+    "write_radiographs",
     "load_radiographs",
 ]
 
@@ -425,8 +426,6 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
     ``exp(-p)``) and ``radiographs.json`` (provenance: config, seed, code version, volume id, field-of-view
     check, statistics, timing). Every file is written under a temporary name first.
     """
-    import imageio.v3 as iio
-    import tifffile
 
     from ctsplat.volume import load_volume
 
@@ -454,6 +453,29 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
         p, _ = add_noise(p, float(noise["i0"]), float(noise["electronic_sigma"]), rng)
     p = np.ascontiguousarray(p, dtype=np.float32)
 
+    write_radiographs(out_dir, p, view_set, {
+        "config": cfg, "seed": int(seed), "code_version": code_version(), "volume_path": str(volume_path),
+        "volume_id": volume.volume_id, "mu_scale_per_mm": volume.mu_scale_per_mm,
+        "fov_outside_fraction_worst_view": fov_outside, "projection_seconds": seconds, "device": str(device),
+    })
+    log.info("rendered %d views of %s in %.1f s -> %s", len(view_set), volume.volume_id, seconds, out_dir)
+    return view_set
+
+
+def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, provenance: dict[str, Any]) -> None:
+    """Write the radiograph files of a view set: ``line_integrals.tif`` (float32 pages [V, H, W]),
+    ``png/view_{id:04d}.png`` (16-bit transmission ``exp(-p)``), ``views.json`` and ``radiographs.json``
+    (``provenance`` plus view counts, camera and statistics). Each file appears complete or not at all.
+    """
+    import imageio.v3 as iio
+    import tifffile
+
+    p = np.ascontiguousarray(p, dtype=np.float32)
+    cam = view_set.camera
+    if p.shape != (len(view_set), cam.height, cam.width):
+        raise CtsplatError(f"images of shape {p.shape} do not match the view set "
+                           f"({len(view_set)}, {cam.height}, {cam.width})")
+    out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_dir / "line_integrals.tif") as tmp:
         tifffile.imwrite(tmp, p, photometric="minisblack", metadata={"axes": "QYX"})
@@ -469,16 +491,12 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
             shutil.rmtree(tmp_png)
     view_set.save(out_dir / "views.json")
     write_json_atomic(out_dir / "radiographs.json", {
-        "config": cfg, "seed": int(seed), "code_version": code_version(), "volume_path": str(volume_path),
-        "volume_id": volume.volume_id, "mu_scale_per_mm": volume.mu_scale_per_mm,
+        "code_version": code_version(), **provenance,
         "n_views": len(view_set), "splits": {s: int(len(view_set.indices(s))) for s in ("train", "val", "test")},
-        "camera": view_set.camera.to_dict(), "fov_outside_fraction_worst_view": fov_outside,
+        "camera": cam.to_dict(),
         "line_integral_stats": {"min": float(p.min()), "max": float(p.max()), "mean": float(p.mean())},
-        "projection_seconds": seconds, "device": str(device),
         "units": "line integrals of mu in 1/mm (dimensionless); png = 16-bit transmission exp(-p)",
     })
-    log.info("rendered %d views of %s in %.1f s -> %s", len(view_set), volume.volume_id, seconds, out_dir)
-    return view_set
 
 
 def load_radiographs(out_dir: str | Path) -> tuple[np.ndarray, ViewSet]:

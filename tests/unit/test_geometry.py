@@ -173,6 +173,11 @@ def test_circular_orbit_train_angles_even_and_heldout_random():
     wob = circular_orbit(40, ISO, 400.0, wobble_deg=10.0)
     el = np.array([v.elevation_deg for v in wob if v.split == "train"])  # train azimuths include 45, 135, ...
     assert el.max() == pytest.approx(10.0) and el.min() == pytest.approx(-10.0)
+    half = circular_orbit(20, ISO, 400.0, arc_deg=180.0, seed=1)
+    np.testing.assert_allclose([v.azimuth_deg for v in half if v.split == "train"], np.arange(20) * 9.0)
+    assert max(v.azimuth_deg for v in half) < 180.0
+    with pytest.raises(CtsplatError, match="arc_deg"):
+        circular_orbit(20, ISO, 400.0, arc_deg=0.0)
     no_hold = circular_orbit(10, ISO, 400.0, split_fractions={"train": 1.0, "val": 0, "test": 0})
     assert [v.split for v in no_hold] == ["train"] * 10
 
