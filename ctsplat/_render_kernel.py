@@ -40,7 +40,8 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "splat_additive_kernel", "SplatAdditive", "ProjectAdditive", "AlphaComposite", "camera_vector"]
+__all__ = ["available", "splat_additive_kernel", "SplatAdditive", "ProjectAdditive", "AlphaComposite", "VoxelizeKernel",
+           "camera_vector"]
 
 _SRC = r"""
 #include <math.h>
@@ -491,6 +492,92 @@ static void alpha_bwd(int64_t n, int64_t H, int64_t W, int C, const int64_t* off
 extern "C" void alpha_lists_c(int64_t n, const int64_t* order, const int64_t* bb, int64_t H, int64_t W,
                               int64_t* offsets, int32_t* ids) { alpha_lists(n, order, bb, H, W, offsets, ids); }
 
+// ---------------------------------------------------------------- voxelizer (mu on a grid)
+// affine: A (row-major 3x3) then b (3), voxel (i,j,k) -> A (i,j,k) + b; rows along k are contiguous in the output
+template <typename T>
+static void vox_fwd(int64_t n, const T* means, const T* p6, const T* dens, const int64_t* lo, const int64_t* ext,
+                    const double* aff, const int64_t* origin, const int64_t* shape, T* out, int nthreads) {
+    int nt = nthreads < 1 ? 1 : nthreads;
+    const int64_t nvox = shape[0] * shape[1] * shape[2];
+    if (n < 4096 || nvox > ((int64_t)1 << 27)) nt = 1;  // per-thread grids only while they are small
+    std::vector<T> bufs(nt > 1 ? (size_t)(nt - 1) * (size_t)nvox : 0, (T)0);
+    parallel_for(n, nt, [&](int64_t i0, int64_t i1, int tid) {
+        T* grid = tid == 0 ? out : bufs.data() + (size_t)(tid - 1) * (size_t)nvox;
+        for (int64_t i = i0; i < i1; ++i) {
+            const T* P = p6 + 6 * i;
+            const T w[3] = {(T)aff[2], (T)aff[5], (T)aff[8]};
+            const T Pw0 = P[0] * w[0] + P[3] * w[1] + P[4] * w[2];
+            const T Pw1 = P[3] * w[0] + P[1] * w[1] + P[5] * w[2];
+            const T Pw2 = P[4] * w[0] + P[5] * w[1] + P[2] * w[2];
+            const T wPw = w[0] * Pw0 + w[1] * Pw1 + w[2] * Pw2;
+            for (int64_t a = 0; a < ext[3 * i]; ++a)
+                for (int64_t b = 0; b < ext[3 * i + 1]; ++b) {
+                    const int64_t ii = lo[3 * i] + a, jj = lo[3 * i + 1] + b, kk = lo[3 * i + 2];
+                    T d[3];
+                    for (int r = 0; r < 3; ++r)
+                        d[r] = (T)(aff[3 * r] * ii + aff[3 * r + 1] * jj + aff[3 * r + 2] * kk + aff[9 + r])
+                               - means[3 * i + r];
+                    const T q0 = P[0] * d[0] * d[0] + P[1] * d[1] * d[1] + P[2] * d[2] * d[2]
+                                 + 2 * (P[3] * d[0] * d[1] + P[4] * d[0] * d[2] + P[5] * d[1] * d[2]);
+                    const T q1 = 2 * (d[0] * Pw0 + d[1] * Pw1 + d[2] * Pw2);
+                    const int64_t flat = ((ii - origin[0]) * shape[1] + (jj - origin[1])) * shape[2] + (kk - origin[2]);
+                    // q(c) = q0 + q1 c + wPw c^2 ; value = rho exp(-q/2)
+                    row_fwd<T>(grid + flat, (int)ext[3 * i + 2], (T)0, wPw, (T)(-0.5) * q1, (T)(-0.5) * q0, dens[i]);
+                }
+        }
+    });
+    for (int k = 1; k < nt; ++k) {
+        const T* b = bufs.data() + (size_t)(k - 1) * (size_t)nvox;
+        for (int64_t p = 0; p < nvox; ++p) out[p] += b[p];
+    }
+}
+
+template <typename T>
+static void vox_bwd(int64_t n, const T* means, const T* p6, const T* dens, const int64_t* lo, const int64_t* ext,
+                    const double* aff, const int64_t* origin, const int64_t* shape, const T* gout, T* gmeans, T* gp6,
+                    T* gdens, int nt) {
+    parallel_for(n, nt, [&](int64_t i0, int64_t i1, int) {
+        for (int64_t i = i0; i < i1; ++i) {
+            const T* P = p6 + 6 * i;
+            const T w[3] = {(T)aff[2], (T)aff[5], (T)aff[8]};
+            const T Pw0 = P[0] * w[0] + P[3] * w[1] + P[4] * w[2];
+            const T Pw1 = P[3] * w[0] + P[1] * w[1] + P[5] * w[2];
+            const T Pw2 = P[4] * w[0] + P[5] * w[1] + P[2] * w[2];
+            const T wPw = w[0] * Pw0 + w[1] * Pw1 + w[2] * Pw2;
+            double S = 0, Sd[3] = {0, 0, 0}, Sdd[6] = {0, 0, 0, 0, 0, 0};  // sums of g e, g e d, g e d d^T
+            for (int64_t a = 0; a < ext[3 * i]; ++a)
+                for (int64_t b = 0; b < ext[3 * i + 1]; ++b) {
+                    const int64_t ii = lo[3 * i] + a, jj = lo[3 * i + 1] + b, kk = lo[3 * i + 2];
+                    T d[3];
+                    for (int r = 0; r < 3; ++r)
+                        d[r] = (T)(aff[3 * r] * ii + aff[3 * r + 1] * jj + aff[3 * r + 2] * kk + aff[9 + r])
+                               - means[3 * i + r];
+                    const T q0 = P[0] * d[0] * d[0] + P[1] * d[1] * d[1] + P[2] * d[2] * d[2]
+                                 + 2 * (P[3] * d[0] * d[1] + P[4] * d[0] * d[2] + P[5] * d[1] * d[2]);
+                    const T q1 = 2 * (d[0] * Pw0 + d[1] * Pw1 + d[2] * Pw2);
+                    const int64_t flat = ((ii - origin[0]) * shape[1] + (jj - origin[1])) * shape[2] + (kk - origin[2]);
+                    T r3[3];  // sums over c of g e, g e c, g e c^2
+                    row_bwd<T>(gout + flat, (int)ext[3 * i + 2], (T)0, wPw, (T)(-0.5) * q1, (T)(-0.5) * q0, r3);
+                    const double s0 = r3[0], s1 = r3[1], s2 = r3[2];
+                    S += s0;
+                    for (int r = 0; r < 3; ++r) Sd[r] += s0 * d[r] + s1 * w[r];
+                    const int pr[6][2] = {{0, 0}, {1, 1}, {2, 2}, {0, 1}, {0, 2}, {1, 2}};
+                    for (int e = 0; e < 6; ++e) {
+                        const int x = pr[e][0], y = pr[e][1];
+                        Sdd[e] += s0 * d[x] * d[y] + s1 * (d[x] * w[y] + w[x] * d[y]) + s2 * w[x] * w[y];
+                    }
+                }
+            const double rho = dens[i];
+            gdens[i] = (T)S;
+            // v = rho exp(-q/2), q = d^T P d, d = x - m:  dv/dm = rho e P d ; dv/dP_xy = -rho e d_x d_y (x != y: twice)
+            gmeans[3 * i] = (T)(rho * (P[0] * Sd[0] + P[3] * Sd[1] + P[4] * Sd[2]));
+            gmeans[3 * i + 1] = (T)(rho * (P[3] * Sd[0] + P[1] * Sd[1] + P[5] * Sd[2]));
+            gmeans[3 * i + 2] = (T)(rho * (P[4] * Sd[0] + P[5] * Sd[1] + P[2] * Sd[2]));
+            for (int e = 0; e < 6; ++e) gp6[6 * i + e] = (T)(-0.5 * rho * Sdd[e] * (e < 3 ? 1.0 : 2.0));
+        }
+    });
+}
+
 #define EXPORT(T, SUF)                                                                                          \
 extern "C" void splat_fwd_##SUF(int64_t n, const T* m, const T* c, const T* a, const int64_t* bb, int64_t H,     \
                                 int64_t W, T* out, int nt) { splat_fwd<T>(n, m, c, a, bb, H, W, out, nt); }      \
@@ -511,7 +598,14 @@ extern "C" void alpha_fwd_##SUF(int64_t H, int64_t W, int C, const int64_t* off,
 extern "C" void alpha_bwd_##SUF(int64_t n, int64_t H, int64_t W, int C, const int64_t* off, const int32_t* ids,  \
                                 const T* al, const T* m, const T* con, const T* op, const T* col, const T* g,   \
                                 T* gm, T* gc, T* gop, T* gcol, int nt) {                                        \
-    alpha_bwd<T>(n, H, W, C, off, ids, al, m, con, op, col, g, gm, gc, gop, gcol, nt); }
+    alpha_bwd<T>(n, H, W, C, off, ids, al, m, con, op, col, g, gm, gc, gop, gcol, nt); }                        \
+extern "C" void vox_fwd_##SUF(int64_t n, const T* m, const T* p6, const T* d, const int64_t* lo, const int64_t* ext, \
+                              const double* aff, const int64_t* org, const int64_t* shp, T* out, int nt) {      \
+    vox_fwd<T>(n, m, p6, d, lo, ext, aff, org, shp, out, nt); }                                                 \
+extern "C" void vox_bwd_##SUF(int64_t n, const T* m, const T* p6, const T* d, const int64_t* lo, const int64_t* ext, \
+                              const double* aff, const int64_t* org, const int64_t* shp, const T* g, T* gm,     \
+                              T* gp6, T* gd, int nt) {                                                          \
+    vox_bwd<T>(n, m, p6, d, lo, ext, aff, org, shp, g, gm, gp6, gd, nt); }
 
 EXPORT(float, f32)
 EXPORT(double, f64)
@@ -553,7 +647,7 @@ def _build() -> ctypes.CDLL:
     lib = ctypes.CDLL(str(out))
     lib.alpha_lists_c.restype = None
     for suf in ("f32", "f64"):
-        for name in ("splat_fwd", "splat_bwd", "proj_fwd", "proj_bwd", "alpha_fwd", "alpha_bwd"):
+        for name in ("splat_fwd", "splat_bwd", "proj_fwd", "proj_bwd", "alpha_fwd", "alpha_bwd", "vox_fwd", "vox_bwd"):
             getattr(lib, f"{name}_{suf}").restype = None
     return lib
 
@@ -740,6 +834,42 @@ class AlphaComposite(torch.autograd.Function):
             ctypes.c_int(torch.get_num_threads()),
         )
         return gm, gc, go, gcol, None, None, None, None
+
+
+class VoxelizeKernel(torch.autograd.Function):
+    """``μ`` on a grid: each Gaussian adds ``ρ exp(-½ dᵀ P d)`` over its voxel box (rows along k vectorised);
+    hand-written backward (see the C++ comments). Same inputs as :class:`ctsplat.render._Voxelize` minus chunking:
+    memory is the output grid (plus one per-thread grid while it is below 2^27 voxels) and O(N)."""
+
+    @staticmethod
+    def forward(ctx, means, prec6, dens, lo, ext, affine, origin, out_shape):  # noqa: ANN001
+        lib = _get_lib()
+        if lib is None:
+            raise RuntimeError(f"render kernel unavailable: {_failed}")
+        dt = means.dtype
+        m, p, d = (t.detach().to(dt).contiguous() for t in (means, prec6, dens))
+        lo_, ext_ = lo.to(torch.int64).contiguous(), ext.to(torch.int64).contiguous()
+        aff = torch.cat([affine[:3, :3].reshape(-1), affine[:3, 3]]).to(torch.float64).contiguous()
+        org = origin.to(torch.int64).contiguous()
+        shp = torch.tensor(out_shape, dtype=torch.int64)
+        out = torch.zeros(int(shp.prod()), dtype=dt)
+        getattr(lib, f"vox_fwd_{_suffix(dt)}")(
+            _i64(m.shape[0]), _ptr(m), _ptr(p), _ptr(d), _ptr(lo_), _ptr(ext_), _ptr(aff), _ptr(org), _ptr(shp),
+            _ptr(out), ctypes.c_int(torch.get_num_threads()),
+        )
+        ctx.save_for_backward(m, p, d, lo_, ext_, aff, org, shp)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):  # noqa: ANN001
+        m, p, d, lo_, ext_, aff, org, shp = ctx.saved_tensors
+        g = grad_out.to(m.dtype).contiguous()
+        gm, gp, gd = torch.empty_like(m), torch.empty_like(p), torch.empty_like(d)
+        getattr(_get_lib(), f"vox_bwd_{_suffix(m.dtype)}")(
+            _i64(m.shape[0]), _ptr(m), _ptr(p), _ptr(d), _ptr(lo_), _ptr(ext_), _ptr(aff), _ptr(org), _ptr(shp),
+            _ptr(g), _ptr(gm), _ptr(gp), _ptr(gd), ctypes.c_int(torch.get_num_threads()),
+        )
+        return gm, gp, gd, None, None, None, None, None
 
 
 def camera_vector(cam: dict, R: torch.Tensor, t: torch.Tensor, k2: float, near: float, cutoff: float) -> torch.Tensor:

@@ -677,6 +677,7 @@ def voxelize(
     region: tuple[tuple[int, int], tuple[int, int], tuple[int, int]] | None = None,
     filter_3d_var: torch.Tensor | None = None,
     sigma_cutoff: float = 3.0,
+    backend: str = "auto",
 ) -> torch.Tensor:
     """Differentiable ``μ(x) = Σ ρ_i exp(-½ (x-m_i)ᵀ Σ_i⁻¹ (x-m_i))`` at voxel centres ``affine @ [i, j, k, 1]``.
 
@@ -692,6 +693,9 @@ def voxelize(
     region : ((i0, i1), (j0, j1), (k0, k1)) or None
         Evaluate only this half-open sub-volume (see :func:`random_region`); output has the region's shape.
     filter_3d_var : (N,) or None — apply the mass-conserving 3D filter (as in :func:`render`).
+    backend : "auto" | "reference" | "kernel"
+        "auto": the fused C++ kernel on CPU when available (hand-written backward, memory = output grid + O(N);
+        ``chunk`` is then unused), else the chunked PyTorch reference.
 
     Returns
     -------
@@ -747,7 +751,20 @@ def voxelize(
     sel = keep
     prec6 = torch.stack([inv_cov[:, 0, 0], inv_cov[:, 1, 1], inv_cov[:, 2, 2], inv_cov[:, 0, 1], inv_cov[:, 0, 2],
                          inv_cov[:, 1, 2]], -1)
-    out = _Voxelize.apply(means[sel], prec6[sel], dens[sel], lo[sel], ext[sel], bounds, A, reg[:, 0], out_shape)
+    use_kernel = False
+    if backend not in ("auto", "reference", "kernel"):
+        raise CtsplatError(f"unknown voxelize backend {backend!r}; expected auto, reference or kernel")
+    if backend != "reference" and dev.type == "cpu":
+        from ctsplat import _render_kernel
+
+        use_kernel = _render_kernel.available() if backend == "auto" else True
+    if use_kernel:
+        from ctsplat._render_kernel import VoxelizeKernel
+
+        out = VoxelizeKernel.apply(means[sel], prec6[sel], dens[sel], lo[sel], ext[sel], A, reg[:, 0], out_shape)
+    else:
+        out = _Voxelize.apply(means[sel], prec6[sel], dens[sel], lo[sel], ext[sel], bounds, A, reg[:, 0],
+                              out_shape)
     return out.reshape(out_shape)
 
 

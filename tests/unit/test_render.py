@@ -408,31 +408,38 @@ def _dense_field(g: Gaussians, shape, affine) -> torch.Tensor:
     return (g.densities * torch.exp(-0.5 * q)).sum(-1)
 
 
-def test_voxelize_matches_dense_evaluation_and_chunks_and_regions():
+@pytest.mark.parametrize("backend", ["reference", "kernel"])
+def test_voxelize_matches_dense_evaluation_and_chunks_and_regions(backend):
+    from ctsplat import _render_kernel
+
+    if backend == "kernel" and not _render_kernel.available():
+        pytest.skip(f"C kernel unavailable: {_render_kernel._failed}")
     g = _mixture(12, seed=5, spread=6.0, smin=0.6, smax=2.5)
     shape = (20, 18, 16)
     affine = np.array([[0.0, 0.9, 0.0, -8.0], [0.8, 0.0, 0.1, -7.0], [0.0, 0.0, 1.1, -9.0], [0, 0, 0, 1.0]])
-    for p in ("means", "log_scales", "quats", "density_raw"):
-        getattr(g, p).requires_grad_(True)
-    ref = _dense_field(g, shape, affine)
-    full = voxelize(g, shape, affine, sigma_cutoff=8.0)
-    torch.testing.assert_close(full, ref, rtol=1e-10, atol=1e-12)
-    chunked = voxelize(g, shape, affine, sigma_cutoff=8.0, chunk=500)
-    torch.testing.assert_close(chunked, ref, rtol=1e-10, atol=1e-12)
-    w = torch.rand(shape, generator=torch.Generator().manual_seed(1), dtype=D64)
     params = [g.means, g.log_scales, g.quats, g.density_raw]
+    for p in params:
+        p.requires_grad_(True)
+    ref = _dense_field(g, shape, affine)
+    w = torch.rand(shape, generator=torch.Generator().manual_seed(1), dtype=D64)
     g_ref = torch.autograd.grad((ref * w).sum(), params)
-    g_chk = torch.autograd.grad((chunked * w).sum(), params)
-    for a, b in zip(g_ref, g_chk, strict=True):
-        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10)
+    for chunk in (1_000_000, 500):  # one chunk, many chunks (reference path)
+        vol = voxelize(g, shape, affine, sigma_cutoff=8.0, chunk=chunk, backend=backend)
+        torch.testing.assert_close(vol, ref, rtol=1e-10, atol=1e-12)
+        for a, b in zip(g_ref, torch.autograd.grad((vol * w).sum(), params), strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10)
     region = ((3, 11), (0, 7), (5, 16))
-    sub = voxelize(g, shape, affine, sigma_cutoff=8.0, region=region, chunk=700)
+    sub = voxelize(g, shape, affine, sigma_cutoff=8.0, region=region, chunk=700, backend=backend)
     torch.testing.assert_close(sub, ref[3:11, 0:7, 5:16], rtol=1e-10, atol=1e-12)
     # the default 3σ cut only drops values below exp(-4.5) of each Gaussian's peak
-    cut = voxelize(g, shape, affine)
+    cut = voxelize(g, shape, affine, backend=backend)
     assert float((ref - cut).detach().abs().max()) <= float(g.densities.detach().sum()) * math.exp(-4.5)
     with pytest.raises(CtsplatError, match="region"):
-        voxelize(g, shape, affine, region=((0, 30), (0, 5), (0, 5)))
+        voxelize(g, shape, affine, region=((0, 30), (0, 5), (0, 5)), backend=backend)
+    # float32 kernel vs float64 reference
+    g32 = g.detach().to(dtype=torch.float32)
+    v32 = voxelize(g32, shape, affine, sigma_cutoff=8.0, backend=backend)
+    torch.testing.assert_close(v32.double(), ref.detach(), rtol=1e-4, atol=1e-5)
 
 
 def test_voxelize_with_3d_filter_conserves_mass():
