@@ -173,7 +173,9 @@ def all_logs():
 def all_baselines():
     if not baselines_enabled():
         return []
-    return [f"{RESULTS}/{v}/baselines/{BASELINE_GEOMETRY}/baselines.csv" for v in VOLUMES]
+    return [
+        f"{RESULTS}/{v}/baselines/{BASELINE_GEOMETRY}/baselines.csv" for v in VOLUMES
+    ]
 
 
 def analysis_outputs():
