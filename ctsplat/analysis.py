@@ -302,8 +302,10 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
     """Everything the workflow checks at parse time, before any job runs.
 
     Validates against the schema (defaults filled; its library sections mirror the modules' DEFAULTS, see
-    :func:`check_library_sections` for the import-time check), checks volume sources exist, resolves ``grid.geometry`` and checks it names a radiographs geometry, and
-    expands the grid (zero runs is an error). Returns the filled config with ``grid.geometry`` set.
+    :func:`check_library_sections` for the import-time check), checks volume sources exist, resolves
+    ``grid.geometry`` and ``baselines.geometry`` (null = the first radiographs geometry / the grid's), expands the
+    grid (zero runs is an error) and checks the largest ``views`` value fits the training geometry. Returns the
+    filled config.
     """
     cfg = validate_config(config)  # library sections are mirrored in the schema: no heavy imports at parse time
     check_volume_sources(cfg["volumes"], base_dir)

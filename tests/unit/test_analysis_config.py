@@ -173,4 +173,5 @@ def test_views_axis_must_fit_the_training_geometry():
         an.prepare_config({"radiographs": {"circular": {"n_views": 50}}, "grid": {"axes": {"views": [25, 60]}}})
     an.prepare_config({"radiographs": {"circular": {"n_views": 60}}, "grid": {"axes": {"views": [25, 60]}}})
     with pytest.raises(CtsplatError, match="has only about 70 training views"):
-        an.prepare_config({"radiographs": {"s": {"orbit": "sphere", "n_views": 100}}, "grid": {"axes": {"views": [80]}}})
+        an.prepare_config({"radiographs": {"s": {"orbit": "sphere", "n_views": 100}},
+                           "grid": {"axes": {"views": [80]}}})

@@ -8,7 +8,6 @@ import subprocess
 import sys
 
 import pytest
-
 from smk_helpers import ROOT, SNAKEFILE, job_counts, snakemake, write_config
 
 pytestmark = pytest.mark.workflow
