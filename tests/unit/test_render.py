@@ -484,3 +484,21 @@ def test_kernel_builds_when_a_compiler_exists_and_is_deterministic():
             runs.append((out.image.detach(), grad))
     for (a, ga), (b, gb) in zip(runs[:2], runs[2:], strict=True):
         assert torch.equal(a, b) and torch.equal(ga, gb)
+
+
+@pytest.mark.parametrize("backend", ["reference", "auto"])
+def test_alpha_sh_colour_depends_on_view_direction(backend):
+    from ctsplat.gaussians import eval_sh
+
+    g = Gaussians.from_values([[0.0, 0.0, 0.0]], 1.0, 1.0, opacities=0.8, colors=[[0.5, 0.4, 0.3]], sh_degree=1,
+                              dtype=D64)
+    g.sh_rest[0] = torch.tensor([[0.2, 0.0, -0.1], [0.0, 0.3, 0.0], [-0.2, 0.1, 0.1]], dtype=D64)
+    cam = ParallelCamera(15, 15, 0.5)  # odd size: the mean projects onto the centre of pixel (7, 7)
+    seen = []
+    for az, el in ((0.0, 0.0), (90.0, 30.0), (200.0, -40.0)):
+        R, t = _pose(az, el)
+        img = render(g, cam, R, t, compositor="alpha", backend=backend).image
+        expected = (torch.tensor([[0.5, 0.4, 0.3]], dtype=D64) + eval_sh(g.sh_rest, R[2][None])).clamp_min(0)[0]
+        torch.testing.assert_close(img[7, 7], 0.8 * expected)  # α = o at the centre (no low-pass loss there)
+        seen.append(img[7, 7])
+    assert float((seen[0] - seen[1]).abs().max()) > 0.05
