@@ -273,7 +273,9 @@ class Gaussians:
                 raise CtsplatError(f"Gaussians.{name} has shape {tuple(t.shape)}, expected {shapes[name]}")
             if name in ("colors", "sh_rest") and t.shape[0] != n:
                 raise CtsplatError(f"Gaussians.{name} has {t.shape[0]} rows, expected {n}")
-            if t.numel() and not bool(torch.isfinite(t).all()):
+            # fast path: a finite sum proves there is no NaN/Inf (both propagate); overflow falls through to the
+            # exact element-wise check
+            if t.numel() and not bool(torch.isfinite(t.detach().sum())) and not bool(torch.isfinite(t).all()):
                 bad = int((~torch.isfinite(t)).reshape(t.shape[0], -1).any(-1).nonzero()[0, 0])
                 raise CtsplatError(
                     f"Gaussians.{name} contains NaN/Inf (first at index {bad}); "
