@@ -30,6 +30,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import hashlib
+import logging
 import os
 import platform
 import shutil
@@ -665,6 +666,10 @@ def _get_lib() -> ctypes.CDLL | None:
                     _lib = _build()
                 except (OSError, RuntimeError) as exc:
                     _failed = str(exc)
+                    logging.getLogger(__name__).warning(
+                        "fused render kernels unavailable (%s); using the slower PyTorch reference renderer. "
+                        "Set CTSPLAT_CACHE to a writable folder or install a C++ compiler.", _failed.splitlines()[0]
+                    )
     return _lib
 
 
