@@ -282,9 +282,12 @@ def _colmap_train(cfg: dict[str, Any], volume: Any, mu_scale: float) -> tuple[Vi
         from ctsplat.projector import line_integrals
         from ctsplat.sfm import SFM_DEFAULTS, design_orbit
 
-        scfg = merge_config("sfm", summary.get("config", {}), SFM_DEFAULTS)
+        scfg = {**SFM_DEFAULTS, **summary.get("config", {})}
+        kw = {}
+        if "orbit_jitter_deg" in scfg:  # the true (jittered) orbit of the sfm step, seeded by its seed
+            kw = {"jitter_deg": float(scfg["orbit_jitter_deg"]), "seed": int(summary.get("seed", 0))}
         orbit = design_orbit(int(scfg["n_views"]), float(scfg["arc_deg"]), float(scfg["wobble_deg"]),
-                             float(scfg["wobble_cycles"]), float(scfg["dso_mm"]), volume.center_mm())
+                             float(scfg["wobble_cycles"]), float(scfg["dso_mm"]), volume.center_mm(), **kw)
         mu = torch.from_numpy(np.asarray(volume.data, np.float32) * mu_scale)
         with torch.no_grad():
             p = line_integrals(mu, torch.from_numpy(np.asarray(volume.affine, np.float64)), aligned.camera,

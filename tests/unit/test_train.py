@@ -448,3 +448,35 @@ def test_cli_train_and_evaluate(scene_dir: Path, tmp_path: Path, capsys) -> None
     rc = main(["train", "--config", str(tmp_path / "c.yaml"), "--out", str(tmp_path / "r2"), "--set", "bogus=1"])
     assert rc == 2
     assert "unknown config key train.bogus" in capsys.readouterr().err
+
+
+def test_colmap_targets_rerendered_at_true_poses(scene_dir: Path, tmp_path: Path) -> None:
+    """Without views.json/line_integrals.tif in the sfm folder, the targets are re-rendered on the sfm step's
+    true orbit (its config + seed) with the projector; unregistered views are dropped."""
+    from ctsplat.geometry import ConeCamera, View, ViewSet
+    from ctsplat.projector import line_integrals
+    from ctsplat.sfm import SFM_DEFAULTS, design_orbit
+    from ctsplat.volume import load_volume
+
+    vol = load_volume(scene_dir / "volume.nii.gz")
+    scfg = {"n_views": 8, "detector_px": 24, "dso_mm": 200.0, "dsd_mm": 300.0}
+    full = {**SFM_DEFAULTS, **scfg}
+    kw = {"jitter_deg": float(full["orbit_jitter_deg"]), "seed": 3} if "orbit_jitter_deg" in full else {}
+    orbit = design_orbit(8, float(full["arc_deg"]), float(full["wobble_deg"]), float(full["wobble_cycles"]), 200.0,
+                         vol.center_mm(), **kw)
+    cam = ConeCamera(24, 24, 2.5, 200.0, 300.0)
+    keep = [0, 1, 3, 4, 6, 7]
+    views = [View(i, orbit["Rs"][i], orbit["ts"][i], float(orbit["azimuth_deg"][i]),
+                  float(orbit["elevation_deg"][i]), "train") for i in keep]
+    sfm = tmp_path / "sfm"
+    sfm.mkdir()
+    ViewSet(cam, views, "tiny01", vol.center_mm(), {}).save(sfm / "aligned_views.json")
+    (sfm / "summary.json").write_text(json.dumps({"n_views": 8, "registration_rate": 0.75, "ok": True,
+                                                  "config": scfg, "seed": 3}))
+    cfg = tr.resolve_config(_cfg(scene_dir, poses="colmap", sfm_dir=str(sfm)))
+    scene = tr.load_scene(cfg)
+    assert scene.info["views_dropped_unregistered"] == 2 and list(scene.train.ids) == keep
+    mu = torch.from_numpy(vol.data * MU)
+    expect = line_integrals(mu, vol.affine, cam, orbit["Rs"][keep], orbit["ts"][keep]).numpy() / MU
+    assert np.allclose(scene.train.images, expect, rtol=1e-5, atol=1e-5)
+    assert scene.train.camera.model == "cone" and scene.test.camera.model == "parallel"
