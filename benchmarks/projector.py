@@ -39,15 +39,18 @@ def phantom_volume(n: int, voxel_mm: float) -> tuple[np.ndarray, np.ndarray]:
     return (0.019 * vol).astype(np.float32), affine
 
 
-def n_samples(camera, Rs, ts, affine, shape, step_voxels: float) -> int:
-    """Samples the trilinear projector evaluates: Σ over rays of ceil(clipped length / step)."""
+def n_samples(camera, Rs, ts, affine, vol, step_voxels: float) -> int:
+    """Samples the trilinear projector evaluates: Σ over rays of ceil(clipped length / step), rays clipped
+    to one voxel around the non-zero voxels as the projector does."""
+    nz = np.argwhere(vol != 0)
+    lo, hi = nz.min(0) - 1.0, nz.max(0) + 1.0
     Ainv = np.linalg.inv(affine)
     step = step_voxels * float(np.linalg.norm(affine[:3, :3], axis=0).min())
     total = 0
     for R, t in zip(Rs, ts, strict=True):
         o, d = camera_rays(camera, R, t)
         s0, length = clip_rays_to_box(o.reshape(-1, 3) @ Ainv[:3, :3].T + Ainv[:3, 3],
-                                      d.reshape(-1, 3) @ Ainv[:3, :3].T, np.full(3, -1.0), np.asarray(shape, float))
+                                      d.reshape(-1, 3) @ Ainv[:3, :3].T, lo, hi)
         total += int(np.ceil(length[length > 0] / step).sum())
     return total
 
@@ -103,7 +106,7 @@ def main() -> None:
     cone = ConeCamera(n, n, h * 1.5, 4.0 * n * h, 6.0 * n * h)
     views = sphere_orbit(args.cone_views, iso, cone.dso_mm, seed=0, split_fractions={"train": 1.0})
     Rc, tc = np.stack([v.R for v in views]), np.stack([v.t for v in views])
-    samples = n_samples(cone, Rc, tc, affine, vol.shape, 0.5)
+    samples = n_samples(cone, Rc, tc, affine, vol, 0.5)
     t0 = time.perf_counter()
     with torch.no_grad():
         line_integrals(vol, affine, cone, Rc, tc, device=args.device)
