@@ -42,7 +42,8 @@ def _bead_volume(path: Path, n_beads: int = 70, seed: int = 0) -> np.ndarray:
 
 CFG = {"n_views": 36, "arc_deg": 120.0, "detector_px": 112, "dso_mm": 300.0, "dsd_mm": 600.0,
        "pose_prior": "none", "highpass_frac": 0.03, "lowpass_px": 1.0, "percentile_low": 0.5,
-       "percentile_high": 99.5, "background_frac": 0.0, "num_threads": 1, "max_median_rotation_error_deg": 10.0}
+       "percentile_high": 99.5, "background_frac": 0.0, "silhouette_margin_frac": 0.0, "num_threads": 1,
+       "max_median_rotation_error_deg": 10.0}
 
 
 @pytest.fixture(scope="module")
