@@ -73,7 +73,7 @@ static inline bool finite_(double x) { uint64_t b; std::memcpy(&b, &x, 8); retur
 
 // one image row of one Gaussian: row[k] += a exp(-A/2 dx^2 + by dx + cy), dx = x0 + k
 template <typename T>
-static void __attribute__((noinline)) row_fwd(T* __restrict row, int len, T x0, T A, T by, T cy, T a) {
+static inline void row_fwd(T* __restrict row, int len, T x0, T A, T by, T cy, T a) {
     const T h = (T)(-0.5) * A;
     for (int k = 0; k < len; ++k) {
         const T dx = x0 + (T)k;
@@ -83,7 +83,7 @@ static void __attribute__((noinline)) row_fwd(T* __restrict row, int len, T x0, 
 
 // backward of row_fwd without the amplitude: sums of g e, g e dx, g e dx^2
 template <typename T>
-static void __attribute__((noinline)) row_bwd(const T* __restrict g, int len, T x0, T A, T by, T cy, T* out3) {
+static inline void row_bwd(const T* __restrict g, int len, T x0, T A, T by, T cy, T* out3) {
     const T h = (T)(-0.5) * A;
     T r_e = 0, r_x = 0, r_xx = 0;
     for (int k = 0; k < len; ++k) {
