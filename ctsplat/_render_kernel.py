@@ -187,7 +187,7 @@ static inline void rotmat(const T* qn, T* Rq) {
 template <typename T>
 struct PState {
     T qn[4], qnorm, Rq[9], M[9], s2[3], s2f[3], xc[3], z, tx, ty, r, clx, cly; int unclx, uncly;
-    T J2[6], Tm[6], c00, c01, c11, f00, f01, f11, D, dh, rho, amp, u, v, logdetJ; int valid;
+    T J2[6], Tm[6], c00, c01, c11, f00, f01, f11, D, dh, rho, ampn, amp, u, v, detJ; int valid;
 };
 
 template <typename T>
@@ -209,7 +209,7 @@ static inline void proj_one(const Cam<T>& cam, const T* m, const T* ls, const T*
         S.valid = 1;
         S.u = S.xc[0] / cam.sx + cam.cx; S.v = S.xc[1] / cam.sy + cam.cy;
         S.J2[0] = 1 / cam.sx; S.J2[1] = 0; S.J2[2] = 0; S.J2[3] = 0; S.J2[4] = 1 / cam.sy; S.J2[5] = 0;
-        S.logdetJ = -std::log(cam.sx * cam.sy);
+        S.detJ = 1 / (cam.sx * cam.sy);
     } else {
         S.valid = S.z > cam.near_;
         const T zs = S.valid ? S.z : (T)1;
@@ -223,7 +223,7 @@ static inline void proj_one(const Cam<T>& cam, const T* m, const T* ls, const T*
         S.r = std::sqrt(S.tx * S.tx + S.ty * S.ty + zs * zs);
         S.J2[0] = cam.fx / zs; S.J2[1] = 0; S.J2[2] = -cam.fx * S.tx / (zs * zs);
         S.J2[3] = 0; S.J2[4] = cam.fy / zs; S.J2[5] = -cam.fy * S.ty / (zs * zs);
-        S.logdetJ = std::log(cam.fx * cam.fy * S.r / (zs * zs * zs));
+        S.detJ = cam.fx * cam.fy * S.r / (zs * zs * zs);
     }
     for (int i = 0; i < 2; ++i)
         for (int j = 0; j < 3; ++j)
@@ -239,15 +239,17 @@ static inline void proj_one(const Cam<T>& cam, const T* m, const T* ls, const T*
     S.dh = S.c00 * S.c11 - S.c01 * S.c01;
     if (S.dh < (T)1e-20) S.dh = (T)1e-20;
     S.rho = mode == 2 ? sigmoid_(draw) : softplus_(draw);  // mode 2 (alpha): opacity
+    // ampn = amplitude per unit density/opacity (so the backward never divides by rho, which may underflow)
     if (mode == 0) {
-        // rho sqrt(2 pi |J|^2 prod(s2f) / D) * sqrt(prod(s2)/prod(s2f)) = rho sqrt(2 pi) |J| prod(s) / sqrt(D)
-        S.amp = S.rho * std::sqrt((T)6.283185307179586 / S.D) * std::exp(S.logdetJ + ls[0] + ls[1] + ls[2]);
+        // rho sqrt(2 pi |J|^2 prod(s2f) / D) * sqrt(prod(s2)/prod(s2f)) = rho sqrt(2 pi prod(s2) / D) |J|
+        S.ampn = std::sqrt((T)6.283185307179586 / S.D * (S.s2[0] * S.s2[1] * S.s2[2])) * S.detJ;
     } else {
-        T a = S.rho;
+        T a = 1;
         if (has_f) a *= std::sqrt((S.s2[0] / S.s2f[0]) * (S.s2[1] / S.s2f[1]) * (S.s2[2] / S.s2f[2]));
         if (mip) a *= std::sqrt(S.dh / S.D);
-        S.amp = a;
+        S.ampn = a;
     }
+    S.amp = S.rho * S.ampn;
 }
 
 template <typename T>
@@ -298,12 +300,12 @@ static void proj_bwd(int64_t n, const T* means, const T* ls, const T* quats, con
         const T drho_draw = mode == 2 ? S.rho * (1 - S.rho) : sigmoid_(draw[i]);
         T g_rho = 0;
         if (mode == 0) {
-            g_rho = ga * S.amp / S.rho;
+            g_rho = ga * S.ampn;
             for (int k = 0; k < 3; ++k) g_ls[k] += ga * S.amp;
             g_logdetJ += ga * S.amp;
             gD += ga * S.amp * (T)(-0.5) / S.D;
         } else {
-            g_rho = ga * S.amp / S.rho;
+            g_rho = ga * S.ampn;
             if (has_f)
                 for (int k = 0; k < 3; ++k) g_ls[k] += ga * S.amp;  // sqrt(prod s2): d/dls_k = 1
             if (mip) {

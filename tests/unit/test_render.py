@@ -502,3 +502,21 @@ def test_alpha_sh_colour_depends_on_view_direction(backend):
         torch.testing.assert_close(img[7, 7], 0.8 * expected)  # α = o at the centre (no low-pass loss there)
         seen.append(img[7, 7])
     assert float((seen[0] - seen[1]).abs().max()) > 0.05
+
+
+@pytest.mark.parametrize("compositor", ["radiative", "radiative_unrectified", "alpha"])
+def test_extreme_raw_parameters_have_finite_gradients(compositor):
+    # softplus / sigmoid underflow to 0 in float32 (raw = -120) and saturate (raw = +60)
+    g = _mixture(4, seed=6, spread=3.0, dtype=torch.float32)
+    g.density_raw = torch.tensor([-120.0, 60.0, 0.0, -120.0])
+    g.opacity_raw = torch.tensor([-120.0, 60.0, 0.0, -120.0])
+    params = [g.means, g.log_scales, g.quats, g.density_raw, g.opacity_raw]
+    for p in params:
+        p.requires_grad_(True)
+    fv = torch.full((4,), 0.05)
+    for backend in ("reference", "auto"):
+        out = render(g, ParallelCamera(24, 24, 0.5), *_pose(10.0, 5.0), compositor=compositor, backend=backend,
+                     filter_3d_var=fv, mip_2d=True)
+        grads = torch.autograd.grad(out.image.sum(), params, allow_unused=True)
+        assert torch.isfinite(out.image).all()
+        assert all(gr is None or bool(torch.isfinite(gr).all()) for gr in grads)
