@@ -956,8 +956,9 @@ def run_sfm(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any]
     """Render the SfM cone-beam view set, run COLMAP, align, and write the results into ``out_dir``.
 
     Writes ``sparse/0/`` (binary COLMAP model + ``text/``), ``poses.csv``, ``summary.json``,
-    ``points3d.ply`` (aligned, world mm), ``aligned_views.json`` (registered views, B's ViewSet format)
-    and ``images/`` (the 8-bit PNGs). Too few registrations do not raise: ``summary["ok"]`` is False.
+    ``points3d.ply`` (aligned, world mm), ``aligned_views.json`` (registered views, B's ViewSet format),
+    ``true_views.json`` (the true poses of all views, same ids) and ``images/`` (the 8-bit PNGs).
+    Too few registrations do not raise: ``summary["ok"]`` is False.
     Returns the summary dict.
     """
     import pandas as pd
@@ -1044,6 +1045,12 @@ def run_sfm(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any]
         write_json_atomic(out_dir / "aligned_views.json", {
             "format": VIEWSET_FORMAT, "format_version": VIEWSET_FORMAT_VERSION, "volume_id": vol.volume_id,
             "isocenter_mm": np.asarray(iso, float).tolist(), "camera": cam.to_dict(), "views": [], "meta": vs_meta})
+    # the true poses the SfM radiographs were rendered at (all views), same format: lets a consumer render
+    # training targets at the true poses and train with the recovered ones (same ids)
+    true_views = [View(id=i, R=orbit["Rs"][i], t=orbit["ts"][i], azimuth_deg=float(orbit["azimuth_deg"][i]),
+                       elevation_deg=float(orbit["elevation_deg"][i]), split="train") for i in range(len(rows))]
+    ViewSet(camera=cam, views=true_views, volume_id=vol.volume_id, isocenter_mm=iso,
+            meta={"source": "sfm-true"}).save(out_dir / "true_views.json")
     if cfg["naive_slices"]:
         summary["naive_slices"] = naive_slices_sfm(vol.data, out_dir / ".naive_work", cfg, seed=seed)
         shutil.rmtree(out_dir / ".naive_work", ignore_errors=True)

@@ -100,6 +100,9 @@ def test_poses_csv_and_aligned_views_agree(bead_run) -> None:
                          CFG["dso_mm"], vs.isocenter_mm)
     errs = [np.linalg.norm(v.center_mm - orbit["centres"][v.id]) for v in vs.views]
     np.testing.assert_allclose(np.median(errs), s["centre_err_mm_median"], rtol=1e-6)
+    true = ViewSet.load(out / "true_views.json")  # jitter 0: the true poses are the designed ones
+    assert len(true) == CFG["n_views"]
+    np.testing.assert_allclose(true.Rs(), orbit["Rs"], atol=1e-12)
 
 
 def test_aligned_points_are_in_world_mm_inside_the_volume(bead_run) -> None:
