@@ -133,7 +133,7 @@ def main() -> None:
             "volume": vol_name, "label": label, "n_views": s["n_views"], "detector_px": s["camera"]["width"],
             "pose_prior": s["config"]["pose_prior"], "mapper": s["config"]["mapper"],
             "registration_rate": s["registration_rate"], "largest_model_rate": s["largest_model_rate"],
-            "models_found": s["models_found"], "model_sizes": " ".join(map(str, s["model_sizes"][:6])),
+            "plausible_rate": s["plausible_rate"], "models_found": s["models_found"], "model_sizes": " ".join(map(str, s["model_sizes"][:6])),
             "rot_err_deg_median": s["rot_err_deg_median"], "rot_err_deg_p90": s["rot_err_deg_p90"],
             "rot_err_rotalign_deg_median": s["rot_err_rotalign_deg_median"],
             "reversed": any(r["reversed"] for r in s["reversal"]),

@@ -1025,17 +1025,28 @@ def run_sfm(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any]
             (work / "colmap").rename(out_dir / "colmap")
         shutil.rmtree(work, ignore_errors=True)
 
+    # physical plausibility: a view whose optical axis misses the isocentre by more than the detector's
+    # half field of view atan((W/2) / fx) cannot have imaged the object; such poses are not exported
+    half_fov = math.degrees(math.atan(0.5 * W / cam.fx))
+    for r in rows:
+        r["plausible"] = False
+        if r["R"] is not None:
+            c = -r["R"].T @ r["t"]
+            d = (iso - c) / max(float(np.linalg.norm(iso - c)), 1e-9)
+            r["plausible"] = bool(math.degrees(math.acos(float(np.clip(r["R"][2] @ d, -1, 1)))) <= half_fov)
+    summary["n_plausible"] = int(sum(r["plausible"] for r in rows))
+    summary["plausible_rate"] = summary["n_plausible"] / len(rows)
     table = pd.DataFrame([{
         "view": r["view"], "name": r["name"], "azimuth_deg": orbit["azimuth_deg"][r["view"]],
         "elevation_deg": orbit["elevation_deg"][r["view"]], "registered": r["registered"],
         "rot_err_deg": r["rot_err_deg"], "rot_err_rotalign_deg": r["rot_err_rotalign_deg"],
-        "centre_err_mm": r["centre_err_mm"], "reproj_err_px": r["reproj_err_px"],
+        "centre_err_mm": r["centre_err_mm"], "reproj_err_px": r["reproj_err_px"], "plausible": r["plausible"],
     } for r in rows])
     with atomic_path(out_dir / "poses.csv") as tmp:
         table.to_csv(tmp, index=False)
     views = [View(id=r["view"], R=r["R"], t=r["t"], azimuth_deg=float(orbit["azimuth_deg"][r["view"]]),
                   elevation_deg=float(orbit["elevation_deg"][r["view"]]), split="train")
-             for r in rows if r["R"] is not None]
+             for r in rows if r["R"] is not None and r["plausible"]]
     vs_meta = {"source": "sfm", "registration_rate": summary["registration_rate"], "ok": summary["ok"],
                "n_views_designed": len(rows)}
     if views:
