@@ -154,3 +154,40 @@ def test_cli_sfm_help_and_bad_set(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert "aligned_views.json" in capsys.readouterr().out
     assert main(["sfm", str(tmp_path / "missing.nii.gz"), str(tmp_path / "o")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def _model(names: list[str], Rs: np.ndarray, ts: np.ndarray):  # noqa: ANN202 - pycolmap.Reconstruction
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model="PINHOLE", width=64, height=64, params=[100.0, 100.0, 32.0, 32.0], camera_id=1)
+    rec.add_camera_with_trivial_rig(cam)
+    for k, (n, R, t) in enumerate(zip(names, Rs, ts, strict=True)):
+        img = pycolmap.Image(name=n, camera_id=1, image_id=k + 1)
+        rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(np.hstack([R, t[:, None]])))
+    return rec
+
+
+def test_merge_models_maps_a_partial_model_into_the_largest_frame() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from ctsplat.sfm import merge_models
+
+    orb = design_orbit(15, 360.0, 10.0, 2.0, 400.0)
+    names = [f"view_{i:04d}.png" for i in range(15)]
+    a = _model(names[:10], orb["Rs"][:10], orb["ts"][:10])  # the largest model, in the world frame
+    # model b holds views 7..14 in another frame: x_b = s Q x_w + p
+    s, Q, p = 0.01, Rotation.from_rotvec([0.3, -0.2, 1.0]).as_matrix(), np.array([1.0, 2.0, 3.0])
+    Rb = [orb["Rs"][i] @ Q.T for i in range(7, 15)]
+    cb = [s * Q @ orb["centres"][i] + p for i in range(7, 15)]
+    b = _model(names[7:], np.stack(Rb), np.stack([-R @ c for R, c in zip(Rb, cb, strict=True)]))
+    main, poses, report = merge_models({0: b, 1: a}, min_shared=3)
+    assert main.num_reg_images() == 10
+    assert report["models_found"] == 2 and report["model_sizes"] == [10, 8]
+    assert report["merged"] == [{"model_size": 8, "shared": 3, "added": 5}]
+    assert sorted(poses) == names
+    for i, n in enumerate(names):
+        R, t = poses[n]
+        np.testing.assert_allclose(R, orb["Rs"][i], atol=1e-9)
+        np.testing.assert_allclose(-R.T @ t, orb["centres"][i], atol=1e-6)
+    # too little overlap: the partial model is reported but not merged
+    _, poses2, report2 = merge_models({0: b, 1: a}, min_shared=4)
+    assert report2["merged"] == [] and len(poses2) == 10
