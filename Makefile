@@ -4,6 +4,8 @@ PYTHON ?= $(shell command -v python3.11 2>/dev/null || command -v python3)
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# Idle OpenMP threads sleep instead of spinning: with several jobs per machine, spinning makes torch ~5x slower.
+export OMP_WAIT_POLICY ?= PASSIVE
 
 .PHONY: run test lint clean-venv
 

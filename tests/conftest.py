@@ -7,6 +7,9 @@ from pathlib import Path
 
 import pytest
 
+# Before torch loads OpenMP: idle threads sleep instead of spinning (tests run beside Snakemake/Slurm jobs).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_DATA = Path(os.environ.get("CTSPLAT_SHARED_DATA", ROOT.parent / "shared" / "data"))
 
