@@ -80,7 +80,7 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     "init": "fbp",  # volume | uniform | fbp | sfm
     "n_init": 50000,
     "init_top_fraction": 0.3,  # volume/fbp: voxels in the top 30 % are candidates
-    "init_scale_voxels": 0.75,
+    "init_scale_voxels": None,  # null: 0.75 voxel for volume (the method's rule), 1.5 for fbp (smoother seed)
     "init_density": 0.05,  # uniform / sfm seeds (normalised units)
     "sfm_fill_fraction": 0.5,
     "fbp_filter": "ramp",
@@ -96,9 +96,9 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     "lambda_ssim": 0.2,
     "lambda_density": 5e-5,
     "lambda_scale": 1e-4,
-    "lambda_tv": 0.0,
-    "tv_size": 16,  # voxels per side of the random TV sub-volume
-    "lr": {"means": 0.02, "scales": 5e-3, "quats": 1e-3, "density": 3e-3, "opacity": 0.05, "colors": 0.01},
+    "lambda_tv": 0.05,  # 0 disables
+    "tv_size": 32,  # voxels per side of the random TV sub-volume
+    "lr": {"means": 0.02, "scales": 5e-3, "quats": 1e-3, "density": 0.01, "opacity": 0.05, "colors": 0.01},
     "lr_final_factor": 0.1,
     "densify": {
         "interval": 500,
@@ -353,9 +353,10 @@ def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> se
     vol = scene.volume
     n = int(cfg["n_init"])
     lo, hi = seeding.grid_bounds_mm(vol.shape, vol.affine)
+    scale = cfg["init_scale_voxels"]
     if cfg["init"] == "volume":
         return seeding.seed_from_grid(vol.data, vol.affine, n, rng, top_fraction=cfg["init_top_fraction"],
-                                      scale_voxels=cfg["init_scale_voxels"], uses_reference_volume=True,
+                                      scale_voxels=0.75 if scale is None else float(scale), uses_reference_volume=True,
                                       strategy="volume")
     if cfg["init"] == "uniform":
         return seeding.seed_uniform(lo, hi, n, rng, density=cfg["init_density"])
@@ -365,7 +366,7 @@ def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> se
                                         density=cfg["init_density"])
     recon = fbp_reconstruction(scene, cfg.get("fbp_filter", "ramp"))
     return seeding.seed_from_grid(recon, vol.affine, n, rng, top_fraction=cfg["init_top_fraction"],
-                                  scale_voxels=cfg["init_scale_voxels"], uses_reference_volume=False,
+                                  scale_voxels=1.5 if scale is None else float(scale), uses_reference_volume=False,
                                   strategy="fbp")
 
 

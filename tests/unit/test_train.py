@@ -53,7 +53,7 @@ def _cfg(scene: Path, **kw) -> dict:
         "volume": str(scene / "volume.nii.gz"), "radiographs": str(scene / "rad"), "init": "volume",
         "n_init": 300, "iterations": 30, "eval_every": 10, "checkpoint_every": 10, "device": "cpu",
         "densify": {"interval": 10, "start": 10}, "figures": False, "fps_width": 32, "fps_height": 18,
-        "progress": False,
+        "progress": False, "lambda_tv": 0.0,
     }
     cfg.update(kw)
     return cfg
@@ -303,6 +303,10 @@ def test_fbp_init_uses_training_projections_only(scene_dir: Path, tmp_path: Path
     b = tr.make_seed(cfg, scene, rng_b)
     assert not a.uses_reference_volume
     assert np.array_equal(a.means, b.means) and np.array_equal(a.densities, b.densities)
+    assert np.allclose(a.scales, 1.5 * 2.0)  # default fbp seed scale: 1.5 voxels of 2 mm
+    cfg_v = tr.resolve_config(_cfg(scene_dir, init="volume"))
+    v = tr.make_seed(cfg_v, tr.load_scene(cfg_v), np.random.default_rng(0))
+    assert v.uses_reference_volume and np.allclose(v.scales, 0.75 * 2.0)  # the method's 0.75 voxel
     res = tr.train(_cfg(scene_dir, init="fbp", iterations=10), tmp_path / "f")
     assert res["init"] == "fbp" and res["uses_reference_volume"] is False
 
