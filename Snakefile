@@ -5,8 +5,9 @@ from snakemake.utils import min_version
 min_version("9")
 
 
-# The default grid, unless a config was given (--configfile/--config replace it rather than merge into it).
-if not config:
+# The default grid, unless config files were given (--configfile replaces it rather than merging into it);
+# --config key=value still overrides single keys of either.
+if not workflow.config_settings.configfiles:
 
     configfile: f"{workflow.basedir}/config/config.yaml"
 

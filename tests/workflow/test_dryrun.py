@@ -102,3 +102,18 @@ def test_bad_config_fails_before_any_job(tmp_path, config, message):
     assert proc.returncode != 0
     assert message in proc.stderr + proc.stdout
     assert not (tmp_path / "results").exists()  # nothing ran, nothing written
+
+
+def test_cuda_device_requests_a_gpu_for_training_only(tmp_path):
+    """`--config device=cuda` on top of the default grid: train/evaluate jobs get resources gpu=1, others none."""
+    proc = snakemake(tmp_path, "-n", "--config", "device=cuda")
+    jobs = proc.stdout.split("\n\n")
+    gpu_rules = set()
+    for block in jobs:
+        head = block.strip().splitlines()
+        rule = next((line.split()[-1].rstrip(":") for line in head if line.startswith(("rule ", "localrule "))), None)
+        if rule and any("gpu=1" in line for line in head):
+            gpu_rules.add(rule)
+    assert gpu_rules == {"train", "evaluate"}
+    counts = job_counts(proc.stdout)
+    assert counts["train"] == 4  # the default config/config.yaml grid was loaded, device overridden

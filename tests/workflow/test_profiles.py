@@ -1,0 +1,34 @@
+"""The shipped Snakemake profiles: valid YAML, the cluster template covers every rule, GPU for training."""
+
+from __future__ import annotations
+
+import re
+
+import yaml
+from smk_helpers import ROOT
+
+RULES = {m.group(1) for p in (ROOT / "workflow" / "rules").glob("*.smk")
+         for m in re.finditer(r"^rule (\w+):", p.read_text(), re.M)}
+
+
+def test_rules_found():
+    assert RULES == {"phantom", "ingest", "project", "baseline", "sfm", "train", "evaluate", "run_figures", "gather",
+                     "analyse"}
+
+
+def test_slurm_template_profile():
+    prof = yaml.safe_load((ROOT / "profiles" / "slurm" / "config.yaml").read_text())
+    assert prof["executor"] == "slurm"
+    assert {"slurm_partition", "slurm_account", "mem_mb", "runtime"} <= set(prof["default-resources"])
+    assert set(prof["set-resources"]) == RULES  # per-rule resources for every rule
+    for rule, res in prof["set-resources"].items():
+        assert res["mem_mb"] > 0 and res["runtime"] > 0, rule
+    assert prof["set-resources"]["train"]["gpu"] == 1
+    assert set(prof["set-threads"]) <= RULES
+    text = (ROOT / "profiles" / "slurm" / "config.yaml").read_text()
+    assert "slurm-status-command: squeue" in text  # documented for clusters without accounting
+
+
+def test_default_workflow_profile():
+    prof = yaml.safe_load((ROOT / "profiles" / "default" / "config.yaml").read_text())
+    assert "params" in prof["rerun-triggers"] and "executor" not in prof
