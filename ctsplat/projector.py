@@ -85,6 +85,9 @@ RADIOGRAPHS_DEFAULTS: dict[str, Any] = {
     "sphere_sampling": "fibonacci",
     "wobble_deg": 0.0,
     "start_deg": 0.0,
+    # circular orbit: angular range of the training angles (deg). null = 180 for parallel beams (views at a and
+    # a + 180 are mirror images, so 360 would repeat directions for even n_views) and 360 for cone beams.
+    "arc_deg": None,
     "split": {"train": 0.7, "val": 0.15, "test": 0.15},
     "step_voxels": 0.5,
     "noise": {"enabled": False, "i0": 1.0e5, "electronic_sigma": 0.0},
@@ -396,15 +399,20 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
                           f"{radius:.1f} mm); part of the volume lies behind the source", stacklevel=2)
     else:
         raise CtsplatError(f"unknown camera {cfg['camera']!r}; allowed: parallel, cone")
+    arc = cfg["arc_deg"]
     if cfg["orbit"] == "circular":
+        if arc is None:
+            arc = 180.0 if cfg["camera"] == "parallel" else 360.0
         views = circular_orbit(cfg["n_views"], iso, distance, split_fractions=cfg["split"],
-                               wobble_deg=float(cfg["wobble_deg"]), start_deg=float(cfg["start_deg"]), seed=seed)
+                               wobble_deg=float(cfg["wobble_deg"]), start_deg=float(cfg["start_deg"]), seed=seed,
+                               arc_deg=float(arc))
     elif cfg["orbit"] == "sphere":
         views = sphere_orbit(cfg["n_views"], iso, distance, elevation_range_deg=cfg["elevation_range_deg"],
                              sampling=cfg["sphere_sampling"], split_fractions=cfg["split"], seed=seed)
     else:
         raise CtsplatError(f"unknown orbit {cfg['orbit']!r}; allowed: circular, sphere")
     meta = {"orbit": cfg["orbit"], "n_views": int(cfg["n_views"]), "wobble_deg": float(cfg["wobble_deg"]),
+            "arc_deg": float(arc) if arc is not None else None,
             "elevation_range_deg": list(cfg["elevation_range_deg"]), "sphere_sampling": cfg["sphere_sampling"],
             "split": dict(cfg["split"]), "seed": int(seed), "distance_mm": distance}
     return ViewSet(camera, views, volume.volume_id, iso, meta)

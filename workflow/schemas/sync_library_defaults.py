@@ -33,6 +33,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("radiographs", "sphere_sampling"): {"enum": ["fibonacci", "stratified"]},
     ("radiographs", "pixel_spacing_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
     ("radiographs", "parallel_distance_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
+    ("radiographs", "arc_deg"): {"type": ["number", "null"], "exclusiveMinimum": 0, "maximum": 360},
     ("radiographs", "isocenter_mm"): {"type": ["array", "null"], "items": {"type": "number"}, "minItems": 3,
                                       "maxItems": 3},
     ("radiographs", "n_views"): {"type": "integer", "minimum": 1},
