@@ -251,6 +251,15 @@ def _even_subset(n_total: int, n: int) -> np.ndarray:
     return np.floor(np.arange(n) * n_total / n).astype(int)
 
 
+def _sfm_defaults() -> dict[str, Any]:
+    """``ctsplat.sfm.SFM_DEFAULTS`` (empty when the sfm module cannot be imported)."""
+    try:
+        from ctsplat.sfm import SFM_DEFAULTS
+    except ImportError:  # pragma: no cover
+        return {}
+    return dict(SFM_DEFAULTS)
+
+
 def _colmap_train(cfg: dict[str, Any], volume: Any, mu_scale: float) -> tuple[ViewData, dict[str, Any]]:
     """Training views with COLMAP poses from the sfm folder; targets rendered at the *true* poses."""
     from ctsplat.geometry import ViewSet
@@ -278,6 +287,23 @@ def _colmap_train(cfg: dict[str, Any], volume: Any, mu_scale: float) -> tuple[Vi
         images_all, vs_true = _read_radiographs(sfm_dir)
         by_id = {v.id: i for i, v in enumerate(vs_true.views)}
         images = images_all[[by_id[i] for i in ids]]
+    elif (sfm_dir / "true_views.json").exists():  # true poses saved by the sfm step: render targets there
+        from ctsplat.projector import line_integrals
+
+        tv = ViewSet.load(sfm_dir / "true_views.json")
+        by_id = {v.id: v for v in tv.views}
+        missing = [int(i) for i in ids if int(i) not in by_id]
+        if missing:
+            raise CtsplatError(f"{sfm_dir}/true_views.json lacks registered view id {missing[0]}; re-run the sfm step")
+        scfg = {**_sfm_defaults(), **summary.get("config", {})}
+        mu = torch.from_numpy(np.asarray(volume.data, np.float32) * mu_scale)
+        with torch.no_grad():
+            p = line_integrals(mu, torch.from_numpy(np.asarray(volume.affine, np.float64)), tv.camera,
+                               torch.from_numpy(np.stack([by_id[int(i)].R for i in ids])),
+                               torch.from_numpy(np.stack([by_id[int(i)].t for i in ids])),
+                               step_voxels=float(scfg.get("step_voxels", 0.5)))
+        images = p.cpu().numpy().astype(np.float32)
+        n_total = n_total or len(tv.views)
     else:  # re-render the SfM orbit at the true poses (the SfM step keeps only 8-bit feature images)
         from ctsplat.projector import line_integrals
         from ctsplat.sfm import SFM_DEFAULTS, design_orbit

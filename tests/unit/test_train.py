@@ -454,9 +454,11 @@ def test_cli_train_and_evaluate(scene_dir: Path, tmp_path: Path, capsys) -> None
     assert "unknown config key train.bogus" in capsys.readouterr().err
 
 
-def test_colmap_targets_rerendered_at_true_poses(scene_dir: Path, tmp_path: Path) -> None:
-    """Without views.json/line_integrals.tif in the sfm folder, the targets are re-rendered on the sfm step's
-    true orbit (its config + seed) with the projector; unregistered views are dropped."""
+@pytest.mark.parametrize("mode", ["orbit", "true_views"])
+def test_colmap_targets_rerendered_at_true_poses(scene_dir: Path, tmp_path: Path, mode: str) -> None:
+    """Without views.json/line_integrals.tif in the sfm folder, the targets are rendered with the projector at the
+    true poses: from true_views.json when the sfm step wrote it, else on its designed orbit (config + seed);
+    unregistered views are dropped."""
     from ctsplat.geometry import ConeCamera, View, ViewSet
     from ctsplat.projector import line_integrals
     from ctsplat.sfm import SFM_DEFAULTS, design_orbit
@@ -475,8 +477,12 @@ def test_colmap_targets_rerendered_at_true_poses(scene_dir: Path, tmp_path: Path
     sfm = tmp_path / "sfm"
     sfm.mkdir()
     ViewSet(cam, views, "tiny01", vol.center_mm(), {}).save(sfm / "aligned_views.json")
-    (sfm / "summary.json").write_text(json.dumps({"n_views": 8, "registration_rate": 0.75, "ok": True,
-                                                  "config": scfg, "seed": 3}))
+    summary = {"n_views": 8, "registration_rate": 0.75, "ok": True, "config": scfg, "seed": 3}
+    if mode == "true_views":
+        all_views = [View(i, orbit["Rs"][i], orbit["ts"][i], 0.0, 0.0, "train") for i in range(8)]
+        ViewSet(cam, all_views, "tiny01", vol.center_mm(), {}).save(sfm / "true_views.json")
+        summary["config"] = {**scfg, "n_views": 5, "wobble_deg": 40.0}  # the orbit fallback would differ
+    (sfm / "summary.json").write_text(json.dumps(summary))
     cfg = tr.resolve_config(_cfg(scene_dir, poses="colmap", sfm_dir=str(sfm)))
     scene = tr.load_scene(cfg)
     assert scene.info["views_dropped_unregistered"] == 2 and list(scene.train.ids) == keep
