@@ -3,30 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
-from typing import Any
 
+from ctsplat.cli._common import load_section
 from ctsplat.utils import CtsplatError
-
-
-def _load_config(path: str | None) -> dict[str, Any]:
-    """Preprocessing overrides from a YAML/JSON file: either the section itself or ``{preprocessing: {...}}``."""
-    if path is None:
-        return {}
-    p = Path(path)
-    if not p.exists():
-        raise CtsplatError(f"config file {p} does not exist")
-    text = p.read_text()
-    if p.suffix.lower() == ".json":
-        cfg = json.loads(text)
-    else:
-        import yaml
-
-        cfg = yaml.safe_load(text) or {}
-    if not isinstance(cfg, dict):
-        raise CtsplatError(f"config file {p} must hold a mapping")
-    return dict(cfg.get("preprocessing", cfg))
 
 
 def _grid(text: str) -> int | list[int]:
@@ -68,7 +47,7 @@ def run_ingest(args: argparse.Namespace) -> None:
         for s in find_dicom_series(args.source, skip_corrupt=args.skip_corrupt):
             print(s.label())
         return
-    cfg = _load_config(args.config)
+    cfg = load_section(args.config, "preprocessing")
     for key in ("voxel_size_mm", "grid", "intensity", "window", "denoise", "mask", "hu_max", "mu_water_per_mm"):
         value = getattr(args, key)
         if value is not None:

@@ -3,56 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
-from typing import Any
 
-from ctsplat.utils import CtsplatError
-
-
-def _load_section(path: str | None, section: str) -> dict[str, Any]:
-    """Settings from a YAML/JSON file: the section itself or ``{section: {...}}``."""
-    if path is None:
-        return {}
-    p = Path(path)
-    if not p.exists():
-        raise CtsplatError(f"config file {p} does not exist")
-    text = p.read_text()
-    if p.suffix.lower() == ".json":
-        cfg = json.loads(text)
-    else:
-        import yaml
-
-        cfg = yaml.safe_load(text) or {}
-    if not isinstance(cfg, dict):
-        raise CtsplatError(f"config file {p} must hold a mapping")
-    return dict(cfg.get(section, cfg))
-
-
-def _apply_sets(cfg: dict[str, Any], sets: list[str]) -> dict[str, Any]:
-    """``key=value`` / ``a.b=value`` overrides; values parsed as JSON when possible (``n_views=50``)."""
-    for item in sets:
-        if "=" not in item:
-            raise CtsplatError(f"--set expects KEY=VALUE, got {item!r}")
-        key, raw = item.split("=", 1)
-        try:
-            value = json.loads(raw)
-        except json.JSONDecodeError:
-            value = raw
-        node = cfg
-        parts = key.split(".")
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise CtsplatError(f"--set {key}: {part} is not a section")
-        node[parts[-1]] = value
-    return cfg
+from ctsplat.cli._common import apply_sets, load_section
 
 
 def run_project(args: argparse.Namespace) -> None:
     from ctsplat.projector import render_radiographs
 
-    cfg = _apply_sets(_load_section(args.config, "radiographs"), args.set or [])
+    cfg = apply_sets(load_section(args.config, "radiographs"), args.set)
     vs = render_radiographs(args.volume, args.out, cfg, seed=args.seed)
     counts = {s: len(vs.indices(s)) for s in ("train", "val", "test")}
     print(f"{len(vs)} {vs.camera.model}-beam radiographs ({counts}) -> {args.out}")
@@ -61,7 +19,7 @@ def run_project(args: argparse.Namespace) -> None:
 def run_baseline(args: argparse.Namespace) -> None:
     from ctsplat.baselines import run_baselines
 
-    cfg = _apply_sets(_load_section(args.config, "baselines"), args.set or [])
+    cfg = apply_sets(load_section(args.config, "baselines"), args.set)
     df = run_baselines(args.volume, args.radiographs, args.out, cfg)
     print(df.to_string(index=False, float_format=lambda x: f"{x:.4f}"))
 

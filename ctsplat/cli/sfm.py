@@ -5,47 +5,15 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from typing import Any
 
+from ctsplat.cli._common import apply_sets, load_section
 from ctsplat.utils import CtsplatError
-
-
-def _load_config(path: str | None) -> dict[str, Any]:
-    """``sfm`` overrides from a YAML/JSON file: either the section itself or ``{sfm: {...}}``."""
-    if path is None:
-        return {}
-    p = Path(path)
-    if not p.exists():
-        raise CtsplatError(f"config file {p} does not exist")
-    text = p.read_text()
-    if p.suffix.lower() == ".json":
-        cfg = json.loads(text)
-    else:
-        import yaml
-
-        cfg = yaml.safe_load(text) or {}
-    if not isinstance(cfg, dict):
-        raise CtsplatError(f"config file {p} must hold a mapping")
-    return dict(cfg.get("sfm", cfg))
-
-
-def _value(text: str) -> Any:
-    """``key=value`` override value: JSON when it parses (numbers, true/false, null), else the string."""
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
 
 
 def run(args: argparse.Namespace) -> None:
     from ctsplat.sfm import run_sfm
 
-    cfg = _load_config(args.config)
-    for item in args.set or []:
-        if "=" not in item:
-            raise CtsplatError(f"--set expects key=value, got {item!r}")
-        key, val = item.split("=", 1)
-        cfg[key.strip()] = _value(val.strip())
+    cfg = apply_sets(load_section(args.config, "sfm"), args.set)
     if not Path(args.volume).exists():
         raise CtsplatError(f"volume {args.volume} does not exist; run `ctsplat ingest` first")
     summary = run_sfm(args.volume, args.out_dir, cfg, seed=args.seed)
