@@ -4,53 +4,18 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 from typing import Any
 
-from ctsplat.utils import CtsplatError
-
-
-def _parse_value(text: str) -> Any:
-    import yaml
-
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError:
-        return text
+from ctsplat.cli._common import apply_sets, load_section
 
 
 def load_train_config(path: str | None, overrides: list[str]) -> dict[str, Any]:
     """The ``train`` section from a YAML/JSON file (top level or under ``train:``) plus ``key=value`` overrides.
 
-    Dotted keys set nested values (``densify.interval=100``); values are parsed as YAML (numbers, booleans,
-    lists).
+    Dotted keys set nested values (``densify.interval=100``); values parse as JSON, else YAML (numbers,
+    booleans, lists).
     """
-    import yaml
-
-    cfg: dict[str, Any] = {}
-    if path:
-        p = Path(path)
-        if not p.exists():
-            raise CtsplatError(f"config file {p} does not exist")
-        try:
-            loaded = yaml.safe_load(p.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise CtsplatError(f"config file {p} is not valid YAML/JSON: {str(exc).splitlines()[0]}") from exc
-        if not isinstance(loaded, dict):
-            raise CtsplatError(f"config file {p} must hold a mapping (the train section)")
-        cfg = dict(loaded.get("train", loaded)) if isinstance(loaded.get("train"), dict) else dict(loaded)
-    for item in overrides:
-        if "=" not in item:
-            raise CtsplatError(f"--set expects key=value, got {item!r}")
-        key, value = item.split("=", 1)
-        node = cfg
-        parts = key.strip().split(".")
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise CtsplatError(f"--set {key}: {part} is not a section")
-        node[parts[-1]] = _parse_value(value)
-    return cfg
+    return apply_sets(load_section(path, "train"), overrides)
 
 
 def _train(args: argparse.Namespace) -> None:
