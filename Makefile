@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # Idle OpenMP threads sleep instead of spinning: with several jobs per machine, spinning makes torch ~5x slower.
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: run test lint clean-venv
+.PHONY: run test lint
 
 $(STAMP): pyproject.toml constraints.txt
 	@$(PYTHON) -c "import sys; assert sys.version_info >= (3, 11)" 2>/dev/null || { echo "error: need Python >= 3.11 (found '$(PYTHON)'); run make PYTHON=/path/to/python3.11"; exit 1; }
