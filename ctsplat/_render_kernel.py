@@ -16,8 +16,13 @@ node (its ``.grad`` feeds densification):
       ∂L/∂A   = -½ a Σ_p g e dx²,  ∂L/∂B = -a Σ_p g e dx dy,  ∂L/∂C = -½ a Σ_p g e dy²
 
 Both are tested against the autograd reference (values and gradients, float32 and float64) and by gradcheck.
+The float32 rasteriser cuts each footprint row into 8-lane chunks (GCC/Clang vector extensions, the last chunk
+masked) with an inline vector ``exp`` (Cody-Waite reduction + Cephes polynomial, about 1 ulp): footprint rows are
+~8 px long, too short for auto-vectorised loops. float64 keeps the scalar loops (gradcheck, tests). The projection
+runs in blocks of separate short passes (activations through libmvec, finiteness, per-Gaussian algebra, boxes) so
+that the out-of-order core overlaps Gaussians instead of waiting on one long dependency chain each.
 The C++ source (no torch headers) is compiled on first use with the system compiler
-(``c++ -O3 -ffast-math -march=native``; the pixel loops vectorise with glibc's libmvec ``exp``) into
+(``c++ -O3 -ffast-math -march=native``; other loops vectorise with glibc's libmvec ``exp``) into
 ``$CTSPLAT_CACHE`` (default ``~/.cache/ctsplat``), keyed by the source and the CPU, and loaded with ``ctypes``;
 compiling takes a few seconds. Threads: ``torch.get_num_threads()`` ``std::thread`` s over static blocks of
 Gaussians (no OpenMP runtime that would spin against torch's); the forward gives each thread its own image
@@ -101,6 +106,7 @@ static void splat_fwd(int64_t n, const T* mean, const T* con, const T* amp, cons
     int nt = nthreads < 1 ? 1 : nthreads;
     if (n < 4096) nt = 1;
     const int64_t npx = H * W;
+    std::memset(out, 0, sizeof(T) * (size_t)npx);
     std::vector<T> bufs(nt > 1 ? (size_t)(nt - 1) * (size_t)npx : 0, (T)0);
     parallel_for(n, nt, [&](int64_t i0, int64_t i1, int tid) {
         T* img = tid == 0 ? out : bufs.data() + (size_t)(tid - 1) * (size_t)npx;
@@ -124,8 +130,8 @@ static void splat_fwd(int64_t n, const T* mean, const T* con, const T* amp, cons
 }
 
 template <typename T>
-static void splat_bwd(int64_t n, const T* mean, const T* con, const T* amp, const int64_t* bb, int64_t W,
-                      const T* gimg, T* gmean, T* gcon, T* gamp, int nthreads) {
+static void splat_bwd(int64_t n, const T* mean, const T* con, const T* amp, const int64_t* bb, int64_t /*H*/,
+                      int64_t W, const T* gimg, T* gmean, T* gcon, T* gamp, int nthreads) {
     parallel_for(n, nthreads, [&](int64_t i0, int64_t i1, int) {
     for (int64_t i = i0; i < i1; ++i) {
         const int64_t u0 = bb[4 * i], u1 = bb[4 * i + 1], v0 = bb[4 * i + 2], v1 = bb[4 * i + 3];
@@ -155,6 +161,129 @@ static void splat_bwd(int64_t n, const T* mean, const T* con, const T* amp, cons
     });
 }
 
+// ---------------------------------------------------------------- additive rasteriser, float32: 8 lanes
+// GCC/Clang vector extensions (AVX2 here, SSE or NEON pairs elsewhere). A footprint row is ~8 px wide, too short
+// for the compiler's auto-vectorised libmvec loop (mostly scalar remainder), so each row is cut into 8-lane
+// chunks, the last one masked; buffers carry 8 floats of padding so a chunk never leaves them.
+typedef float v8f __attribute__((vector_size(32)));
+typedef int32_t v8i __attribute__((vector_size(32)));
+static inline v8f bc8(float s) { return (v8f){s, s, s, s, s, s, s, s}; }
+static inline v8f ld8(const float* p) { v8f v; std::memcpy(&v, p, sizeof v); return v; }
+static inline void st8(float* p, v8f v) { std::memcpy(p, &v, sizeof v); }
+static inline v8f keep8(v8f a, v8i m) { return (v8f)((v8i)a & m); }
+static inline float hsum8(v8f a) { return ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4] + a[5]) + (a[6] + a[7])); }
+static const v8f IOTA8 = {0.f, 1.f, 2.f, 3.f, 4.f, 5.f, 6.f, 7.f};
+
+// exp of 8 floats: x = n ln2 + r with |r| <= ln2/2 (n = floor(x log2 e + 1/2), ln2 split in two for the
+// reduction), exp(r) by Cephes' degree-7 minimax polynomial (about 1 ulp), 2^n added to the exponent bits.
+// exp(x) = 0 below -86 (near FLT_MIN); x is clamped at 88.
+static inline v8f vexp8(v8f x) {
+    const v8i under = x < bc8(-86.0f), over = x > bc8(88.0f);
+    x = (v8f)(((v8i)x & ~over) | ((v8i)bc8(88.0f) & over));
+    x = (v8f)(((v8i)x & ~under) | ((v8i)bc8(-86.0f) & under));
+    const v8f fx = x * bc8(1.44269504088896341f) + bc8(0.5f);
+    v8i n = __builtin_convertvector(fx, v8i);              // truncation towards zero ...
+    n += (v8i)(__builtin_convertvector(n, v8f) > fx);       // ... to floor (a true comparison is -1)
+    const v8f nf = __builtin_convertvector(n, v8f);
+    const v8f r = (x - nf * bc8(0.693359375f)) + nf * bc8(2.12194440e-4f);
+    v8f p = bc8(1.9875691500e-4f);
+    p = p * r + bc8(1.3981999507e-3f);
+    p = p * r + bc8(8.3334519073e-3f);
+    p = p * r + bc8(4.1665795894e-2f);
+    p = p * r + bc8(1.6666665459e-1f);
+    p = p * r + bc8(5.0000001201e-1f);
+    const v8f y = (p * r) * r + r + bc8(1.0f);
+    return keep8((v8f)((v8i)y + (n << 23)), ~under);
+}
+
+static void splat_fwd(int64_t n, const float* mean, const float* con, const float* amp, const int64_t* bb,
+                      int64_t H, int64_t W, float* out, int nthreads) {
+    int nt = nthreads < 1 ? 1 : nthreads;
+    if (n < 4096) nt = 1;
+    const int64_t npx = H * W, stride = npx + 8;
+    std::vector<float> bufs((size_t)nt * (size_t)stride, 0.f);
+    parallel_for(n, nt, [&](int64_t i0, int64_t i1, int tid) {
+        float* img = bufs.data() + (size_t)tid * (size_t)stride;
+        for (int64_t i = i0; i < i1; ++i) {
+            const int64_t u0 = bb[4 * i], u1 = bb[4 * i + 1], v0 = bb[4 * i + 2], v1 = bb[4 * i + 3];
+            if (u1 <= u0 || v1 <= v0) continue;
+            const int len = (int)(u1 - u0);
+            const float mx = mean[2 * i], my = mean[2 * i + 1];
+            const float B = con[3 * i + 1], C = con[3 * i + 2];
+            const v8f h = bc8(-0.5f * con[3 * i]), a = bc8(amp[i]);
+            const float x0 = (float)u0 + 0.5f - mx;
+            // rows have the same number of chunks: full ones, then one masked (no data-dependent branch per row)
+            const int last = 8 * ((len - 1) / 8);
+            const v8i tail = IOTA8 < bc8((float)(len - last));
+            const v8f dx_last = bc8(x0 + (float)last) + IOTA8;
+            for (int64_t v = v0; v < v1; ++v) {
+                const float dy = (float)v + 0.5f - my;
+                const v8f cy = bc8(-0.5f * C * dy * dy), by = bc8(-B * dy);
+                float* row = img + v * W + u0;
+                for (int k = 0; k < last; k += 8) {
+                    const v8f dx = bc8(x0 + (float)k) + IOTA8;
+                    st8(row + k, ld8(row + k) + a * vexp8((h * dx + by) * dx + cy));
+                }
+                const v8f e = keep8(a * vexp8((h * dx_last + by) * dx_last + cy), tail);
+                st8(row + last, ld8(row + last) + e);
+            }
+        }
+    });
+    for (int64_t p = 0; p < npx; ++p) {
+        float s = bufs[(size_t)p];
+        for (int k = 1; k < nt; ++k) s += bufs[(size_t)k * (size_t)stride + (size_t)p];
+        out[p] = s;
+    }
+}
+
+static void splat_bwd(int64_t n, const float* mean, const float* con, const float* amp, const int64_t* bb,
+                      int64_t H, int64_t W, const float* gimg, float* gmean, float* gcon, float* gamp, int nthreads) {
+    std::vector<float> gpad((size_t)(H * W + 8), 0.f);  // padded copy: the last row's chunk may read past W
+    std::memcpy(gpad.data(), gimg, sizeof(float) * (size_t)(H * W));
+    const float* g = gpad.data();
+    parallel_for(n, nthreads, [&](int64_t i0, int64_t i1, int) {
+    for (int64_t i = i0; i < i1; ++i) {
+        const int64_t u0 = bb[4 * i], u1 = bb[4 * i + 1], v0 = bb[4 * i + 2], v1 = bb[4 * i + 3];
+        const float mx = mean[2 * i], my = mean[2 * i + 1];
+        const float A = con[3 * i], B = con[3 * i + 1], C = con[3 * i + 2];
+        const v8f zero = bc8(0.f);
+        v8f s_e = zero, s_x = zero, s_y = zero, s_xx = zero, s_xy = zero, s_yy = zero;
+        if (u1 > u0 && v1 > v0) {
+            const int len = (int)(u1 - u0);
+            const v8f h = bc8(-0.5f * A);
+            const float x0 = (float)u0 + 0.5f - mx;
+            const int last = 8 * ((len - 1) / 8);
+            const v8i tail = IOTA8 < bc8((float)(len - last));
+            const v8f dx_last = bc8(x0 + (float)last) + IOTA8;
+            for (int64_t v = v0; v < v1; ++v) {
+                const float dy = (float)v + 0.5f - my;
+                const v8f cy = bc8(-0.5f * C * dy * dy), by = bc8(-B * dy), dyv = bc8(dy);
+                const float* grow = g + v * W + u0;
+                const v8f ge_l = keep8(ld8(grow + last), tail) * vexp8((h * dx_last + by) * dx_last + cy);
+                const v8f gx_l = ge_l * dx_last;
+                v8f r_e = ge_l, r_x = gx_l, r_xx = gx_l * dx_last;
+                for (int k = 0; k < last; k += 8) {
+                    const v8f dx = bc8(x0 + (float)k) + IOTA8;
+                    const v8f ge = ld8(grow + k) * vexp8((h * dx + by) * dx + cy);
+                    const v8f gx = ge * dx;
+                    r_e += ge; r_x += gx; r_xx += gx * dx;
+                }
+                s_e += r_e; s_x += r_x; s_xx += r_xx;
+                s_y += r_e * dyv; s_xy += r_x * dyv; s_yy += (r_e * dyv) * dyv;
+            }
+        }
+        const float a = amp[i];
+        const float se = hsum8(s_e), sx = hsum8(s_x), sy = hsum8(s_y);
+        gamp[i] = se;
+        gmean[2 * i] = a * (A * sx + B * sy);
+        gmean[2 * i + 1] = a * (B * sx + C * sy);
+        gcon[3 * i] = -0.5f * a * hsum8(s_xx);
+        gcon[3 * i + 1] = -a * hsum8(s_xy);
+        gcon[3 * i + 2] = -0.5f * a * hsum8(s_yy);
+    }
+    });
+}
+
 // ---------------------------------------------------------------- projection (per Gaussian)
 // cam: [model(0 parallel,1 cone), sx, sy, fx, fy, cx, cy, W, H, lim_x, lim_y, R00..R22 (9), t0..t2, k2, near, cutoff]
 // mode: 0 radiative, 1 unrectified; mip: unrectified applies sqrt(|S^|/|S^'|); fvar may be NULL.
@@ -170,10 +299,6 @@ struct Cam {
     }
 };
 
-template <typename T>
-static inline T softplus_(T x) { return x > 20 ? x : std::log1p(std::exp(x)); }
-template <typename T>
-static inline T sigmoid_(T x) { return 1 / (1 + std::exp(-x)); }
 
 template <typename T>
 static inline void rotmat(const T* qn, T* Rq) {
@@ -191,7 +316,7 @@ struct PState {
 };
 
 template <typename T>
-static inline void proj_one(const Cam<T>& cam, const T* m, const T* ls, const T* q, T draw, T fv, int mode, int mip,
+static inline void proj_one(const Cam<T>& cam, const T* m, const T* s2in, const T* q, T rho, T fv, int mode, int mip,
                             int has_f, PState<T>& S) {
     T nq = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
     if (nq < (T)1e-12) nq = (T)1e-12;
@@ -201,7 +326,7 @@ static inline void proj_one(const Cam<T>& cam, const T* m, const T* ls, const T*
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j)
             S.M[3 * i + j] = cam.R[3 * i] * S.Rq[j] + cam.R[3 * i + 1] * S.Rq[3 + j] + cam.R[3 * i + 2] * S.Rq[6 + j];
-    for (int k = 0; k < 3; ++k) { S.s2[k] = std::exp(2 * ls[k]); S.s2f[k] = S.s2[k] + (has_f ? fv : (T)0); }
+    for (int k = 0; k < 3; ++k) { S.s2[k] = s2in[k]; S.s2f[k] = S.s2[k] + (has_f ? fv : (T)0); }
     for (int i = 0; i < 3; ++i)
         S.xc[i] = cam.R[3 * i] * m[0] + cam.R[3 * i + 1] * m[1] + cam.R[3 * i + 2] * m[2] + cam.t[i];
     S.z = S.xc[2];
@@ -238,7 +363,7 @@ static inline void proj_one(const Cam<T>& cam, const T* m, const T* ls, const T*
     S.D = S.f00 * S.f11 - S.f01 * S.f01;
     S.dh = S.c00 * S.c11 - S.c01 * S.c01;
     if (S.dh < (T)1e-20) S.dh = (T)1e-20;
-    S.rho = mode == 2 ? sigmoid_(draw) : softplus_(draw);  // mode 2 (alpha): opacity
+    S.rho = rho;  // mode 2 (alpha): opacity
     // ampn = amplitude per unit density/opacity (so the backward never divides by rho, which may underflow)
     if (mode == 0) {
         // rho sqrt(2 pi |J|^2 prod(s2f) / D) * sqrt(prod(s2)/prod(s2f)) = rho sqrt(2 pi prod(s2) / D) |J|
@@ -252,33 +377,87 @@ static inline void proj_one(const Cam<T>& cam, const T* m, const T* ls, const T*
     S.amp = S.rho * S.ampn;
 }
 
+static inline float log1p_(float x) { return log1pf(x); }
+static inline double log1p_(double x) { return log1p(x); }
+
+// activations of a block of Gaussians in separate loops that vectorise (libmvec exp / log1p), so the scalar
+// per-Gaussian code below has no transcendental calls left but one sqrt: s2 = exp(2 log s) (3 per Gaussian),
+// rho = softplus(raw) (mode 2: sigmoid) and d rho / d raw
+constexpr int64_t ACT_BLOCK = 512;
+template <typename T>
+static void activations(int64_t m, const T* __restrict ls, const T* __restrict draw, int mode, T* __restrict s2,
+                        T* __restrict rho, T* __restrict drho) {
+    for (int64_t k = 0; k < 3 * m; ++k) s2[k] = ex_(2 * ls[k]);
+    if (mode == 2) {
+        for (int64_t k = 0; k < m; ++k) {
+            const T x = draw[k] < -80 ? (T)(-80) : (draw[k] > 80 ? (T)80 : draw[k]);  // exp stays finite
+            const T r = 1 / (1 + ex_(-x));
+            rho[k] = r; drho[k] = r * (1 - r);
+        }
+    } else {
+        for (int64_t k = 0; k < m; ++k) {
+            const T x = draw[k];
+            const T sp = log1p_(ex_(x < 20 ? x : (T)20));
+            rho[k] = x > 20 ? x : sp;
+            drho[k] = 1 / (1 + ex_(x < -80 ? (T)80 : -x));
+        }
+    }
+}
+
 template <typename T>
 static void proj_fwd(int64_t n, const T* means, const T* ls, const T* quats, const T* draw, const T* fvar,
-                     const double* camp, int mode, int mip, T* m2d, T* con, T* amp, T* depth, int64_t* bb, int nt) {
+                     const double* camp, int mode, int mip, T* m2d, T* con, T* amp, T* depth, int64_t* bb,
+                     int32_t* radii, uint8_t* valid, uint8_t* visible, int32_t* bad, int nt) {
     const Cam<T> cam(camp);
+    // blocks of Gaussians in separate passes: each loop is short and independent across Gaussians, so the
+    // out-of-order core overlaps them (one fused loop was latency-bound: ~100 ns per Gaussian)
     parallel_for(n, nt, [&](int64_t i0, int64_t i1, int) {
-    for (int64_t i = i0; i < i1; ++i) {
-        PState<T> S;
-        proj_one(cam, means + 3 * i, ls + 3 * i, quats + 4 * i, draw[i], fvar ? fvar[i] : (T)0, mode, mip,
-                 fvar != nullptr, S);
-        m2d[2 * i] = S.u; m2d[2 * i + 1] = S.v;
-        con[3 * i] = S.f11 / S.D; con[3 * i + 1] = -S.f01 / S.D; con[3 * i + 2] = S.f00 / S.D;
-        amp[i] = S.amp; depth[i] = S.xc[2];
-        int64_t u0 = 0, u1 = 0, v0 = 0, v1 = 0;
-        const double hx = cam.cut * std::sqrt((double)(S.f00 > 0 ? S.f00 : 0));
-        const double hy = cam.cut * std::sqrt((double)(S.f11 > 0 ? S.f11 : 0));
-        if (S.valid && finite_((double)S.u) && finite_((double)S.v) && finite_(hx) && finite_(hy)) {
-            auto clampd = [](double x, double lo, double hi) { return x < lo ? lo : (x > hi ? hi : x); };
-            const double big = 1e9;
-            u0 = (int64_t)clampd(std::ceil(clampd((double)S.u - hx - 0.5, -big, big)), 0, (double)cam.W);
-            u1 = (int64_t)clampd(std::floor(clampd((double)S.u + hx - 0.5, -big, big)) + 1, 0, (double)cam.W);
-            v0 = (int64_t)clampd(std::ceil(clampd((double)S.v - hy - 0.5, -big, big)), 0, (double)cam.H);
-            v1 = (int64_t)clampd(std::floor(clampd((double)S.v + hy - 0.5, -big, big)) + 1, 0, (double)cam.H);
-            if (u1 < u0) u1 = u0;
-            if (v1 < v0) v1 = v0;
+    bool any_bad = false;
+    T s2b[3 * ACT_BLOCK], rhob[ACT_BLOCK], drhob[ACT_BLOCK], hxb[ACT_BLOCK], hyb[ACT_BLOCK];
+    for (int64_t b0 = i0; b0 < i1; b0 += ACT_BLOCK) {
+        const int64_t m = i1 - b0 < ACT_BLOCK ? i1 - b0 : ACT_BLOCK;
+        activations(m, ls + 3 * b0, draw + b0, mode, s2b, rhob, drhob);
+        // non-finite parameters: flagged here, named by the caller (cheaper than torch reductions per view)
+        for (int64_t i = b0; i < b0 + m; ++i) {
+            bool ok = finite_((double)draw[i]) && (fvar == nullptr || (finite_((double)fvar[i]) && fvar[i] >= 0));
+            for (int k = 0; k < 3; ++k) ok = ok && finite_((double)means[3 * i + k]) && finite_((double)ls[3 * i + k]);
+            for (int k = 0; k < 4; ++k) ok = ok && finite_((double)quats[4 * i + k]);
+            any_bad = any_bad || !ok;
         }
-        bb[4 * i] = u0; bb[4 * i + 1] = u1; bb[4 * i + 2] = v0; bb[4 * i + 3] = v1;
+        for (int64_t j = 0; j < m; ++j) {
+            const int64_t i = b0 + j;
+            PState<T> S;
+            proj_one(cam, means + 3 * i, s2b + 3 * j, quats + 4 * i, rhob[j], fvar ? fvar[i] : (T)0, mode, mip,
+                     fvar != nullptr, S);
+            m2d[2 * i] = S.u; m2d[2 * i + 1] = S.v;
+            con[3 * i] = S.f11 / S.D; con[3 * i + 1] = -S.f01 / S.D; con[3 * i + 2] = S.f00 / S.D;
+            amp[i] = S.amp; depth[i] = S.xc[2];
+            valid[i] = (uint8_t)S.valid;
+            hxb[j] = cam.cut * std::sqrt(S.f00 > 0 ? S.f00 : (T)0);
+            hyb[j] = cam.cut * std::sqrt(S.f11 > 0 ? S.f11 : (T)0);
+        }
+        // bounding boxes: pixel centres (i + 0.5) inside [m - h, m + h], clipped to the image; empty if culled
+        const T Wt = (T)cam.W, Ht = (T)cam.H;
+        auto cl = [](T x, T lo, T hi) { return x < lo ? lo : (x > hi ? hi : x); };
+        for (int64_t j = 0; j < m; ++j) {
+            const int64_t i = b0 + j;
+            const T u = m2d[2 * i], v = m2d[2 * i + 1], hx = hxb[j], hy = hyb[j];
+            int64_t u0 = 0, u1 = 0, v0 = 0, v1 = 0;
+            if (valid[i] && finite_((double)u) && finite_((double)v) && finite_((double)hx) && finite_((double)hy)) {
+                u0 = (int64_t)cl(std::ceil(cl(u - hx - (T)0.5, (T)-2, Wt + 2)), 0, Wt);
+                u1 = (int64_t)cl(std::floor(cl(u + hx - (T)0.5, (T)-2, Wt + 2)) + 1, 0, Wt);
+                v0 = (int64_t)cl(std::ceil(cl(v - hy - (T)0.5, (T)-2, Ht + 2)), 0, Ht);
+                v1 = (int64_t)cl(std::floor(cl(v + hy - (T)0.5, (T)-2, Ht + 2)) + 1, 0, Ht);
+                if (u1 < u0) u1 = u0;
+                if (v1 < v0) v1 = v0;
+            }
+            bb[4 * i] = u0; bb[4 * i + 1] = u1; bb[4 * i + 2] = v0; bb[4 * i + 3] = v1;
+            const bool vis = u1 > u0 && v1 > v0;
+            visible[i] = (uint8_t)vis;
+            radii[i] = vis ? (int32_t)((u1 - u0 > v1 - v0 ? u1 - u0 : v1 - v0) / 2 + 1) : 0;
+        }
     }
+    if (any_bad) __atomic_store_n(bad, 1, __ATOMIC_RELAXED);
     });
 }
 
@@ -288,16 +467,18 @@ static void proj_bwd(int64_t n, const T* means, const T* ls, const T* quats, con
                      T* gmeans, T* gls, T* gq, T* gdraw, int nt) {
     const Cam<T> cam(camp);
     parallel_for(n, nt, [&](int64_t i0, int64_t i1, int) {
+    T s2b[3 * ACT_BLOCK], rhob[ACT_BLOCK], drhob[ACT_BLOCK];
     for (int64_t i = i0; i < i1; ++i) {
+        const int64_t j = (i - i0) % ACT_BLOCK;
+        if (j == 0) activations(i1 - i < ACT_BLOCK ? i1 - i : ACT_BLOCK, ls + 3 * i, draw + i, mode, s2b, rhob, drhob);
         PState<T> S;
-        const T* l = ls + 3 * i;
         const int has_f = fvar != nullptr;
-        proj_one(cam, means + 3 * i, l, quats + 4 * i, draw[i], has_f ? fvar[i] : (T)0, mode, mip, has_f, S);
+        proj_one(cam, means + 3 * i, s2b + 3 * j, quats + 4 * i, rhob[j], has_f ? fvar[i] : (T)0, mode, mip, has_f, S);
         T g_ls[3] = {0, 0, 0}, g_s2f[3] = {0, 0, 0}, g_xc[3] = {0, 0, 0};
         T g_logdetJ = 0, gD = 0, gdh = 0;
         const T ga = gamp[i];
         // amplitude
-        const T drho_draw = mode == 2 ? S.rho * (1 - S.rho) : sigmoid_(draw[i]);
+        const T drho_draw = drhob[j];
         T g_rho = 0;
         if (mode == 0) {
             g_rho = ga * S.ampn;
@@ -583,14 +764,16 @@ static void vox_bwd(int64_t n, const T* means, const T* p6, const T* dens, const
 
 #define EXPORT(T, SUF)                                                                                          \
 extern "C" void splat_fwd_##SUF(int64_t n, const T* m, const T* c, const T* a, const int64_t* bb, int64_t H,     \
-                                int64_t W, T* out, int nt) { splat_fwd<T>(n, m, c, a, bb, H, W, out, nt); }      \
-extern "C" void splat_bwd_##SUF(int64_t n, const T* m, const T* c, const T* a, const int64_t* bb, int64_t W,     \
+                                int64_t W, T* out, int nt) { splat_fwd(n, m, c, a, bb, H, W, out, nt); }         \
+extern "C" void splat_bwd_##SUF(int64_t n, const T* m, const T* c, const T* a, const int64_t* bb, int64_t H,     \
+                                int64_t W,                                                                      \
                                 const T* g, T* gm, T* gc, T* ga, int nt) {                                      \
-    splat_bwd<T>(n, m, c, a, bb, W, g, gm, gc, ga, nt); }                                                       \
+    splat_bwd(n, m, c, a, bb, H, W, g, gm, gc, ga, nt); }                                                       \
 extern "C" void proj_fwd_##SUF(int64_t n, const T* means, const T* ls, const T* q, const T* d, const T* fv,       \
                                const double* cam, int mode, int mip, T* m2d, T* con, T* amp, T* depth,          \
-                               int64_t* bb, int nt) {                                                           \
-    proj_fwd<T>(n, means, ls, q, d, fv, cam, mode, mip, m2d, con, amp, depth, bb, nt); }                        \
+                               int64_t* bb, int32_t* radii, uint8_t* valid, uint8_t* visible, int32_t* bad,     \
+                               int nt) {                                                                        \
+    proj_fwd<T>(n, means, ls, q, d, fv, cam, mode, mip, m2d, con, amp, depth, bb, radii, valid, visible, bad, nt); } \
 extern "C" void proj_bwd_##SUF(int64_t n, const T* means, const T* ls, const T* q, const T* d, const T* fv,       \
                                const double* cam, int mode, int mip, const T* gm2d, const T* gcon,              \
                                const T* gamp, T* gmeans, T* gls, T* gq, T* gd, int nt) {                        \
@@ -614,6 +797,9 @@ EXPORT(float, f32)
 EXPORT(double, f64)
 """
 
+# tried in order; the first set the compiler accepts is used (some compilers lack -march=native)
+_FLAG_SETS = (["-march=native"], [])
+
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
 _failed: str | None = None
@@ -628,7 +814,7 @@ def _build() -> ctypes.CDLL:
     cpu = platform.machine() + platform.processor()
     with contextlib.suppress(OSError):
         cpu += next((ln for ln in Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("flags")), "")
-    tag = hashlib.sha256((_SRC + cpu).encode()).hexdigest()[:16]
+    tag = hashlib.sha256((_SRC + cpu + repr(_FLAG_SETS)).encode()).hexdigest()[:16]
     out = _cache_dir() / f"render_{tag}.so"
     if not out.exists():
         cxx = os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++") or shutil.which("clang++")
@@ -639,11 +825,11 @@ def _build() -> ctypes.CDLL:
             src = Path(tmp) / "render.cpp"
             src.write_text(_SRC)
             so = Path(tmp) / "render.so"
-            base = [cxx, "-O3", "-std=c++17", "-ffast-math", "-fPIC", "-shared",
-                    str(src), "-o", str(so), "-pthread"]
-            res = subprocess.run(base[:1] + ["-march=native"] + base[1:], capture_output=True, text=True)
-            if res.returncode != 0:  # compilers without -march=native
-                res = subprocess.run(base, capture_output=True, text=True)
+            base = [cxx, "-O3", "-std=c++17", "-ffast-math", "-fPIC", "-shared", str(src), "-o", str(so), "-pthread"]
+            for extra in _FLAG_SETS:  # the first set the compiler accepts
+                res = subprocess.run(base[:1] + extra + base[1:], capture_output=True, text=True)
+                if res.returncode == 0:
+                    break
             if res.returncode != 0:
                 raise RuntimeError(f"render kernel compilation failed: {res.stderr.strip()[:500]}")
             os.replace(so, out)
@@ -709,7 +895,7 @@ class SplatAdditive(torch.autograd.Function):
         c = conics.detach().to(amps.dtype).contiguous()
         a = amps.detach().contiguous()
         b = bbox.to(torch.int64).contiguous()
-        out = torch.zeros(height, width, dtype=amps.dtype)
+        out = torch.empty(height, width, dtype=amps.dtype)  # the kernel writes every pixel
         getattr(lib, f"splat_fwd_{suf}")(
             _i64(m.shape[0]), _ptr(m), _ptr(c), _ptr(a), _ptr(b), _i64(height), _i64(width), _ptr(out),
             ctypes.c_int(torch.get_num_threads()),
@@ -721,11 +907,12 @@ class SplatAdditive(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_img):  # noqa: ANN001
         m, c, a, b = ctx.saved_tensors
-        _, width = ctx.hw
+        height, width = ctx.hw
         g = grad_img.to(a.dtype).contiguous()
         gm, gc, ga = torch.empty_like(m), torch.empty_like(c), torch.empty_like(a)
         getattr(_get_lib(), f"splat_bwd_{_suffix(a.dtype)}")(
-            _i64(m.shape[0]), _ptr(m), _ptr(c), _ptr(a), _ptr(b), _i64(width), _ptr(g), _ptr(gm), _ptr(gc),
+            _i64(m.shape[0]), _ptr(m), _ptr(c), _ptr(a), _ptr(b), _i64(height), _i64(width), _ptr(g), _ptr(gm),
+            _ptr(gc),
             _ptr(ga), ctypes.c_int(torch.get_num_threads()),
         )
         return gm, gc, ga, None, None, None
@@ -742,7 +929,9 @@ class ProjectAdditive(torch.autograd.Function):
     Inputs: means (N,3), log_scales (N,3), quats (N,4), density_raw (N,) (mode 2: opacity_raw), filter_3d_var (N,)
     or None (constant), cam: float64 parameter vector (see :func:`camera_vector`), mode 0 radiative /
     1 unrectified / 2 alpha (amplitude = sigmoid opacity, filters as unrectified), mip flag.
-    Outputs: means2d (N,2), conics (N,3), amps (N,), depths (N,), bbox (N,4) int64 (no gradient).
+    Outputs: means2d (N,2), conics (N,3), amps (N,), depths (N,); without gradient: bbox (N,4) int64, radii (N,)
+    int32, valid (N,) bool (in front of a cone's source), visible (N,) bool (non-empty bbox) and ``nonfinite``,
+    a 0-d int32 that is 1 when an input holds NaN/Inf (or filter_3d_var < 0) -- the caller names it.
     """
 
     @staticmethod
@@ -760,26 +949,31 @@ class ProjectAdditive(torch.autograd.Function):
         amp = torch.empty(n, dtype=dt)
         depth = torch.empty(n, dtype=dt)
         bb = torch.empty(n, 4, dtype=torch.int64)
+        radii = torch.empty(n, dtype=torch.int32)
+        valid = torch.empty(n, dtype=torch.bool)
+        visible = torch.empty(n, dtype=torch.bool)
+        nonfinite = torch.zeros((), dtype=torch.int32)
         getattr(lib, f"proj_fwd_{suf}")(
             _i64(n), *[_ptr(t) for t in ins], _ptr(fv) if fv is not None else None, _ptr(cam),
             ctypes.c_int(mode), ctypes.c_int(int(mip)), _ptr(m2d), _ptr(con), _ptr(amp), _ptr(depth), _ptr(bb),
-            ctypes.c_int(torch.get_num_threads()),
+            _ptr(radii), _ptr(valid), _ptr(visible), _ptr(nonfinite), ctypes.c_int(torch.get_num_threads()),
         )
         ctx.save_for_backward(*ins, *([fv] if fv is not None else []))
         ctx.has_f = fv is not None
         ctx.cam, ctx.mode, ctx.mip = cam, mode, mip
-        ctx.mark_non_differentiable(depth, bb)
-        return m2d, con, amp, depth, bb
+        ctx.mark_non_differentiable(depth, bb, radii, valid, visible, nonfinite)
+        ctx.set_materialize_grads(False)  # no zero tensors for the outputs without gradient
+        return m2d, con, amp, depth, bb, radii, valid, visible, nonfinite
 
     @staticmethod
-    def backward(ctx, g_m2d, g_con, g_amp, _g_depth, _g_bb):  # noqa: ANN001
+    def backward(ctx, g_m2d, g_con, g_amp, *_no_grad):  # noqa: ANN001
         saved = ctx.saved_tensors
         means, ls, q, d = saved[:4]
         fv = saved[4] if ctx.has_f else None
         dt = means.dtype
         n = means.shape[0]
-        z = [torch.zeros(n, k, dtype=dt) if k else torch.zeros(n, dtype=dt) for k in (2, 3, 0)]
-        gs = [g.to(dt).contiguous() if g is not None else zz for g, zz in zip((g_m2d, g_con, g_amp), z, strict=True)]
+        gs = [g.to(dt).contiguous() if g is not None else torch.zeros((n, k) if k else (n,), dtype=dt)
+              for g, k in zip((g_m2d, g_con, g_amp), (2, 3, 0), strict=True)]
         gm, gl, gq, gd = torch.empty_like(means), torch.empty_like(ls), torch.empty_like(q), torch.empty_like(d)
         getattr(_get_lib(), f"proj_bwd_{_suffix(dt)}")(
             _i64(n), _ptr(means), _ptr(ls), _ptr(q), _ptr(d), _ptr(fv) if fv is not None else None, _ptr(ctx.cam),

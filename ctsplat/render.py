@@ -466,7 +466,6 @@ def render(
         raise CtsplatError("transmission=True only applies to the radiative compositors")
     if not sigma_cutoff > 0:
         raise CtsplatError(f"sigma_cutoff must be > 0, got {sigma_cutoff}")
-    _check_inputs(gaussians, filter_3d_var)
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
     use_kernel = False
@@ -475,17 +474,30 @@ def render(
 
         use_kernel = _render_kernel.available() if backend == "auto" else True
     if use_kernel:
-        proj = _project_kernel(gaussians, cam, R, t, compositor, filter_3d_var, mip_2d, sigma_cutoff)
+        # the kernel flags NaN/Inf in what it reads (one pass, no per-view torch reductions); the full check
+        # then names the parameter. Colours are only read by the alpha compositor.
+        gaussians.validate(check_finite=False)
+        if compositor == "alpha":
+            for name in ("colors", "sh_rest"):
+                tensor = getattr(gaussians, name, None)
+                if tensor is not None and tensor.numel() and not bool(torch.isfinite(tensor).all()):
+                    raise CtsplatError(f"Gaussians.{name} contains NaN/Inf; lower the learning rate or reset it")
+        proj, radii, visible, nonfinite = _project_kernel(gaussians, cam, R, t, compositor, filter_3d_var, mip_2d,
+                                                          sigma_cutoff)
+        if nonfinite:
+            _check_inputs(gaussians, filter_3d_var)
+            raise CtsplatError("Gaussian parameters contain NaN/Inf; lower the learning rate or prune/reset them")
     else:
+        _check_inputs(gaussians, filter_3d_var)
         proj = project(gaussians, camera, R, t, compositor=compositor, filter_3d_var=filter_3d_var,
                        mip_2d=mip_2d, sigma_cutoff=sigma_cutoff)
+        bb = proj.bbox
+        visible = (bb[:, 1] > bb[:, 0]) & (bb[:, 3] > bb[:, 2])
+        radii = torch.where(
+            visible, torch.maximum(bb[:, 1] - bb[:, 0], bb[:, 3] - bb[:, 2]).div(2, rounding_mode="floor") + 1, 0
+        ).to(torch.int32)
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
-    bb = proj.bbox
-    visible = (bb[:, 1] > bb[:, 0]) & (bb[:, 3] > bb[:, 2])
-    radii = torch.where(
-        visible, torch.maximum(bb[:, 1] - bb[:, 0], bb[:, 3] - bb[:, 2]).div(2, rounding_mode="floor") + 1, 0
-    ).to(torch.int32)
 
     if compositor == "alpha":
         R_t, t_t = _as_pose(R, t, gaussians.means)
@@ -516,8 +528,9 @@ def render(
 def _project_kernel(
     gaussians: Gaussians, cam: dict[str, Any], R: Any, t: Any, compositor: str, filter_3d_var: Any, mip_2d: bool,
     sigma_cutoff: float,
-) -> Projection:
-    """:func:`project` through the fused C kernel (CPU, float32/float64)."""
+) -> tuple[Projection, torch.Tensor, torch.Tensor, bool]:
+    """:func:`project` through the fused C kernel (CPU, float32/float64); also returns ``radii`` (N,) int32,
+    ``visible`` (N,) bool and whether an input held NaN/Inf (or a negative filter variance)."""
     from ctsplat._render_kernel import ProjectAdditive, camera_vector
 
     means = gaussians.means
@@ -533,11 +546,11 @@ def _project_kernel(
     if compositor == "alpha":
         # no opacity -> opacity 1 (sigmoid(40) == 1 in float32), as Gaussians.opacities says
         raw = gaussians.opacity_raw if gaussians.opacity_raw is not None else torch.full_like(raw.detach(), 40.0)
-    m2d, con, amp, depth, bb = ProjectAdditive.apply(
+    m2d, con, amp, depth, bb, radii, valid, visible, nonfinite = ProjectAdditive.apply(
         means, gaussians.log_scales, gaussians.quats, raw, fv, cam_vec, mode, bool(mip_2d)
     )
-    valid = depth > NEAR_MM if cam["model"] == "cone" else torch.ones_like(depth, dtype=torch.bool)
-    return Projection(means2d=m2d, conics=con, cov2d=torch.empty(0), amps=amp, depths=depth, valid=valid, bbox=bb)
+    proj = Projection(means2d=m2d, conics=con, cov2d=torch.empty(0), amps=amp, depths=depth, valid=valid, bbox=bb)
+    return proj, radii, visible, bool(nonfinite)
 
 
 def render_reference(gaussians: Gaussians, camera: Any, R: Any, t: Any, **kwargs: Any) -> RenderOutput:

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from ctsplat.gaussians import Gaussians
 from ctsplat.geometry import ConeCamera, ParallelCamera, camera_rays, pose_from_angles
-from ctsplat.render import EPS_2D, compute_3d_filter, render, voxelize
+from ctsplat.render import EPS_2D, compute_3d_filter, project, render, voxelize
 from ctsplat.utils import CtsplatError
 
 D64 = torch.float64
@@ -348,6 +348,52 @@ def test_nan_or_inf_parameter_raises_naming_it(name):
     setattr(g, name, bad)
     with pytest.raises(CtsplatError, match=name):
         render(g, ParallelCamera(16, 16, 1.0), *_pose(0.0, 0.0))
+
+
+@pytest.mark.parametrize("backend", ["reference", "auto"])
+def test_bad_filter_variance_raises(backend):
+    g = _mixture(4, seed=0)
+    for fv, msg in ((torch.tensor([0.1, -0.2, 0.1, 0.1], dtype=D64), ">= 0"),
+                    (torch.tensor([0.1, float("nan"), 0.1, 0.1], dtype=D64), "NaN")):
+        with pytest.raises(CtsplatError, match=msg):
+            render(g, ParallelCamera(16, 16, 1.0), *_pose(0.0, 0.0), filter_3d_var=fv, backend=backend)
+
+
+def test_float32_kernel_rows_of_every_length_and_image_corners():
+    # footprint rows 1..37 px long (every remainder of the kernel's 8-lane row chunks), clipped at all four image
+    # corners and edges; float32 kernel against the float64 reference, values and gradients
+    from ctsplat import _render_kernel
+
+    if not _render_kernel.available():
+        pytest.skip(f"C kernel unavailable: {_render_kernel._failed}")
+    cam = ParallelCamera(37, 29, 1.0)
+    n = 400
+    gen = torch.Generator().manual_seed(21)
+    corners = torch.tensor([[-18.5, -14.5], [18.5, -14.5], [-18.5, 14.5], [18.5, 14.5], [0.0, 0.0]], dtype=D64)
+    xy = corners[torch.arange(n) % 5] + 4.0 * (torch.rand(n, 2, generator=gen, dtype=D64) - 0.5)
+    means = torch.cat([xy, torch.zeros(n, 1, dtype=D64)], 1)
+    sig = torch.linspace(0.15, 7.0, n, dtype=D64)[:, None] * torch.tensor([[1.0, 0.6, 1.0]], dtype=D64)
+    g64 = Gaussians.from_values(means, sig, 0.5 + torch.rand(n, generator=gen, dtype=D64),
+                                torch.randn(n, 4, generator=gen, dtype=D64), dtype=D64)
+    g32 = g64.detach().to(dtype=torch.float32)
+    w = torch.rand(29, 37, generator=gen, dtype=D64)
+    R, t = _pose(0.0, 0.0)
+    res = []
+    for g, backend in ((g64, "reference"), (g32, "kernel")):
+        params = [g.means, g.log_scales, g.quats, g.density_raw]
+        for p in params:
+            p.requires_grad_(True)
+        out = render(g, cam, R.to(g.means.dtype), t.to(g.means.dtype), backend=backend)
+        grads = torch.autograd.grad((out.image * w.to(out.image.dtype)).sum(), params)
+        res.append((out.image.detach().double(), [gr.double() for gr in grads], out.radii))
+    (a, ga, ra), (b, gb, rb) = res
+    assert torch.equal(ra, rb)
+    bb = project(g64, cam, R, t).bbox
+    lengths = set((bb[:, 1] - bb[:, 0]).tolist())
+    assert set(range(1, 25)) <= lengths  # every remainder mod 8, one to three chunks per row
+    assert float((a - b).abs().max()) <= 2e-6 * float(a.abs().max())
+    for x, y in zip(ga, gb, strict=True):
+        assert float((x - y).abs().max()) <= 2e-5 * float(x.abs().max())
 
 
 def test_zero_gaussians_render_empty_image():
