@@ -84,6 +84,15 @@ def _grid_axes(affine: np.ndarray, shape: tuple[int, int, int]) -> tuple[np.ndar
     return np.abs(d), origin, flips
 
 
+def is_circular_parallel(view_set: ViewSet) -> bool:
+    """True for a parallel-beam view set on a planar circular orbit about +z at elevation 0 (what slice-wise
+    FBP/SART need: every view's rows are axial slices)."""
+    if view_set.camera.model != "parallel" or not len(view_set):
+        return False
+    Rs = view_set.Rs()
+    return bool(np.abs(Rs[:, 2, 2]).max() <= 1e-6 and np.abs(Rs[:, 1] - [0.0, 0.0, -1.0]).max() <= 1e-6)
+
+
 def circular_sinograms(line_integrals: np.ndarray, view_set: ViewSet, affine: np.ndarray,
                        shape: tuple[int, int, int], mu_scale_per_mm: float = 1.0
                        ) -> tuple[np.ndarray, np.ndarray, _SliceGrid]:
@@ -118,7 +127,7 @@ def circular_sinograms(line_integrals: np.ndarray, view_set: ViewSet, affine: np
         raise CtsplatError(f"line integrals of shape {p.shape} do not match the view set "
                            f"({len(view_set)}, {cam.height}, {cam.width})")
     Rs = view_set.Rs()
-    if np.abs(Rs[:, 2, 2]).max() > 1e-6 or np.abs(Rs[:, 1] - [0.0, 0.0, -1.0]).max() > 1e-6:
+    if not is_circular_parallel(view_set):
         raise CtsplatError("FBP/SART baselines need a planar circular orbit about +z at elevation 0 "
                            "(orbit: circular, wobble_deg: 0)")
     spacing, origin, flips = _grid_axes(affine, shape)

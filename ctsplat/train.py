@@ -390,19 +390,29 @@ def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> se
         pts = seeding.read_ply_points(Path(cfg["sfm_dir"]) / "points3d.ply")
         return seeding.seed_from_points(pts, lo, hi, n, rng, fill_fraction=cfg["sfm_fill_fraction"],
                                         density=cfg["init_density"])
-    recon = fbp_reconstruction(scene, cfg.get("fbp_filter", "ramp"))
+    recon, method = fbp_reconstruction(scene, cfg.get("fbp_filter", "ramp"))
     return seeding.seed_from_grid(recon, vol.affine, n, rng, top_fraction=cfg["init_top_fraction"],
                                   scale_voxels=1.5 if scale is None else float(scale), uses_reference_volume=False,
-                                  strategy="fbp")
+                                  strategy="fbp" if method == "fbp" else "fbp (sirt)")
 
 
-def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> np.ndarray:
-    """FBP of the *training* projections only onto the reference grid (geometry only, no voxel values).
+SIRT_SEED_ITERATIONS = 10
 
-    Uses ``ctsplat.baselines.fbp_volume``; the training targets are already normalised line integrals, so the
-    result is in normalised units.
+
+def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> tuple[np.ndarray, str]:
+    """Reconstruction of the *training* projections only onto the reference grid (geometry only, no voxel values).
+
+    Circular parallel-beam orbits at elevation 0 use slice-wise FBP (``ctsplat.baselines.fbp_volume``); any other
+    geometry (cone beam, wobbling or spherical orbits, SfM poses) uses ``SIRT_SEED_ITERATIONS`` iterations of
+    ``ctsplat.baselines.sirt_volume``, which works with the projector's own geometry. The training targets are
+    already normalised line integrals, so the result is in normalised units.
+
+    Returns
+    -------
+    recon : ndarray (I, J, K) float32
+    method : "fbp" or "sirt"
     """
-    from ctsplat.baselines import fbp_volume
+    from ctsplat.baselines import fbp_volume, is_circular_parallel, sirt_volume
     from ctsplat.geometry import View, ViewSet
     from ctsplat.volume import Volume
 
@@ -411,8 +421,11 @@ def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> np.ndarray:
              for i, R, t, a, e in zip(tr.ids, tr.Rs, tr.ts, tr.azimuth_deg, tr.elevation_deg, strict=True)]
     vs = ViewSet(tr.camera, views, scene.volume.volume_id, scene.volume.center_mm(), {})
     grid = Volume(np.zeros(scene.volume.shape, np.float32), np.asarray(scene.volume.affine, float), {})
-    recon = fbp_volume(tr.images, vs, grid, filter_name=filter_name, mu_scale_per_mm=1.0)  # targets normalised
-    return np.asarray(recon, np.float32)
+    if is_circular_parallel(vs):
+        return np.asarray(fbp_volume(tr.images, vs, grid, filter_name=filter_name, mu_scale_per_mm=1.0),
+                          np.float32), "fbp"
+    recon = sirt_volume(tr.images, vs, grid, iterations=SIRT_SEED_ITERATIONS, mu_scale_per_mm=1.0)
+    return np.asarray(recon, np.float32), "sirt"
 
 
 # ------------------------------------------------------------------------------------------ model state
