@@ -18,9 +18,11 @@ node (its ``.grad`` feeds densification):
 Both are tested against the autograd reference (values and gradients, float32 and float64) and by gradcheck.
 The float32 rasteriser cuts each footprint row into 8-lane chunks (GCC/Clang vector extensions, the last chunk
 masked) with an inline vector ``exp`` (Cody-Waite reduction + Cephes polynomial, about 1 ulp): footprint rows are
-~8 px long, too short for auto-vectorised loops. float64 keeps the scalar loops (gradcheck, tests). The projection
-runs in blocks of separate short passes (activations through libmvec, finiteness, per-Gaussian algebra, boxes) so
-that the out-of-order core overlaps Gaussians instead of waiting on one long dependency chain each.
+~8 px long, too short for auto-vectorised loops. The projection runs in blocks of separate short passes
+(activations through libmvec, finiteness, per-Gaussian algebra, boxes); in float32 its algebra, forward and
+backward, runs on 8 Gaussians side by side (``proj8``: one Gaussian's chain of dependent operations is
+latency-bound). float64 keeps the scalar code (gradcheck, the exactness tests), the float32 path is tested
+against it.
 The C++ source (no torch headers) is compiled on first use with the system compiler
 (``c++ -O3 -ffast-math -march=native``; other loops vectorise with glibc's libmvec ``exp``) into
 ``$CTSPLAT_CACHE`` (default ``~/.cache/ctsplat``), keyed by the source and the CPU, and loaded with ``ctypes``;
@@ -56,6 +58,7 @@ _SRC = r"""
 #include <cstdlib>
 #include <cstring>
 #include <thread>
+#include <type_traits>
 #include <vector>
 
 // static block partition of [0, n) over nt std::threads (no OpenMP: it would spin against torch's own pool)
@@ -404,6 +407,204 @@ static void activations(int64_t m, const T* __restrict ls, const T* __restrict d
     }
 }
 
+// ---------------------------------------------------------------- projection, float32: 8 Gaussians per pass
+// The algebra of proj_one / proj_bwd lane-wise (same formulas; data-dependent branches become selects): one
+// Gaussian's chain of ~200 dependent operations is latency-bound, eight side by side are not.
+#if defined(__AVX__)
+static inline v8f vsqrt8(v8f x) { return __builtin_ia32_sqrtps256(x); }
+#else
+static inline v8f vsqrt8(v8f x) { for (int k = 0; k < 8; ++k) x[k] = std::sqrt(x[k]); return x; }
+#endif
+static inline v8f sel8(v8i m, v8f a, v8f b) { return (v8f)(((v8i)a & m) | ((v8i)b & ~m)); }
+static inline v8f max8(v8f a, v8f b) { return sel8(a > b, a, b); }
+static inline v8f min8(v8f a, v8f b) { return sel8(a < b, a, b); }
+static inline v8f gat8(const float* p, int64_t i, int stride, int off) {
+    v8f r;
+    for (int k = 0; k < 8; ++k) r[k] = p[(i + k) * stride + off];
+    return r;
+}
+static inline void sct8(float* p, int64_t i, int stride, int off, v8f v) {
+    for (int k = 0; k < 8; ++k) p[(i + k) * stride + off] = v[k];
+}
+
+struct PState8 {
+    v8f qn[4], nq, M[9], s2[3], s2f[3], xc[3], zs, tx, ty, r, clx, cly, J2[6], Tm[6], c00, c01, c11, f00, f01, f11,
+        D, dh, ampn, amp;
+    v8i valid, unclx, uncly, dh_raw_ok;
+};
+
+static inline void proj8(const Cam<float>& cam, const float* means, const float* s2b, const float* quats,
+                         const float* rhob, const float* fvar, int mode, int mip, int64_t i, int64_t j, PState8& S) {
+    const v8f q0 = gat8(quats, i, 4, 0), q1 = gat8(quats, i, 4, 1);
+    const v8f q2 = gat8(quats, i, 4, 2), q3 = gat8(quats, i, 4, 3);
+    S.nq = max8(vsqrt8(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), bc8(1e-12f));
+    const v8f w = q0 / S.nq, x = q1 / S.nq, y = q2 / S.nq, z = q3 / S.nq;
+    S.qn[0] = w; S.qn[1] = x; S.qn[2] = y; S.qn[3] = z;
+    const v8f one = bc8(1.f), two = bc8(2.f), zero = bc8(0.f);
+    v8f Rq[9];
+    Rq[0] = one - two * (y * y + z * z); Rq[1] = two * (x * y - w * z); Rq[2] = two * (x * z + w * y);
+    Rq[3] = two * (x * y + w * z); Rq[4] = one - two * (x * x + z * z); Rq[5] = two * (y * z - w * x);
+    Rq[6] = two * (x * z - w * y); Rq[7] = two * (y * z + w * x); Rq[8] = one - two * (x * x + y * y);
+    for (int a = 0; a < 3; ++a)
+        for (int b = 0; b < 3; ++b)
+            S.M[3 * a + b] = bc8(cam.R[3 * a]) * Rq[b] + bc8(cam.R[3 * a + 1]) * Rq[3 + b]
+                             + bc8(cam.R[3 * a + 2]) * Rq[6 + b];
+    const v8f fv = fvar ? gat8(fvar, i, 1, 0) : zero;
+    for (int k = 0; k < 3; ++k) { S.s2[k] = gat8(s2b, j, 3, k); S.s2f[k] = S.s2[k] + fv; }
+    const v8f m0 = gat8(means, i, 3, 0), m1 = gat8(means, i, 3, 1), m2 = gat8(means, i, 3, 2);
+    for (int a = 0; a < 3; ++a)
+        S.xc[a] = bc8(cam.R[3 * a]) * m0 + bc8(cam.R[3 * a + 1]) * m1 + bc8(cam.R[3 * a + 2]) * m2 + bc8(cam.t[a]);
+    v8f detJ;
+    if (!cam.cone) {
+        S.valid = (v8i)(zero == zero);
+        S.zs = S.xc[2];
+        S.J2[0] = bc8(1.f / cam.sx); S.J2[1] = zero; S.J2[2] = zero;
+        S.J2[3] = zero; S.J2[4] = bc8(1.f / cam.sy); S.J2[5] = zero;
+        detJ = bc8(1.f / (cam.sx * cam.sy));
+    } else {
+        S.valid = S.xc[2] > bc8(cam.near_);
+        const v8f zs = sel8(S.valid, S.xc[2], one);
+        S.zs = zs;
+        const v8f rx = S.xc[0] / zs, ry = S.xc[1] / zs, lx = bc8(cam.limx), ly = bc8(cam.limy);
+        S.unclx = (rx >= -lx) & (rx <= lx);
+        S.uncly = (ry >= -ly) & (ry <= ly);
+        S.clx = min8(max8(rx, -lx), lx);
+        S.cly = min8(max8(ry, -ly), ly);
+        S.tx = zs * S.clx; S.ty = zs * S.cly;
+        S.r = vsqrt8(S.tx * S.tx + S.ty * S.ty + zs * zs);
+        const v8f fx = bc8(cam.fx), fy = bc8(cam.fy);
+        S.J2[0] = fx / zs; S.J2[1] = zero; S.J2[2] = -fx * S.tx / (zs * zs);
+        S.J2[3] = zero; S.J2[4] = fy / zs; S.J2[5] = -fy * S.ty / (zs * zs);
+        detJ = fx * fy * S.r / (zs * zs * zs);
+    }
+    for (int a = 0; a < 2; ++a)
+        for (int b = 0; b < 3; ++b)
+            S.Tm[3 * a + b] = S.J2[3 * a] * S.M[b] + S.J2[3 * a + 1] * S.M[3 + b] + S.J2[3 * a + 2] * S.M[6 + b];
+    S.c00 = zero; S.c01 = zero; S.c11 = zero;
+    for (int k = 0; k < 3; ++k) {
+        S.c00 += S.Tm[k] * S.Tm[k] * S.s2f[k];
+        S.c01 += S.Tm[k] * S.Tm[3 + k] * S.s2f[k];
+        S.c11 += S.Tm[3 + k] * S.Tm[3 + k] * S.s2f[k];
+    }
+    S.f00 = S.c00 + bc8(cam.k2); S.f01 = S.c01; S.f11 = S.c11 + bc8(cam.k2);
+    S.D = S.f00 * S.f11 - S.f01 * S.f01;
+    const v8f dh = S.c00 * S.c11 - S.c01 * S.c01;
+    S.dh_raw_ok = dh >= bc8(1e-20f);
+    S.dh = max8(dh, bc8(1e-20f));
+    if (mode == 0) {
+        S.ampn = vsqrt8(bc8(6.283185307179586f) / S.D * (S.s2[0] * S.s2[1] * S.s2[2])) * detJ;
+    } else {
+        v8f a = one;
+        if (fvar) a *= vsqrt8((S.s2[0] / S.s2f[0]) * (S.s2[1] / S.s2f[1]) * (S.s2[2] / S.s2f[2]));
+        if (mip) a *= vsqrt8(S.dh / S.D);
+        S.ampn = a;
+    }
+    v8f rho;
+    std::memcpy(&rho, rhob + j, sizeof rho);
+    S.amp = rho * S.ampn;
+}
+
+static inline void proj8_fwd(const Cam<float>& cam, const float* means, const float* s2b, const float* quats,
+                             const float* rhob, const float* fvar, int mode, int mip, int64_t i, int64_t j,
+                             float* m2d, float* con, float* amp, float* depth, uint8_t* valid, float* hxb,
+                             float* hyb) {
+    PState8 S;
+    proj8(cam, means, s2b, quats, rhob, fvar, mode, mip, i, j, S);
+    v8f u, v;
+    if (!cam.cone) {
+        u = S.xc[0] / bc8(cam.sx) + bc8(cam.cx); v = S.xc[1] / bc8(cam.sy) + bc8(cam.cy);
+    } else {
+        u = bc8(cam.fx) * S.xc[0] / S.zs + bc8(cam.cx); v = bc8(cam.fy) * S.xc[1] / S.zs + bc8(cam.cy);
+    }
+    sct8(m2d, i, 2, 0, u); sct8(m2d, i, 2, 1, v);
+    sct8(con, i, 3, 0, S.f11 / S.D); sct8(con, i, 3, 1, -S.f01 / S.D); sct8(con, i, 3, 2, S.f00 / S.D);
+    sct8(amp, i, 1, 0, S.amp); sct8(depth, i, 1, 0, S.xc[2]);
+    for (int k = 0; k < 8; ++k) valid[i + k] = (uint8_t)(S.valid[k] != 0);
+    const v8f cut = bc8(cam.cut), zero = bc8(0.f);
+    const v8f hx = cut * vsqrt8(max8(S.f00, zero)), hy = cut * vsqrt8(max8(S.f11, zero));
+    std::memcpy(hxb + j, &hx, sizeof hx);
+    std::memcpy(hyb + j, &hy, sizeof hy);
+}
+
+static inline void proj8_bwd(const Cam<float>& cam, const float* means, const float* s2b, const float* quats,
+                             const float* rhob, const float* drhob, const float* fvar, int mode, int mip, int64_t i,
+                             int64_t j, const float* gm2d, const float* gcon, const float* gamp, float* gmeans,
+                             float* gls, float* gq, float* gdraw) {
+    PState8 S;
+    proj8(cam, means, s2b, quats, rhob, fvar, mode, mip, i, j, S);
+    const v8f zero = bc8(0.f), two = bc8(2.f), half = bc8(0.5f);
+    v8f g_ls[3] = {zero, zero, zero}, g_s2f[3] = {zero, zero, zero}, g_xc[3] = {zero, zero, zero};
+    v8f g_logdetJ = zero, gD = zero, gdh = zero;
+    const v8f ga = gat8(gamp, i, 1, 0);
+    v8f drho;
+    std::memcpy(&drho, drhob + j, sizeof drho);
+    const v8f g_rho = ga * S.ampn, gaa = ga * S.amp;
+    if (mode == 0) {
+        for (int k = 0; k < 3; ++k) g_ls[k] += gaa;
+        g_logdetJ += gaa;
+        gD += -half * gaa / S.D;
+    } else {
+        if (fvar)
+            for (int k = 0; k < 3; ++k) g_ls[k] += gaa;
+        if (mip) {
+            gD += -half * gaa / S.D;
+            gdh += sel8(S.dh_raw_ok, half * gaa / S.dh, zero);
+        }
+        if (fvar)
+            for (int k = 0; k < 3; ++k) g_s2f[k] += -half * gaa / S.s2f[k];
+    }
+    sct8(gdraw, i, 1, 0, g_rho * drho);
+    const v8f gA = gat8(gcon, i, 3, 0), gB = gat8(gcon, i, 3, 1), gC = gat8(gcon, i, 3, 2), D = S.D;
+    gD += -(gA * S.f11 - gB * S.f01 + gC * S.f00) / (D * D);
+    const v8f g_f00 = gC / D + gD * S.f11, g_f11 = gA / D + gD * S.f00, g_f01 = -gB / D - two * gD * S.f01;
+    const v8f g_c00 = g_f00 + gdh * S.c11, g_c11 = g_f11 + gdh * S.c00, g_c01 = g_f01 - two * gdh * S.c01;
+    v8f gT[6];
+    for (int k = 0; k < 3; ++k) {
+        gT[k] = (two * g_c00 * S.Tm[k] + g_c01 * S.Tm[3 + k]) * S.s2f[k];
+        gT[3 + k] = (two * g_c11 * S.Tm[3 + k] + g_c01 * S.Tm[k]) * S.s2f[k];
+        g_s2f[k] += g_c00 * S.Tm[k] * S.Tm[k] + g_c01 * S.Tm[k] * S.Tm[3 + k] + g_c11 * S.Tm[3 + k] * S.Tm[3 + k];
+    }
+    for (int k = 0; k < 3; ++k) g_ls[k] += two * S.s2[k] * g_s2f[k];
+    v8f gJ2[6], gM[9], gRq[9];
+    for (int a = 0; a < 2; ++a)
+        for (int b = 0; b < 3; ++b)
+            gJ2[3 * a + b] = gT[3 * a] * S.M[3 * b] + gT[3 * a + 1] * S.M[3 * b + 1] + gT[3 * a + 2] * S.M[3 * b + 2];
+    for (int a = 0; a < 3; ++a)
+        for (int b = 0; b < 3; ++b) gM[3 * a + b] = S.J2[a] * gT[b] + S.J2[3 + a] * gT[3 + b];
+    for (int a = 0; a < 3; ++a)
+        for (int b = 0; b < 3; ++b)
+            gRq[3 * a + b] = bc8(cam.R[a]) * gM[b] + bc8(cam.R[3 + a]) * gM[3 + b] + bc8(cam.R[6 + a]) * gM[6 + b];
+    const v8f w = S.qn[0], x = S.qn[1], y = S.qn[2], z = S.qn[3];
+    v8f gqn[4];
+    gqn[0] = two * (-z * gRq[1] + y * gRq[2] + z * gRq[3] - x * gRq[5] - y * gRq[6] + x * gRq[7]);
+    gqn[1] = two * (y * gRq[1] + z * gRq[2] + y * gRq[3] - two * x * gRq[4] - w * gRq[5] + z * gRq[6] + w * gRq[7]
+                    - two * x * gRq[8]);
+    gqn[2] = two * (-two * y * gRq[0] + x * gRq[1] + w * gRq[2] + x * gRq[3] + z * gRq[5] - w * gRq[6] + z * gRq[7]
+                    - two * y * gRq[8]);
+    gqn[3] = two * (-two * z * gRq[0] - w * gRq[1] + x * gRq[2] + w * gRq[3] - two * z * gRq[4] + y * gRq[5]
+                    + x * gRq[6] + y * gRq[7]);
+    const v8f dotq = gqn[0] * w + gqn[1] * x + gqn[2] * y + gqn[3] * z;
+    for (int k = 0; k < 4; ++k) sct8(gq, i, 4, k, (gqn[k] - S.qn[k] * dotq) / S.nq);
+    const v8f gu = gat8(gm2d, i, 2, 0), gv = gat8(gm2d, i, 2, 1);
+    if (!cam.cone) {
+        g_xc[0] += gu / bc8(cam.sx); g_xc[1] += gv / bc8(cam.sy);
+    } else {
+        const v8f fx = bc8(cam.fx), fy = bc8(cam.fy), zs = S.zs, z2 = zs * zs, z3 = z2 * zs;
+        v8f d0 = gu * fx / zs, d1 = gv * fy / zs, d2 = -gu * fx * S.xc[0] / z2 - gv * fy * S.xc[1] / z2;
+        v8f gz = -gJ2[0] * fx / z2 + two * gJ2[2] * fx * S.tx / z3 - gJ2[4] * fy / z2 + two * gJ2[5] * fy * S.ty / z3;
+        v8f gtx = -gJ2[2] * fx / z2, gty = -gJ2[5] * fy / z2;
+        const v8f r2 = S.r * S.r;
+        gtx += g_logdetJ * S.tx / r2; gty += g_logdetJ * S.ty / r2; gz += g_logdetJ * (zs / r2 - bc8(3.f) / zs);
+        d0 += sel8(S.unclx, gtx, zero); gz += sel8(S.unclx, zero, gtx * S.clx);
+        d1 += sel8(S.uncly, gty, zero); gz += sel8(S.uncly, zero, gty * S.cly);
+        d2 += gz;
+        g_xc[0] += sel8(S.valid, d0, zero); g_xc[1] += sel8(S.valid, d1, zero); g_xc[2] += sel8(S.valid, d2, zero);
+    }
+    for (int k = 0; k < 3; ++k) sct8(gls, i, 3, k, g_ls[k]);
+    for (int k = 0; k < 3; ++k)
+        sct8(gmeans, i, 3, k, bc8(cam.R[k]) * g_xc[0] + bc8(cam.R[3 + k]) * g_xc[1] + bc8(cam.R[6 + k]) * g_xc[2]);
+}
+
 template <typename T>
 static void proj_fwd(int64_t n, const T* means, const T* ls, const T* quats, const T* draw, const T* fvar,
                      const double* camp, int mode, int mip, T* m2d, T* con, T* amp, T* depth, int64_t* bb,
@@ -426,6 +627,14 @@ static void proj_fwd(int64_t n, const T* means, const T* ls, const T* quats, con
         }
         for (int64_t j = 0; j < m; ++j) {
             const int64_t i = b0 + j;
+            if constexpr (std::is_same<T, float>::value) {
+                if (j + 8 <= m) {
+                    proj8_fwd(cam, means, s2b, quats, rhob, fvar, mode, mip, i, j, m2d, con, amp, depth, valid, hxb,
+                              hyb);
+                    j += 7;
+                    continue;
+                }
+            }
             PState<T> S;
             proj_one(cam, means + 3 * i, s2b + 3 * j, quats + 4 * i, rhob[j], fvar ? fvar[i] : (T)0, mode, mip,
                      fvar != nullptr, S);
@@ -471,6 +680,14 @@ static void proj_bwd(int64_t n, const T* means, const T* ls, const T* quats, con
     for (int64_t i = i0; i < i1; ++i) {
         const int64_t j = (i - i0) % ACT_BLOCK;
         if (j == 0) activations(i1 - i < ACT_BLOCK ? i1 - i : ACT_BLOCK, ls + 3 * i, draw + i, mode, s2b, rhob, drhob);
+        if constexpr (std::is_same<T, float>::value) {
+            if (i + 8 <= i1) {  // blocks are multiples of 8 long: a group of 8 never straddles two
+                proj8_bwd(cam, means, s2b, quats, rhob, drhob, fvar, mode, mip, i, j, gm2d, gcon, gamp, gmeans, gls,
+                          gq, gdraw);
+                i += 7;
+                continue;
+            }
+        }
         PState<T> S;
         const int has_f = fvar != nullptr;
         proj_one(cam, means + 3 * i, s2b + 3 * j, quats + 4 * i, rhob[j], has_f ? fvar[i] : (T)0, mode, mip, has_f, S);
