@@ -33,6 +33,9 @@ HEAD = Path(os.environ.get("CTSPLAT_SHARED_DATA", ROOT.parent / "shared" / "data
 TUNED = {"highpass_frac": 0.03, "lowpass_px": 1.0, "percentile_low": 0.5, "percentile_high": 99.5,
          "silhouette_margin_frac": 0.05}
 
+HEAD256 = {**TUNED, "n_views": 180, "detector_px": 256, "dso_mm": 400.0, "dsd_mm": 800.0, "lowpass_px": 0.0,
+           "max_error_px": 2.0, "orbit_jitter_deg": 1.0}
+
 SWEEP: list[tuple[str, str, dict]] = [
     # (volume, label, sfm overrides); head runs use 90 views to fit a shared 2-core box (--set n_views=180)
     ("head", "naive-first-attempt", {"n_views": 90, "detector_px": 128, "pose_prior": "none",
@@ -43,9 +46,18 @@ SWEEP: list[tuple[str, str, dict]] = [
     ("head", "sequential-90", {"n_views": 90, "detector_px": 128, "pose_prior": "none", "matching": "sequential",
                                **TUNED}),
     ("head", "position-prior-90", {"n_views": 90, "detector_px": 128, "pose_prior": "position",
-                                   "orbit_jitter_deg": 0.5, **TUNED}),
-    ("head", "refine-90", {"n_views": 90, "detector_px": 128, "pose_prior": "refine", "orbit_jitter_deg": 0.5,
+                                   "orbit_jitter_deg": 1.0, **TUNED}),
+    ("head", "refine-90", {"n_views": 90, "detector_px": 128, "pose_prior": "refine", "orbit_jitter_deg": 1.0,
                            **TUNED}),
+    # 256 px, 180 views, shorter source distance (dso 400 / dsd 800 mm), no pre-blur; the true orbit is off the
+    # design by N(0, 1 deg) in azimuth and elevation per view (honest prior: the design is not the truth)
+    ("head", "free-256-180", {**HEAD256, "pose_prior": "none"}),
+    ("head", "free-global-256-180", {**HEAD256, "pose_prior": "none", "mapper": "global"}),
+    ("head", "refine-256-180-j1", {**HEAD256, "pose_prior": "refine"}),
+    ("head", "refine-prior-256-180-j1", {**HEAD256, "pose_prior": "refine_prior", "prior_sigma_mm": 5.0}),
+    ("head", "fused-K6-256-180-j1", {**HEAD256, "pose_prior": "refine", "fuse_harmonics": 6}),
+    ("head", "prior-fused-K6-256-180-j1", {**HEAD256, "pose_prior": "refine_prior", "prior_sigma_mm": 5.0,
+                                           "fuse_harmonics": 6}),
     ("phantom_beads", "free-exhaustive-90", {"n_views": 90, "detector_px": 128, "pose_prior": "none", **TUNED}),
     ("phantom_beads", "position-prior-90", {"n_views": 90, "detector_px": 128, "pose_prior": "position",
                                             "orbit_jitter_deg": 0.5, **TUNED}),
@@ -101,6 +113,30 @@ def volume_path(name: str, grid: int) -> Path:
     return out
 
 
+def _memoize_projector() -> None:
+    """Configurations that differ only after rendering (SfM options) share one projection: keep the last one."""
+    import hashlib
+
+    import ctsplat.projector as proj
+
+    raw = proj.line_integrals
+    memo: dict[str, object] = {}
+
+    def cached(mu, affine, camera, Rs, ts, **kw):  # noqa: ANN001, ANN202 - same signature as line_integrals
+        h = hashlib.sha1()
+        for a in (np.asarray(mu.detach().cpu() if hasattr(mu, "detach") else mu), np.asarray(affine, float),
+                  np.asarray(Rs, float), np.asarray(ts, float)):
+            h.update(np.ascontiguousarray(a).tobytes())
+        h.update(repr((camera.to_dict(), sorted(kw.items()))).encode())
+        key = h.hexdigest()
+        if key not in memo:
+            memo.clear()
+            memo[key] = raw(mu, affine, camera, Rs, ts, **kw)
+        return memo[key].clone()
+
+    proj.line_integrals = cached
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", help="volume name (head, phantom_beads, phantom_smooth) or label substring")
@@ -109,6 +145,7 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override for every run")
     ap.add_argument("--naive", action="store_true", help="also run naive SfM on the raw axial slices")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0, help="orbit jitter + COLMAP seed (labels get a -s<seed> suffix)")
     ap.add_argument("--csv", default=str(OUT / "sfm.csv"))
     args = ap.parse_args()
 
@@ -118,6 +155,7 @@ def main() -> None:
     from ctsplat.volume import load_volume
 
     torch.set_num_threads(args.threads)
+    _memoize_projector()
     extra = {k: json.loads(v) if v[:1] in "0123456789-[{tfn" else v for k, v in (s.split("=", 1) for s in args.set)}
     runs = [r for r in SWEEP if not args.only or args.only == r[0] or args.only in r[1]]
     if args.quick:
@@ -126,12 +164,18 @@ def main() -> None:
     for vol_name, label, over in runs:
         cfg = {**over, **extra, "num_threads": args.threads}
         path = volume_path(vol_name, args.grid)
+        if args.seed:
+            label = f"{label}-s{args.seed}"
         out_dir = OUT / "sfm_runs" / f"{vol_name}__{label}"
         t0 = time.perf_counter()
-        s = run_sfm(path, out_dir, cfg, seed=0)
+        s = run_sfm(path, out_dir, cfg, seed=args.seed)
         row = {
             "volume": vol_name, "label": label, "n_views": s["n_views"], "detector_px": s["camera"]["width"],
             "pose_prior": s["config"]["pose_prior"], "mapper": s["config"]["mapper"],
+            "dso_mm": s["camera"]["dso_mm"], "dsd_mm": s["camera"]["dsd_mm"],
+            "orbit_jitter_deg": s["config"]["orbit_jitter_deg"], "fuse_harmonics": s["config"]["fuse_harmonics"],
+            "design_rot_err_deg_median": s.get("design_rot_err_deg_median"),
+            "unfused_rot_err_deg_median": s.get("unfused", {}).get("rot_err_deg_median"),
             "registration_rate": s["registration_rate"], "largest_model_rate": s["largest_model_rate"],
             "plausible_rate": s["plausible_rate"], "models_found": s["models_found"],
             "model_sizes": " ".join(map(str, s["model_sizes"][:6])),
@@ -163,9 +207,9 @@ def main() -> None:
         df = pd.concat([old[keep], df], ignore_index=True)
     df.to_csv(args.csv, index=False)
     with pd.option_context("display.width", 250, "display.max_columns", 30):
-        cols = ["volume", "label", "n_views", "detector_px", "registration_rate", "models_found", "model_sizes",
-                "rot_err_deg_median", "rot_err_deg_p90", "rot_err_rotalign_deg_median", "centre_err_mm_median", "ok",
-                "seconds"]
+        cols = ["volume", "label", "n_views", "detector_px", "dso_mm", "orbit_jitter_deg", "registration_rate",
+                "models_found", "model_sizes", "rot_err_deg_median", "rot_err_deg_p90", "unfused_rot_err_deg_median",
+                "design_rot_err_deg_median", "centre_err_mm_median", "ok", "seconds"]
         print(df[[c for c in cols if c in df]].round(3).to_string(index=False))
     _ = np  # numpy kept for interactive use
 

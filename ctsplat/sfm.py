@@ -16,10 +16,15 @@ edges, beads), and COLMAP recovers their poses. This module
 
 Measured (``benchmarks/sfm.py``): on fiducial beads in air the pipeline registers every view in one model
 with a median rotation error of about 1 degree (256 px); on the head CT and the Shepp-Logan phantom most
-views register (global mapper: all) but the poses are wrong by tens of degrees. Radiograph features of extended
-anatomy (skull rims, silhouettes, overlapping structures) are not projections of fixed 3D points, and
-transmission images admit a depth-reversed (Necker) twin solution (:func:`reverse_depth`), so bundle
-adjustment converges away from the true orbit even when started on it (``pose_prior: refine``).
+views register (global mapper: all) but the poses are wrong by degrees to tens of degrees. The conventions are
+exact (``tests/unit/test_sfm_exact.py``: projector beads land on COLMAP's pinhole projection to < 0.1 px, and
+exact correspondences through the same mapping and evaluation give < 0.01 degree). Radiograph features of
+extended anatomy (skull rims, silhouettes, overlapping structures) are not projections of fixed 3D points:
+bundle adjustment started *at the true poses* drifts by several degrees to a smoothly bent orbit with a
+lower reprojection error, and transmission images admit a depth-reversed (Necker) twin solution
+(:func:`reverse_depth`). The view-to-view pose changes are recovered much better than the orbit's shape, so
+``fuse_harmonics`` (:func:`fuse_with_design`) takes the orbit's smooth shape from the design and the per-view
+detail from the images.
 
 Conventions (``docs/conventions.md``): world mm, ``x_cam = R x_world + t`` (OpenCV / COLMAP), cone-beam
 pinhole intrinsics ``fx = fy = DSD / pitch``, ``cx = W/2``, ``cy = H/2``.
@@ -48,7 +53,10 @@ __all__ = [
     "feature_masks",
     "write_pngs",
     "colmap_reconstruct",
+    "colmap_map",
     "merge_models",
+    "orbit_basis",
+    "fuse_with_design",
     "umeyama",
     "robust_sim3",
     "rotation_error_deg",
@@ -109,10 +117,14 @@ SFM_DEFAULTS: dict[str, Any] = {
     #   position - designed source positions as COLMAP position priors (incremental mapper, robust loss)
     #   refine   - triangulate the matches from the designed poses, then bundle-adjust all poses freely
     #              (intrinsics fixed), re-triangulating between rounds (C-arm style calibration refinement)
+    #   refine_prior - as refine, but bundle adjustment keeps the designed centres as priors (σ prior_sigma_mm)
     "pose_prior": "none",
     "refine_rounds": 3,
     "prior_sigma_mm": 5.0,  # std of the position prior (mm)
     "orbit_jitter_deg": 0.0,  # true views deviate from the design by N(0, σ) in azimuth and elevation
+    # > 0: keep the SfM poses' deviation from the design only above this many harmonics along the orbit
+    # (fuse_with_design: low frequencies from the design, high frequencies from the images); 0: off
+    "fuse_harmonics": 0,
     "fix_reversal": True,  # pose_prior none: try each model's depth-reversed twin, keep the one matching the design
     "merge_models": True,
     "min_shared_images": 3,  # to merge two partial models
@@ -383,6 +395,26 @@ def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics
     else:
         raise CtsplatError(f"unknown sfm.matching {matching!r}; allowed: exhaustive, sequential")
     t2 = time.perf_counter()
+    models, map_stats = colmap_map(db_path, image_dir, work_dir, image_names, cfg, prior_centres=prior_centres,
+                                   prior_poses=prior_poses)
+    stats.update(map_stats, seconds_features=t1 - t0, seconds_matching=t2 - t1)
+    return models, stats
+
+
+def colmap_map(db_path: str | Path, image_dir: str | Path, work_dir: str | Path, image_names: list[str],
+               config: dict[str, Any], prior_centres: np.ndarray | None = None,
+               prior_poses: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict[int, Any], dict[str, Any]]:
+    """The mapping stage of :func:`colmap_reconstruct` on a database that already holds verified matches.
+
+    Separate so that exact (synthetic) correspondences can be fed through the very same mapping path.
+    Returns ``(models, stats)`` (verified pairs, median features per image, mapping seconds).
+    """
+    import pycolmap
+
+    cfg = config
+    db_path, work_dir = Path(db_path), Path(work_dir)
+    stats: dict[str, Any] = {}
+    t2 = time.perf_counter()
     db = pycolmap.Database.open(str(db_path))
     try:
         n_kp = [db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()]
@@ -394,10 +426,10 @@ def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics
     out = work_dir / "models"
     if out.exists():
         shutil.rmtree(out)
-    out.mkdir()
+    out.mkdir(parents=True)
     mapper = cfg["mapper"]
     if prior_poses is not None:
-        models = {0: _refine_from_design(db_path, image_dir, out, image_names, prior_poses, cfg)}
+        models = {0: _refine_from_design(db_path, Path(image_dir), out, image_names, prior_poses, cfg)}
     elif mapper == "incremental":
         opts = _incremental_options(cfg)
         if prior_centres is not None and cfg.get("pose_prior") == "position":
@@ -408,8 +440,7 @@ def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics
         models = pycolmap.global_mapping(db_path, image_dir, out, options=_global_options(cfg))
     else:
         raise CtsplatError(f"unknown sfm.mapper {mapper!r}; allowed: incremental, global")
-    t3 = time.perf_counter()
-    stats.update(seconds_features=t1 - t0, seconds_matching=t2 - t1, seconds_mapping=t3 - t2)
+    stats["seconds_mapping"] = time.perf_counter() - t2
     return dict(models), stats
 
 
@@ -437,11 +468,41 @@ def _refine_from_design(db_path: Path, image_dir: Path, out: Path, image_names: 
         i = index[im.name]
         img = pycolmap.Image(name=im.name, camera_id=cams[0].camera_id, image_id=im.image_id)
         rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(np.hstack([Rs[i], ts[i][:, None]])))
-    return _retriangulate_and_adjust(rec, db_path, image_dir, out, cfg)
+    centres = None
+    if cfg.get("pose_prior") == "refine_prior":
+        centres = {n: -Rs[i].T @ ts[i] for n, i in index.items()}
+    return _retriangulate_and_adjust(rec, db_path, image_dir, out, cfg, prior_centres=centres)
 
 
-def _retriangulate_and_adjust(rec: Any, db_path: Path, image_dir: Path, out: Path, cfg: dict[str, Any]) -> Any:
-    """``refine_rounds`` rounds of (re-triangulate all verified matches from the current poses, free-pose BA)."""
+def _prior_bundle_adjustment(rec: Any, centres: dict[str, np.ndarray], sigma_mm: float, ba: Any) -> None:
+    """Bundle adjustment with Gaussian priors ``N(c_design, sigma² I)`` on the camera centres (world mm), in place.
+
+    Reprojection residuals (robust loss of ``ba``) plus ``|c_i - c_design_i|² / sigma²`` per image
+    (pycolmap's pose-prior bundle adjuster); the reconstruction stays in the world frame of the priors.
+    """
+    import pycolmap
+
+    conf = pycolmap.BundleAdjustmentConfig()
+    priors = []
+    for im in rec.images.values():
+        if im.has_pose and im.name in centres:
+            conf.add_image(im.image_id)
+            priors.append(pycolmap.PosePrior(position=np.asarray(centres[im.name], float),
+                                             position_covariance=np.eye(3) * sigma_mm**2,
+                                             coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
+                                             corr_data_id=im.data_id))
+    po = pycolmap.PosePriorBundleAdjustmentOptions()
+    po.prior_position_fallback_stddev = sigma_mm
+    pycolmap.create_pose_prior_bundle_adjuster(ba, po, conf, priors, rec).solve()
+
+
+def _retriangulate_and_adjust(rec: Any, db_path: Path, image_dir: Path, out: Path, cfg: dict[str, Any],
+                              prior_centres: dict[str, np.ndarray] | None = None) -> Any:
+    """``refine_rounds`` rounds of (re-triangulate all verified matches from the current poses, BA).
+
+    BA is free (gauge left to the damped solver) or, with ``prior_centres`` (image name -> designed camera
+    centre, world mm), pose-prior BA (:func:`_prior_bundle_adjustment`) that keeps the world frame.
+    """
     import pycolmap
 
     Path(out).mkdir(parents=True, exist_ok=True)
@@ -451,7 +512,10 @@ def _retriangulate_and_adjust(rec: Any, db_path: Path, image_dir: Path, out: Pat
         rec = pycolmap.triangulate_points(rec, db_path, image_dir, out, clear_points=True, options=opts)
         if rec.num_points3D() == 0:
             break
-        pycolmap.bundle_adjustment(rec, ba)
+        if prior_centres is None:
+            pycolmap.bundle_adjustment(rec, ba)
+        else:
+            _prior_bundle_adjustment(rec, prior_centres, float(cfg["prior_sigma_mm"]), ba)
     for img in list(rec.images.values()):  # views that observe no point are not registered
         if img.has_pose and img.num_points3D == 0:
             rec.deregister_frame(img.frame_id)
@@ -645,6 +709,70 @@ def merge_models(models: dict[int, Any], min_shared: int = 3) -> tuple[Any, dict
             changed = True
     report = {"models_found": len(models), "model_sizes": sizes, "merged": merged}
     return main, poses, report
+
+
+def _set_poses_and_triangulate(rec: Any, poses: dict[str, tuple[np.ndarray, np.ndarray]], db_path: Path,
+                               image_dir: Path, out: Path, cfg: dict[str, Any]) -> Any:
+    """Set the model's registered images to ``poses`` (world->camera) and re-triangulate all points from them."""
+    import pycolmap
+
+    for img in rec.images.values():
+        if img.has_pose and img.name in poses:
+            R, t = poses[img.name]
+            rec.frames[img.frame_id].rig_from_world = pycolmap.Rigid3d(np.hstack([R, np.asarray(t)[:, None]]))
+    Path(out).mkdir(parents=True, exist_ok=True)
+    return pycolmap.triangulate_points(rec, db_path, image_dir, out, clear_points=True,
+                                       options=_incremental_options(cfg))
+
+
+def orbit_basis(azimuth_deg: np.ndarray, harmonics: int, full_circle: bool) -> np.ndarray:
+    """Smooth functions along the orbit, (V, 2 K + 1): Fourier ``1, cos kφ, sin kφ`` (k <= K) on a full circle,
+    else the cosine series ``cos(k π x)`` (k <= 2K) of the normalised arc position ``x in [0, 1]``."""
+    a = np.asarray(azimuth_deg, float)
+    if full_circle:
+        phi = np.deg2rad(a)
+        cols = [np.ones_like(phi)]
+        for k in range(1, harmonics + 1):
+            cols += [np.cos(k * phi), np.sin(k * phi)]
+        return np.stack(cols, 1)
+    x = (a - a.min()) / max(float(np.ptp(a)), 1e-12)
+    return np.stack([np.cos(k * np.pi * x) for k in range(2 * harmonics + 1)], 1)
+
+
+def fuse_with_design(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: list[str], design_Rs: np.ndarray,
+                     design_ts: np.ndarray, azimuth_deg: np.ndarray, harmonics: int, full_circle: bool = True
+                     ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Low frequencies along the orbit from the design, high frequencies from SfM.
+
+    SfM on radiographs of extended anatomy recovers the *view-to-view* pose changes well but bends the orbit
+    as a whole (a smooth, systematic deformation: features of overlapping structures are not fixed 3D points).
+    The gantry's designed orbit is the opposite: right on average, off by independent per-view errors.
+    With the SfM poses mapped to the design frame (Umeyama Sim(3) on the centres) and, per view ``i``, the
+    deviation from the design ``ω_i = log(R_i R_design_iᵀ)`` (world rotation vector) and
+    ``δ_i = c_i - c_design_i``, the fused pose keeps only the part of ``(ω, δ)`` orthogonal to the smooth basis
+    ``B`` (:func:`orbit_basis`, ``2 K + 1`` functions of the designed azimuth): ``ω' = ω - B B⁺ ω``,
+    ``R' = exp(ω') R_design``, ``c' = c_design + δ - B B⁺ δ``. The global Sim(3) and any smooth bend
+    are thereby taken from the design; what is left of the design's own per-view error is its projection on
+    ``B``, about ``sqrt((2K+1) / V)`` of it. Returns the fused poses (world->camera) in the design frame.
+    """
+    from scipy.spatial.transform import Rotation
+
+    idx = [i for i, n in enumerate(names) if n in poses]
+    if len(idx) < max(3, 2 * harmonics + 2):
+        return dict(poses)
+    cs = np.stack([-poses[names[i]][0].T @ poses[names[i]][1] for i in idx])
+    dc = np.einsum("vji,vj->vi", design_Rs[idx], -np.asarray(design_ts, float)[idx])
+    s, Rg, tg = umeyama(cs, dc)
+    om = np.stack([Rotation.from_matrix(poses[names[i]][0] @ Rg.T @ design_Rs[i].T).as_rotvec() for i in idx])
+    dl = s * cs @ Rg.T + tg - dc
+    B = orbit_basis(np.asarray(azimuth_deg, float)[idx], harmonics, full_circle)
+    om = om - B @ np.linalg.lstsq(B, om, rcond=None)[0]
+    dl = dl - B @ np.linalg.lstsq(B, dl, rcond=None)[0]
+    out = {}
+    for k, i in enumerate(idx):
+        R = Rotation.from_rotvec(om[k]).as_matrix() @ design_Rs[i]
+        out[names[i]] = (R, -R @ (dc[k] + dl[k]))
+    return out
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -872,9 +1000,13 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
                       ts_true: np.ndarray, out_dir: str | Path, config: dict[str, Any], *, seed: int = 0,
                       prefix: str = "view", scale_mm: float = 1.0, prior_centres: np.ndarray | None = None,
                       prior_poses: tuple[np.ndarray, np.ndarray] | None = None, masks: np.ndarray | None = None,
-                      design: tuple[np.ndarray, np.ndarray] | None = None
+                      design: tuple[np.ndarray, np.ndarray] | None = None,
+                      design_azimuth_deg: np.ndarray | None = None
                       ) -> tuple[dict[str, Any], list[dict[str, Any]], Any]:
     """COLMAP + merging + alignment on given 8-bit images with known true poses; no files beside the work dir.
+
+    With ``fuse_harmonics > 0`` (and ``design`` + ``design_azimuth_deg``), the poses are fused with the design
+    (:func:`fuse_with_design`); the summary then also holds the unfused numbers under ``"unfused"``.
 
     Returns ``(summary, rows, model_or_None)``; rows are per view (see :func:`evaluate_poses`) plus
     ``reproj_err_px``; the summary also holds COLMAP stage statistics. Never raises on too few registrations.
@@ -902,8 +1034,20 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
     if not cfg["merge_models"] and models:
         report["models_found"] = len(models)
         report["model_sizes"] = sorted((int(m.num_reg_images()) for m in models.values()), reverse=True)
-    rows, align = evaluate_poses(poses, names, Rs_true, ts_true,
-                                 threshold_mm=float(cfg["align_inlier_threshold_frac"]) * scale_mm,
+    thr = float(cfg["align_inlier_threshold_frac"]) * scale_mm
+    unfused = None
+    if int(cfg["fuse_harmonics"]) > 0 and design is not None and design_azimuth_deg is not None and poses:
+        rows0, _ = evaluate_poses(poses, names, Rs_true, ts_true, threshold_mm=thr,
+                                  iterations=int(cfg["align_iterations"]), seed=seed)
+        s0 = summarize(rows0, report, cfg)
+        unfused = {k: s0[k] for k in ("rot_err_deg_median", "rot_err_deg_p90", "rot_err_rotalign_deg_median",
+                                      "centre_err_mm_median", "registration_rate")}
+        poses = fuse_with_design(poses, names, design[0], design[1], design_azimuth_deg, int(cfg["fuse_harmonics"]),
+                                 full_circle=float(cfg.get("arc_deg", 360.0)) >= 360.0)
+        if main is not None:  # the written model carries the fused poses, its points re-triangulated from them
+            main = _set_poses_and_triangulate(main, poses, out_dir / "colmap" / "database.db", img_dir,
+                                              out_dir / "colmap" / "fused", cfg)
+    rows, align = evaluate_poses(poses, names, Rs_true, ts_true, threshold_mm=thr,
                                  iterations=int(cfg["align_iterations"]), seed=seed)
     reproj = _per_image_reproj(main) if main is not None else {}
     for r in rows:
@@ -914,6 +1058,12 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
     summary = summarize(rows, report, cfg)
     summary["colmap"] = stats
     summary["reversal"] = reversal
+    if unfused is not None:
+        summary["unfused"] = unfused
+    if design is not None:  # the designed orbit itself as the answer (no images): what a prior alone gives
+        drows, _ = evaluate_poses({n: (design[0][i], design[1][i]) for i, n in enumerate(names)}, names, Rs_true,
+                                  ts_true, threshold_mm=thr, iterations=int(cfg["align_iterations"]), seed=seed)
+        summary["design_rot_err_deg_median"] = float(np.median([r["rot_err_deg"] for r in drows]))
     summary["alignment"] = {k: v for k, v in align.items()
                             if k in ("ok", "scale", "n_inliers", "n_used", "residual_rotation_deg")}
     return summary, rows, (main, align)
@@ -973,8 +1123,9 @@ def run_sfm(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any]
         raise CtsplatError(f"unknown sfm.matching {cfg['matching']!r}; allowed: exhaustive, sequential")
     if cfg["mapper"] not in ("incremental", "global"):
         raise CtsplatError(f"unknown sfm.mapper {cfg['mapper']!r}; allowed: incremental, global")
-    if cfg["pose_prior"] not in ("none", "position", "refine"):
-        raise CtsplatError(f"unknown sfm.pose_prior {cfg['pose_prior']!r}; allowed: none, position, refine")
+    if cfg["pose_prior"] not in ("none", "position", "refine", "refine_prior"):
+        raise CtsplatError(f"unknown sfm.pose_prior {cfg['pose_prior']!r}; "
+                           "allowed: none, position, refine, refine_prior")
     if cfg["pose_prior"] == "position" and cfg["mapper"] != "incremental":
         raise CtsplatError("sfm.pose_prior 'position' needs sfm.mapper 'incremental' (global mapping ignores priors)")
     if cfg["dsd_mm"] <= cfg["dso_mm"]:
@@ -1009,8 +1160,8 @@ def run_sfm(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any]
             imgs, (cam.fx, cam.fy, cam.cx, cam.cy), orbit["Rs"], orbit["ts"], work, cfg, seed=seed,
             scale_mm=float(cfg["dso_mm"]),
             prior_centres=designed["centres"] if cfg["pose_prior"] == "position" else None,
-            prior_poses=(designed["Rs"], designed["ts"]) if cfg["pose_prior"] == "refine" else None,
-            masks=masks, design=(designed["Rs"], designed["ts"]))
+            prior_poses=(designed["Rs"], designed["ts"]) if cfg["pose_prior"] in ("refine", "refine_prior") else None,
+            masks=masks, design=(designed["Rs"], designed["ts"]), design_azimuth_deg=designed["azimuth_deg"])
         if main is not None:
             _write_model(main, out_dir / "sparse" / "0")
             if align["ok"]:

@@ -195,3 +195,49 @@ def test_write_points_ply_roundtrip(tmp_path) -> None:
 def test_unknown_config_key_is_rejected() -> None:
     with pytest.raises(CtsplatError, match="sfm.nviews"):
         merge_config("sfm", {"nviews": 3}, SFM_DEFAULTS)
+
+
+def test_orbit_basis_shapes_and_span() -> None:
+    from ctsplat.sfm import orbit_basis
+
+    az = np.arange(36) * 10.0
+    B = orbit_basis(az, 3, True)
+    assert B.shape == (36, 7)
+    np.testing.assert_allclose(B.T @ B, np.diag([36.0] + [18.0] * 6), atol=1e-9)  # orthogonal on a full circle
+    P = orbit_basis(np.linspace(0.0, 120.0, 20), 2, False)
+    assert P.shape == (20, 5) and np.linalg.matrix_rank(P) == 5
+
+
+def test_fuse_with_design_keeps_view_to_view_detail_and_drops_the_smooth_bend() -> None:
+    """SfM poses = truth bent smoothly along the orbit, in another Sim(3) frame; design = truth + white jitter.
+    Fusing takes the bend (and the frame) from the design and the per-view jitter from SfM."""
+    from scipy.spatial.transform import Rotation
+
+    from ctsplat.sfm import fuse_with_design
+
+    V = 120
+    design = design_orbit(V, 360.0, 15.0, 2.0, 500.0)
+    truth = design_orbit(V, 360.0, 15.0, 2.0, 500.0, jitter_deg=1.0, seed=4)
+    names = [f"v{i}" for i in range(V)]
+    phi = np.deg2rad(design["azimuth_deg"])
+    s, Q, p = 0.02, Rotation.from_rotvec([0.4, -1.0, 0.3]).as_matrix(), np.array([3.0, -1.0, 2.0])
+    sfm = {}
+    for i, n in enumerate(names):
+        bend = Rotation.from_rotvec(np.deg2rad(6.0) * np.array([np.cos(phi[i]), 0.5 * np.sin(2 * phi[i]), 0.3]))
+        R = bend.as_matrix() @ truth["Rs"][i]  # smooth 6 deg bend of the orbit (SfM's systematic error)
+        c = truth["centres"][i] + 20.0 * np.array([np.sin(phi[i]), 0.0, np.cos(3 * phi[i])])
+        Rb, cb = R @ Q.T, s * Q @ c + p  # expressed in an arbitrary SfM frame
+        sfm[n] = (Rb, -Rb @ cb)
+    raw, _ = evaluate_poses(sfm, names, truth["Rs"], truth["ts"], threshold_mm=10.0)
+    fused = fuse_with_design(sfm, names, design["Rs"], design["ts"], design["azimuth_deg"], 3)
+    rows, _ = evaluate_poses(fused, names, truth["Rs"], truth["ts"], threshold_mm=10.0)
+    des, _ = evaluate_poses({n: (design["Rs"][i], design["ts"][i]) for i, n in enumerate(names)}, names,
+                            truth["Rs"], truth["ts"], threshold_mm=10.0)
+    err = np.median([r["rot_err_deg"] for r in rows])
+    assert np.median([r["rot_err_deg"] for r in raw]) > 3.0
+    assert np.median([r["rot_err_deg"] for r in des]) > 0.8
+    assert err < 0.35 * np.median([r["rot_err_deg"] for r in des])  # only the jitter's smooth part remains
+    # with no harmonics to remove beyond the mean, a bent SfM orbit stays bent
+    mean_only = fuse_with_design(sfm, names, design["Rs"], design["ts"], design["azimuth_deg"], 0)
+    rows0, _ = evaluate_poses(mean_only, names, truth["Rs"], truth["ts"], threshold_mm=10.0)
+    assert np.median([r["rot_err_deg"] for r in rows0]) > 2.0

@@ -42,6 +42,8 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("sfm", "pitch_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
     ("sfm", "matching"): {"enum": ["exhaustive", "sequential", "spatial"]},
     ("sfm", "mapper"): {"enum": ["incremental", "global"]},
+    ("sfm", "pose_prior"): {"enum": ["none", "position", "refine", "refine_prior"]},
+    ("sfm", "fuse_harmonics"): {"type": "integer", "minimum": 0},
     ("train", "supervision"): {"enum": ["line_integral", "transmission"]},
     ("train", "iterations"): {"type": "integer", "minimum": 1},
     ("train", "n_init"): {"type": "integer", "minimum": 1},
