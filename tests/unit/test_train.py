@@ -349,16 +349,18 @@ def test_sfm_init_reads_points(scene_dir: Path, tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------ poses: colmap
-def _fake_sfm(scene_dir: Path, sfm: Path, keep_ids: list[int], rate: float, ok: bool = True) -> None:
+def _fake_sfm(scene_dir: Path, sfm: Path, keep_ids: list[int], rate: float, ok: bool = True,
+              rad: Path | None = None) -> None:
     """An sfm folder in the sfm step's layout: aligned_views.json (registered subset, perturbed poses),
-    summary.json, and views.json + line_integrals.tif with the true poses and targets."""
+    summary.json, and views.json + line_integrals.tif with the true poses and targets (of ``rad``, default the
+    scene's parallel-beam radiographs)."""
     import tifffile
 
     from ctsplat.geometry import ViewSet
     from ctsplat.projector import load_radiographs
 
     sfm.mkdir(parents=True, exist_ok=True)
-    images, vs = load_radiographs(scene_dir / "rad")
+    images, vs = load_radiographs(rad or scene_dir / "rad")
     train_rows = [i for i, v in enumerate(vs.views) if v.split == "train"]
     true = ViewSet(vs.camera, [vs.views[i] for i in train_rows], vs.volume_id, vs.isocenter_mm, {})
     true.save(sfm / "views.json")
@@ -388,6 +390,21 @@ def test_colmap_poses_drop_unregistered(scene_dir: Path, tmp_path: Path) -> None
     assert np.allclose(scene.train.images[3], images[i4] / MU, rtol=1e-6)
     res = tr.train(_cfg(scene_dir, poses="colmap", sfm_dir=str(tmp_path / "sfm"), iterations=10), tmp_path / "r")
     assert res["views_dropped_unregistered"] == 2 and res["poses"] == "colmap"
+
+
+def test_colmap_cone_poses_train_with_fbp_init(scene_dir: Path, tmp_path: Path) -> None:
+    # COLMAP poses are cone-beam views: init fbp then seeds from SIRT of those views (FBP needs parallel beams)
+    from ctsplat.projector import render_radiographs
+
+    render_radiographs(scene_dir / "volume.nii.gz", tmp_path / "cone",
+                       {"camera": "cone", "dso_mm": 120.0, "dsd_mm": 240.0, "detector_width": 24,
+                        "detector_height": 24, "n_views": 12, "device": "cpu"})
+    _fake_sfm(scene_dir, tmp_path / "sfm", list(range(12)), rate=1.0, rad=tmp_path / "cone")
+    res = tr.train(_cfg(scene_dir, poses="colmap", init="fbp", sfm_dir=str(tmp_path / "sfm"), iterations=10),
+                   tmp_path / "r")
+    assert res["poses"] == "colmap" and res["init"] == "fbp" and res["uses_reference_volume"] is False
+    cfg = tr.resolve_config(_cfg(scene_dir, poses="colmap", init="fbp", sfm_dir=str(tmp_path / "sfm")))
+    assert tr.load_scene(cfg).train.camera.model == "cone"
 
 
 def test_colmap_poses_fail_on_low_registration(scene_dir: Path, tmp_path: Path) -> None:
