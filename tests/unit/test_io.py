@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 from pathlib import Path
 
@@ -391,3 +392,17 @@ def test_property_any_file_order_gives_the_same_stack(tmp_path, order):
     stack = read_dicom_series(dst)
     np.testing.assert_array_equal(stack.data, ref.data)
     np.testing.assert_allclose(stack.origins, ref.origins)
+
+
+def test_atomic_writes_leave_nothing_on_error_and_use_normal_permissions(tmp_path):
+    from ctsplat.utils import atomic_path, write_json_atomic
+
+    out = tmp_path / "a.json"
+    write_json_atomic(out, {"x": 1})
+    umask = os.umask(0o022)
+    os.umask(umask)
+    assert (out.stat().st_mode & 0o777) == 0o666 & ~umask  # not mkstemp's 0600
+    with pytest.raises(RuntimeError), atomic_path(tmp_path / "b.nii.gz") as tmp:
+        tmp.write_bytes(b"partial")
+        raise RuntimeError("writer failed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json"]
