@@ -11,10 +11,10 @@ Usage::
     python benchmarks/sfm.py --set detector_px=192 --set n_views=120 --only head
 
 Targets (issue 6): head at 128-256 detector px, <= 180 views: >= 95 % of views registered in one model and
-median rotation error <= 0.5 deg after Sim(3) alignment. Met by ``prior-fused-K6-256-180-j1-w25`` (180 views,
+median rotation error <= 0.5 deg after Sim(3) alignment. Closest: ``prior-fused-K6-256-180-j1-w25`` (180 views,
 256 px, DSO/DSD 400/800 mm, 25 deg elevation wobble, true orbit N(0, 1 deg) off the design, pose-prior BA +
-fusion with the design above 6 orbit harmonics): 100 % in one model, median 0.46 / 0.42 / 0.44 deg for
-``--seed 0 / 1 / 2`` (the design alone: 1.19 / 1.01 / 1.14 deg; free SfM fails). See the README.
+fusion with the design above 6 orbit harmonics): 100 % in one model, median 0.42-0.56 deg over ``--seed 0..7``
+(<= 0.5 deg on 4 of 8; the design alone: 1.0-1.3 deg; free SfM fails). See the README.
 """
 
 from __future__ import annotations
