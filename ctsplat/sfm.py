@@ -98,6 +98,9 @@ SFM_DEFAULTS: dict[str, Any] = {
     "peak_threshold": 0.004,  # SIFT DoG threshold (radiographs are low-contrast)
     "edge_threshold": 16.0,
     "upright": True,  # the orbit keeps world up at image top: skip SIFT orientation (more distinctive)
+    "sift_first_octave": -1,  # -1: the image is upsampled once (finest DoG scales)
+    "sift_num_octaves": 4,  # fewer octaves keep only small-scale (more point-like) features
+    "sift_domain_size_pooling": False,  # DSP-SIFT descriptors
     "matching": "exhaustive",  # exhaustive | sequential | spatial
     "sequential_overlap": 12,  # neighbours matched in `sequential` (cyclic: the orbit closes)
     "max_ratio": 0.8,
@@ -280,6 +283,9 @@ def _options(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
     ext.sift.peak_threshold = float(cfg["peak_threshold"])
     ext.sift.edge_threshold = float(cfg["edge_threshold"])
     ext.sift.upright = bool(cfg["upright"])
+    ext.sift.first_octave = int(cfg["sift_first_octave"])
+    ext.sift.num_octaves = int(cfg["sift_num_octaves"])
+    ext.sift.domain_size_pooling = bool(cfg["sift_domain_size_pooling"])
     mat = pycolmap.FeatureMatchingOptions()
     mat.num_threads = nt
     mat.use_gpu = False
