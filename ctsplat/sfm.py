@@ -25,7 +25,7 @@ lower reprojection error, and transmission images admit a depth-reversed (Necker
 (:func:`reverse_depth`). The view-to-view pose changes are recovered much better than the orbit's shape, so
 ``fuse_harmonics`` (:func:`fuse_with_design`) takes the orbit's smooth shape from the design and the per-view
 detail from the images: on the head (180 views, 256 px, true orbit N(0, 1 deg) off the design) the median
-rotation error drops from about 1.1 deg (design alone) to 0.42-0.46 deg.
+rotation error drops from 1.0-1.3 deg (design alone) to 0.42-0.56 deg over 8 orbit seeds.
 
 Conventions (``docs/conventions.md``): world mm, ``x_cam = R x_world + t`` (OpenCV / COLMAP), cone-beam
 pinhole intrinsics ``fx = fy = DSD / pitch``, ``cx = W/2``, ``cy = H/2``.
