@@ -264,9 +264,11 @@ class Gaussians:
                 out[f.name] = v
         return out
 
-    def validate(self, check_finite: bool = True) -> None:
-        """Raise ``CtsplatError`` naming the first parameter with a wrong shape or (``check_finite``) a NaN/Inf
-        value."""
+    def validate(self, check_finite: bool | tuple[str, ...] = True) -> None:
+        """Raise ``CtsplatError`` naming the first parameter with a wrong shape or a NaN/Inf value.
+
+        ``check_finite``: True checks every tensor for NaN/Inf, False none, a tuple of names only those.
+        """
         n = len(self)
         shapes = {"means": (n, 3), "log_scales": (n, 3), "quats": (n, 4), "density_raw": (n,), "opacity_raw": (n,)}
         for name, t in self.tensors().items():
@@ -276,8 +278,8 @@ class Gaussians:
                 raise CtsplatError(f"Gaussians.{name} has {t.shape[0]} rows, expected {n}")
             # fast path: a finite sum proves there is no NaN/Inf (both propagate); overflow falls through to the
             # exact element-wise check
-            if (check_finite and t.numel() and not bool(torch.isfinite(t.detach().sum()))
-                    and not bool(torch.isfinite(t).all())):
+            check = check_finite if isinstance(check_finite, bool) else name in check_finite
+            if check and t.numel() and not bool(torch.isfinite(t.detach().sum())) and not bool(torch.isfinite(t).all()):
                 bad = int((~torch.isfinite(t)).reshape(t.shape[0], -1).any(-1).nonzero()[0, 0])
                 raise CtsplatError(
                     f"Gaussians.{name} contains NaN/Inf (first at index {bad}); "

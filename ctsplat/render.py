@@ -475,13 +475,8 @@ def render(
         use_kernel = _render_kernel.available() if backend == "auto" else True
     if use_kernel:
         # the kernel flags NaN/Inf in what it reads (one pass, no per-view torch reductions); the full check
-        # then names the parameter. Colours are only read by the alpha compositor.
-        gaussians.validate(check_finite=False)
-        if compositor == "alpha":
-            for name in ("colors", "sh_rest"):
-                tensor = getattr(gaussians, name, None)
-                if tensor is not None and tensor.numel() and not bool(torch.isfinite(tensor).all()):
-                    raise CtsplatError(f"Gaussians.{name} contains NaN/Inf; lower the learning rate or reset it")
+        # then names the parameter. Colours, which the kernel does not read, are checked here (alpha only).
+        gaussians.validate(check_finite=("colors", "sh_rest") if compositor == "alpha" else False)
         proj, radii, visible, nonfinite = _project_kernel(gaussians, cam, R, t, compositor, filter_3d_var, mip_2d,
                                                           sigma_cutoff)
         if nonfinite:

@@ -351,6 +351,15 @@ def test_nan_or_inf_parameter_raises_naming_it(name):
 
 
 @pytest.mark.parametrize("backend", ["reference", "auto"])
+def test_nan_colour_raises_for_alpha(backend):
+    g = _mixture(4, seed=0)
+    g.colors = g.colors.clone()
+    g.colors[1, 0] = float("nan")
+    with pytest.raises(CtsplatError, match="colors"):
+        render(g, ParallelCamera(16, 16, 1.0), *_pose(0.0, 0.0), compositor="alpha", backend=backend)
+
+
+@pytest.mark.parametrize("backend", ["reference", "auto"])
 def test_bad_filter_variance_raises(backend):
     g = _mixture(4, seed=0)
     for fv, msg in ((torch.tensor([0.1, -0.2, 0.1, 0.1], dtype=D64), ">= 0"),
