@@ -107,6 +107,12 @@ def test_design_orbit_geometry() -> None:
     jit = design_orbit(24, 360.0, 15.0, 2.0, 500.0, iso, jitter_deg=1.0, seed=3)
     d = jit["azimuth_deg"] - orb["azimuth_deg"]
     assert 0.3 < np.std(d) < 2.0
+    wob = design_orbit(24, 360.0, 15.0, 2.0, 500.0, iso, jitter_deg=1.0, jitter_mm=2.0, seed=3)
+    np.testing.assert_allclose(wob["azimuth_deg"], jit["azimuth_deg"])  # same angular jitter, plus a shift
+    shift = wob["centres"] - jit["centres"]
+    assert 1.0 < np.sqrt((shift**2).mean()) < 3.5
+    for R, t, d_ in zip(wob["Rs"], wob["ts"], shift, strict=True):  # the rigid assembly moved: it looks at iso + d
+        np.testing.assert_allclose(project_points(cam, R, t, (iso + d_)[None])[0][0], [cam.cx, cam.cy], atol=1e-9)
     with pytest.raises(CtsplatError):
         design_orbit(1, 360.0, 0.0, 1.0, 500.0)
 

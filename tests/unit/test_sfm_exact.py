@@ -121,10 +121,11 @@ def test_exact_correspondences_give_exact_poses_through_the_colmap_path(tmp_path
     assert rot.max() < 0.01 and cen.max() < 0.05  # exact data: exact poses (a convention slip gives degrees)
 
 
-@pytest.mark.parametrize("mode", ["refine", "refine_prior"])
+@pytest.mark.parametrize("mode", ["refine", "refine_prior", "isocentric"])
 def test_refine_from_a_jittered_design_recovers_the_true_orbit(tmp_path: Path, mode: str) -> None:
-    """pose_prior 'refine' / 'refine_prior': triangulate from the design (1 deg off), bundle-adjust (with the
-    designed centres as priors of sigma 5 mm): consistent image data pull the poses onto the truth."""
+    """pose_prior 'refine' / 'refine_prior' / 'isocentric': triangulate from the design (1 deg off), bundle-adjust
+    (with the designed centres as priors of sigma 5 mm; then with every camera a rotation about the isocentre):
+    consistent image data pull the poses onto the truth."""
     pytest.importorskip("pycolmap")
     from ctsplat.sfm import colmap_map, merge_models
 
@@ -138,6 +139,10 @@ def test_refine_from_a_jittered_design_recovers_the_true_orbit(tmp_path: Path, m
     models, _ = colmap_map(tmp_path / "database.db", tmp_path / "images", tmp_path, names, cfg,
                            prior_poses=(design["Rs"], design["ts"]))
     _, poses, _ = merge_models(models, 3)
+    if mode == "isocentric":  # the model's cameras sit at DSO from the isocentre, looking through it
+        c = np.stack([-R.T @ t for R, t in poses.values()])
+        np.testing.assert_allclose(np.linalg.norm(c, axis=1), 300.0, rtol=1e-9)
+        np.testing.assert_allclose([R[2] @ (-ci) / 300.0 for (R, _), ci in zip(poses.values(), c, strict=True)], 1.0)
     rows, _ = evaluate_poses(poses, names, truth["Rs"], truth["ts"], threshold_mm=6.0)
     design_rows, _ = evaluate_poses({n: (design["Rs"][i], design["ts"][i]) for i, n in enumerate(names)}, names,
                                     truth["Rs"], truth["ts"], threshold_mm=6.0)
