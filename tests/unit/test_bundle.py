@@ -60,26 +60,25 @@ def test_reprojection_jacobians_match_finite_differences() -> None:
     r, Jr, Js, Jx, z = reprojection_jacobians(Rs, X, s, ov, op, xy, K, ISO, CAM.dso_mm)
     assert (z > 0).all()
     h = 1e-6
+
+    def residual(R: np.ndarray, X_: np.ndarray, s_: np.ndarray) -> np.ndarray:
+        return reprojection_jacobians(R, X_, s_, ov, op, xy, K, ISO, CAM.dso_mm)[0]
+
+    def shifted(a: np.ndarray, k: int, step: float) -> np.ndarray:
+        b = a.copy()
+        b[:, k] += step
+        return b
+
     for k in range(3):
         e = np.zeros(3)
         e[k] = h
-        Rp = Rotation.from_rotvec(e).as_matrix() @ Rs
-        Rm = Rotation.from_rotvec(-e).as_matrix() @ Rs
-        fd = (reprojection_jacobians(Rp, X, s, ov, op, xy, K, ISO, CAM.dso_mm)[0]
-              - reprojection_jacobians(Rm, X, s, ov, op, xy, K, ISO, CAM.dso_mm)[0]) / (2 * h)
-        np.testing.assert_allclose(Jr[:, :, k], fd, rtol=1e-5, atol=1e-6)
-        sp, sm = s.copy(), s.copy()
-        sp[:, k] += h
-        sm[:, k] -= h
-        fd = (reprojection_jacobians(Rs, X, sp, ov, op, xy, K, ISO, CAM.dso_mm)[0]
-              - reprojection_jacobians(Rs, X, sm, ov, op, xy, K, ISO, CAM.dso_mm)[0]) / (2 * h)
-        np.testing.assert_allclose(Js[:, :, k], fd, rtol=1e-5, atol=1e-7)
-        Xp, Xm = X.copy(), X.copy()
-        Xp[:, k] += h
-        Xm[:, k] -= h
-        fd = (reprojection_jacobians(Rs, Xp, s, ov, op, xy, K, ISO, CAM.dso_mm)[0]
-              - reprojection_jacobians(Rs, Xm, s, ov, op, xy, K, ISO, CAM.dso_mm)[0]) / (2 * h)
-        np.testing.assert_allclose(Jx[:, :, k], fd, rtol=1e-5, atol=1e-7)
+        turn = [Rotation.from_rotvec(sign * e).as_matrix() @ Rs for sign in (1, -1)]
+        cases = [(Jr, [(turn[0], X, s), (turn[1], X, s)]),
+                 (Js, [(Rs, X, shifted(s, k, h)), (Rs, X, shifted(s, k, -h))]),
+                 (Jx, [(Rs, shifted(X, k, h), s), (Rs, shifted(X, k, -h), s)])]
+        for J, (plus, minus) in cases:
+            fd = (residual(*plus) - residual(*minus)) / (2 * h)
+            np.testing.assert_allclose(J[:, :, k], fd, rtol=1e-5, atol=1e-6)
 
 
 def test_isocentre_and_translations_of_a_designed_orbit_are_exact() -> None:
