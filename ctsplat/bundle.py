@@ -188,21 +188,25 @@ def isocentric_bundle_adjustment(Rs_init: np.ndarray, points_init: np.ndarray, o
     def design_dev(R: np.ndarray) -> np.ndarray:
         return Rotation.from_matrix(R @ design_Rs.transpose(0, 2, 1)).as_rotvec()
 
-    def cost(R: np.ndarray, X: np.ndarray, s: np.ndarray) -> float:
-        r, *_, z = reprojection_jacobians(R, X, s, ov, op, oxy, intrinsics, iso, dso_mm)
+    def evaluate(R: np.ndarray, X: np.ndarray, s: np.ndarray) -> tuple[float, tuple, np.ndarray | None]:
+        """Cost, residuals + Jacobians (reused by the next step once accepted), deviation from the design."""
+        terms = reprojection_jacobians(R, X, s, ov, op, oxy, intrinsics, iso, dso_mm)
+        r, z = terms[0], terms[-1]
         e = c2 * np.log1p((r**2).sum(1) / c2)
         c = float(np.where(z > 0, e, 1e6).sum())  # a point behind its camera costs more than any residual
+        dev = design_dev(R) if use_prior else None
         if use_prior:
-            c += w_prior * float((design_dev(R) ** 2).sum())
+            c += w_prior * float((dev**2).sum())
         if soft:
             c += float((s**2).sum()) / isocentre_sigma_mm**2
-        return c
+        return c, terms, dev
 
-    cost0 = cur = cost(Rs, X, s)
+    cur, terms, dev = evaluate(Rs, X, s)
+    cost0 = cur
     lam, it = 1e-3, 0
     while it < max_iterations:
         it += 1
-        r, Jr, Js, Jx, z = reprojection_jacobians(Rs, X, s, ov, op, oxy, intrinsics, iso, dso_mm)
+        r, Jr, Js, Jx, z = terms
         w = np.where(z > 0, 1.0 / (1.0 + (r**2).sum(1) / c2), 0.0)  # IRLS weights of the Cauchy loss
         Jc = np.concatenate([Jr, Js], 2) if soft else Jr
         WJc, WJx = Jc * w[:, None, None], Jx * w[:, None, None]
@@ -213,7 +217,7 @@ def isocentric_bundle_adjustment(Rs_init: np.ndarray, points_init: np.ndarray, o
         gx = _scatter_sum(op, np.einsum("mki,mk->mi", WJx, r), N)
         if use_prior:  # d log(exp(δ) R R_dᵀ)/dδ ≈ I near the design
             Hcc[:, [0, 1, 2], [0, 1, 2]] += w_prior
-            gc[:, :3] += w_prior * design_dev(Rs)
+            gc[:, :3] += w_prior * dev
         if soft:
             Hcc[:, [3, 4, 5], [3, 4, 5]] += 1.0 / isocentre_sigma_mm**2
             gc[:, 3:] += s / isocentre_sigma_mm**2
@@ -236,17 +240,17 @@ def isocentric_bundle_adjustment(Rs_init: np.ndarray, points_init: np.ndarray, o
             dX = -np.einsum("nij,nj->ni", Pinv, gx + back)
             R_new = Rotation.from_rotvec(dc[:, :3]).as_matrix() @ Rs
             s_new = s + dc[:, 3:] if soft else s
-            new = cost(R_new, X + dX, s_new)
+            new, new_terms, new_dev = evaluate(R_new, X + dX, s_new)
             if new < cur:
                 accepted = True
                 rel = (cur - new) / max(cur, 1e-300)
-                Rs, X, s, cur = R_new, X + dX, s_new, new
+                Rs, X, s, cur, terms, dev = R_new, X + dX, s_new, new, new_terms, new_dev
                 lam = max(lam / 3.0, 1e-9)
                 break
             lam *= 4.0
         if not accepted or rel < tolerance:
             break
-    r, *_, z = reprojection_jacobians(Rs, X, s, ov, op, oxy, intrinsics, iso, dso_mm)
+    r, z = terms[0], terms[-1]
     front = z > 0
     med = float(np.median(np.linalg.norm(r[front], axis=1))) if front.any() else float("nan")
     return IsocentricResult(Rs=Rs, ts=isocentric_poses(Rs, iso, dso_mm, s), points=X, offsets_mm=s, iterations=it,
