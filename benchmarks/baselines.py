@@ -23,7 +23,8 @@ import pandas as pd
 import torch
 
 from ctsplat.baselines import run_baselines
-from ctsplat.geometry import ViewSet, circular_orbit
+from ctsplat.formats.viewset import ViewSet
+from ctsplat.geometry import circular_orbit
 from ctsplat.projector import build_view_set, line_integrals, render_radiographs, write_radiographs
 from ctsplat.volume import ingest, load_volume
 

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from ctsplat.geometry import ViewSet
+from ctsplat.formats.viewset import ViewSet
 from ctsplat.utils import CtsplatError, atomic_path, code_version, merge_config, write_json_atomic
 
 __all__ = [

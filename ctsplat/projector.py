@@ -28,9 +28,7 @@ Noise (optional, seeded): counts ``N = Poisson(I0 exp(-p)) + Normal(0, σ_e)``; 
 from __future__ import annotations
 
 import logging
-import os
-import shutil
-import tempfile
+import math
 import time
 import warnings
 from pathlib import Path
@@ -39,17 +37,19 @@ from typing import Any
 import numpy as np
 import torch
 
+from ctsplat.formats.viewset import ViewSet, write_radiographs
 from ctsplat.geometry import (
     Camera,
     ConeCamera,
     ParallelCamera,
-    ViewSet,
     camera_rays,
+    carm_orbit,
     check_fov,
     circular_orbit,
     sphere_orbit,
+    support_radius_mm,
 )
-from ctsplat.utils import CtsplatError, atomic_path, code_version, merge_config, resolve_device, write_json_atomic
+from ctsplat.utils import CtsplatError, code_version, merge_config, resolve_device
 
 __all__ = [
     "RADIOGRAPHS_DEFAULTS",
@@ -58,8 +58,6 @@ __all__ = [
     "add_noise",
     "build_view_set",
     "render_radiographs",
-    "write_radiographs",
-    "load_radiographs",
 ]
 
 log = logging.getLogger(__name__)
@@ -77,17 +75,27 @@ RADIOGRAPHS_DEFAULTS: dict[str, Any] = {
     # parallel: distance of the ray-origin plane from the isocentre (mm); null = just outside the volume
     "parallel_distance_mm": None,
     "isocenter_mm": None,  # null = the volume's geometric centre
-    # orbit: "circular" (n_views training angles over 360 deg about +z, plus random held-out angles)
-    # or "sphere" (n_views directions spread over the elevation band, split train/val/test)
+    # orbit: "circular" (n_views training angles about +z, plus random held-out angles), "sphere" (n_views
+    # directions spread over the elevation band, split train/val/test) or "carm" (a designed cone-beam C-arm
+    # orbit with an elevation wobble whose true poses deviate from the design; every view is a training view;
+    # views.json stores both poses; the view set SfM registers)
     "orbit": "circular",
     "n_views": 100,
     "elevation_range_deg": [-60.0, 60.0],
     "sphere_sampling": "fibonacci",
-    "wobble_deg": 0.0,
+    "wobble_deg": 0.0,  # circular / carm: elevation = wobble_deg * sin(wobble_cycles * azimuth)
+    "wobble_cycles": 2.0,
     "start_deg": 0.0,
-    # circular orbit: angular range of the training angles (deg). null = 180 for parallel beams (views at a and
-    # a + 180 are mirror images, so 360 would repeat directions for even n_views) and 360 for cone beams.
+    # circular / carm: angular range of the views (deg). null = 180 for parallel beams (views at a and a + 180 are
+    # mirror images, so 360 would repeat directions for even n_views) and 360 for cone beams.
     "arc_deg": None,
+    # carm: the true orbit deviates from the design by N(0, σ²) per view in azimuth and elevation (deg) and its
+    # isocentre by N(0, σ² I) (mm: the whole source-detector assembly shifts), seeded by the projection seed
+    "orbit_jitter_deg": 0.0,
+    "orbit_jitter_mm": 0.0,
+    # carm with pixel_spacing_mm null: the detector pitch fits the object's bounding sphere (voxels above 20 % of
+    # the maximum) times fov_margin onto the detector's shorter side
+    "fov_margin": 1.0,
     "split": {"train": 0.7, "val": 0.15, "test": 0.15},
     "step_voxels": 0.5,
     "noise": {"enabled": False, "i0": 1.0e5, "electronic_sigma": 0.0},
@@ -367,6 +375,17 @@ def add_noise(p: np.ndarray, i0: float, electronic_sigma: float, rng: np.random.
 
 
 # ------------------------------------------------------------------------------------- view sets
+def fitted_pitch_mm(radius_mm: float, dso_mm: float, dsd_mm: float, detector_px: int, fov_margin: float = 1.0
+                    ) -> float:
+    """Cone-beam detector pitch (mm) at which a sphere of ``radius_mm`` about the isocentre fills the detector.
+
+    The sphere's cone half-angle is ``asin(r / DSO)``; on the detector it spans ``DSD · tan(asin(r / DSO))`` to
+    each side, so ``pitch = 2 DSD tan(asin(r / DSO)) · fov_margin / detector_px``.
+    """
+    half = dsd_mm * math.tan(math.asin(min(radius_mm / dso_mm, 0.99)))
+    return 2.0 * half * fov_margin / int(detector_px)
+
+
 def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSet:
     """The camera and orbit described by a ``radiographs`` config section for ``volume`` (a ``Volume``)."""
     cfg = merge_config("radiographs", config, RADIOGRAPHS_DEFAULTS)
@@ -391,7 +410,17 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
         for name, val in (("dso_mm", dso), ("dsd_mm", dsd)):
             if not val > 0:
                 raise CtsplatError(f"{name} must be a positive distance in mm, got {val}")
-        pitch = voxel * dsd / dso if cfg["pixel_spacing_mm"] is None else float(cfg["pixel_spacing_mm"])
+        if cfg["orbit"] == "carm" and dsd <= dso:
+            raise CtsplatError(f"dsd_mm ({dsd}) must exceed dso_mm ({dso}): the detector lies beyond the isocentre")
+        if cfg["pixel_spacing_mm"] is not None:
+            pitch = float(cfg["pixel_spacing_mm"])
+        elif cfg["orbit"] == "carm":
+            object_radius = support_radius_mm(volume.data, volume.affine, iso)
+            if object_radius >= dso:
+                raise CtsplatError(f"dso_mm ({dso}) must exceed the object's radius ({object_radius:.0f} mm)")
+            pitch = fitted_pitch_mm(object_radius, dso, dsd, min(W, H), float(cfg["fov_margin"]))
+        else:
+            pitch = voxel * dsd / dso
         camera = ConeCamera(W, H, pitch, dso, dsd)
         distance = dso
         if dso <= radius:
@@ -405,25 +434,28 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
             arc = 180.0 if cfg["camera"] == "parallel" else 360.0
         views = circular_orbit(cfg["n_views"], iso, distance, split_fractions=cfg["split"],
                                wobble_deg=float(cfg["wobble_deg"]), start_deg=float(cfg["start_deg"]), seed=seed,
-                               arc_deg=float(arc))
+                               arc_deg=float(arc), wobble_cycles=float(cfg["wobble_cycles"]))
     elif cfg["orbit"] == "sphere":
         views = sphere_orbit(cfg["n_views"], iso, distance, elevation_range_deg=cfg["elevation_range_deg"],
                              sampling=cfg["sphere_sampling"], split_fractions=cfg["split"], seed=seed)
+    elif cfg["orbit"] == "carm":
+        if cfg["camera"] != "cone":
+            raise CtsplatError("orbit: carm needs camera: cone (a C-arm is a cone-beam scanner)")
+        arc = 360.0 if arc is None else arc
+        views = carm_orbit(cfg["n_views"], iso, distance, arc_deg=float(arc), start_deg=float(cfg["start_deg"]),
+                           wobble_deg=float(cfg["wobble_deg"]), wobble_cycles=float(cfg["wobble_cycles"]),
+                           jitter_deg=float(cfg["orbit_jitter_deg"]), jitter_mm=float(cfg["orbit_jitter_mm"]),
+                           seed=seed)
     else:
-        raise CtsplatError(f"unknown orbit {cfg['orbit']!r}; allowed: circular, sphere")
+        raise CtsplatError(f"unknown orbit {cfg['orbit']!r}; allowed: circular, sphere, carm")
     meta = {"orbit": cfg["orbit"], "n_views": int(cfg["n_views"]), "wobble_deg": float(cfg["wobble_deg"]),
-            "arc_deg": float(arc) if arc is not None else None,
+            "wobble_cycles": float(cfg["wobble_cycles"]), "arc_deg": float(arc) if arc is not None else None,
             "elevation_range_deg": list(cfg["elevation_range_deg"]), "sphere_sampling": cfg["sphere_sampling"],
             "split": dict(cfg["split"]), "seed": int(seed), "distance_mm": distance}
     return ViewSet(camera, views, volume.volume_id, iso, meta)
 
 
-# ---------------------------------------------------------------------------------------- outputs
-def _to_png16(p: np.ndarray) -> np.ndarray:
-    """Transmission ``exp(-p)`` in [0, 1] -> uint16 (0 = opaque, 65535 = unattenuated)."""
-    return np.round(np.clip(np.exp(-p.astype(np.float64)), 0.0, 1.0) * 65535.0).astype(np.uint16)
-
-
+# ------------------------------------------------------------------------------------------ step
 def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any] | None = None,
                        seed: int = 0) -> ViewSet:
     """Render the synthetic radiographs of a volume and write them to ``out_dir``.
@@ -468,59 +500,3 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
     })
     log.info("rendered %d views of %s in %.1f s -> %s", len(view_set), volume.volume_id, seconds, out_dir)
     return view_set
-
-
-def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, provenance: dict[str, Any]) -> None:
-    """Write the radiograph files of a view set: ``line_integrals.tif`` (float32 pages [V, H, W]),
-    ``png/view_{id:04d}.png`` (16-bit transmission ``exp(-p)``), ``views.json`` and ``radiographs.json``
-    (``provenance`` plus view counts, camera and statistics). Each file appears complete or not at all.
-    """
-    import imageio.v3 as iio
-    import tifffile
-
-    p = np.ascontiguousarray(p, dtype=np.float32)
-    cam = view_set.camera
-    if p.shape != (len(view_set), cam.height, cam.width):
-        raise CtsplatError(f"images of shape {p.shape} do not match the view set "
-                           f"({len(view_set)}, {cam.height}, {cam.width})")
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out_dir / "line_integrals.tif") as tmp:
-        tifffile.imwrite(tmp, p, photometric="minisblack", metadata={"axes": "QYX"})
-    tmp_png = Path(tempfile.mkdtemp(prefix=".png.", dir=out_dir))
-    try:
-        for view, img in zip(view_set.views, p, strict=True):
-            iio.imwrite(tmp_png / f"view_{view.id:04d}.png", _to_png16(img))
-        if (out_dir / "png").exists():
-            shutil.rmtree(out_dir / "png")
-        os.replace(tmp_png, out_dir / "png")
-    finally:
-        if tmp_png.exists():
-            shutil.rmtree(tmp_png)
-    view_set.save(out_dir / "views.json")
-    write_json_atomic(out_dir / "radiographs.json", {
-        "code_version": code_version(), **provenance,
-        "n_views": len(view_set), "splits": {s: int(len(view_set.indices(s))) for s in ("train", "val", "test")},
-        "camera": cam.to_dict(),
-        "line_integral_stats": {"min": float(p.min()), "max": float(p.max()), "mean": float(p.mean())},
-        "units": "line integrals of mu in 1/mm (dimensionless); png = 16-bit transmission exp(-p)",
-    })
-
-
-def load_radiographs(out_dir: str | Path) -> tuple[np.ndarray, ViewSet]:
-    """Read ``line_integrals.tif`` (V, H, W) float32 and ``views.json`` written by :func:`render_radiographs`."""
-    import tifffile
-
-    out_dir = Path(out_dir)
-    tif = out_dir / "line_integrals.tif"
-    if not tif.exists():
-        raise CtsplatError(f"{tif} does not exist; run `ctsplat project` for this geometry first")
-    view_set = ViewSet.load(out_dir / "views.json")
-    p = np.asarray(tifffile.imread(tif), dtype=np.float32)
-    if p.ndim == 2:
-        p = p[None]
-    expected = (len(view_set), view_set.camera.height, view_set.camera.width)
-    if p.shape != expected:
-        raise CtsplatError(f"{tif} holds images of shape {p.shape} but views.json describes {expected}; "
-                           "re-render the radiographs")
-    return p, view_set

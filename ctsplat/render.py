@@ -803,7 +803,7 @@ def render_views(
     import numpy as np
     import tifffile
 
-    from ctsplat.geometry import ViewSet
+    from ctsplat.formats.viewset import ViewSet
     from ctsplat.utils import atomic_path, code_version, resolve_device, write_json_atomic
 
     dev = resolve_device(device)

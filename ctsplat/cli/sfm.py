@@ -1,4 +1,4 @@
-"""``ctsplat sfm``: COLMAP poses from synthetic cone-beam radiographs of a volume, aligned and scored."""
+"""``ctsplat sfm``: COLMAP poses from a C-arm cone-beam view set, aligned to the world and scored."""
 
 from __future__ import annotations
 
@@ -14,9 +14,12 @@ def run(args: argparse.Namespace) -> None:
     from ctsplat.sfm import run_sfm
 
     cfg = apply_sets(load_section(args.config, "sfm"), args.set)
-    if not Path(args.volume).exists():
+    if not Path(args.radiographs).is_dir():
+        raise CtsplatError(f"radiographs folder {args.radiographs} does not exist; run `ctsplat project --set "
+                           "camera=cone --set orbit=carm` first")
+    if args.volume is not None and not Path(args.volume).exists():
         raise CtsplatError(f"volume {args.volume} does not exist; run `ctsplat ingest` first")
-    summary = run_sfm(args.volume, args.out_dir, cfg, seed=args.seed)
+    summary = run_sfm(args.radiographs, args.out_dir, cfg, seed=args.seed, volume_path=args.volume)
     keys = ("ok", "n_views", "n_registered", "registration_rate", "models_found", "rot_err_deg_median",
             "centre_err_mm_median")
     print(json.dumps({k: summary.get(k) for k in keys}))
@@ -25,14 +28,15 @@ def run(args: argparse.Namespace) -> None:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "sfm", help="COLMAP (pycolmap) poses from cone-beam radiographs; alignment and pose accuracy",
-        description="Render a cone-beam SfM view set of VOLUME, run pycolmap with the known intrinsics, align "
-                    "the recovered poses to the true ones and write sparse/0, poses.csv, summary.json, "
-                    "points3d.ply and aligned_views.json into OUT_DIR. Too few registrations do not fail: "
-                    "summary.json records ok: false.")
-    p.add_argument("volume", help="preprocessed volume (.nii.gz with its volume.json)")
+        description="Run pycolmap with the known intrinsics on the radiographs of a C-arm view set (written by "
+                    "`ctsplat project` with camera: cone, orbit: carm), align the recovered poses to the true ones "
+                    "and write sparse/0, poses.csv, summary.json, points3d.ply and aligned_views.json into OUT_DIR. "
+                    "Too few registrations do not fail: summary.json records ok: false.")
+    p.add_argument("radiographs", help="radiographs folder of the C-arm view set (line_integrals.tif, views.json)")
     p.add_argument("out_dir", help="output folder")
     p.add_argument("--config", help="YAML/JSON file with the sfm section (or {sfm: {...}})")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
-                   help="override one sfm key, e.g. --set n_views=120 --set matching=sequential")
+                   help="override one sfm key, e.g. --set matching=sequential --set pose_prior=isocentric")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--volume", help="the volume (.nii.gz), only needed for naive_slices")
     p.set_defaults(func=run)

@@ -9,13 +9,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from ctsplat.formats.viewset import VIEWSET_FORMAT_VERSION, View, ViewSet
 from ctsplat.geometry import (
-    VIEWSET_FORMAT_VERSION,
     ConeCamera,
     ParallelCamera,
     Rt_from_c2w,
-    View,
-    ViewSet,
     assign_splits,
     c2w_from_Rt,
     camera_center,

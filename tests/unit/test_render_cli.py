@@ -10,8 +10,9 @@ import tifffile
 import torch
 
 from ctsplat.cli import main
+from ctsplat.formats.viewset import View, ViewSet
 from ctsplat.gaussians import Gaussians
-from ctsplat.geometry import ParallelCamera, View, ViewSet, pose_from_angles
+from ctsplat.geometry import ParallelCamera, pose_from_angles
 from ctsplat.render import compute_3d_filter, render
 
 

@@ -11,7 +11,7 @@ import pytest
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from ctsplat.geometry import ViewSet  # noqa: E402
+from ctsplat.formats.viewset import ViewSet  # noqa: E402
 from ctsplat.sfm import SFM_DEFAULTS, design_orbit, run_sfm  # noqa: E402
 from ctsplat.utils import CtsplatError  # noqa: E402
 from ctsplat.volume import Volume, save_volume  # noqa: E402

@@ -356,7 +356,7 @@ def _fake_sfm(scene_dir: Path, sfm: Path, keep_ids: list[int], rate: float, ok: 
     scene's parallel-beam radiographs)."""
     import tifffile
 
-    from ctsplat.geometry import ViewSet
+    from ctsplat.formats.viewset import ViewSet
     from ctsplat.projector import load_radiographs
 
     sfm.mkdir(parents=True, exist_ok=True)
@@ -498,7 +498,8 @@ def test_colmap_targets_rerendered_at_true_poses(scene_dir: Path, tmp_path: Path
     """Without views.json/line_integrals.tif in the sfm folder, the targets are rendered with the projector at the
     true poses: from true_views.json when the sfm step wrote it, else on its designed orbit (config + seed);
     unregistered views are dropped."""
-    from ctsplat.geometry import ConeCamera, View, ViewSet
+    from ctsplat.formats.viewset import View, ViewSet
+    from ctsplat.geometry import ConeCamera
     from ctsplat.projector import line_integrals
     from ctsplat.sfm import SFM_DEFAULTS, design_orbit
     from ctsplat.volume import load_volume

@@ -18,12 +18,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ctsplat.utils import CtsplatError
 
+if TYPE_CHECKING:
+    from ctsplat.scene import Scene
+
 __all__ = [
+    "make_seed",
+    "fbp_reconstruction",
     "Seed",
     "seed_from_grid",
     "seed_uniform",
@@ -253,3 +259,59 @@ def read_ply_points(path: str | Path) -> np.ndarray:
         arr = np.frombuffer(body, dtype=dt, count=count)
         cols = {nm: arr[nm].astype(float) for nm in names}
     return np.stack([cols["x"], cols["y"], cols["z"]], axis=1)
+
+
+# ------------------------------------------------------------------------------------------ the init setting
+def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> Seed:
+    """The initial Gaussians for ``cfg['init']`` (only ``volume`` reads the reference voxel values)."""
+    vol = scene.volume
+    n = int(cfg["n_init"])
+    lo, hi = grid_bounds_mm(vol.shape, vol.affine)
+    scale = cfg["init_scale_voxels"]
+    if cfg["init"] == "volume":
+        return seed_from_grid(vol.data, vol.affine, n, rng, top_fraction=cfg["init_top_fraction"],
+                                      scale_voxels=0.75 if scale is None else float(scale), uses_reference_volume=True,
+                                      strategy="volume")
+    if cfg["init"] == "uniform":
+        return seed_uniform(lo, hi, n, rng, density=cfg["init_density"])
+    if cfg["init"] == "sfm":
+        pts = read_ply_points(Path(cfg["sfm_dir"]) / "points3d.ply")
+        return seed_from_points(pts, lo, hi, n, rng, fill_fraction=cfg["sfm_fill_fraction"],
+                                        density=cfg["init_density"])
+    recon, method = fbp_reconstruction(scene, cfg.get("fbp_filter", "ramp"))
+    return seed_from_grid(recon, vol.affine, n, rng, top_fraction=cfg["init_top_fraction"],
+                                  scale_voxels=1.5 if scale is None else float(scale), uses_reference_volume=False,
+                                  strategy="fbp" if method == "fbp" else "fbp (sirt)")
+
+
+SIRT_SEED_ITERATIONS = 10
+
+
+def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> tuple[np.ndarray, str]:
+    """Reconstruction of the *training* projections only onto the reference grid (geometry only, no voxel values).
+
+    Circular parallel-beam orbits at elevation 0 use slice-wise FBP (``ctsplat.baselines.fbp_volume``); any other
+    geometry (cone beam, wobbling or spherical orbits, SfM poses) uses ``SIRT_SEED_ITERATIONS`` iterations of
+    ``ctsplat.baselines.sirt_volume``, which works with the projector's own geometry. The training targets are
+    already normalised line integrals, so the result is in normalised units.
+
+    Returns
+    -------
+    recon : ndarray (I, J, K) float32
+    method : "fbp" or "sirt"
+    """
+    from ctsplat.baselines import fbp_volume, is_circular_parallel, sirt_volume
+    from ctsplat.formats.viewset import View, ViewSet
+    from ctsplat.volume import Volume
+
+    tr = scene.train
+    views = [View(int(i), R, t, float(a), float(e), "train")
+             for i, R, t, a, e in zip(tr.ids, tr.Rs, tr.ts, tr.azimuth_deg, tr.elevation_deg, strict=True)]
+    vs = ViewSet(tr.camera, views, scene.volume.volume_id, scene.volume.center_mm(), {})
+    grid = Volume(np.zeros(scene.volume.shape, np.float32), np.asarray(scene.volume.affine, float), {})
+    if is_circular_parallel(vs):
+        return np.asarray(fbp_volume(tr.images, vs, grid, filter_name=filter_name, mu_scale_per_mm=1.0),
+                          np.float32), "fbp"
+    recon = sirt_volume(tr.images, vs, grid, iterations=SIRT_SEED_ITERATIONS, mu_scale_per_mm=1.0)
+    return np.asarray(recon, np.float32), "sirt"
+

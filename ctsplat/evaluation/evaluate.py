@@ -1,11 +1,12 @@
-"""Evaluation of a Gaussian model: held-out projections, voxelised 3D metrics, figures, speed and memory.
+"""Evaluation of a trained Gaussian model: held-out projections, voxelised 3D metrics, speed; the run's metrics.
 
 2D metrics are computed on line-integral images of the *normalised* volume (the training targets divided by
 ``mu_scale_per_mm``), PSNR/SSIM with each reference image's own range (``ctsplat.metrics``). 3D metrics compare
 the model voxelised on the reference grid with the normalised reference volume (data range 1). LPIPS uses
 ``ctsplat.metrics.lpips_distance`` and is ``None`` with a recorded reason when it cannot be computed.
 
-:func:`evaluate` recomputes ``metrics.json``-style test metrics for a finished run folder.
+:func:`evaluate` is the one implementation of a run's held-out metrics (``metrics.json``); training only logs
+validation metrics while it runs.
 """
 
 from __future__ import annotations
@@ -13,35 +14,36 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
 import os
 import resource
 import time
 from pathlib import Path
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 import torch
 
-from ctsplat import metrics
-from ctsplat.utils import CtsplatError, atomic_path
+from ctsplat.evaluation import metrics
+from ctsplat.utils import CtsplatError, code_version, resolve_device, write_json_atomic
 
 __all__ = [
+    "DEFAULT_MILESTONES",
     "render_views",
     "view_metrics",
     "voxelize_model",
     "volume_metrics",
-    "milestones",
     "peak_memory_mb",
     "forward_fps",
     "orbit_poses",
-    "save_gallery",
-    "save_slices",
-    "save_turntable",
     "evaluate",
+    "model_size_bytes",
 ]
 
 log = logging.getLogger(__name__)
+
+#: Validation targets of the ``iter_to_*`` / ``time_to_*_s`` milestones when none are given.
+DEFAULT_MILESTONES = {"psnr2d": 30.0, "ssim2d": 0.9}
 
 
 def render_views(
@@ -122,28 +124,6 @@ def volume_metrics(model_vol: np.ndarray, reference: np.ndarray) -> dict[str, fl
     return {"psnr3d": metrics.psnr3d(model_vol, reference), "ssim3d": metrics.ssim3d(model_vol, reference)}
 
 
-def milestones(log_rows: list[dict[str, Any]], *, psnr_target: float = 30.0, ssim_target: float = 0.90
-               ) -> dict[str, float | None]:
-    """Time (s) and iteration at which the logged validation PSNR2D / SSIM2D first reached the targets.
-
-    ``None`` when never reached. ``log_rows`` are ``train_log.csv`` rows (dicts with ``iteration``,
-    ``timestamp``, ``psnr2d``, ``ssim2d``) in iteration order.
-    """
-    out: dict[str, float | None] = {
-        "time_to_psnr2d_30_s": None, "iter_to_psnr2d_30": None, "time_to_ssim2d_090_s": None,
-        "iter_to_ssim2d_090": None,
-    }
-    for row in log_rows:
-        p, s = float(row["psnr2d"]), float(row["ssim2d"])
-        if out["time_to_psnr2d_30_s"] is None and math.isfinite(p) and p >= psnr_target:
-            out["time_to_psnr2d_30_s"] = float(row["timestamp"])
-            out["iter_to_psnr2d_30"] = int(row["iteration"])
-        if out["time_to_ssim2d_090_s"] is None and math.isfinite(s) and s >= ssim_target:
-            out["time_to_ssim2d_090_s"] = float(row["timestamp"])
-            out["iter_to_ssim2d_090"] = int(row["iteration"])
-    return out
-
-
 def peak_memory_mb(device: torch.device) -> tuple[float, str]:
     """Peak memory in MiB and its kind: CUDA max allocated on a GPU, else the process's peak RSS."""
     if device.type == "cuda":
@@ -200,120 +180,133 @@ def orbit_poses(R0: np.ndarray, t0: np.ndarray, center_mm: np.ndarray, n: int) -
     return np.stack(Rs), np.stack(ts)
 
 
-def _imshow_row(axes: Any, images: list[np.ndarray], titles: list[str], cmaps: list[str],
-                limits: list[tuple[float, float]]) -> None:
-    for ax, im, title, cmap, (lo, hi) in zip(axes, images, titles, cmaps, limits, strict=True):
-        h = ax.imshow(im, cmap=cmap, vmin=lo, vmax=hi)
-        ax.set_title(title, fontsize=8)
-        ax.axis("off")
-        ax.figure.colorbar(h, ax=ax, fraction=0.046, pad=0.02)
+def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
+             milestones: Mapping[str, float] | None = None, write: bool = True) -> dict[str, Any]:
+    """Evaluate a finished training run: the one place its held-out metrics are computed.
 
+    Reads ``run_dir/config.json``, ``model.pt``, ``training.json`` and ``train_log.csv`` (written by
+    :func:`ctsplat.training.train`) and the scene's view sets; renders the split's views at their true poses,
+    voxelises the model on the reference grid, and measures 2D PSNR/SSIM/LPIPS, 3D PSNR/SSIM, forward FPS and the
+    time to the validation milestones.
 
-def _save_fig(fig: Any, path: Path) -> None:
-    import matplotlib.pyplot as plt
+    Parameters
+    ----------
+    run_dir : path
+    split : {"test", "val", "train"}
+        Views to evaluate on; model selection uses ``val``, the reported numbers ``test``.
+    device : str
+        ``auto`` | ``cpu`` | ``cuda``.
+    milestones : mapping, optional
+        Validation targets, ``{metric: threshold}`` (default ``{"psnr2d": 30, "ssim2d": 0.9}``), for the
+        ``iter_to_*`` / ``time_to_*_s`` columns (:func:`ctsplat.analysis.stats.milestones`).
+    write : bool
+        Write ``metrics.json`` (``metrics_{split}.json`` for other splits), ``per_view_{split}.csv`` and, for the
+        test split, ``model_volume.nii.gz`` and the figures (``gallery.png``, ``slices.png``, ``turntable.gif``)
+        when the run's config asks for figures.
 
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format=path.suffix.lstrip("."))
-    plt.close(fig)
-
-
-def save_gallery(path: str | Path, refs: np.ndarray, preds: np.ndarray, ids: list[int],
-                 psnrs: np.ndarray, max_views: int = 6) -> None:
-    """PNG gallery: one row per test view, columns reference | render | signed error."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    n = min(max_views, len(refs))
-    pick = np.linspace(0, len(refs) - 1, n).round().astype(int) if n else []
-    fig, axes = plt.subplots(n, 3, figsize=(9, 2.8 * n), squeeze=False)
-    for row, i in enumerate(pick):
-        ref, pred = refs[i], preds[i]
-        lo, hi = float(ref.min()), float(ref.max())
-        err = pred - ref
-        e = float(np.abs(err).max()) or 1.0
-        _imshow_row(axes[row], [ref, pred, err],
-                    [f"view {ids[i]} reference", f"render ({psnrs[i]:.1f} dB)", "error (render - ref)"],
-                    ["gray", "gray", "RdBu_r"], [(lo, hi), (lo, hi), (-e, e)])
-    fig.tight_layout()
-    _save_fig(fig, Path(path))
-
-
-def save_slices(path: str | Path, model_vol: np.ndarray, reference: np.ndarray) -> None:
-    """PNG of the central axial (k), coronal (j) and sagittal (i) slices: reference | model | error."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(3, 3, figsize=(9, 8.4), squeeze=False)
-    names = ["sagittal (i)", "coronal (j)", "axial (k)"]
-    for axis in range(3):
-        c = reference.shape[axis] // 2
-        ref = np.take(reference, c, axis=axis).T[::-1]
-        mod = np.take(model_vol, c, axis=axis).T[::-1]
-        _imshow_row(axes[axis], [ref, mod, mod - ref],
-                    [f"{names[axis]} reference", "model", "error (model - ref)"],
-                    ["gray", "gray", "RdBu_r"], [(0.0, 1.0), (0.0, 1.0), (-0.5, 0.5)])
-    fig.tight_layout()
-    _save_fig(fig, Path(path))
-
-
-def save_turntable(path: str | Path, frames: np.ndarray, *, fps: float = 12.0) -> None:
-    """Animated GIF (looping) of novel projections ``(n, H, W)``, each scaled by the stack's range to 8 bits."""
-    import imageio.v3 as iio
-
-    lo, hi = float(frames.min()), float(frames.max())
-    u8 = np.clip((frames - lo) / ((hi - lo) or 1.0) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        iio.imwrite(tmp, u8, extension=".gif", duration=1000.0 / fps, loop=0)
-
-
-def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto", write: bool = True
-             ) -> dict[str, Any]:
-    """Re-evaluate a finished training run on a split of its radiographs.
-
-    Reads ``run_dir/config.json`` (written by :func:`ctsplat.train.train`) and ``run_dir/model.pt``; renders the
-    split's views, voxelises the model and returns (and with ``write``, stores as ``run_dir/eval_{split}.json``)
-    PSNR/SSIM/LPIPS 2D and PSNR/SSIM 3D.
+    Returns
+    -------
+    dict
+        The metrics (JSON-serialisable; see ``metrics.json``).
     """
-    from ctsplat import train as train_mod
-    from ctsplat.gaussians import Gaussians
-    from ctsplat.utils import resolve_device, write_json_atomic
+    from ctsplat.analysis.stats import milestones as milestone_times
+    from ctsplat.evaluation import figures
+    from ctsplat.formats.runlog import PER_VIEW_COLUMNS, CsvLog, read_train_log
+    from ctsplat.formats.volume import Volume, save_volume
+    from ctsplat.scene import load_scene
+    from ctsplat.splat.gaussians import Gaussians
+    from ctsplat.training.config import render_kwargs
 
     run_dir = Path(run_dir)
-    cfg_path = run_dir / "config.json"
-    model_path = run_dir / "model.pt"
-    if not cfg_path.exists() or not model_path.exists():
-        raise CtsplatError(f"{run_dir} is not a finished training run (needs config.json and model.pt); run "
-                           "`ctsplat train` first")
-    cfg = json.loads(cfg_path.read_text())["config"]
-    dev = resolve_device(device)
-    scene = train_mod.load_scene(cfg)
-    g = Gaussians.load(model_path, device=dev)
-    sel = {"test": scene.test, "val": scene.val, "train": scene.train}.get(split)
-    if sel is None:
+    needed = [run_dir / n for n in ("config.json", "model.pt", "training.json")]
+    if not all(p.exists() for p in needed):
+        missing = ", ".join(p.name for p in needed if not p.exists())
+        raise CtsplatError(f"{run_dir} is not a finished training run (missing {missing}); run `ctsplat train` "
+                           "first")
+    if split not in ("test", "val", "train"):
         raise CtsplatError(f"unknown split {split!r}; allowed: test, val, train")
-    rk = train_mod.render_kwargs(cfg, g, scene)
-    preds = render_views(g, sel.camera, sel.Rs, sel.ts, rk)
-    vm = view_metrics(preds, sel.images, with_lpips=True)
-    vol = voxelize_model(g, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
-    res = {
-        "split": split,
-        "n_views": len(sel.ids),
+    run_cfg = json.loads((run_dir / "config.json").read_text())
+    cfg = run_cfg["config"]
+    trained = json.loads((run_dir / "training.json").read_text())
+    dev = resolve_device(device)
+    scene = load_scene(cfg)
+    g = Gaussians.load(run_dir / "model.pt", device=dev)
+    views = scene.split(split)
+    tr = scene.train
+    rk = render_kwargs(cfg, g, tr.camera, tr.Rs, tr.ts)
+    preds = render_views(g, views.camera, views.Rs, views.ts, rk)
+    vm = view_metrics(preds, views.images, with_lpips=True)
+    vol_model = voxelize_model(g, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
+    m3 = volume_metrics(vol_model, scene.volume.data)
+    log_path = run_dir / "train_log.csv"
+    times = milestone_times(read_train_log(log_path), dict(milestones or DEFAULT_MILESTONES)) \
+        if log_path.exists() else {}
+    times.pop("iters_per_s", None)  # training.json has the exact value
+    fps = forward_fps(g, views.camera, views.Rs[0], views.ts[0], rk, width=int(cfg["fps_width"]),
+                      height=int(cfg["fps_height"]))
+    uses_ref = cfg["init"] == "volume"
+    lpips_vals = vm["lpips"]
+    result = {
         "psnr2d": float(np.mean(vm["psnr2d"])),
         "ssim2d": float(np.mean(vm["ssim2d"])),
-        "lpips": None if any(v is None for v in vm["lpips"]) else float(np.mean(vm["lpips"])),
+        "lpips": None if any(v is None for v in lpips_vals) else float(np.mean(lpips_vals)),
         "lpips_reason": vm["lpips_reason"],
-        **volume_metrics(vol, scene.volume.data),
+        **m3,
+        "split": split,
+        "n_views": len(views),
+        "n_train_views": len(scene.train),
+        "eval_split_during_training": scene.eval_split,
+        "wall_time_s": trained["wall_time_s"],
+        "iterations": trained["iterations"],
+        "iters_per_s": trained["iters_per_s"],
+        **times,
+        "fps_forward": fps,
+        "fps_resolution": [int(cfg["fps_width"]), int(cfg["fps_height"])],
+        "peak_memory_mb": trained.get("peak_memory_mb"),
+        "peak_memory_kind": trained.get("peak_memory_kind"),
         "n_gaussians": len(g),
-        "uses_reference_volume": cfg["init"] == "volume",
+        "model_size_bytes": model_size_bytes(run_dir / "model.pt"),
+        "model_ply_size_bytes": model_size_bytes(run_dir / "model.ply"),
+        "uses_reference_volume": uses_ref,
+        "init": cfg["init"],
+        "compositor": cfg["compositor"],
+        "mip": bool(cfg["mip"]),
+        "poses": cfg["poses"],
+        "supervision": cfg["supervision"],
+        "seed": int(cfg["seed"]),
+        "nan_events": trained["nan_events"],
+        "views_dropped_unregistered": scene.info.get("views_dropped_unregistered", 0),
+        "sfm_registration_rate": scene.info.get("sfm_registration_rate"),
+        "device": str(dev),
+        "config_hash": run_cfg.get("config_hash"),
+        "code_version": code_version(),
+        "volume_id": scene.volume.volume_id,
     }
-    if write:
-        write_json_atomic(run_dir / f"eval_{split}.json", res)
-    return res
+    if not write:
+        return result
+    per_view = CsvLog(run_dir / f"per_view_{split}.csv", PER_VIEW_COLUMNS)
+    per_view.reset()
+    per_view.append([
+        {"iteration": trained["iterations"], "view_id": int(i), "azimuth_deg": float(a), "elevation_deg": float(e),
+         "split": split, "psnr2d": float(p), "ssim2d": float(q)}
+        for i, a, e, p, q in zip(views.ids, views.azimuth_deg, views.elevation_deg, vm["psnr2d"], vm["ssim2d"],
+                                 strict=True)
+    ])
+    if split == "test":
+        meta = {"source": "ctsplat voxelised Gaussian model",
+                "intensity": {"unit": "normalised", "mu_scale_per_mm": scene.mu_scale},
+                "reference_volume_id": scene.volume.volume_id, "uses_reference_volume": uses_ref,
+                "config_hash": run_cfg.get("config_hash"), "code_version": code_version()}
+        save_volume(Volume(vol_model.astype(np.float32), np.asarray(scene.volume.affine, float), meta),
+                    run_dir / "model_volume.nii.gz")
+        if cfg["figures"]:
+            figures.save_gallery(run_dir / "gallery.png", views.images, preds, [int(i) for i in views.ids],
+                                 vm["psnr2d"])
+            figures.save_slices(run_dir / "slices.png", vol_model, scene.volume.data)
+            Rs, ts = orbit_poses(views.Rs[0], views.ts[0], scene.volume.center_mm(), int(cfg["turntable_frames"]))
+            figures.save_turntable(run_dir / "turntable.gif", render_views(g, views.camera, Rs, ts, rk))
+    write_json_atomic(run_dir / ("metrics.json" if split == "test" else f"metrics_{split}.json"), result)
+    return result
 
 
 def model_size_bytes(*paths: str | Path) -> int:

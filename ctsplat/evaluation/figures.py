@@ -1,0 +1,83 @@
+"""Figures of one evaluated run: a gallery of held-out projections, central slices, a turntable GIF."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctsplat.utils import atomic_path
+
+__all__ = ["save_gallery", "save_slices", "save_turntable"]
+
+
+def _imshow_row(axes: Any, images: list[np.ndarray], titles: list[str], cmaps: list[str],
+                limits: list[tuple[float, float]]) -> None:
+    for ax, im, title, cmap, (lo, hi) in zip(axes, images, titles, cmaps, limits, strict=True):
+        h = ax.imshow(im, cmap=cmap, vmin=lo, vmax=hi)
+        ax.set_title(title, fontsize=8)
+        ax.axis("off")
+        ax.figure.colorbar(h, ax=ax, fraction=0.046, pad=0.02)
+
+
+def _save_fig(fig: Any, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format=path.suffix.lstrip("."))
+    plt.close(fig)
+
+
+def save_gallery(path: str | Path, refs: np.ndarray, preds: np.ndarray, ids: list[int],
+                 psnrs: np.ndarray, max_views: int = 6) -> None:
+    """PNG gallery: one row per test view, columns reference | render | signed error."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = min(max_views, len(refs))
+    pick = np.linspace(0, len(refs) - 1, n).round().astype(int) if n else []
+    fig, axes = plt.subplots(n, 3, figsize=(9, 2.8 * n), squeeze=False)
+    for row, i in enumerate(pick):
+        ref, pred = refs[i], preds[i]
+        lo, hi = float(ref.min()), float(ref.max())
+        err = pred - ref
+        e = float(np.abs(err).max()) or 1.0
+        _imshow_row(axes[row], [ref, pred, err],
+                    [f"view {ids[i]} reference", f"render ({psnrs[i]:.1f} dB)", "error (render - ref)"],
+                    ["gray", "gray", "RdBu_r"], [(lo, hi), (lo, hi), (-e, e)])
+    fig.tight_layout()
+    _save_fig(fig, Path(path))
+
+
+def save_slices(path: str | Path, model_vol: np.ndarray, reference: np.ndarray) -> None:
+    """PNG of the central axial (k), coronal (j) and sagittal (i) slices: reference | model | error."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 3, figsize=(9, 8.4), squeeze=False)
+    names = ["sagittal (i)", "coronal (j)", "axial (k)"]
+    for axis in range(3):
+        c = reference.shape[axis] // 2
+        ref = np.take(reference, c, axis=axis).T[::-1]
+        mod = np.take(model_vol, c, axis=axis).T[::-1]
+        _imshow_row(axes[axis], [ref, mod, mod - ref],
+                    [f"{names[axis]} reference", "model", "error (model - ref)"],
+                    ["gray", "gray", "RdBu_r"], [(0.0, 1.0), (0.0, 1.0), (-0.5, 0.5)])
+    fig.tight_layout()
+    _save_fig(fig, Path(path))
+
+
+def save_turntable(path: str | Path, frames: np.ndarray, *, fps: float = 12.0) -> None:
+    """Animated GIF (looping) of novel projections ``(n, H, W)``, each scaled by the stack's range to 8 bits."""
+    import imageio.v3 as iio
+
+    lo, hi = float(frames.min()), float(frames.max())
+    u8 = np.clip((frames - lo) / ((hi - lo) or 1.0) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, u8, extension=".gif", duration=1000.0 / fps, loop=0)

@@ -1,0 +1,310 @@
+"""View sets: a camera plus posed views (``views.json``), and the radiograph folder that stores their images.
+
+A view set is what every later step reads: the projector writes one folder per geometry, SfM registers the
+images of one of them, training and evaluation read their targets from them. One writer
+(:func:`write_radiographs`) and one reader (:func:`load_radiographs`) define the folder::
+
+    line_integrals.tif   float32 pages (V, H, W): line integrals of μ (1/mm · mm, dimensionless), page order =
+                         the order of ``views`` in views.json
+    views.json           the :class:`ViewSet` (camera, per-view pose, angles, split; designed pose where the
+                         views were taken off a designed orbit)
+    png/view_{id:04d}.png  16-bit transmission ``exp(-p)`` (0 = opaque, 65535 = unattenuated), for viewing
+    radiographs.json     provenance: config, seed, code version, volume id, statistics
+
+Poses follow ``docs/conventions.md``: world mm, world-to-camera ``x_cam = R x_world + t`` (OpenCV / COLMAP).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctsplat.geometry.cameras import Camera, camera_center, camera_from_dict, rotmat_to_qvec
+from ctsplat.utils import CtsplatError, atomic_path, code_version, write_json_atomic
+
+__all__ = [
+    "VIEWSET_FORMAT",
+    "VIEWSET_FORMAT_VERSION",
+    "SPLITS",
+    "View",
+    "ViewSet",
+    "write_radiographs",
+    "load_radiographs",
+    "write_png_stack",
+    "transmission_png16",
+]
+
+VIEWSET_FORMAT = "ctsplat.viewset"
+VIEWSET_FORMAT_VERSION = 1
+SPLITS = ("train", "val", "test")
+
+
+@dataclass
+class View:
+    """One radiograph's pose and split.
+
+    Attributes
+    ----------
+    id : int
+        View id, stable across every file that refers to the view (SfM models, per-view metrics).
+    R : ndarray (3, 3)
+        World-to-camera rotation.
+    t : ndarray (3,)
+        World-to-camera translation (mm).
+    azimuth_deg, elevation_deg : float
+        Direction of the source as seen from the isocentre (``docs/conventions.md``).
+    split : {"train", "val", "test"}
+    design : View or None
+        The pose the view was *designed* to have (C-arm orbits, where the true pose deviates from the design);
+        ``None`` when the pose is the design.
+    """
+
+    id: int
+    R: np.ndarray
+    t: np.ndarray
+    azimuth_deg: float
+    elevation_deg: float
+    split: str = "train"
+    design: View | None = None
+
+    def __post_init__(self) -> None:
+        self.R = np.asarray(self.R, float).reshape(3, 3)
+        self.t = np.asarray(self.t, float).reshape(3)
+        if self.split not in SPLITS:
+            raise CtsplatError(f"view {self.id}: unknown split {self.split!r}; allowed: {', '.join(SPLITS)}")
+
+    @property
+    def center_mm(self) -> np.ndarray:
+        """Camera centre (the source, for cone beam) in world mm, shape (3,)."""
+        return camera_center(self.R, self.t)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {"id": int(self.id), "R": self.R.tolist(), "t": self.t.tolist(),
+             "azimuth_deg": float(self.azimuth_deg), "elevation_deg": float(self.elevation_deg),
+             "split": self.split, "qvec": rotmat_to_qvec(self.R).tolist(), "center_mm": self.center_mm.tolist()}
+        if self.design is not None:
+            d["design"] = {"R": self.design.R.tolist(), "t": self.design.t.tolist(),
+                           "azimuth_deg": float(self.design.azimuth_deg),
+                           "elevation_deg": float(self.design.elevation_deg)}
+        return d
+
+    @classmethod
+    def from_dict(cls, v: dict[str, Any]) -> View:
+        design = None
+        if v.get("design") is not None:
+            dd = v["design"]
+            design = cls(int(v["id"]), dd["R"], dd["t"], dd["azimuth_deg"], dd["elevation_deg"], v["split"])
+        return cls(int(v["id"]), v["R"], v["t"], v["azimuth_deg"], v["elevation_deg"], v["split"], design)
+
+
+@dataclass
+class ViewSet:
+    """A camera plus a list of views rendered from one volume (``views.json``).
+
+    JSON layout (``format = "ctsplat.viewset"``, ``format_version = 1``)::
+
+        {"format": ..., "format_version": 1, "volume_id": str, "isocenter_mm": [x, y, z],
+         "camera": {"model": "parallel", "width", "height", "spacing_mm", "cx", "cy"}
+                 | {"model": "cone", "width", "height", "pitch_mm", "dso_mm", "dsd_mm", "fx", "fy", "cx", "cy"},
+         "views": [{"id", "R" (3x3 world-to-camera), "t" (mm), "qvec" (COLMAP w,x,y,z), "center_mm",
+                    "azimuth_deg", "elevation_deg", "split",
+                    "design": {"R", "t", "azimuth_deg", "elevation_deg"} (optional)}, ...],
+         "meta": {...}}
+
+    The row order of ``views`` is the page order of ``line_integrals.tif``.
+    """
+
+    camera: Camera
+    views: list[View]
+    volume_id: str = "unknown"
+    isocenter_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.isocenter_mm = np.asarray(self.isocenter_mm, float).reshape(3)
+        if not self.views:
+            raise CtsplatError("empty view set: need at least one view (check n_views)")
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    def Rs(self) -> np.ndarray:
+        """Stacked rotations, shape (V, 3, 3)."""
+        return np.stack([v.R for v in self.views])
+
+    def ts(self) -> np.ndarray:
+        """Stacked translations (mm), shape (V, 3)."""
+        return np.stack([v.t for v in self.views])
+
+    def ids(self) -> np.ndarray:
+        """View ids in page order, shape (V,)."""
+        return np.array([v.id for v in self.views], dtype=int)
+
+    def has_design(self) -> bool:
+        """Whether every view carries its designed pose."""
+        return all(v.design is not None for v in self.views)
+
+    def design_Rs(self) -> np.ndarray:
+        """Designed rotations (V, 3, 3); error when the view set was not taken off a designed orbit."""
+        return np.stack([self._design(v).R for v in self.views])
+
+    def design_ts(self) -> np.ndarray:
+        """Designed translations (mm), shape (V, 3)."""
+        return np.stack([self._design(v).t for v in self.views])
+
+    @staticmethod
+    def _design(v: View) -> View:
+        if v.design is None:
+            raise CtsplatError(f"view {v.id} has no designed pose; SfM needs a view set rendered with orbit: carm")
+        return v.design
+
+    def indices(self, split: str) -> np.ndarray:
+        """Row indices (into the image stack) of the views in ``split``."""
+        if split not in SPLITS:
+            raise CtsplatError(f"unknown split {split!r}; allowed: {', '.join(SPLITS)}")
+        return np.array([i for i, v in enumerate(self.views) if v.split == split], dtype=int)
+
+    def subset(self, split: str) -> ViewSet:
+        """The views of one split (same camera); error if that split is empty."""
+        idx = self.indices(split)
+        if idx.size == 0:
+            raise CtsplatError(f"view set has no '{split}' views; re-render with a non-zero {split} fraction")
+        return ViewSet(self.camera, [self.views[i] for i in idx], self.volume_id, self.isocenter_mm.copy(),
+                       dict(self.meta))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": VIEWSET_FORMAT, "format_version": VIEWSET_FORMAT_VERSION, "volume_id": self.volume_id,
+                "isocenter_mm": self.isocenter_mm.tolist(), "camera": self.camera.to_dict(),
+                "views": [v.to_dict() for v in self.views], "meta": self.meta}
+
+    def save(self, path: str | Path) -> None:
+        write_json_atomic(path, self.to_dict())
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ViewSet:
+        if d.get("format") != VIEWSET_FORMAT:
+            raise CtsplatError(f"not a ctsplat view set (format {d.get('format')!r}); expected {VIEWSET_FORMAT!r}")
+        version = d.get("format_version")
+        if version != VIEWSET_FORMAT_VERSION:
+            raise CtsplatError(f"view set format_version {version} is not supported (this ctsplat reads "
+                               f"{VIEWSET_FORMAT_VERSION}); re-render the radiographs")
+        views = [View.from_dict(v) for v in d["views"]]
+        return cls(camera_from_dict(d["camera"]), views, str(d.get("volume_id", "unknown")),
+                   np.asarray(d.get("isocenter_mm", [0, 0, 0]), float), dict(d.get("meta", {})))
+
+    @classmethod
+    def load(cls, path: str | Path) -> ViewSet:
+        path = Path(path)
+        if not path.exists():
+            raise CtsplatError(f"view set {path} does not exist; run `ctsplat project` first")
+        try:
+            d = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise CtsplatError(f"view set {path} is not valid JSON ({exc}); re-render it") from exc
+        return cls.from_dict(d)
+
+
+# ------------------------------------------------------------------------------------------ radiograph folder
+def transmission_png16(p: np.ndarray) -> np.ndarray:
+    """Transmission ``exp(-p)`` in [0, 1] as uint16 (0 = opaque, 65535 = unattenuated); same shape as ``p``."""
+    return np.round(np.clip(np.exp(-np.asarray(p, np.float64)), 0.0, 1.0) * 65535.0).astype(np.uint16)
+
+
+def write_png_stack(images: np.ndarray, out_dir: str | Path, names: list[str]) -> None:
+    """Write ``images`` (V, H, W) of an integer dtype as ``out_dir/<name>`` PNGs, replacing the folder whole.
+
+    The folder appears complete or not at all (written under a temporary name, then renamed).
+
+    Parameters
+    ----------
+    images : ndarray (V, H, W), uint8 or uint16
+    out_dir : path
+        Folder to (re)create.
+    names : list of str, length V
+        File names (with the ``.png`` suffix).
+    """
+    import imageio.v3 as iio
+
+    if len(names) != len(images):
+        raise CtsplatError(f"{len(images)} images but {len(names)} names")
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        for name, img in zip(names, images, strict=True):
+            iio.imwrite(tmp / name, img)
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        os.replace(tmp, out_dir)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+
+
+def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, provenance: dict[str, Any]) -> None:
+    """Write a radiograph folder (see the module docstring); each file appears complete or not at all.
+
+    Parameters
+    ----------
+    out_dir : path
+    p : ndarray (V, H, W)
+        Line integrals (dimensionless), one page per view of ``view_set`` in its order.
+    view_set : ViewSet
+    provenance : dict
+        Stored in ``radiographs.json`` beside view counts, camera and statistics.
+    """
+    import tifffile
+
+    p = np.ascontiguousarray(p, dtype=np.float32)
+    cam = view_set.camera
+    if p.shape != (len(view_set), cam.height, cam.width):
+        raise CtsplatError(f"images of shape {p.shape} do not match the view set "
+                           f"({len(view_set)}, {cam.height}, {cam.width})")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out_dir / "line_integrals.tif") as tmp:
+        tifffile.imwrite(tmp, p, photometric="minisblack", metadata={"axes": "QYX"})
+    write_png_stack(transmission_png16(p), out_dir / "png", [f"view_{v.id:04d}.png" for v in view_set.views])
+    view_set.save(out_dir / "views.json")
+    write_json_atomic(out_dir / "radiographs.json", {
+        "code_version": code_version(), **provenance,
+        "n_views": len(view_set), "splits": {s: int(len(view_set.indices(s))) for s in SPLITS},
+        "camera": cam.to_dict(),
+        "line_integral_stats": {"min": float(p.min()), "max": float(p.max()), "mean": float(p.mean())},
+        "units": "line integrals of mu in 1/mm (dimensionless); png = 16-bit transmission exp(-p)",
+    })
+
+
+def load_radiographs(out_dir: str | Path) -> tuple[np.ndarray, ViewSet]:
+    """Read a radiograph folder written by :func:`write_radiographs`.
+
+    Returns
+    -------
+    p : ndarray (V, H, W) float32
+        Line integrals, page order = ``view_set.views``.
+    view_set : ViewSet
+    """
+    import tifffile
+
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise CtsplatError(f"radiographs folder {out_dir} does not exist; run `ctsplat project` first")
+    tif = out_dir / "line_integrals.tif"
+    if not tif.exists():
+        raise CtsplatError(f"{tif} does not exist; run `ctsplat project` for this geometry first")
+    view_set = ViewSet.load(out_dir / "views.json")
+    p = np.asarray(tifffile.imread(tif), dtype=np.float32)
+    if p.ndim == 2:
+        p = p[None]
+    expected = (len(view_set), view_set.camera.height, view_set.camera.width)
+    if p.shape != expected:
+        raise CtsplatError(f"{tif} holds images of shape {p.shape} but views.json describes {expected}; "
+                           "re-render the radiographs")
+    return p, view_set

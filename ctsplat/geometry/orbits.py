@@ -1,0 +1,393 @@
+"""Orbits: where the views of a view set are, and which split each belongs to.
+
+Three orbit families, all about the world +z (axial) axis through an isocentre, in world mm
+(``docs/conventions.md``):
+
+- :func:`circular_orbit` — the classical CT protocol: evenly spaced training angles plus seeded held-out angles;
+- :func:`sphere_orbit` — directions spread over an elevation band (Fibonacci or stratified), split by direction;
+- :func:`carm_orbit` — a designed C-arm cone-beam orbit with a sinusoidal elevation wobble, whose true poses
+  deviate from the design by a seeded per-view error (what SfM must recover).
+
+One arc rule (:func:`arc_azimuths`) places evenly spaced views on an arc for every family: view ``k`` of ``n``
+sits at ``start + arc · k / n`` — the start of ``n`` equal sectors, so a full circle closes without a repeated
+view, and a parallel-beam half circle gives ``n`` distinct directions.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Sequence
+
+import numpy as np
+
+from ctsplat.formats.viewset import SPLITS, View
+from ctsplat.geometry.cameras import Camera, look_at, pose_from_angles, project_points
+from ctsplat.utils import CtsplatError
+
+__all__ = [
+    "arc_azimuths",
+    "fibonacci_directions",
+    "stratified_directions",
+    "split_counts",
+    "assign_splits",
+    "sphere_orbit",
+    "circular_orbit",
+    "carm_orbit",
+    "support_radius_mm",
+    "fov_outside_fraction",
+    "check_fov",
+]
+
+
+def arc_azimuths(n: int, arc_deg: float, start_deg: float = 0.0, offsets: np.ndarray | None = None) -> np.ndarray:
+    """Azimuths (degrees, in [0, 360)) of ``n`` views evenly spaced over an arc: ``start + arc (k + o_k) / n``.
+
+    Parameters
+    ----------
+    n : int
+        Number of views (> 0).
+    arc_deg : float
+        Angular range in (0, 360].
+    start_deg : float
+        Azimuth of the first sector's start.
+    offsets : ndarray (n,), optional
+        Position of each view inside its sector, in [0, 1) (0: the sector start; random offsets stratify).
+
+    Returns
+    -------
+    ndarray (n,)
+    """
+    if not 0 < arc_deg <= 360:
+        raise CtsplatError(f"arc_deg {arc_deg} must be in (0, 360]")
+    k = np.arange(int(n), dtype=float) + (0.0 if offsets is None else np.asarray(offsets, float))
+    return np.mod(start_deg + arc_deg * k / int(n), 360.0)
+
+
+def fibonacci_directions(n: int, elevation_range_deg: Sequence[float] = (-60.0, 60.0),
+                         azimuth_offset_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` (azimuth, elevation) pairs (degrees) of a Fibonacci lattice on the spherical band.
+
+    Equal-area: ``sin(e_k)`` uniform on ``[sin e_min, sin e_max]`` at midpoints, azimuth by the golden angle
+    ``a_k = offset + k * 180 (3 - sqrt 5)``. Ordered by elevation (index ``k``).
+    """
+    lo, hi = (math.sin(math.radians(x)) for x in elevation_range_deg)
+    k = np.arange(n)
+    z = lo + (hi - lo) * (k + 0.5) / n
+    el = np.degrees(np.arcsin(z))
+    az = np.mod(azimuth_offset_deg + k * 180.0 * (3.0 - math.sqrt(5.0)), 360.0)
+    return az, el
+
+
+def stratified_directions(n: int, elevation_range_deg: Sequence[float] = (-60.0, 60.0),
+                          rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` (azimuth, elevation) pairs (degrees), one random direction per equal-area cell of the band.
+
+    The band is cut into ``b = round(sqrt(n / 2))`` rings of equal area (uniform in ``sin e``); ring ``r``
+    gets ``n_r`` cells (largest remainder of ``n / b``), each an azimuth sector; one uniform point per cell.
+    """
+    rng = rng or np.random.default_rng(0)
+    lo, hi = (math.sin(math.radians(x)) for x in elevation_range_deg)
+    b = max(1, round(math.sqrt(n / 2)))
+    per = np.full(b, n // b)
+    per[: n - per.sum()] += 1
+    az, z = [], []
+    for r, m in enumerate(per):
+        if m == 0:
+            continue
+        z0 = lo + (hi - lo) * r / b
+        z1 = lo + (hi - lo) * (r + 1) / b
+        off = rng.uniform(0, 360.0 / m)
+        az.append(np.mod(off + 360.0 * (np.arange(m) + rng.uniform(0, 1, m)) / m, 360.0))
+        z.append(rng.uniform(z0, z1, m))
+    return np.concatenate(az), np.degrees(np.arcsin(np.concatenate(z)))
+
+
+def _check_elevation_range(elevation_range_deg: Sequence[float]) -> tuple[float, float]:
+    if len(elevation_range_deg) != 2:
+        raise CtsplatError(f"elevation_range_deg must be [min, max], got {elevation_range_deg!r}")
+    lo, hi = float(elevation_range_deg[0]), float(elevation_range_deg[1])
+    if not (-90.0 < lo <= hi < 90.0):
+        raise CtsplatError(f"elevation_range_deg {[lo, hi]} must satisfy -90 < min <= max < 90")
+    return lo, hi
+
+
+def split_counts(n: int, fractions: dict[str, float]) -> dict[str, int]:
+    """Largest-remainder allocation of ``n`` views to ``train/val/test`` by ``fractions``.
+
+    A split with a positive fraction that would receive no view is an error (use more views or set its
+    fraction to 0).
+    """
+    unknown = set(fractions) - set(SPLITS)
+    if unknown:
+        raise CtsplatError(f"unknown split name {sorted(unknown)[0]!r}; allowed: {', '.join(SPLITS)}")
+    f = np.array([float(fractions.get(s, 0.0)) for s in SPLITS])
+    if np.any(f < 0) or f.sum() <= 0:
+        raise CtsplatError(f"split fractions {fractions} must be non-negative and not all zero")
+    f = f / f.sum()
+    raw = f * n
+    counts = np.floor(raw).astype(int)
+    order = np.argsort(-(raw - counts), kind="stable")
+    counts[order[: n - counts.sum()]] += 1
+    out = dict(zip(SPLITS, (int(c) for c in counts), strict=True))
+    for s, frac in zip(SPLITS, f, strict=True):
+        if frac > 0 and out[s] == 0:
+            raise CtsplatError(f"split leaves '{s}' empty: {n} views with fractions "
+                               f"{dict(zip(SPLITS, f.round(3).tolist(), strict=True))}; use more views or set {s}: 0")
+    return out
+
+
+def assign_splits(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, fractions: dict[str, float],
+                  seed: int = 0) -> list[str]:
+    """Seeded train/val/test labels, stratified over view direction.
+
+    Views are ordered along the sphere (elevation rings of ``~sqrt(2n)`` views, azimuth inside each ring,
+    serpentine). The test views are drawn one at random from each of ``n_test`` consecutive equal strata of
+    that order, then the val views likewise from the remaining views, so held-out directions are spread
+    over the orbit rather than clumped. Same inputs and seed -> same labels.
+    """
+    az = np.asarray(azimuth_deg, float)
+    el = np.asarray(elevation_deg, float)
+    n = az.size
+    if n == 0:
+        raise CtsplatError("empty view set: need at least one view (check n_views)")
+    counts = split_counts(n, fractions)
+    rng = np.random.default_rng(seed)
+    n_rings = max(1, round(math.sqrt(n / 2)))
+    if np.ptp(el) < 1e-6:
+        order = np.argsort(np.mod(az, 360.0), kind="stable")
+    else:
+        zr = np.sin(np.radians(el))
+        ring = np.minimum(((zr - zr.min()) / (np.ptp(zr) + 1e-12) * n_rings).astype(int), n_rings - 1)
+        key_az = np.where(ring % 2 == 0, np.mod(az, 360.0), -np.mod(az, 360.0))
+        order = np.lexsort((key_az, ring))
+    labels = np.array(["train"] * n, dtype=object)
+    remaining = list(order)
+    for split in ("test", "val"):
+        m = counts[split]
+        if m == 0:
+            continue
+        bounds = np.floor(np.linspace(0, len(remaining), m + 1)).astype(int)
+        picks = [remaining[b0 + int(rng.integers(0, max(1, b1 - b0)))]
+                 for b0, b1 in zip(bounds[:-1], bounds[1:], strict=True)]
+        for p in picks:
+            labels[p] = split
+        chosen = set(picks)
+        remaining = [r for r in remaining if r not in chosen]
+    return [str(s) for s in labels]
+
+
+def _views_from_angles(az: np.ndarray, el: np.ndarray, splits: list[str], isocenter_mm: Sequence[float],
+                       distance_mm: float) -> list[View]:
+    views = []
+    for i, (a, e, s) in enumerate(zip(az, el, splits, strict=True)):
+        R, t = pose_from_angles(float(a), float(e), isocenter_mm, distance_mm)
+        views.append(View(i, R, t, float(a), float(e), s))
+    return views
+
+
+def sphere_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: float, *,
+                 elevation_range_deg: Sequence[float] = (-60.0, 60.0), sampling: str = "fibonacci",
+                 split_fractions: dict[str, float] | None = None, seed: int = 0) -> list[View]:
+    """``n_views`` directions spread evenly over azimuth and elevation within the elevation limits.
+
+    ``sampling="fibonacci"`` (equal-area golden-angle lattice, its azimuth rotated by a seeded offset) or
+    ``"stratified"`` (one random direction per equal-area cell). Splits by :func:`assign_splits`.
+    Cameras sit at ``distance_mm`` from the isocentre (DSO for cone beam).
+    """
+    if int(n_views) <= 0:
+        raise CtsplatError(f"n_views must be a positive integer, got {n_views!r} (empty view set)")
+    lo, hi = _check_elevation_range(elevation_range_deg)
+    rng = np.random.default_rng(seed)
+    if sampling == "fibonacci":
+        az, el = fibonacci_directions(int(n_views), (lo, hi), azimuth_offset_deg=float(rng.uniform(0, 360)))
+    elif sampling == "stratified":
+        az, el = stratified_directions(int(n_views), (lo, hi), rng)
+    else:
+        raise CtsplatError(f"unknown sphere sampling {sampling!r}; allowed: fibonacci, stratified")
+    splits = assign_splits(az, el, split_fractions or {"train": 0.7, "val": 0.15, "test": 0.15}, seed)
+    return _views_from_angles(az, el, splits, isocenter_mm, distance_mm)
+
+
+def circular_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: float, *,
+                   split_fractions: dict[str, float] | None = None, wobble_deg: float = 0.0,
+                   start_deg: float = 0.0, seed: int = 0, arc_deg: float = 360.0,
+                   wobble_cycles: float = 2.0) -> list[View]:
+    """Classical CT protocol: ``n_views`` training angles evenly over 360 deg plus random held-out angles.
+
+    Training view ``k`` has azimuth ``start + 360 k / n_views`` about the world +z (axial) axis, so the
+    training set is exactly what FBP/SART expect. Held-out (val/test) views are added at seeded random
+    angles, one uniform angle per equal azimuth sector (stratified), with counts chosen so that the
+    whole set follows ``split_fractions`` (train fraction = ``n_views`` / total; default 70/15/15, e.g.
+    50 train + 11 val + 10 test). ``wobble_deg > 0`` adds an elevation ``wobble * sin(wobble_cycles * azimuth)``
+    to all views (a non-planar orbit; not usable for slice-wise FBP).
+
+    ``arc_deg`` (default 360) is the angular range of the training angles (``start + arc k / n_views``)
+    and of the held-out sectors. For *parallel* beams the views at ``a`` and ``a + 180`` are mirror images,
+    so over 360 deg an even ``n_views`` gives only ``n_views / 2`` distinct directions while an odd one
+    gives ``n_views`` interleaved ones; ``arc_deg=180`` gives ``n_views`` distinct directions for any count.
+    """
+    if not 0 < arc_deg <= 360:
+        raise CtsplatError(f"arc_deg {arc_deg} must be in (0, 360]")
+    if int(n_views) <= 0:
+        raise CtsplatError(f"n_views must be a positive integer, got {n_views!r} (empty view set)")
+    if abs(wobble_deg) >= 90:
+        raise CtsplatError(f"wobble_deg {wobble_deg} must be below 90 degrees")
+    fr = {s: float((split_fractions or {"train": 0.7, "val": 0.15, "test": 0.15}).get(s, 0.0)) for s in SPLITS}
+    unknown = set(split_fractions or {}) - set(SPLITS)
+    if unknown:
+        raise CtsplatError(f"unknown split name {sorted(unknown)[0]!r}; allowed: {', '.join(SPLITS)}")
+    if fr["train"] <= 0 or min(fr.values()) < 0:
+        raise CtsplatError(f"circular orbit needs a positive train fraction and non-negative others, got {fr}")
+    n = int(n_views)
+    held = {s: (round(n * fr[s] / fr["train"]) if fr[s] > 0 else 0) for s in ("val", "test")}
+    for s in ("val", "test"):
+        if fr[s] > 0 and held[s] == 0:
+            raise CtsplatError(f"split leaves '{s}' empty: {n} training views with fractions {fr}; "
+                               f"use more views or set {s}: 0")
+    rng = np.random.default_rng(seed)
+    az = [arc_azimuths(n, arc_deg, start_deg)]
+    splits = ["train"] * n
+    for s in ("val", "test"):
+        m = held[s]
+        if m:
+            az.append(arc_azimuths(m, arc_deg, start_deg, rng.uniform(0, 1, m)))
+            splits += [s] * m
+    azimuth = np.concatenate(az)
+    elevation = (wobble_deg * np.sin(np.radians(wobble_cycles * azimuth)) if wobble_deg
+                 else np.zeros_like(azimuth))
+    return _views_from_angles(azimuth, elevation, splits, isocenter_mm, distance_mm)
+
+
+def carm_orbit(n_views: int, isocenter_mm: Sequence[float], dso_mm: float, *, arc_deg: float = 360.0,
+               start_deg: float = 0.0, wobble_deg: float = 15.0, wobble_cycles: float = 2.0,
+               jitter_deg: float = 0.0, jitter_mm: float = 0.0, seed: int = 0) -> list[View]:
+    """A designed C-arm cone-beam orbit and the true poses of its views, which deviate from the design.
+
+    Designed view ``i``: azimuth φ_i from :func:`arc_azimuths`, elevation θ_i = wobble · sin(cycles · φ_i), source
+    at ``c_i = iso + DSO (cos θ cos φ, cos θ sin φ, sin θ)`` looking at the isocentre. The true view adds
+    independent N(0, jitter_deg²) errors to φ_i and θ_i and, with ``jitter_mm > 0``, shifts the whole
+    source-detector assembly by δ_i ~ N(0, jitter_mm² I) (a gantry whose isocentre wobbles): the true source is
+    at ``c_i + δ_i`` looking at ``iso + δ_i``.
+
+    Parameters
+    ----------
+    n_views : int
+        Number of views (>= 2).
+    isocenter_mm : (3,) world mm
+    dso_mm : float
+        Source-to-isocentre distance (mm).
+    arc_deg, start_deg : float
+        Angular range in (0, 360] and its start (degrees).
+    wobble_deg, wobble_cycles : float
+        Elevation amplitude (|wobble| < 80 degrees) and its cycles per turn.
+    jitter_deg, jitter_mm : float
+        Per-view pose error of the true orbit: angles (degrees) and isocentre shift (mm), standard deviations.
+    seed : int
+        Seeds the pose error.
+
+    Returns
+    -------
+    list of View, length ``n_views``
+        True poses (``R``, ``t``, angles), every view in the ``train`` split, each with its designed pose in
+        ``View.design``.
+    """
+    if n_views < 2:
+        raise CtsplatError(f"a C-arm orbit needs n_views >= 2, got {n_views}")
+    if abs(wobble_deg) >= 80:
+        raise CtsplatError(f"wobble_deg must be < 80 degrees, got {wobble_deg}")
+    for name, val in (("jitter_deg", jitter_deg), ("jitter_mm", jitter_mm)):
+        if not val >= 0:
+            raise CtsplatError(f"orbit_{name} must be >= 0, got {val}")
+    iso = np.asarray(isocenter_mm, float)
+    az0 = arc_azimuths(int(n_views), arc_deg, start_deg)
+    el0 = wobble_deg * np.sin(np.deg2rad(wobble_cycles * az0))
+    az, el = az0.copy(), el0.copy()
+    if jitter_deg > 0:
+        rng = np.random.default_rng(seed)
+        az = az + rng.normal(0.0, jitter_deg, n_views)
+        el = el + rng.normal(0.0, jitter_deg, n_views)
+    shift = np.zeros((n_views, 3))
+    if jitter_mm > 0:
+        shift = np.random.default_rng([seed, 1]).normal(0.0, jitter_mm, (n_views, 3))
+    views = []
+    for i in range(int(n_views)):
+        Rd, td = pose_from_angles(float(az0[i]), float(el0[i]), iso, dso_mm)
+        a, e = np.deg2rad(az[i]), np.deg2rad(el[i])
+        c = iso + shift[i] + dso_mm * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        R, t = look_at(c, iso + shift[i])
+        design = View(i, Rd, td, float(az0[i]), float(el0[i]), "train")
+        views.append(View(i, R, t, float(az[i]), float(el[i]), "train", design))
+    return views
+
+
+def support_radius_mm(data: np.ndarray, affine: np.ndarray, centre_mm: np.ndarray, rel_threshold: float = 0.2
+                      ) -> float:
+    """Radius (mm) around ``centre_mm`` of the sphere holding every voxel above ``rel_threshold · max``.
+
+    Sizes a detector to the object rather than to the (mostly empty) volume box; the half-diagonal of the box for
+    an empty volume.
+
+    Parameters
+    ----------
+    data : ndarray (I, J, K)
+    affine : ndarray (4, 4)
+        Voxel index to world mm.
+    centre_mm : (3,)
+    rel_threshold : float
+        Fraction of the maximum above which a voxel belongs to the object.
+
+    Returns
+    -------
+    float, mm
+    """
+    data = np.asarray(data)
+    vmax = float(data.max()) if data.size else 0.0
+    ijk = np.argwhere(data > rel_threshold * vmax) if vmax > 0 else np.empty((0, 3))
+    if len(ijk) == 0:
+        ext = np.asarray(data.shape, float) * np.linalg.norm(np.asarray(affine)[:3, :3], axis=0)
+        return 0.5 * float(np.linalg.norm(ext))
+    xyz = ijk @ np.asarray(affine)[:3, :3].T + np.asarray(affine)[:3, 3]
+    vox = float(np.linalg.norm(np.linalg.norm(np.asarray(affine)[:3, :3], axis=0)))  # voxel diagonal
+    return float(np.linalg.norm(xyz - np.asarray(centre_mm), axis=1).max()) + vox
+
+
+# ------------------------------------------------------------------------------------ field of view
+def fov_outside_fraction(camera: Camera, Rs: np.ndarray, ts: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
+    """Per view, the fraction of ``points_mm`` (N, 3) that project outside the detector (or behind a cone source).
+
+    Returns an array (V,) in [0, 1].
+    """
+    out = np.empty(len(Rs))
+    for i, (R, t) in enumerate(zip(Rs, ts, strict=True)):
+        uv, z = project_points(camera, R, t, points_mm)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
+        if camera.model == "cone":
+            inside &= z > 0
+        out[i] = 1.0 - float(np.mean(inside))
+    return out
+
+
+def check_fov(camera: Camera, Rs: np.ndarray, ts: np.ndarray, data: np.ndarray, affine: np.ndarray, *,
+              threshold: float = 0.01, max_points: int = 20000, seed: int = 0) -> float:
+    """Warn when the detector does not cover the object; return the worst view's outside fraction.
+
+    The object is the voxels with ``data > threshold * max(data)`` (all voxels if none), subsampled to
+    ``max_points`` voxel centres. The warning names the fraction of the object outside the field of view.
+    """
+    data = np.asarray(data)
+    mask = data > threshold * float(data.max()) if data.max() > 0 else np.ones(data.shape, bool)
+    idx = np.argwhere(mask)
+    if len(idx) > max_points:
+        idx = idx[np.random.default_rng(seed).choice(len(idx), max_points, replace=False)]
+    pts = idx @ np.asarray(affine, float)[:3, :3].T + np.asarray(affine, float)[:3, 3]
+    frac = fov_outside_fraction(camera, np.asarray(Rs), np.asarray(ts), pts)
+    worst = float(frac.max())
+    if worst > 0:
+        warnings.warn(
+            f"detector does not cover the volume: {100 * worst:.1f}% of the object lies outside the field of view "
+            f"in the worst view ({int(np.sum(frac > 0))}/{len(frac)} views affected); enlarge the detector or "
+            "its pixel spacing",
+            stacklevel=2,
+        )
+    return worst

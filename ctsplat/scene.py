@@ -1,0 +1,237 @@
+"""The scene a model is trained and evaluated on: view sets with their targets, poses and the reference volume.
+
+Training and evaluation read radiographs from view sets (written by ``ctsplat project``) and never render them.
+Two pose sources:
+
+- ``poses: gt`` — training views are the ``train`` split of the training geometry's view set, at their true
+  poses;
+- ``poses: colmap`` — training views are views of the C-arm view set that SfM registered, with the poses SfM
+  recovered (``aligned_views.json``) and the radiographs of that view set as targets (same view ids).
+
+In both cases ``views`` (> 0) picks that many training views spread evenly over the candidates in orbit order
+(:func:`even_subset`; ``gt``: the train split ordered by azimuth; ``colmap``: the registered views ordered by view
+id, i.e. along the C-arm orbit); ``0`` takes all. Validation and test views are always the training geometry's
+``val``/``test`` splits at their true poses, so every pose source is scored on the same views.
+
+Targets are line integrals of the *normalised* volume (radiograph line integrals divided by the volume's
+``mu_scale_per_mm``), in mm.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctsplat.formats.viewset import SPLITS, ViewSet, load_radiographs
+from ctsplat.utils import CtsplatError
+
+__all__ = ["ViewData", "Scene", "load_scene", "even_subset"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ViewData:
+    """Views of one split with their camera, poses and target images.
+
+    Attributes
+    ----------
+    camera : ParallelCamera | ConeCamera
+    ids : ndarray (V,) int
+        View ids of the view set the images come from.
+    Rs : ndarray (V, 3, 3)
+        World-to-camera rotations.
+    ts : ndarray (V, 3)
+        World-to-camera translations (mm).
+    azimuth_deg, elevation_deg : ndarray (V,)
+    images : ndarray (V, H, W) float32
+        Line integrals of the normalised volume (mm).
+    split : str
+    """
+
+    camera: Any
+    ids: np.ndarray
+    Rs: np.ndarray
+    ts: np.ndarray
+    azimuth_deg: np.ndarray
+    elevation_deg: np.ndarray
+    images: np.ndarray
+    split: str
+
+    def __len__(self) -> int:
+        return int(len(self.ids))
+
+    def take(self, idx: np.ndarray) -> ViewData:
+        """The views at positions ``idx`` (V',)."""
+        idx = np.asarray(idx, int)
+        return ViewData(self.camera, self.ids[idx], self.Rs[idx], self.ts[idx], self.azimuth_deg[idx],
+                        self.elevation_deg[idx], self.images[idx], self.split)
+
+    @classmethod
+    def from_view_set(cls, vs: ViewSet, images: np.ndarray, rows: np.ndarray, split: str, mu_scale: float
+                      ) -> ViewData:
+        """Rows ``rows`` of a view set and its line-integral stack ``images`` (V, H, W), divided by ``mu_scale``."""
+        views = [vs.views[i] for i in rows]
+        return cls(
+            camera=vs.camera,
+            ids=np.array([v.id for v in views], int),
+            Rs=np.stack([v.R for v in views]) if views else np.zeros((0, 3, 3)),
+            ts=np.stack([v.t for v in views]) if views else np.zeros((0, 3)),
+            azimuth_deg=np.array([v.azimuth_deg for v in views], float),
+            elevation_deg=np.array([v.elevation_deg for v in views], float),
+            images=(images[rows] / mu_scale).astype(np.float32) if len(rows) else
+            np.zeros((0, vs.camera.height, vs.camera.width), np.float32),
+            split=split,
+        )
+
+
+@dataclass
+class Scene:
+    """Everything training and evaluation read: views per split, the reference volume, scales, provenance.
+
+    ``volume`` is the normalised reference (:class:`ctsplat.formats.volume.Volume`): its grid is where 3D
+    metrics are measured; its voxel values are read only by ``init: volume`` (labelled as using the reference).
+    """
+
+    train: ViewData
+    val: ViewData
+    test: ViewData
+    volume: Any
+    mu_scale: float
+    eval_split: str
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def split(self, name: str) -> ViewData:
+        """The views of ``name`` in {"train", "val", "test"}."""
+        if name not in SPLITS:
+            raise CtsplatError(f"unknown split {name!r}; allowed: {', '.join(SPLITS)}")
+        return getattr(self, name)
+
+
+def even_subset(n_total: int, n: int) -> np.ndarray:
+    """``n`` indices spread evenly over ``range(n_total)``: ``floor(k n_total / n)``, k < n (all when n is 0 or
+    ``n >= n_total``)."""
+    if n <= 0 or n >= n_total:
+        return np.arange(n_total)
+    return np.floor(np.arange(n) * n_total / n).astype(int)
+
+
+def _check_volume(vs: ViewSet, volume: Any, where: str) -> None:
+    if vs.volume_id != volume.volume_id:
+        raise CtsplatError(
+            f"radiographs in {where} were rendered from volume {vs.volume_id}, but the reference volume is "
+            f"{volume.volume_id}; re-render the radiographs for this volume or point to the matching volume")
+    recorded = vs.meta.get("volume_shape")
+    if recorded is not None and tuple(recorded) != volume.shape:
+        raise CtsplatError(f"radiographs in {where} were rendered from a {tuple(recorded)} volume but the "
+                           f"reference volume is {volume.shape}; re-render the radiographs")
+
+
+def _colmap_train(cfg: dict[str, Any], volume: Any, mu_scale: float) -> tuple[ViewData, dict[str, Any]]:
+    """Training views of the C-arm view set at the poses SfM recovered (see the module docstring)."""
+    sfm_dir = Path(cfg["sfm_dir"])
+    summary_path = sfm_dir / "summary.json"
+    if not summary_path.exists():
+        raise CtsplatError(f"{summary_path} does not exist; run the sfm step before training with poses: colmap")
+    summary = json.loads(summary_path.read_text())
+    rate = float(summary.get("registration_rate", 0.0))
+    n_total = int(summary.get("n_views", 0))
+    if rate < float(cfg["min_registration_rate"]) or not (sfm_dir / "aligned_views.json").exists():
+        raise CtsplatError(
+            f"SfM registered only {rate:.0%} of {n_total} views (need >= {cfg['min_registration_rate']:.0%} for "
+            f"poses: colmap; {summary.get('reason', 'no aligned poses')}); use poses: gt or improve the sfm step")
+    if not summary.get("ok", False):
+        log.warning("sfm summary is not ok (%s); training with its poses anyway", summary.get("reason", ""))
+    aligned = ViewSet.load(sfm_dir / "aligned_views.json")
+    if aligned.volume_id != volume.volume_id:
+        raise CtsplatError(f"SfM poses in {sfm_dir} belong to volume {aligned.volume_id}, not {volume.volume_id}; "
+                           "re-run the sfm step for this volume")
+    rad_dir = Path(cfg["sfm_radiographs"] or summary.get("radiographs", ""))
+    images, carm = load_radiographs(rad_dir)
+    _check_volume(carm, volume, str(rad_dir))
+    row_of = {v.id: i for i, v in enumerate(carm.views)}
+    registered = sorted(aligned.views, key=lambda v: v.id)
+    missing = [v.id for v in registered if v.id not in row_of]
+    if missing:
+        raise CtsplatError(f"{sfm_dir}/aligned_views.json has view id {missing[0]} that {rad_dir}/views.json lacks; "
+                           "the SfM result belongs to another view set: re-run the sfm step")
+    want = int(cfg["views"])
+    if want > len(registered):
+        raise CtsplatError(f"poses: colmap asks for {want} training views but SfM registered only "
+                           f"{len(registered)} of the {len(carm)} C-arm views; lower views to <= {len(registered)} "
+                           "or improve the sfm step")
+    chosen = [registered[i] for i in even_subset(len(registered), want)]
+    vd = ViewData(
+        camera=aligned.camera,
+        ids=np.array([v.id for v in chosen], int),
+        Rs=np.stack([v.R for v in chosen]),
+        ts=np.stack([v.t for v in chosen]),
+        azimuth_deg=np.array([v.azimuth_deg for v in chosen], float),
+        elevation_deg=np.array([v.elevation_deg for v in chosen], float),
+        images=(images[[row_of[v.id] for v in chosen]] / mu_scale).astype(np.float32),
+        split="train",
+    )
+    info = {"sfm_registration_rate": rate, "sfm_views_total": n_total or len(carm),
+            "sfm_views_registered": len(registered),
+            "views_dropped_unregistered": int((n_total or len(carm)) - len(registered)),
+            "sfm_ok": bool(summary.get("ok", False)), "sfm_radiographs": str(rad_dir)}
+    return vd, info
+
+
+def load_scene(cfg: dict[str, Any]) -> Scene:
+    """Read the reference volume and the view sets of a run config, check they belong together, build the splits.
+
+    Parameters
+    ----------
+    cfg : dict
+        A resolved ``train`` config (:func:`ctsplat.training.config.resolve_config`): ``volume``,
+        ``radiographs``, ``poses``, ``views``, and for ``poses: colmap`` ``sfm_dir`` (+ ``sfm_radiographs``,
+        ``min_registration_rate``).
+
+    Returns
+    -------
+    Scene
+    """
+    from ctsplat.formats.volume import load_volume
+
+    volume = load_volume(cfg["volume"])
+    images, vs = load_radiographs(Path(cfg["radiographs"]))
+    _check_volume(vs, volume, str(cfg["radiographs"]))
+    mu_scale = volume.mu_scale_per_mm
+    if not mu_scale > 0:
+        raise CtsplatError(f"volume {cfg['volume']} has a non-positive mu_scale_per_mm ({mu_scale})")
+    split_rows = {s: vs.indices(s) for s in SPLITS}
+    info: dict[str, Any] = {"views_dropped_unregistered": 0}
+    if cfg["poses"] == "colmap":
+        train, extra = _colmap_train(cfg, volume, mu_scale)
+        info.update(extra)
+    else:
+        if split_rows["train"].size == 0:
+            raise CtsplatError(f"radiographs in {cfg['radiographs']} have an empty train split; re-render with a "
+                               "non-zero train fraction")
+        rows = split_rows["train"]
+        order = np.argsort(np.mod(np.asarray([vs.views[i].azimuth_deg for i in rows]), 360.0), kind="stable")
+        want = int(cfg["views"])
+        if want > rows.size:
+            raise CtsplatError(f"train.views asks for {want} training views but {cfg['radiographs']} has only "
+                               f"{rows.size}; lower views or render more")
+        rows = rows[order][even_subset(rows.size, want)]
+        train = ViewData.from_view_set(vs, images, rows, "train", mu_scale)
+    if len(train) == 0:
+        raise CtsplatError("the train split is empty after selecting views; check train.views and the view set")
+    if split_rows["test"].size == 0 and split_rows["val"].size == 0:
+        raise CtsplatError(f"radiographs in {cfg['radiographs']} have no val or test views to evaluate on; "
+                           "re-render with non-zero val/test fractions")
+    test_rows = split_rows["test"] if split_rows["test"].size else split_rows["val"]
+    val_rows = split_rows["val"] if split_rows["val"].size else split_rows["test"]
+    eval_split = "val" if split_rows["val"].size else "test"
+    test = ViewData.from_view_set(vs, images, test_rows, "test", mu_scale)
+    val = ViewData.from_view_set(vs, images, val_rows, eval_split, mu_scale)
+    info.update(n_train_views=len(train), n_val_views=len(val), n_test_views=len(test),
+                radiographs_volume_id=vs.volume_id, camera=vs.camera.to_dict(), train_camera=train.camera.to_dict())
+    return Scene(train=train, val=val, test=test, volume=volume, mu_scale=mu_scale, eval_split=eval_split, info=info)

@@ -1,0 +1,403 @@
+"""The ``sfm`` step: COLMAP poses for the C-arm view set, aligned to the world and scored.
+
+Axial CT slices share no features, so classical structure-from-motion fails on them (:func:`naive_slices_sfm`
+reports that case). Cone-beam radiographs over a designed C-arm orbit with dense angular sampling and an elevation
+wobble do share features (bone edges, beads), and COLMAP recovers their poses. The step reads the view set that
+``ctsplat project`` rendered with ``orbit: carm`` (true and designed pose of every view), then
+
+1. enhances the radiographs for feature detection (:mod:`ctsplat.sfm.features`),
+2. runs pycolmap with the detector's pinhole intrinsics held fixed (:mod:`ctsplat.sfm.colmap`): SIFT, exhaustive
+   or sequential matching, incremental or global mapping, or — with ``pose_prior`` — triangulation from the
+   designed poses and bundle adjustment with priors, up to isocentric bundle adjustment (:mod:`ctsplat.sfm.bundle`:
+   every camera a rotation about the designed isocentre at the designed DSO, a rigid C-arm),
+3. merges partial models that share images, aligns the recovered centres to the true ones with a robust Sim(3)
+   and measures per-view rotation / centre / reprojection errors (:mod:`ctsplat.sfm.align`),
+4. writes ``sparse/0`` (binary and text COLMAP model), ``poses.csv``, ``summary.json``, ``points3d.ply`` and
+   ``aligned_views.json`` with the same view ids as the input view set (:func:`run_sfm`).
+
+Radiograph features of extended anatomy (skull rims, silhouettes, overlapping structures) are not projections of
+fixed 3D points; free bundle adjustment trades a camera shift against a tilt, and transmission images admit a
+depth-reversed (Necker) twin. The design prior and the rigid C-arm model remove both; measured results are in
+``docs/sfm.md``.
+
+Conventions (``docs/conventions.md``): world mm, ``x_cam = R x_world + t`` (OpenCV / COLMAP), cone-beam pinhole
+intrinsics ``fx = fy = DSD / pitch``, ``cx = W/2``, ``cy = H/2``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctsplat.formats.ply import write_points_ply
+from ctsplat.formats.viewset import (
+    VIEWSET_FORMAT,
+    VIEWSET_FORMAT_VERSION,
+    View,
+    ViewSet,
+    load_radiographs,
+    write_png_stack,
+)
+from ctsplat.geometry import camera_center
+from ctsplat.sfm.align import evaluate_poses, fuse_with_design
+from ctsplat.sfm.colmap import (
+    REFINE_MODES,
+    colmap_reconstruct,
+    fix_reversal,
+    merge_models,
+    model_poses,
+    per_image_reproj,
+    set_poses_and_triangulate,
+    write_model,
+)
+from ctsplat.sfm.features import enhance_for_features, feature_masks, write_pngs
+from ctsplat.utils import CtsplatError, atomic_path, code_version, merge_config, write_json_atomic
+
+__all__ = ["SFM_DEFAULTS", "run_sfm", "run_sfm_on_images", "naive_slices_sfm", "summarize"]
+
+log = logging.getLogger(__name__)
+
+#: Defaults of the ``sfm`` config section (JSON-serialisable).
+SFM_DEFAULTS: dict[str, Any] = {
+    # the view set to register: a radiographs geometry rendered with orbit: carm (its views.json holds the
+    # designed and the true pose of each view; camera and orbit settings live there)
+    "geometry": "carm",
+    # --- contrast enhancement ---
+    "clahe_clip": 0.01,  # skimage equalize_adapthist clip_limit
+    "clahe_kernel_frac": 0.125,  # kernel size as a fraction of the image size
+    "percentile_low": 0.5,  # per-view intensity window before CLAHE (percent)
+    "percentile_high": 99.5,
+    "background_frac": 0.02,  # rays with p <= this · max are air: blanked (no static image-space features)
+    "silhouette_margin_frac": 0.05,  # mask features within this fraction of detector_px of the silhouette
+    "lowpass_px": 1.0,  # Gaussian pre-blur (px) against voxel moiré
+    "highpass_frac": 0.03,  # subtract a Gaussian blur of σ = highpass_frac · detector_px before the window
+    # --- features and matching ---
+    "max_num_features": 4096,
+    "peak_threshold": 0.004,  # SIFT DoG threshold (radiographs are low-contrast)
+    "edge_threshold": 16.0,
+    "upright": True,  # the orbit keeps world up at image top: skip SIFT orientation (more distinctive)
+    "sift_first_octave": -1,  # -1: the image is upsampled once (finest DoG scales)
+    "sift_num_octaves": 4,  # fewer octaves keep only small-scale (more point-like) features
+    "sift_domain_size_pooling": False,  # DSP-SIFT descriptors
+    "matching": "exhaustive",  # exhaustive | sequential | spatial
+    "sequential_overlap": 12,  # neighbours matched in `sequential` (cyclic: the orbit closes)
+    "max_ratio": 0.8,
+    "max_distance": 0.7,
+    "min_num_inliers": 15,  # two-view geometry
+    "max_error_px": 4.0,  # RANSAC threshold (px)
+    # --- mapping ---
+    "mapper": "incremental",  # incremental | global
+    "init_min_num_inliers": 50,
+    "init_min_tri_angle_deg": 4.0,
+    "abs_pose_min_num_inliers": 15,
+    "abs_pose_min_inlier_ratio": 0.15,
+    "filter_min_tri_angle_deg": 0.5,
+    "triangulation_min_angle_deg": 0.5,
+    "min_model_size": 3,
+    # pose priors from the designed orbit:
+    #   none     - plain SfM (incremental or global mapper), no prior knowledge of the poses
+    #   position - designed source positions as COLMAP position priors (incremental mapper, robust loss)
+    #   refine   - triangulate the matches from the designed poses, then bundle-adjust all poses freely
+    #              (intrinsics fixed), re-triangulating between rounds (C-arm style calibration refinement)
+    #   refine_prior - as refine, but bundle adjustment keeps the designed centres as priors (σ prior_sigma_mm)
+    #   isocentric - refine_prior, then isocentric bundle adjustment (ctsplat.bundle): every camera a rotation
+    #                about the designed isocentre at the designed DSO (a rigid C-arm), its rotation kept near the
+    #                design by N(0, design_sigma_deg²)
+    "pose_prior": "none",
+    "refine_rounds": 3,
+    "prior_sigma_mm": 5.0,  # std of the position prior (mm)
+    "design_sigma_deg": 1.0,  # isocentric: std (deg, per axis) of a view's rotation about its design; null: none
+    "isocentre_sigma_mm": 0.0,  # isocentric: 0 = rigid C-arm; > 0 frees a per-view isocentre offset of this std
+    "isocentric_loss_px": 0.5,  # isocentric: Cauchy scale (px) of the reprojection loss
+    # > 0: keep the SfM poses' deviation from the design only above this many harmonics along the orbit
+    # (fuse_with_design: low frequencies from the design, high frequencies from the images); 0: off
+    "fuse_harmonics": 0,
+    "fix_reversal": True,  # pose_prior none: try each model's depth-reversed twin, keep the one matching the design
+    "merge_models": True,
+    "min_shared_images": 3,  # to merge two partial models
+    "num_threads": 1,
+    # --- alignment and verdict ---
+    "align_inlier_threshold_frac": 0.02,  # RANSAC inlier threshold as a fraction of DSO
+    "align_iterations": 500,
+    "min_registration_rate": 0.8,  # ok needs at least this fraction of views in the main model
+    "max_median_rotation_error_deg": 2.0,  # ... and at most this median rotation error
+    "naive_slices": False,  # also run SfM on the raw axial slices (the failure case) and report it
+    "keep_work": False,  # keep the COLMAP database and PNGs (otherwise PNGs are kept, database dropped)
+}
+
+
+def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str, Any]) -> dict[str, Any]:
+    """Summary numbers: registration rates, median / p90 errors, models, and the ``ok`` verdict."""
+    V = len(rows)
+    reg = [r for r in rows if r["registered"] and np.isfinite(r["rot_err_deg"])]
+    rot = np.array([r["rot_err_deg"] for r in reg])
+    cen = np.array([r["centre_err_mm"] for r in reg])
+    rep = np.array([r.get("reproj_err_px", np.nan) for r in reg], float)
+    sizes = report.get("model_sizes", [])
+
+    def q(a: np.ndarray, p: float) -> float | None:
+        a = a[np.isfinite(a)]
+        return float(np.percentile(a, p)) if a.size else None
+
+    out = {
+        "n_views": V,
+        "n_registered": len(reg),
+        "registration_rate": len(reg) / V if V else 0.0,
+        "largest_model_rate": (sizes[0] / V) if sizes and V else 0.0,
+        "models_found": int(report.get("models_found", 0)),
+        "model_sizes": sizes,
+        "merged": report.get("merged", []),
+        "rot_err_deg_median": q(rot, 50),
+        "rot_err_deg_p90": q(rot, 90),
+        "rot_err_rotalign_deg_median": q(np.array([r.get("rot_err_rotalign_deg", np.nan) for r in reg], float), 50),
+        "centre_err_mm_median": q(cen, 50),
+        "centre_err_mm_p90": q(cen, 90),
+        "reproj_err_px_median": q(rep, 50),
+    }
+    ok = (out["registration_rate"] >= cfg["min_registration_rate"] and out["rot_err_deg_median"] is not None
+          and out["rot_err_deg_median"] <= cfg["max_median_rotation_error_deg"])
+    out["ok"] = bool(ok)
+    if not ok:
+        out["reason"] = (f"registration rate {out['registration_rate']:.2f} (need >= {cfg['min_registration_rate']}),"
+                         f" median rotation error {out['rot_err_deg_median']} deg"
+                         f" (need <= {cfg['max_median_rotation_error_deg']})")
+    return out
+
+
+def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, float, float], Rs_true: np.ndarray,
+                      ts_true: np.ndarray, out_dir: str | Path, config: dict[str, Any], *, seed: int = 0,
+                      prefix: str = "view", scale_mm: float = 1.0, prior_centres: np.ndarray | None = None,
+                      prior_poses: tuple[np.ndarray, np.ndarray] | None = None, masks: np.ndarray | None = None,
+                      design: tuple[np.ndarray, np.ndarray] | None = None,
+                      design_azimuth_deg: np.ndarray | None = None, ids: np.ndarray | None = None
+                      ) -> tuple[dict[str, Any], list[dict[str, Any]], Any]:
+    """COLMAP + merging + alignment on given 8-bit images with known true poses; no files beside the work dir.
+
+    With ``fuse_harmonics > 0`` (and ``design`` + ``design_azimuth_deg``), the poses are fused with the design
+    (:func:`fuse_with_design`); the summary then also holds the unfused numbers under ``"unfused"``.
+
+    Returns ``(summary, rows, model_or_None)``; rows are per view (see :func:`evaluate_poses`) plus
+    ``reproj_err_px``; the summary also holds COLMAP stage statistics. Never raises on too few registrations.
+    """
+    cfg = dict(config)
+    cfg["_seed"] = seed
+    out_dir = Path(out_dir)
+    img_dir = out_dir / "images"
+    names = write_pngs(images_u8, img_dir, prefix=prefix, ids=ids)
+    mask_dir = None
+    if masks is not None:  # COLMAP reads the mask of image NAME from NAME.png
+        mask_dir = out_dir / "masks"
+        write_png_stack(np.asarray(masks, np.uint8), mask_dir, [f"{n}.png" for n in names])
+    models, stats = colmap_reconstruct(img_dir, names, intrinsics, out_dir / "colmap", cfg,
+                                       prior_centres=prior_centres, prior_poses=prior_poses, mask_dir=mask_dir)
+    reversal = []
+    if cfg["fix_reversal"] and design is not None and models and prior_centres is None and prior_poses is None:
+        reversal = fix_reversal(models, {n: (design[0][i], design[1][i]) for i, n in enumerate(names)}, cfg,
+                                float(cfg["align_inlier_threshold_frac"]) * scale_mm,
+                                work=(out_dir / "colmap" / "database.db", img_dir, out_dir / "colmap" / "twin"))
+    main, poses, report = merge_models(models, int(cfg["min_shared_images"])) if cfg["merge_models"] else \
+        merge_models({k: v for k, v in models.items() if k == max(models, key=lambda j: models[j].num_reg_images())}
+                     if models else {}, 3)
+    if not cfg["merge_models"] and models:
+        report["models_found"] = len(models)
+        report["model_sizes"] = sorted((int(m.num_reg_images()) for m in models.values()), reverse=True)
+    thr = float(cfg["align_inlier_threshold_frac"]) * scale_mm
+    unfused = None
+    if int(cfg["fuse_harmonics"]) > 0 and design is not None and design_azimuth_deg is not None and poses:
+        rows0, _ = evaluate_poses(poses, names, Rs_true, ts_true, threshold_mm=thr,
+                                  iterations=int(cfg["align_iterations"]), seed=seed)
+        s0 = summarize(rows0, report, cfg)
+        unfused = {k: s0[k] for k in ("rot_err_deg_median", "rot_err_deg_p90", "rot_err_rotalign_deg_median",
+                                      "centre_err_mm_median", "registration_rate")}
+        poses = fuse_with_design(poses, names, design[0], design[1], design_azimuth_deg, int(cfg["fuse_harmonics"]),
+                                 full_circle=float(cfg.get("_arc_deg", 360.0)) >= 360.0)
+        if main is not None:  # the written model carries the fused poses, its points re-triangulated from them
+            main = set_poses_and_triangulate(main, poses, out_dir / "colmap" / "database.db", img_dir,
+                                              out_dir / "colmap" / "fused", cfg)
+    rows, align = evaluate_poses(poses, names, Rs_true, ts_true, threshold_mm=thr,
+                                 iterations=int(cfg["align_iterations"]), seed=seed)
+    reproj = per_image_reproj(main) if main is not None else {}
+    for r in rows:
+        r["reproj_err_px"] = reproj.get(r["name"], np.nan)
+        r["in_main_model"] = r["name"] in reproj or (main is not None and main.find_image_with_name(r["name"])
+                                                       is not None and r["registered"] and r["name"] in
+                                                       model_poses(main))
+    summary = summarize(rows, report, cfg)
+    summary["colmap"] = stats
+    summary["reversal"] = reversal
+    if unfused is not None:
+        summary["unfused"] = unfused
+    if design is not None:  # the designed orbit itself as the answer (no images): what a prior alone gives
+        drows, _ = evaluate_poses({n: (design[0][i], design[1][i]) for i, n in enumerate(names)}, names, Rs_true,
+                                  ts_true, threshold_mm=thr, iterations=int(cfg["align_iterations"]), seed=seed)
+        summary["design_rot_err_deg_median"] = float(np.median([r["rot_err_deg"] for r in drows]))
+    summary["alignment"] = {k: v for k, v in align.items()
+                            if k in ("ok", "scale", "n_inliers", "n_used", "residual_rotation_deg")}
+    return summary, rows, (main, align)
+
+
+def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, Any] | None = None, seed: int = 0,
+            *, volume_path: str | Path | None = None) -> dict[str, Any]:
+    """Register the C-arm view set's radiographs with COLMAP, align the poses to the world, write the results.
+
+    Parameters
+    ----------
+    radiographs_dir : path
+        A radiograph folder written by ``ctsplat project`` for a geometry with ``orbit: carm``: its
+        ``views.json`` holds each view's true pose (the reference the recovered poses are scored against) and
+        its designed pose (the prior of the ``pose_prior`` modes).
+    out_dir : path
+        Receives ``sparse/0/`` (binary COLMAP model + ``text/``), ``poses.csv`` (per view: registered, errors),
+        ``summary.json``, ``points3d.ply`` (aligned, world mm), ``aligned_views.json`` (the registered,
+        plausible views with their recovered poses, same view ids as the input view set) and ``images/`` (the
+        8-bit feature images COLMAP read).
+    config : dict, optional
+        The ``sfm`` section (:data:`SFM_DEFAULTS`).
+    seed : int
+        Seeds COLMAP's and the alignment's random choices.
+    volume_path : path, optional
+        The volume, only read for ``naive_slices`` (SfM on its axial slices, the failure case).
+
+    Returns
+    -------
+    dict
+        The summary (also written): registration rate, pose errors, COLMAP statistics, ``ok`` verdict. Too few
+        registrations do not raise: ``ok`` is False.
+    """
+    import pandas as pd
+
+    cfg = merge_config("sfm", config, SFM_DEFAULTS)
+    if cfg["matching"] not in ("exhaustive", "sequential"):
+        raise CtsplatError(f"unknown sfm.matching {cfg['matching']!r}; allowed: exhaustive, sequential")
+    if cfg["mapper"] not in ("incremental", "global"):
+        raise CtsplatError(f"unknown sfm.mapper {cfg['mapper']!r}; allowed: incremental, global")
+    if cfg["pose_prior"] not in ("none", "position", "refine", "refine_prior", "isocentric"):
+        raise CtsplatError(f"unknown sfm.pose_prior {cfg['pose_prior']!r}; "
+                           "allowed: none, position, refine, refine_prior, isocentric")
+    if cfg["pose_prior"] == "position" and cfg["mapper"] != "incremental":
+        raise CtsplatError("sfm.pose_prior 'position' needs sfm.mapper 'incremental' (global mapping ignores priors)")
+    if cfg["naive_slices"] and volume_path is None:
+        raise CtsplatError("sfm.naive_slices needs the volume: pass volume_path (CLI: --volume)")
+    p, vs = load_radiographs(radiographs_dir)
+    cam = vs.camera
+    if cam.model != "cone":
+        raise CtsplatError(f"{radiographs_dir} holds {cam.model}-beam radiographs; SfM needs a cone-beam view set "
+                           "(a radiographs geometry with camera: cone, orbit: carm)")
+    if not vs.has_design():
+        raise CtsplatError(f"{radiographs_dir}/views.json has no designed poses; render the SfM view set with "
+                           "orbit: carm")
+    cfg["_arc_deg"] = float(vs.meta.get("arc_deg") or 360.0)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    iso = vs.isocenter_mm
+    W, H = cam.width, cam.height
+    ids = vs.ids()
+    Rs_true, ts_true = vs.Rs(), vs.ts()
+    design_Rs, design_ts = vs.design_Rs(), vs.design_ts()
+    design_az = np.array([v.design.azimuth_deg for v in vs.views], float)
+    design_centres = np.stack([camera_center(R, t) for R, t in zip(design_Rs, design_ts, strict=True)])
+    imgs = enhance_for_features(p, clip=cfg["clahe_clip"], kernel_frac=cfg["clahe_kernel_frac"],
+                                p_low=cfg["percentile_low"], p_high=cfg["percentile_high"],
+                                highpass_frac=cfg["highpass_frac"], lowpass_px=cfg["lowpass_px"],
+                                background_frac=cfg["background_frac"])
+    margin = float(cfg["silhouette_margin_frac"]) * W
+    masks = feature_masks(p, float(cfg["background_frac"]) or 0.02, margin) if margin > 0 else None
+    work = Path(tempfile.mkdtemp(prefix=".sfm_work.", dir=out_dir))
+    try:
+        summary, rows, (main, align) = run_sfm_on_images(
+            imgs, (cam.fx, cam.fy, cam.cx, cam.cy), Rs_true, ts_true, work, cfg, seed=seed, ids=ids,
+            scale_mm=float(cam.dso_mm),
+            prior_centres=design_centres if cfg["pose_prior"] == "position" else None,
+            prior_poses=(design_Rs, design_ts) if cfg["pose_prior"] in REFINE_MODES else None,
+            masks=masks, design=(design_Rs, design_ts), design_azimuth_deg=design_az)
+        if main is not None:
+            write_model(main, out_dir / "sparse" / "0")
+            if align["ok"]:
+                xyz = np.array([pt.xyz for pt in main.points3D.values()]).reshape(-1, 3)
+                write_points_ply(out_dir / "points3d.ply", align["scale"] * xyz @ align["R"].T + align["t"])
+        if (out_dir / "images").exists():
+            shutil.rmtree(out_dir / "images")
+        (work / "images").rename(out_dir / "images")
+    finally:
+        if cfg["keep_work"] and (work / "colmap").exists():
+            shutil.rmtree(out_dir / "colmap", ignore_errors=True)
+            (work / "colmap").rename(out_dir / "colmap")
+        shutil.rmtree(work, ignore_errors=True)
+
+    # physical plausibility: a view whose optical axis misses the isocentre by more than the detector's
+    # half field of view atan((W/2) / fx) cannot have imaged the object; such poses are not exported
+    half_fov = math.degrees(math.atan(0.5 * W / cam.fx))
+    for r in rows:
+        r["plausible"] = False
+        if r["R"] is not None:
+            c = -r["R"].T @ r["t"]
+            d = (iso - c) / max(float(np.linalg.norm(iso - c)), 1e-9)
+            r["plausible"] = bool(math.degrees(math.acos(float(np.clip(r["R"][2] @ d, -1, 1)))) <= half_fov)
+    summary["n_plausible"] = int(sum(r["plausible"] for r in rows))
+    summary["plausible_rate"] = summary["n_plausible"] / len(rows)
+    by_row = vs.views
+    table = pd.DataFrame([{
+        "view_id": int(ids[r["view"]]), "name": r["name"], "azimuth_deg": by_row[r["view"]].azimuth_deg,
+        "elevation_deg": by_row[r["view"]].elevation_deg, "registered": r["registered"],
+        "rot_err_deg": r["rot_err_deg"], "rot_err_rotalign_deg": r["rot_err_rotalign_deg"],
+        "centre_err_mm": r["centre_err_mm"], "reproj_err_px": r["reproj_err_px"], "plausible": r["plausible"],
+    } for r in rows])
+    with atomic_path(out_dir / "poses.csv") as tmp:
+        table.to_csv(tmp, index=False)
+    views = [View(int(ids[r["view"]]), r["R"], r["t"], by_row[r["view"]].azimuth_deg,
+                  by_row[r["view"]].elevation_deg, "train", by_row[r["view"]].design)
+             for r in rows if r["R"] is not None and r["plausible"]]
+    vs_meta = {"source": "sfm", "registration_rate": summary["registration_rate"], "ok": summary["ok"],
+               "n_views_designed": len(rows), "radiographs": str(radiographs_dir)}
+    if views:
+        ViewSet(camera=cam, views=views, volume_id=vs.volume_id, isocenter_mm=iso, meta=vs_meta).save(
+            out_dir / "aligned_views.json")
+    else:  # nothing registered: same format with no views (ViewSet.load then refuses it with a clear message)
+        write_json_atomic(out_dir / "aligned_views.json", {
+            "format": VIEWSET_FORMAT, "format_version": VIEWSET_FORMAT_VERSION, "volume_id": vs.volume_id,
+            "isocenter_mm": np.asarray(iso, float).tolist(), "camera": cam.to_dict(), "views": [], "meta": vs_meta})
+    if cfg["naive_slices"]:
+        from ctsplat.volume import load_volume
+
+        summary["naive_slices"] = naive_slices_sfm(load_volume(volume_path).data, out_dir / ".naive_work", cfg,
+                                                   seed=seed)
+        shutil.rmtree(out_dir / ".naive_work", ignore_errors=True)
+    cfg.pop("_arc_deg", None)
+    summary.update(config=cfg, seed=seed, code_version=code_version(), volume_id=vs.volume_id,
+                   radiographs=str(radiographs_dir),
+                   camera={"model": "PINHOLE", "width": W, "height": H, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
+                           "cy": cam.cy, "pitch_mm": cam.pitch_mm, "dso_mm": cam.dso_mm, "dsd_mm": cam.dsd_mm})
+    write_json_atomic(out_dir / "summary.json", summary)
+    return summary
+
+
+def naive_slices_sfm(volume_data: np.ndarray, work_dir: str | Path, config: dict[str, Any], seed: int = 0
+                     ) -> dict[str, Any]:
+    """The failure case: COLMAP on the raw axial slices (``data[:, :, k]``) treated as photographs.
+
+    The slices are windowed to 8 bit (same percentile + CLAHE enhancement as the radiographs) and fed to the
+    same pipeline with a guessed pinhole camera (``f = 1.2 · max(W, H)``, as COLMAP would guess). There is
+    no ground-truth pose, so only registration counts are reported.
+    """
+    cfg = dict(merge_config("sfm", {k: v for k, v in config.items() if not k.startswith("_")}, SFM_DEFAULTS))
+    cfg["_seed"] = seed
+    data = np.asarray(volume_data, float)
+    slices = np.moveaxis(data, 2, 0)  # (K, I, J)
+    imgs = enhance_for_features(slices, clip=cfg["clahe_clip"], kernel_frac=cfg["clahe_kernel_frac"],
+                                p_low=cfg["percentile_low"], p_high=cfg["percentile_high"],
+                                highpass_frac=cfg["highpass_frac"], lowpass_px=cfg["lowpass_px"],
+                                background_frac=cfg["background_frac"])
+    work_dir = Path(work_dir)
+    names = write_pngs(imgs, work_dir / "images", prefix="slice")
+    H, W = imgs.shape[1:]
+    f = 1.2 * max(H, W)
+    models, stats = colmap_reconstruct(work_dir / "images", names, (f, f, W / 2, H / 2), work_dir / "colmap", cfg)
+    sizes = sorted((int(m.num_reg_images()) for m in models.values()), reverse=True)
+    return {"n_images": len(names), "models_found": len(models), "model_sizes": sizes,
+            "registration_rate": (sizes[0] / len(names)) if sizes else 0.0, "colmap": stats}

@@ -1,0 +1,8 @@
+"""Training: settings (:mod:`.config`), seeding (:mod:`.seeding`), optimisation state (:mod:`.state`), losses
+(:mod:`.losses`), densification strategies (:mod:`.densify`), checkpoints (:mod:`.checkpoint`) and the loop
+(:mod:`.loop`)."""
+
+from ctsplat.training.config import TRAIN_DEFAULTS, resolve_config
+from ctsplat.training.loop import train
+
+__all__ = ["TRAIN_DEFAULTS", "resolve_config", "train"]
