@@ -24,7 +24,6 @@ wildcard_constraints:
     poses="gt|colmap",
     views="[0-9]+",
     seed="[0-9]+",
-    split="test|val|train",
 
 
 include: "workflow/rules/data.smk"

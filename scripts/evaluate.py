@@ -1,11 +1,11 @@
-"""Snakemake adapter: rule evaluate -> ctsplat.evaluate.evaluate (writes eval_{split}.json in the run folder)."""
+"""Snakemake adapter: rule evaluate -> ctsplat.evaluation.evaluate (metrics.json and figures of a run folder)."""
 
 from pathlib import Path
 
 from _adapter import logged
 
-from ctsplat.evaluate import evaluate
+from ctsplat.evaluation import evaluate
 
 with logged(snakemake):  # noqa: F821
     sm = snakemake  # noqa: F821
-    evaluate(Path(sm.output.metrics).parent, split=sm.wildcards.split, device=sm.params.evaluation["device"])
+    evaluate(Path(sm.output.metrics).parent, device=sm.params.device, milestones=sm.params.milestones)

@@ -1,10 +1,10 @@
-"""Snakemake adapter: rule train -> ctsplat.train.train (grid-cell config from params, paths from input)."""
+"""Snakemake adapter: rule train -> ctsplat.training.train (grid-cell config from params, paths from input)."""
 
 from pathlib import Path
 
 from _adapter import logged
 
-from ctsplat.train import train
+from ctsplat.training import train
 
 with logged(snakemake):  # noqa: F821
     sm = snakemake  # noqa: F821
@@ -12,4 +12,5 @@ with logged(snakemake):  # noqa: F821
     config["volume"] = sm.input.volume
     config["radiographs"] = str(Path(sm.input.views).parent)
     config["sfm_dir"] = str(Path(sm.input.sfm).parent) if "sfm" in sm.input.keys() else ""
+    config["sfm_radiographs"] = str(Path(sm.input.sfm_views).parent) if "sfm_views" in sm.input.keys() else ""
     train(config, Path(sm.output.model).parent)

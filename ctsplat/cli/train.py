@@ -1,4 +1,4 @@
-"""``ctsplat train`` and ``ctsplat evaluate``: fit a Gaussian model to radiographs, re-evaluate a run."""
+"""``ctsplat train`` and ``ctsplat evaluate``: fit a Gaussian model to radiographs, evaluate a finished run."""
 
 from __future__ import annotations
 
@@ -19,10 +19,11 @@ def load_train_config(path: str | None, overrides: list[str]) -> dict[str, Any]:
 
 
 def _train(args: argparse.Namespace) -> None:
-    from ctsplat.train import train
+    from ctsplat.evaluation import evaluate
+    from ctsplat.training import train
 
     cfg = load_train_config(args.config, args.set or [])
-    for key in ("volume", "radiographs", "sfm_dir", "init", "compositor", "poses", "device"):
+    for key in ("volume", "radiographs", "sfm_dir", "sfm_radiographs", "init", "compositor", "poses", "device"):
         val = getattr(args, key)
         if val is not None:
             cfg[key] = val
@@ -32,13 +33,17 @@ def _train(args: argparse.Namespace) -> None:
             cfg[key] = int(val)
     if args.quiet:
         cfg["progress"] = False
-    res = train(cfg, args.out, resume=args.resume)
+    trained = train(cfg, args.out, resume=args.resume)
+    if args.no_evaluate:
+        print(json.dumps(trained))
+        return
+    res = evaluate(args.out, device=cfg.get("device", "auto"))
     keys = ("psnr2d", "ssim2d", "psnr3d", "ssim3d", "n_gaussians", "wall_time_s", "uses_reference_volume")
     print(json.dumps({k: res[k] for k in keys}))
 
 
 def _evaluate(args: argparse.Namespace) -> None:
-    from ctsplat.evaluate import evaluate
+    from ctsplat.evaluation import evaluate
 
     res = evaluate(args.run_dir, split=args.split, device=args.device)
     print(json.dumps(res, indent=2, default=str))
@@ -47,8 +52,9 @@ def _evaluate(args: argparse.Namespace) -> None:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "train", help="train a Gaussian model on radiographs",
-        description="Train a rectified radiative Gaussian model (seeding, densification, CSV logs, metrics.json, "
-                    "figures, checkpoints) into OUT.",
+        description="Train a rectified radiative Gaussian model (seeding, densification, CSV logs, checkpoints, "
+                    "model.pt/model.ply) into OUT, then evaluate it on the test views (metrics.json, figures) "
+                    "as `ctsplat evaluate OUT` does.",
     )
     p.add_argument("--config", help="YAML/JSON file with the train section (top level or under 'train:')")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
@@ -58,6 +64,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--volume", help="reference volume (.nii.gz)")
     p.add_argument("--radiographs", help="radiographs folder (line_integrals.tif + views.json)")
     p.add_argument("--sfm-dir", dest="sfm_dir", help="sfm step folder (poses: colmap / init: sfm)")
+    p.add_argument("--sfm-radiographs", dest="sfm_radiographs",
+                   help="radiographs folder of the view set SfM registered (default: the one sfm's summary names)")
     p.add_argument("--init", help="volume | uniform | fbp | sfm")
     p.add_argument("--compositor", help="radiative | radiative_unrectified | alpha")
     p.add_argument("--poses", help="gt | colmap")
@@ -66,11 +74,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--iterations", type=int)
     p.add_argument("--views", type=int, help="number of training views (0 = all)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--no-evaluate", dest="no_evaluate", action="store_true",
+                   help="train only; evaluate later with `ctsplat evaluate OUT`")
     p.set_defaults(func=_train)
 
-    e = subparsers.add_parser("evaluate", help="re-evaluate a trained run on a split",
-                              description="Render a finished run's model on a split and print PSNR/SSIM/LPIPS 2D "
-                                          "and PSNR/SSIM 3D (also written to RUN_DIR/eval_SPLIT.json).")
+    e = subparsers.add_parser("evaluate", help="evaluate a trained run on a split",
+                              description="Render a finished run's model on a split and measure PSNR/SSIM/LPIPS 2D, "
+                                          "PSNR/SSIM 3D, FPS and milestones; writes RUN_DIR/metrics.json (test) "
+                                          "or metrics_SPLIT.json, per_view_SPLIT.csv and, for test, the figures.")
     e.add_argument("run_dir", help="run folder written by `ctsplat train`")
     e.add_argument("--split", default="test", choices=["test", "val", "train"])
     e.add_argument("--device", default="auto")

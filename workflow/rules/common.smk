@@ -15,6 +15,7 @@ except CtsplatError as exc:
 
 RESULTS = "results"
 GEOMETRY = CFG["grid"]["geometry"]
+SFM_GEOMETRY = CFG["sfm"]["settings"].get("geometry", "carm")
 BASELINE_GEOMETRY = CFG["baselines"]["geometry"]
 VOLUMES = list(CFG["volumes"])
 RUNS = expand_grid(CFG["grid"]["axes"], VOLUMES, CFG["grid"]["exclude"])
@@ -50,8 +51,6 @@ def all_targets():
     targets += [f"{RESULTS}/figures/{fname}" for fname, _ in ANALYSIS_OUTPUTS.values()]
     for rd in run_dirs():
         targets += [f"{rd}/metrics.json", f"{rd}/figures/convergence.png"]
-        if CFG["evaluation"]["enabled"]:
-            targets.append(f"{rd}/eval_{CFG['evaluation']['split']}.json")
     for v in VOLUMES:
         if needs_sfm(v):
             targets.append(f"{RESULTS}/{v}/sfm/summary.json")
@@ -114,9 +113,26 @@ def sfm_params(wildcards):
     return dict(CFG["sfm"]["settings"])
 
 
+def radiographs_dir(volume, geometry):
+    return f"{RESULTS}/{volume}/radiographs/{geometry}"
+
+
+def sfm_inputs(wildcards):
+    """Inputs of `sfm`: the C-arm view set of `sfm.settings.geometry` (and the volume, for naive_slices)."""
+    rd = radiographs_dir(wildcards.volume, SFM_GEOMETRY)
+    return {
+        "volume": f"{RESULTS}/{wildcards.volume}/volume.nii.gz",
+        "line_integrals": f"{rd}/line_integrals.tif",
+        "views": f"{rd}/views.json",
+    }
+
+
 def run_inputs(wildcards):
-    """Inputs of `train`: the reference volume, the training geometry's radiographs, SfM when used."""
-    rd = f"{RESULTS}/{wildcards.volume}/radiographs/{GEOMETRY}"
+    """Inputs of `train` and `evaluate`: the reference volume, the training geometry's view set, SfM when used.
+
+    With poses: colmap the training targets are the C-arm view set's radiographs at the poses SfM recovered.
+    """
+    rd = radiographs_dir(wildcards.volume, GEOMETRY)
     inputs = {
         "volume": f"{RESULTS}/{wildcards.volume}/volume.nii.gz",
         "line_integrals": f"{rd}/line_integrals.tif",
@@ -124,7 +140,22 @@ def run_inputs(wildcards):
     }
     if wildcards.poses == "colmap" or wildcards.init == "sfm":
         inputs["sfm"] = f"{RESULTS}/{wildcards.volume}/sfm/summary.json"
+        sfm_rd = radiographs_dir(wildcards.volume, SFM_GEOMETRY)
+        inputs["sfm_views"] = f"{sfm_rd}/views.json"
+        inputs["sfm_line_integrals"] = f"{sfm_rd}/line_integrals.tif"
     return inputs
+
+
+def evaluate_inputs(wildcards):
+    """Inputs of `evaluate`: the finished run (model, config, log) and the view sets it was trained on."""
+    rd = f"{RESULTS}/{wildcards.volume}/runs/{PARAMSPACE.wildcard_pattern}".format(**wildcards)
+    return {
+        **run_inputs(wildcards),
+        "model": f"{rd}/model.pt",
+        "run_config": f"{rd}/config.json",
+        "training": f"{rd}/training.json",
+        "log": f"{rd}/train_log.csv",
+    }
 
 
 def train_params(wildcards):
@@ -150,8 +181,9 @@ def train_hash(wildcards):
     return config_hash(train_params(wildcards))
 
 
-def evaluation_params(wildcards):
-    return {"split": CFG["evaluation"]["split"], "device": CFG["device"]}
+def evaluation_milestones():
+    """Validation targets of the time-to-milestone columns (the analysis section's, so tables agree)."""
+    return dict(CFG["analysis"]["milestones"])
 
 
 def train_gpu(wildcards):

@@ -1,10 +1,9 @@
-# COLMAP poses once per volume (its own cone-beam view set), aligned to the world frame.
+# COLMAP poses once per volume for the C-arm view set that `project` rendered, aligned to the world frame.
 
 
 rule sfm:
     input:
-        volume=f"{RESULTS}/{{volume}}/volume.nii.gz",
-        meta=f"{RESULTS}/{{volume}}/volume.json",
+        unpack(sfm_inputs),
     output:
         summary=f"{RESULTS}/{{volume}}/sfm/summary.json",
         poses=f"{RESULTS}/{{volume}}/sfm/poses.csv",

@@ -1,4 +1,4 @@
-# One training run per grid cell (Paramspace folder), then its test-split evaluation.
+# One training run per grid cell (Paramspace folder), then its evaluation on the test views (metrics.json).
 
 
 rule train:
@@ -8,8 +8,9 @@ rule train:
         log=f"{RUN_PATTERN}/train_log.csv",
         per_view=f"{RUN_PATTERN}/per_view.csv",
         model=f"{RUN_PATTERN}/model.pt",
-        metrics=f"{RUN_PATTERN}/metrics.json",
+        ply=f"{RUN_PATTERN}/model.ply",
         run_config=f"{RUN_PATTERN}/config.json",
+        training=f"{RUN_PATTERN}/training.json",
     log:
         f"{RUN_PATTERN}/logs/train.log",
     benchmark:
@@ -30,14 +31,15 @@ rule train:
 
 rule evaluate:
     input:
-        model=f"{RUN_PATTERN}/model.pt",
-        run_config=f"{RUN_PATTERN}/config.json",
+        unpack(evaluate_inputs),
     output:
-        metrics=f"{RUN_PATTERN}/eval_{{split}}.json",
+        metrics=f"{RUN_PATTERN}/metrics.json",
+        per_view=f"{RUN_PATTERN}/per_view_test.csv",
+        volume=f"{RUN_PATTERN}/model_volume.nii.gz",
     log:
-        f"{RUN_PATTERN}/logs/evaluate_{{split}}.log",
+        f"{RUN_PATTERN}/logs/evaluate.log",
     benchmark:
-        f"{RUN_PATTERN}/logs/evaluate_{{split}}_benchmark.tsv"
+        f"{RUN_PATTERN}/logs/evaluate_benchmark.tsv"
     conda:
         "../../envs/ctsplat.yaml"
     threads: rule_resources("evaluate")["threads"]
@@ -46,6 +48,7 @@ rule evaluate:
         runtime=rule_resources("evaluate")["runtime"],
         gpu=train_gpu,
     params:
-        evaluation=evaluation_params,
+        device=CFG["device"],
+        milestones=evaluation_milestones(),
     script:
         "../../scripts/evaluate.py"
