@@ -95,7 +95,7 @@ SWEEP: list[tuple[str, str, dict]] = [
 
 def beads_in_air(path: Path, n: int = 48, sp: float = 4.0, n_beads: int = 80, seed: int = 0) -> None:
     """Synthetic fiducials: Gaussian beads (σ 2.4-4 mm) of random density in air, ±77 mm cube."""
-    from ctsplat.volume import Volume, save_volume
+    from ctsplat.formats.volume import Volume, save_volume
 
     rng = np.random.default_rng(seed)
     aff = np.diag([sp, sp, sp, 1.0])
@@ -132,28 +132,27 @@ def volume_path(name: str, grid: int) -> Path:
     return out
 
 
-def _memoize_projector() -> None:
-    """Configurations that differ only after rendering (SfM options) share one projection: keep the last one."""
+#: Orbit and detector keys of a sweep row (the C-arm view set that ``project`` renders); the rest is ``sfm``.
+ORBIT_KEYS = {"n_views", "arc_deg", "wobble_deg", "wobble_cycles", "detector_px", "dso_mm", "dsd_mm", "pitch_mm",
+              "fov_margin", "step_voxels", "orbit_jitter_deg", "orbit_jitter_mm"}
+CARM_DEFAULTS = {"n_views": 90, "wobble_deg": 15.0, "dso_mm": 600.0, "dsd_mm": 1000.0, "detector_px": 128}
+
+
+def carm_view_set(volume: Path, orbit: dict, seed: int) -> Path:
+    """Render (once per orbit, volume and seed) the C-arm view set of a sweep row; returns its folder."""
     import hashlib
 
-    import ctsplat.projector as proj
+    from ctsplat.projector import render_radiographs
 
-    raw = proj.line_integrals
-    memo: dict[str, object] = {}
-
-    def cached(mu, affine, camera, Rs, ts, **kw):  # noqa: ANN001, ANN202 - same signature as line_integrals
-        h = hashlib.sha1()
-        for a in (np.asarray(mu.detach().cpu() if hasattr(mu, "detach") else mu), np.asarray(affine, float),
-                  np.asarray(Rs, float), np.asarray(ts, float)):
-            h.update(np.ascontiguousarray(a).tobytes())
-        h.update(repr((camera.to_dict(), sorted(kw.items()))).encode())
-        key = h.hexdigest()
-        if key not in memo:
-            memo.clear()
-            memo[key] = raw(mu, affine, camera, Rs, ts, **kw)
-        return memo[key].clone()
-
-    proj.line_integrals = cached
+    o = {**CARM_DEFAULTS, **orbit}
+    px = int(o.pop("detector_px"))
+    cfg = {"camera": "cone", "orbit": "carm", "detector_width": px, "detector_height": px,
+           "pixel_spacing_mm": o.pop("pitch_mm", None), **o}
+    key = hashlib.sha1(json.dumps([str(volume), cfg, seed], sort_keys=True).encode()).hexdigest()[:12]
+    out = OUT / "sfm_views" / key
+    if not (out / "views.json").exists():
+        render_radiographs(volume, out, cfg, seed=seed)
+    return out
 
 
 def main() -> None:
@@ -169,12 +168,11 @@ def main() -> None:
     args = ap.parse_args()
 
     import torch
+    from ctsplat.formats.volume import load_volume
 
-    from ctsplat.sfm import naive_slices_sfm, run_sfm
-    from ctsplat.volume import load_volume
+    from ctsplat.sfm.step import naive_slices_sfm, run_sfm
 
     torch.set_num_threads(args.threads)
-    _memoize_projector()
     extra = {k: json.loads(v) if v[:1] in "0123456789-[{tfn" else v for k, v in (s.split("=", 1) for s in args.set)}
     runs = [r for r in SWEEP if not args.only or args.only == r[0] or args.only in r[1]]
     if args.quick:
@@ -187,12 +185,14 @@ def main() -> None:
             label = f"{label}-s{args.seed}"
         out_dir = OUT / "sfm_runs" / f"{vol_name}__{label}"
         t0 = time.perf_counter()
-        s = run_sfm(path, out_dir, cfg, seed=args.seed)
+        rad = carm_view_set(path, {k: v for k, v in cfg.items() if k in ORBIT_KEYS}, args.seed)
+        s = run_sfm(rad, out_dir, {k: v for k, v in cfg.items() if k not in ORBIT_KEYS}, seed=args.seed)
+        orbit = {**CARM_DEFAULTS, **{k: v for k, v in cfg.items() if k in ORBIT_KEYS}}
         row = {
             "volume": vol_name, "label": label, "n_views": s["n_views"], "detector_px": s["camera"]["width"],
             "pose_prior": s["config"]["pose_prior"], "mapper": s["config"]["mapper"],
             "dso_mm": s["camera"]["dso_mm"], "dsd_mm": s["camera"]["dsd_mm"],
-            "orbit_jitter_deg": s["config"]["orbit_jitter_deg"], "orbit_jitter_mm": s["config"]["orbit_jitter_mm"],
+            "orbit_jitter_deg": orbit.get("orbit_jitter_deg", 0.0), "orbit_jitter_mm": orbit.get("orbit_jitter_mm", 0.0),
             "fuse_harmonics": s["config"]["fuse_harmonics"],
             "design_rot_err_deg_median": s.get("design_rot_err_deg_median"),
             "unfused_rot_err_deg_median": s.get("unfused", {}).get("rot_err_deg_median"),
