@@ -95,7 +95,7 @@ SWEEP: list[tuple[str, str, dict]] = [
 
 def beads_in_air(path: Path, n: int = 48, sp: float = 4.0, n_beads: int = 80, seed: int = 0) -> None:
     """Synthetic fiducials: Gaussian beads (σ 2.4-4 mm) of random density in air, ±77 mm cube."""
-    from ctsplat.volume import Volume, save_volume
+    from ctsplat.formats.volume import Volume, save_volume
 
     rng = np.random.default_rng(seed)
     aff = np.diag([sp, sp, sp, 1.0])
@@ -170,8 +170,8 @@ def main() -> None:
 
     import torch
 
+    from ctsplat.formats.volume import load_volume
     from ctsplat.sfm import naive_slices_sfm, run_sfm
-    from ctsplat.volume import load_volume
 
     torch.set_num_threads(args.threads)
     _memoize_projector()

@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from ctsplat.io import LPS_TO_RAS, write_dicom_series
+from ctsplat.formats.sources import LPS_TO_RAS, write_dicom_series
 from ctsplat.utils import CtsplatError, code_version
 
 __all__ = [

@@ -1191,9 +1191,9 @@ def run_sfm(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any]
     import pandas as pd
     import torch
 
+    from ctsplat.formats.volume import load_volume
     from ctsplat.geometry import VIEWSET_FORMAT, VIEWSET_FORMAT_VERSION, ConeCamera, View, ViewSet
     from ctsplat.projector import line_integrals
-    from ctsplat.volume import load_volume
 
     cfg = merge_config("sfm", config, SFM_DEFAULTS)
     if cfg["matching"] not in ("exhaustive", "sequential"):

@@ -329,7 +329,7 @@ def _colmap_train(cfg: dict[str, Any], volume: Any, mu_scale: float) -> tuple[Vi
 
 def load_scene(cfg: dict[str, Any]) -> Scene:
     """Read the reference volume and the radiographs, check they belong together, and build the splits."""
-    from ctsplat.volume import load_volume
+    from ctsplat.formats.volume import load_volume
 
     volume = load_volume(cfg["volume"])
     images, vs = _read_radiographs(Path(cfg["radiographs"]))
@@ -413,8 +413,8 @@ def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> tuple[np.ndar
     method : "fbp" or "sirt"
     """
     from ctsplat.baselines import fbp_volume, is_circular_parallel, sirt_volume
+    from ctsplat.formats.volume import Volume
     from ctsplat.geometry import View, ViewSet
-    from ctsplat.volume import Volume
 
     tr = scene.train
     views = [View(int(i), R, t, float(a), float(e), "train")
@@ -1002,7 +1002,7 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
 def _finalize(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: Path, device: torch.device,
               train_time: float, chash: str, train_log: CsvLog) -> dict[str, Any]:
     """Test-split evaluation, model files, figures and ``metrics.json``."""
-    from ctsplat.volume import Volume, save_volume
+    from ctsplat.formats.volume import Volume, save_volume
 
     uses_ref = cfg["init"] == "volume"
     g = as_gaussians({k: v.detach() for k, v in state.params.items()})

@@ -40,7 +40,7 @@ def run_phantom(args: argparse.Namespace) -> None:
 
 
 def run_ingest(args: argparse.Namespace) -> None:
-    from ctsplat.io import find_dicom_series
+    from ctsplat.formats.sources import find_dicom_series
     from ctsplat.volume import ingest
 
     if args.list_series:

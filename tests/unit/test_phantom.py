@@ -7,7 +7,8 @@ import pydicom
 import pytest
 
 from ctsplat.cli import main
-from ctsplat.io import read_dicom_series
+from ctsplat.formats.sources import read_dicom_series
+from ctsplat.formats.volume import load_volume
 from ctsplat.phantom import (
     Ellipsoid,
     load_phantom_ellipsoids,
@@ -17,7 +18,7 @@ from ctsplat.phantom import (
     write_phantom_dicom,
 )
 from ctsplat.utils import CtsplatError
-from ctsplat.volume import ingest, load_volume
+from ctsplat.volume import ingest
 
 
 def voxel_centres(affine, shape):
