@@ -227,6 +227,7 @@ def resample_stack(
     Returns
     -------
     data : ndarray, shape (A, B, C), float32
+        Resampled values, in the units of ``stack.data``.
     affine : ndarray, shape (4, 4)
         Voxel index -> world RAS mm (orthogonal, RAS-closest axis order, positive diagonal).
     info : dict
@@ -321,7 +322,24 @@ def hu_to_attenuation(
     """HU -> normalised attenuation in [0, 1] and the factor mapping it back to μ (1/mm).
 
     ``μ = μ_water (1 + HU / 1000)`` clipped to ``[0, μ_max]`` with ``μ_max = μ_water (1 + hu_max/1000)``;
-    returns ``(μ / μ_max, μ_max)``, so ``μ = normalised * mu_scale_per_mm``.
+    returns ``(μ / μ_max, μ_max)``, so ``μ = normalised * mu_scale_per_mm``. This inverts the
+    definition of the Hounsfield unit, ``HU = 1000 (μ - μ_water) / μ_water`` (air ≈ -1000, water 0).
+
+    Parameters
+    ----------
+    hu : ndarray, any shape
+        Values in HU.
+    mu_water_per_mm : float
+        Linear attenuation coefficient of water (1/mm) at the effective energy.
+    hu_max : float
+        HU mapped to 1.0; denser values clip.
+
+    Returns
+    -------
+    normalised : ndarray, same shape, float32
+        ``μ / μ_max`` in [0, 1].
+    mu_scale_per_mm : float
+        ``μ_max`` (1/mm).
     """
     mu_max = mu_water_per_mm * (1.0 + hu_max / 1000.0)
     mu = mu_water_per_mm * (1.0 + np.asarray(hu, np.float32) / np.float32(1000.0))
@@ -329,14 +347,39 @@ def hu_to_attenuation(
 
 
 def apply_window(hu: np.ndarray, level: float, width: float) -> np.ndarray:
-    """WL/WW window: ``clip((HU - (level - width/2)) / width, 0, 1)``, float32."""
+    """WL/WW window: ``clip((HU - (level - width/2)) / width, 0, 1)``.
+
+    Parameters
+    ----------
+    hu : ndarray, any shape
+        Values in HU.
+    level, width : float
+        Window centre and width (HU); ``width > 0``.
+
+    Returns
+    -------
+    ndarray, same shape, float32
+        Windowed values in [0, 1].
+    """
     x = (np.asarray(hu, np.float32) - np.float32(level - width / 2.0)) / np.float32(width)
     return np.clip(x, 0.0, 1.0).astype(np.float32)
 
 
 def body_mask(values: np.ndarray, method: str = "otsu") -> np.ndarray:
-    """Foreground (body) mask: Otsu threshold, largest 3D component, holes filled; ``convex_hull``
-    additionally takes the 2D convex hull of each slice ``[:, :, k]``. Returns bool (I, J, K)."""
+    """Foreground (body) mask: Otsu threshold, largest 3D component, holes filled.
+
+    Parameters
+    ----------
+    values : ndarray, shape (I, J, K)
+        Voxel values (any units; brighter = denser).
+    method : {"otsu", "convex_hull"}
+        ``convex_hull`` additionally takes the 2D convex hull of each slice ``[:, :, k]``.
+
+    Returns
+    -------
+    ndarray, shape (I, J, K), bool
+        True inside the body (all True for a constant volume).
+    """
     from scipy import ndimage
     from skimage.filters import threshold_otsu
     from skimage.morphology import convex_hull_image
@@ -361,9 +404,23 @@ def body_mask(values: np.ndarray, method: str = "otsu") -> np.ndarray:
 
 
 def denoise(values: np.ndarray, method: str, weight: float) -> np.ndarray:
-    """``tv``: 3D Chambolle total variation (``skimage.restoration.denoise_tv_chambolle``, ``weight``);
-    ``bilateral``: ``skimage.restoration.denoise_bilateral`` per slice ``[:, :, k]`` with
-    ``sigma_color = weight`` and ``sigma_spatial = 1`` voxel. Returns float32 of the same shape."""
+    """Denoise a volume.
+
+    Parameters
+    ----------
+    values : ndarray, shape (I, J, K)
+        Voxel values (after intensity mapping).
+    method : {"tv", "bilateral"}
+        ``tv``: 3D Chambolle total variation (``skimage.restoration.denoise_tv_chambolle``);
+        ``bilateral``: ``skimage.restoration.denoise_bilateral`` per slice ``[:, :, k]`` with
+        ``sigma_spatial = 1`` voxel.
+    weight : float
+        TV weight, or the bilateral ``sigma_color`` (in the units of ``values``).
+
+    Returns
+    -------
+    ndarray, shape (I, J, K), float32
+    """
     from skimage.restoration import denoise_bilateral, denoise_tv_chambolle
 
     values = np.asarray(values, np.float32)
