@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from ctsplat.io import read_dicom_series
+from ctsplat.formats.sources import read_dicom_series
 from ctsplat.volume import ingest, resample_stack
 
 ROOT = Path(__file__).resolve().parent.parent

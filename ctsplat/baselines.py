@@ -319,9 +319,9 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
     """
     import pandas as pd
 
+    from ctsplat.formats.volume import Volume, load_volume, save_volume
     from ctsplat.metrics import psnr3d, ssim3d
     from ctsplat.projector import load_radiographs
-    from ctsplat.volume import Volume, load_volume, save_volume
 
     cfg = merge_config("baselines", config, BASELINE_DEFAULTS)
     for f in cfg["fbp_filters"]:

@@ -34,6 +34,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Sequence
@@ -43,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from ctsplat.io import LPS_TO_RAS, write_dicom_series
+from ctsplat.formats.sources import LPS_TO_RAS, write_dicom_series
 from ctsplat.utils import CtsplatError, code_version
 
 __all__ = [
@@ -57,6 +58,12 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: ``created_by`` of ``phantom.json``: the marker of a folder written by :func:`write_phantom_dicom`.
+PHANTOM_MARKER = "ctsplat.phantom.write_phantom_dicom"
+_SLICE_NAME = "slice_{k:04d}.dcm"
+_SLICE_RE = re.compile(r"slice_\d{4,}\.dcm")
+_STAGING_PREFIX = ".ctsplat-phantom-"
 
 #: Defaults of the ``phantom`` config section.
 PHANTOM_DEFAULTS: dict[str, Any] = {
@@ -289,6 +296,7 @@ def write_phantom_dicom(
     bead_radius_mm: float = 3.0,
     variant: str = "kak_slaney",
     supersample: int = 2,
+    force: bool = False,
 ) -> Path:
     """Write the Shepp–Logan head as a real DICOM CT series (``size`` slices of ``size²`` pixels).
 
@@ -296,8 +304,37 @@ def write_phantom_dicom(
     ``fov_mm / size`` mm isotropic, the grid centred on the phantom centre, which ingestion maps to
     the world origin (RAS). HU are partial-volume averages (``supersample³`` samples per voxel),
     stored as uint16 with RescaleIntercept −1024. ``out_dir/phantom.json`` lists the ellipsoids in
-    world mm (see :func:`load_phantom_ellipsoids`). The folder is built under a temporary name and
-    renamed into place (an existing ``out_dir`` is replaced).
+    world mm (see :func:`load_phantom_ellipsoids`); its ``created_by`` (:data:`PHANTOM_MARKER`)
+    marks the folder as a phantom output.
+
+    Where the files go, by what ``out_dir`` is:
+
+    - missing: the folder is built under a temporary sibling name and renamed into place;
+    - empty, or a previous phantom output (``phantom.json`` with the marker and nothing but
+      ``slice_NNNN.dcm`` files beside it): the new files are built in a hidden staging folder inside
+      it and moved over the old ones; slices of the previous phantom that the new one lacks are
+      removed. The folder itself is never removed or renamed (``out_dir`` may be ``.``);
+    - anything else (unrelated files, sub-folders, a patient series): refused, unless ``force``,
+      which writes the phantom files into it, replacing files of the same names (``phantom.json``,
+      ``slice_NNNN.dcm``) and leaving everything else in place (a previous phantom's slices that
+      the new one lacks are removed when its ``phantom.json`` is there).
+
+    Hidden entries (names starting with ``.``) are never touched and do not count.
+
+    Parameters
+    ----------
+    out_dir : path
+        Output folder.
+    size : int
+        Voxels per axis (slices, rows and columns), >= 8.
+    beads, n_beads, bead_radius_mm, seed, variant
+        See :func:`shepp_logan_ellipsoids`.
+    fov_mm : float
+        Field-of-view edge (mm); voxels are ``fov_mm / size`` mm.
+    supersample : int
+        Point samples per voxel and axis for the partial-volume HU.
+    force : bool
+        Write into a non-empty folder that is not a previous phantom output.
 
     Returns
     -------
@@ -308,6 +345,8 @@ def write_phantom_dicom(
         raise CtsplatError(f"phantom size must be an integer >= 8, got {size!r}")
     if not fov_mm > 0:
         raise CtsplatError(f"phantom fov_mm must be > 0, got {fov_mm!r}")
+    out_dir = Path(out_dir)
+    stale = _check_phantom_target(out_dir, force)
     ellipsoids = shepp_logan_ellipsoids(
         beads=beads, n_beads=n_beads, bead_radius_mm=bead_radius_mm, seed=seed, variant=variant
     )
@@ -321,41 +360,81 @@ def write_phantom_dicom(
     r = rasterize(ellipsoids, (size, size, size), affine_ras, supersample=supersample)
     hu = 1000.0 * (r.astype(np.float64) - 1.0)
 
-    out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
+    series_description = f"Shepp-Logan head phantom {variant} {size}^3{' + beads' if beads else ''}"
+    info = {
+        "format_version": 1,
+        "created_by": PHANTOM_MARKER,
+        "code_version": code_version(),
+        "frame": "world RAS mm; phantom centre at the origin; ingested volumes share this frame",
+        "value_units": "additive attenuation relative to water (mu / mu_water); HU = 1000 * (sum - 1)",
+        "inside_test": "|| diag(1/semi_axes) @ rotation.T @ (x - centre) ||^2 <= 1 (rotation columns = axes)",
+        "parameters": {
+            "size": size, "fov_mm": fov_mm, "voxel_mm": h, "beads": beads, "n_beads": n_beads if beads else 0,
+            "bead_radius_mm": bead_radius_mm, "seed": seed, "variant": variant, "supersample": supersample,
+        },
+        "ellipsoids": [e.to_dict() for e in ellipsoids],
+    }
+    absolute = Path(os.path.abspath(out_dir))
+    if absolute.exists():
+        tmp = Path(tempfile.mkdtemp(prefix=_STAGING_PREFIX, suffix=".tmp", dir=absolute))
+    else:
+        absolute.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{absolute.name}.", suffix=".tmp", dir=absolute.parent))
     try:
         write_dicom_series(
             hu, tmp, spacing_mm=(h, h, h), origin_lps=origin_lps, uid_seed=f"ctsplat-phantom-{seed}-{size}-{variant}",
-            series_description=f"Shepp-Logan head phantom {variant} {size}^3{' + beads' if beads else ''}",
+            series_description=series_description, filename=_SLICE_NAME,
         )
-        info = {
-            "format_version": 1,
-            "created_by": "ctsplat.phantom.write_phantom_dicom",
-            "code_version": code_version(),
-            "frame": "world RAS mm; phantom centre at the origin; ingested volumes share this frame",
-            "value_units": "additive attenuation relative to water (mu / mu_water); HU = 1000 * (sum - 1)",
-            "inside_test": "|| diag(1/semi_axes) @ rotation.T @ (x - centre) ||^2 <= 1 (rotation columns = axes)",
-            "parameters": {
-                "size": size, "fov_mm": fov_mm, "voxel_mm": h, "beads": beads, "n_beads": n_beads if beads else 0,
-                "bead_radius_mm": bead_radius_mm, "seed": seed, "variant": variant, "supersample": supersample,
-            },
-            "ellipsoids": [e.to_dict() for e in ellipsoids],
-        }
         (tmp / "phantom.json").write_text(json.dumps(info, indent=2) + "\n")
         os.chmod(tmp, 0o755)
-        if out_dir.exists():
-            trash = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".old", dir=out_dir.parent))
-            os.replace(out_dir, trash / "old")
-            os.replace(tmp, out_dir)
-            shutil.rmtree(trash, ignore_errors=True)
+        if not absolute.exists():
+            os.replace(tmp, absolute)
         else:
-            os.replace(tmp, out_dir)
-    except BaseException:
+            new = sorted(p.name for p in tmp.iterdir())
+            # slices first, the marker last: an interrupted update still reads as a phantom output
+            for name in [n for n in new if n != "phantom.json"] + ["phantom.json"]:
+                os.replace(tmp / name, absolute / name)
+            for name in sorted(set(stale) - set(new)):
+                (absolute / name).unlink(missing_ok=True)
+    finally:
         shutil.rmtree(tmp, ignore_errors=True)
-        raise
     log.info("wrote Shepp-Logan phantom %d^3 (%.3f mm voxels, %d ellipsoids) to %s", size, h, len(ellipsoids), out_dir)
     return out_dir
+
+
+def _is_phantom_marker(path: Path) -> bool:
+    try:
+        return json.loads(path.read_text()).get("created_by") == PHANTOM_MARKER
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def _check_phantom_target(out_dir: Path, force: bool) -> list[str]:
+    """Refuse an output folder the phantom writer may not overwrite; return the previous phantom's slice names.
+
+    Staging folders left by an interrupted earlier write are removed here.
+    """
+    if not out_dir.exists():
+        return []
+    if not out_dir.is_dir():
+        raise CtsplatError(f"phantom output {out_dir} exists and is not a folder; give a new or empty folder")
+    for p in out_dir.iterdir():
+        if p.is_dir() and p.name.startswith(_STAGING_PREFIX) and p.name.endswith(".tmp"):
+            shutil.rmtree(p, ignore_errors=True)
+    entries = [p for p in out_dir.iterdir() if not p.name.startswith(".")]
+    marked = _is_phantom_marker(out_dir / "phantom.json")
+    slices = [p.name for p in entries if p.is_file() and _SLICE_RE.fullmatch(p.name)]
+    others = sorted(p.name for p in entries if p.name != "phantom.json" and p.name not in slices)
+    if not entries or (marked and not others):
+        return slices
+    if force:
+        return slices if marked else []
+    what = "holds files the phantom writer did not write" if marked else "is not a previous phantom output"
+    listing = ", ".join(others[:3]) + (" ..." if len(others) > 3 else "")
+    raise CtsplatError(
+        f"phantom output folder {out_dir} {what} ({listing}); give a new or empty folder, or pass force "
+        f"(--force) to write the phantom files into it (other files are kept, same-named ones replaced)"
+    )
 
 
 def load_phantom_ellipsoids(path: str | Path) -> list[Ellipsoid]:

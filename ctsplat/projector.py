@@ -467,7 +467,7 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
     check, statistics, timing). Every file is written under a temporary name first.
     """
 
-    from ctsplat.volume import load_volume
+    from ctsplat.formats.volume import load_volume
 
     cfg = merge_config("radiographs", config, RADIOGRAPHS_DEFAULTS)
     out_dir = Path(out_dir)

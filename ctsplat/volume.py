@@ -1,22 +1,17 @@
-"""Preprocessed CT volumes: the ``Volume`` container, NIfTI + JSON I/O, preprocessing and ``ingest``.
+"""CT ingestion and preprocessing: a scan on disk -> a preprocessed volume file.
 
-A volume is a float32 array indexed ``[i, j, k]`` with a 4x4 affine mapping voxel indices to the
-world frame (RAS+, mm); see ``docs/conventions.md``. ``meta`` is the content of ``volume.json``.
-
-Ingestion (:func:`ingest`) = read (:mod:`ctsplat.io`: DICOM / NIfTI / TIFF -> geometry-exact slice
-stack, LPS -> RAS once) -> resample in world coordinates onto a regular (isotropic) grid
+Ingestion (:func:`ingest`) = read (:mod:`ctsplat.formats.sources`: DICOM / NIfTI / TIFF -> geometry-exact
+slice stack, LPS -> RAS once) -> resample in world coordinates onto a regular (isotropic) grid
 (:func:`resample_stack`) -> optional body mask -> intensity mapping (HU -> μ, or a WL/WW window) ->
-normalise to [0, 1] -> optional denoising -> write NIfTI-1 + provenance JSON atomically.
+normalise to [0, 1] -> optional denoising -> write the volume file (:mod:`ctsplat.formats.volume`:
+NIfTI-1 + provenance JSON) atomically. The world frame is RAS+, mm (see ``docs/conventions.md``).
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -24,13 +19,10 @@ import nibabel as nib
 import numpy as np
 import scipy.sparse as sparse
 
-from ctsplat.utils import CtsplatError, atomic_path, code_version, merge_config, write_json_atomic
+from ctsplat.formats.volume import Volume, compute_volume_id, save_volume
+from ctsplat.utils import CtsplatError, code_version, merge_config
 
 __all__ = [
-    "Volume",
-    "load_volume",
-    "save_volume",
-    "json_path_for",
     "PREPROCESSING_DEFAULTS",
     "WINDOW_PRESETS",
     "ingest",
@@ -39,100 +31,9 @@ __all__ = [
     "apply_window",
     "body_mask",
     "denoise",
-    "compute_volume_id",
 ]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class Volume:
-    """A CT volume in the world frame.
-
-    Attributes
-    ----------
-    data : ndarray, shape (I, J, K), float32
-        Voxel values: HU, μ in 1/mm, or normalised [0, 1] (see ``meta["intensity"]``).
-    affine : ndarray, shape (4, 4)
-        Voxel index -> world (RAS+, mm).
-    meta : dict
-        Provenance and intensity mapping; ``meta["intensity"]["mu_scale_per_mm"]`` maps values to 1/mm.
-    """
-
-    data: np.ndarray
-    affine: np.ndarray
-    meta: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def spacing_mm(self) -> np.ndarray:
-        """Voxel edge lengths (mm), shape (3,)."""
-        return np.linalg.norm(self.affine[:3, :3], axis=0)
-
-    @property
-    def shape(self) -> tuple[int, int, int]:
-        return tuple(int(s) for s in self.data.shape)  # type: ignore[return-value]
-
-    @property
-    def mu_scale_per_mm(self) -> float:
-        """Factor mapping ``data`` to attenuation in 1/mm (1.0 when ``data`` already is μ)."""
-        return float(self.meta.get("intensity", {}).get("mu_scale_per_mm", 1.0))
-
-    @property
-    def volume_id(self) -> str:
-        return str(self.meta.get("volume_id", "unknown"))
-
-    def center_mm(self) -> np.ndarray:
-        """World position (mm) of the volume's geometric centre, shape (3,)."""
-        idx = (np.asarray(self.shape, float) - 1.0) / 2.0
-        return self.affine[:3, :3] @ idx + self.affine[:3, 3]
-
-    def extent_mm(self) -> np.ndarray:
-        """Physical size (mm) covered by the voxels (shape * spacing), shape (3,)."""
-        return np.asarray(self.shape, float) * self.spacing_mm
-
-
-def json_path_for(nii_path: str | Path) -> Path:
-    """``.../volume.nii.gz`` -> ``.../volume.json``."""
-    p = Path(nii_path)
-    name = p.name
-    for ext in (".nii.gz", ".nii"):
-        if name.endswith(ext):
-            return p.with_name(name[: -len(ext)] + ".json")
-    return p.with_suffix(".json")
-
-
-def save_volume(volume: Volume, path: str | Path) -> None:
-    """Write ``volume`` as NIfTI-1 (``.nii.gz``) plus its sibling JSON, both atomically."""
-    data = np.asarray(volume.data, dtype=np.float32)
-    img = nib.Nifti1Image(data, np.asarray(volume.affine, float))
-    img.header.set_xyzt_units("mm")
-    img.set_qform(volume.affine, code=1)
-    img.set_sform(volume.affine, code=1)
-    meta = dict(volume.meta)
-    meta.update(
-        shape=list(data.shape),
-        spacing_mm=[float(s) for s in volume.spacing_mm],
-        affine=np.asarray(volume.affine, float).tolist(),
-    )
-    # Both files go to temp names first; the JSON is renamed into place just before the NIfTI, so a
-    # crash leaves either nothing new or a JSON without its volume - never a volume without its JSON.
-    with atomic_path(path) as tmp:
-        nib.save(img, str(tmp))
-        write_json_atomic(json_path_for(path), meta)
-
-
-def load_volume(path: str | Path) -> Volume:
-    """Read a NIfTI volume and its sibling JSON (if present) into a ``Volume``."""
-    path = Path(path)
-    if not path.exists():
-        raise CtsplatError(f"volume file {path} does not exist; run the ingest step first")
-    img = nib.load(str(path))
-    data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
-    meta: dict[str, Any] = {}
-    jp = json_path_for(path)
-    if jp.exists():
-        meta = json.loads(jp.read_text())
-    return Volume(data=data, affine=np.asarray(img.affine, float), meta=meta)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -291,7 +192,7 @@ def resample_stack(
     grid: int | Sequence[int] | None = None,
     fill: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """Resample a :class:`ctsplat.io.SliceStack` onto a regular grid, exactly in world coordinates.
+    """Resample a :class:`ctsplat.formats.sources.SliceStack` onto a regular grid, exactly in world coordinates.
 
     The output grid is aligned with the slice axes ``(u, v, n)`` = (row direction, column
     direction, slice normal), so oblique scans stay unrotated, and is finally permuted/flipped to
@@ -312,7 +213,7 @@ def resample_stack(
     Parameters
     ----------
     stack : SliceStack
-        ``data`` (I, J, K) with per-slice geometry (see :mod:`ctsplat.io`).
+        ``data`` (I, J, K) with per-slice geometry (see :mod:`ctsplat.formats.sources`).
     voxel_size_mm : float, optional
         Isotropic output voxel edge (mm); the grid covers the scan's extent (centred).
     grid : int or (3,) ints, optional
@@ -326,6 +227,7 @@ def resample_stack(
     Returns
     -------
     data : ndarray, shape (A, B, C), float32
+        Resampled values, in the units of ``stack.data``.
     affine : ndarray, shape (4, 4)
         Voxel index -> world RAS mm (orthogonal, RAS-closest axis order, positive diagonal).
     info : dict
@@ -420,7 +322,24 @@ def hu_to_attenuation(
     """HU -> normalised attenuation in [0, 1] and the factor mapping it back to μ (1/mm).
 
     ``μ = μ_water (1 + HU / 1000)`` clipped to ``[0, μ_max]`` with ``μ_max = μ_water (1 + hu_max/1000)``;
-    returns ``(μ / μ_max, μ_max)``, so ``μ = normalised * mu_scale_per_mm``.
+    returns ``(μ / μ_max, μ_max)``, so ``μ = normalised * mu_scale_per_mm``. This inverts the
+    definition of the Hounsfield unit, ``HU = 1000 (μ - μ_water) / μ_water`` (air ≈ -1000, water 0).
+
+    Parameters
+    ----------
+    hu : ndarray, any shape
+        Values in HU.
+    mu_water_per_mm : float
+        Linear attenuation coefficient of water (1/mm) at the effective energy.
+    hu_max : float
+        HU mapped to 1.0; denser values clip.
+
+    Returns
+    -------
+    normalised : ndarray, same shape, float32
+        ``μ / μ_max`` in [0, 1].
+    mu_scale_per_mm : float
+        ``μ_max`` (1/mm).
     """
     mu_max = mu_water_per_mm * (1.0 + hu_max / 1000.0)
     mu = mu_water_per_mm * (1.0 + np.asarray(hu, np.float32) / np.float32(1000.0))
@@ -428,14 +347,39 @@ def hu_to_attenuation(
 
 
 def apply_window(hu: np.ndarray, level: float, width: float) -> np.ndarray:
-    """WL/WW window: ``clip((HU - (level - width/2)) / width, 0, 1)``, float32."""
+    """WL/WW window: ``clip((HU - (level - width/2)) / width, 0, 1)``.
+
+    Parameters
+    ----------
+    hu : ndarray, any shape
+        Values in HU.
+    level, width : float
+        Window centre and width (HU); ``width > 0``.
+
+    Returns
+    -------
+    ndarray, same shape, float32
+        Windowed values in [0, 1].
+    """
     x = (np.asarray(hu, np.float32) - np.float32(level - width / 2.0)) / np.float32(width)
     return np.clip(x, 0.0, 1.0).astype(np.float32)
 
 
 def body_mask(values: np.ndarray, method: str = "otsu") -> np.ndarray:
-    """Foreground (body) mask: Otsu threshold, largest 3D component, holes filled; ``convex_hull``
-    additionally takes the 2D convex hull of each slice ``[:, :, k]``. Returns bool (I, J, K)."""
+    """Foreground (body) mask: Otsu threshold, largest 3D component, holes filled.
+
+    Parameters
+    ----------
+    values : ndarray, shape (I, J, K)
+        Voxel values (any units; brighter = denser).
+    method : {"otsu", "convex_hull"}
+        ``convex_hull`` additionally takes the 2D convex hull of each slice ``[:, :, k]``.
+
+    Returns
+    -------
+    ndarray, shape (I, J, K), bool
+        True inside the body (all True for a constant volume).
+    """
     from scipy import ndimage
     from skimage.filters import threshold_otsu
     from skimage.morphology import convex_hull_image
@@ -460,9 +404,23 @@ def body_mask(values: np.ndarray, method: str = "otsu") -> np.ndarray:
 
 
 def denoise(values: np.ndarray, method: str, weight: float) -> np.ndarray:
-    """``tv``: 3D Chambolle total variation (``skimage.restoration.denoise_tv_chambolle``, ``weight``);
-    ``bilateral``: ``skimage.restoration.denoise_bilateral`` per slice ``[:, :, k]`` with
-    ``sigma_color = weight`` and ``sigma_spatial = 1`` voxel. Returns float32 of the same shape."""
+    """Denoise a volume.
+
+    Parameters
+    ----------
+    values : ndarray, shape (I, J, K)
+        Voxel values (after intensity mapping).
+    method : {"tv", "bilateral"}
+        ``tv``: 3D Chambolle total variation (``skimage.restoration.denoise_tv_chambolle``);
+        ``bilateral``: ``skimage.restoration.denoise_bilateral`` per slice ``[:, :, k]`` with
+        ``sigma_spatial = 1`` voxel.
+    weight : float
+        TV weight, or the bilateral ``sigma_color`` (in the units of ``values``).
+
+    Returns
+    -------
+    ndarray, shape (I, J, K), float32
+    """
     from skimage.restoration import denoise_bilateral, denoise_tv_chambolle
 
     values = np.asarray(values, np.float32)
@@ -477,15 +435,6 @@ def denoise(values: np.ndarray, method: str, weight: float) -> np.ndarray:
             ) + lo
         return out
     raise CtsplatError(f"denoise method {method!r} unknown; allowed: tv, bilateral")
-
-
-def compute_volume_id(data: np.ndarray, affine: np.ndarray) -> str:
-    """Short content hash (12 hex) of the float32 data and the affine (rounded to 1 µm)."""
-    h = hashlib.sha256()
-    h.update(np.ascontiguousarray(data, dtype=np.float32).tobytes())
-    h.update(np.round(np.asarray(affine, float), 3).astype("<f8").tobytes())
-    h.update(str(tuple(np.shape(data))).encode())
-    return h.hexdigest()[:12]
 
 
 def _map_intensity(values: np.ndarray, cfg: dict[str, Any], units: str) -> tuple[np.ndarray, dict[str, Any]]:
@@ -556,7 +505,7 @@ def ingest(
     ----------
     source : path or SliceStack
         DICOM folder (searched recursively), ``.nii``/``.nii.gz`` file, ``.tif`` stack or folder of
-        TIFFs; or a :class:`ctsplat.io.SliceStack` already read.
+        TIFFs; or a :class:`ctsplat.formats.sources.SliceStack` already read.
     out_path : path
         Output ``.nii.gz`` (or ``.nii``) file.
     preprocessing : dict, optional
@@ -575,7 +524,7 @@ def ingest(
     Volume
         The volume written (``data`` float32 (I, J, K), ``affine``, ``meta``).
     """
-    from ctsplat.io import SliceStack, read_source
+    from ctsplat.formats.sources import SliceStack, read_source
 
     out_path = Path(out_path)
     if not out_path.name.endswith((".nii.gz", ".nii")):

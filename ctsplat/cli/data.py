@@ -34,13 +34,13 @@ def run_phantom(args: argparse.Namespace) -> None:
 
     out = write_phantom_dicom(
         args.out_dir, size=args.size, beads=not args.no_beads, seed=args.seed, fov_mm=args.fov_mm,
-        n_beads=args.n_beads, bead_radius_mm=args.bead_radius_mm, variant=args.variant,
+        n_beads=args.n_beads, bead_radius_mm=args.bead_radius_mm, variant=args.variant, force=args.force,
     )
     print(out)
 
 
 def run_ingest(args: argparse.Namespace) -> None:
-    from ctsplat.io import find_dicom_series
+    from ctsplat.formats.sources import find_dicom_series
     from ctsplat.volume import ingest
 
     if args.list_series:
@@ -74,7 +74,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Write the analytic 3D Shepp-Logan head (Kak-Slaney; ~200 mm) with optional dense bead "
         "markers as a real DICOM CT series (one file per slice) plus phantom.json (ellipsoids in world mm).",
     )
-    p.add_argument("out_dir", help="output folder (replaced if it exists)")
+    p.add_argument("out_dir", help="output folder: new, empty, or a previous phantom output (its files are replaced)")
     p.add_argument("--size", type=int, default=128, help="voxels per axis (slices and rows/columns; default 128)")
     p.add_argument("--fov-mm", type=float, default=240.0, help="field of view edge in mm (default 240)")
     p.add_argument("--no-beads", action="store_true", help="leave out the bead markers")
@@ -83,6 +83,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the bead positions (default 0)")
     p.add_argument("--variant", choices=["kak_slaney", "high_contrast"], default="kak_slaney",
                    help="ellipsoid values: physical Kak-Slaney (default) or high-contrast")
+    p.add_argument("--force", action="store_true",
+                   help="write into a non-empty folder that is not a previous phantom output (other files are "
+                   "kept, phantom.json and slice_NNNN.dcm replaced)")
     p.set_defaults(func=run_phantom)
 
     q = subparsers.add_parser(

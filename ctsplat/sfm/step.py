@@ -363,7 +363,7 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
             "format": VIEWSET_FORMAT, "format_version": VIEWSET_FORMAT_VERSION, "volume_id": vs.volume_id,
             "isocenter_mm": np.asarray(iso, float).tolist(), "camera": cam.to_dict(), "views": [], "meta": vs_meta})
     if cfg["naive_slices"]:
-        from ctsplat.volume import load_volume
+        from ctsplat.formats.volume import load_volume
 
         summary["naive_slices"] = naive_slices_sfm(load_volume(volume_path).data, out_dir / ".naive_work", cfg,
                                                    seed=seed)

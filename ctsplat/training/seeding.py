@@ -302,7 +302,7 @@ def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> tuple[np.ndar
     """
     from ctsplat.baselines import fbp_volume, is_circular_parallel, sirt_volume
     from ctsplat.formats.viewset import View, ViewSet
-    from ctsplat.volume import Volume
+    from ctsplat.formats.volume import Volume
 
     tr = scene.train
     views = [View(int(i), R, t, float(a), float(e), "train")

@@ -19,11 +19,11 @@ from ctsplat.baselines import (
     sirt_volume,
 )
 from ctsplat.formats.viewset import ViewSet
+from ctsplat.formats.volume import Volume, load_volume, save_volume
 from ctsplat.geometry import ConeCamera, ParallelCamera, circular_orbit
 from ctsplat.metrics import psnr3d, ssim3d
 from ctsplat.projector import line_integrals, render_radiographs
 from ctsplat.utils import CtsplatError
-from ctsplat.volume import Volume, load_volume, save_volume
 
 MU = 0.02
 

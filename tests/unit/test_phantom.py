@@ -7,7 +7,8 @@ import pydicom
 import pytest
 
 from ctsplat.cli import main
-from ctsplat.io import read_dicom_series
+from ctsplat.formats.sources import read_dicom_series
+from ctsplat.formats.volume import load_volume
 from ctsplat.phantom import (
     Ellipsoid,
     load_phantom_ellipsoids,
@@ -17,7 +18,7 @@ from ctsplat.phantom import (
     write_phantom_dicom,
 )
 from ctsplat.utils import CtsplatError
-from ctsplat.volume import ingest, load_volume
+from ctsplat.volume import ingest
 
 
 def voxel_centres(affine, shape):
@@ -165,3 +166,70 @@ def test_cli_phantom_then_ingest(tmp_path, capsys):
     assert main(["ingest", str(tmp_path / "dicom"), str(tmp_path / "v.nii.gz"), "--grid", "16"]) == 0
     assert "volume_id" in capsys.readouterr().out
     assert load_volume(tmp_path / "v.nii.gz").shape == (16, 16, 16)
+
+
+def _tree(root):
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+def test_phantom_never_deletes_a_folder_it_did_not_write(tmp_path, capsys):
+    out = tmp_path / "mine"
+    (out / "sub").mkdir(parents=True)
+    (out / "notes.txt").write_text("keep me")
+    (out / "sub" / "data.bin").write_bytes(b"\0")
+    before = _tree(tmp_path)
+    with pytest.raises(CtsplatError, match="--force"):
+        write_phantom_dicom(out, size=8, beads=False)
+    assert _tree(tmp_path) == before and (out / "notes.txt").read_text() == "keep me"
+    assert main(["phantom", str(out), "--size", "8", "--no-beads"]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert _tree(tmp_path) == before
+
+
+def test_phantom_refuses_a_patient_series_folder(tmp_path):
+    from ctsplat.formats.sources import write_dicom_series
+
+    out = tmp_path / "patient"
+    write_dicom_series(np.zeros((8, 8, 3)), out, spacing_mm=(1, 1, 1), origin_lps=(0, 0, 0), filename="IM{k}")
+    before = _tree(tmp_path)
+    with pytest.raises(CtsplatError, match="not a previous phantom output"):
+        write_phantom_dicom(out, size=8, beads=False)
+    assert _tree(tmp_path) == before
+
+
+def test_phantom_force_writes_beside_other_files_and_keeps_them(tmp_path, capsys):
+    out = tmp_path / "mixed"
+    (out / "sub").mkdir(parents=True)
+    (out / "notes.txt").write_text("keep me")
+    assert main(["phantom", str(out), "--size", "8", "--no-beads", "--force"]) == 0
+    assert (out / "notes.txt").read_text() == "keep me" and (out / "sub").is_dir()
+    assert len(list(out.glob("slice_*.dcm"))) == 8 and load_phantom_ellipsoids(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mixed"]  # no temp or trash folders beside it
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_phantom_into_current_folder_and_again(tmp_path, monkeypatch):
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    assert main(["phantom", ".", "--size", "8", "--no-beads"]) == 0
+    first = _tree(work)
+    assert len([n for n in first if n.endswith(".dcm")]) == 8 and "phantom.json" in first
+    assert main(["phantom", ".", "--size", "8", "--no-beads"]) == 0  # a previous phantom output: replaced
+    assert _tree(work) == first
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["work"]  # no ..*.old / .tmp folders left
+    assert read_dicom_series(work).data.shape == (8, 8, 8)
+
+
+def test_previous_phantom_output_is_replaced_without_stale_slices(tmp_path):
+    out = tmp_path / "ph"
+    write_phantom_dicom(out, size=12, beads=False)
+    write_phantom_dicom(out, size=8, beads=False)
+    assert len(list(out.glob("*.dcm"))) == 8
+    assert read_dicom_series(out).data.shape == (8, 8, 8)
+    (tmp_path / "empty").mkdir()
+    write_phantom_dicom(tmp_path / "empty", size=8, beads=False)  # an empty folder is fine without force
+    assert len(list((tmp_path / "empty").glob("*.dcm"))) == 8
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(CtsplatError, match="not a folder"):
+        write_phantom_dicom(tmp_path / "file", size=8)

@@ -12,6 +12,7 @@ import pytest
 import torch
 from skimage.transform import radon
 
+from ctsplat.formats.volume import Volume, load_volume, save_volume
 from ctsplat.geometry import ConeCamera, ParallelCamera, camera_rays, pose_from_angles
 from ctsplat.phantom import Ellipsoid, rasterize, shepp_logan_ellipsoids
 from ctsplat.projector import (
@@ -23,7 +24,6 @@ from ctsplat.projector import (
     render_radiographs,
 )
 from ctsplat.utils import CtsplatError
-from ctsplat.volume import Volume, load_volume, save_volume
 
 # ------------------------------------------------------------------------------ analytic ellipsoids
 # The phantom's analytic 3D Shepp–Logan ellipsoids (ctsplat.phantom, world mm, values relative to water),

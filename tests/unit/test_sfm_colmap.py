@@ -12,9 +12,9 @@ import pytest
 pycolmap = pytest.importorskip("pycolmap")
 
 from ctsplat.formats.viewset import ViewSet  # noqa: E402
+from ctsplat.formats.volume import Volume, save_volume  # noqa: E402
 from ctsplat.sfm import SFM_DEFAULTS, design_orbit, run_sfm  # noqa: E402
 from ctsplat.utils import CtsplatError  # noqa: E402
-from ctsplat.volume import Volume, save_volume  # noqa: E402
 
 N, SP = 40, 4.0  # 40^3 voxels of 4 mm
 

@@ -36,8 +36,8 @@ def _phantom() -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def scene_dir(tmp_path_factory) -> Path:
+    from ctsplat.formats.volume import Volume, save_volume
     from ctsplat.projector import render_radiographs
-    from ctsplat.volume import Volume, save_volume
 
     root = tmp_path_factory.mktemp("scene")
     data, aff = _phantom()
@@ -103,9 +103,9 @@ def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
                  "config.json"):
         assert (out / name).stat().st_size > 0, name
     # test metrics recomputed independently from the written files
+    from ctsplat.formats.volume import load_volume
     from ctsplat.gaussians import Gaussians
     from ctsplat.metrics import psnr3d
-    from ctsplat.volume import load_volume
 
     g = Gaussians.load(out / "model.pt")
     assert len(g) == m["n_gaussians"]
@@ -427,7 +427,7 @@ def test_unknown_config_key_names_key_and_allowed(scene_dir: Path, tmp_path: Pat
 
 
 def test_missing_and_mismatched_inputs(scene_dir: Path, tmp_path: Path) -> None:
-    from ctsplat.volume import Volume, load_volume, save_volume
+    from ctsplat.formats.volume import Volume, load_volume, save_volume
 
     with pytest.raises(CtsplatError, match="does not exist"):
         tr.train(_cfg(scene_dir, radiographs=str(tmp_path / "nope")), tmp_path / "r")
@@ -499,10 +499,10 @@ def test_colmap_targets_rerendered_at_true_poses(scene_dir: Path, tmp_path: Path
     true poses: from true_views.json when the sfm step wrote it, else on its designed orbit (config + seed);
     unregistered views are dropped."""
     from ctsplat.formats.viewset import View, ViewSet
+    from ctsplat.formats.volume import load_volume
     from ctsplat.geometry import ConeCamera
     from ctsplat.projector import line_integrals
     from ctsplat.sfm import SFM_DEFAULTS, design_orbit
-    from ctsplat.volume import load_volume
 
     vol = load_volume(scene_dir / "volume.nii.gz")
     scfg = {"n_views": 8, "detector_px": 24, "dso_mm": 200.0, "dsd_mm": 300.0}

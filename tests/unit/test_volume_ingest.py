@@ -10,19 +10,17 @@ import pytest
 from scipy import ndimage
 
 from ctsplat.cli import main
-from ctsplat.io import SliceStack
+from ctsplat.formats.sources import SliceStack
+from ctsplat.formats.volume import compute_volume_id, json_path_for, load_volume
 from ctsplat.utils import CtsplatError
 from ctsplat.volume import (
     PREPROCESSING_DEFAULTS,
     WINDOW_PRESETS,
     apply_window,
     body_mask,
-    compute_volume_id,
     denoise,
     hu_to_attenuation,
     ingest,
-    json_path_for,
-    load_volume,
 )
 
 

@@ -17,10 +17,27 @@ in-plane drift of ``origins[k]``; non-uniform slice spacing as non-uniform ``pos
 resolved exactly (in world coordinates) by :func:`ctsplat.volume.resample_stack`, so the reader
 never assumes a regular grid along ``k``.
 
+For DICOM this is the Image Plane module's mapping [1]_ ``P = S + i Δi X + j Δj Y`` (LPS), with
+``S`` = ImagePositionPatient of the slice, ``X`` / ``Y`` = the row / column direction cosines of
+ImageOrientationPatient, ``Δi`` = column spacing (PixelSpacing[1]) and ``Δj`` = row spacing
+(PixelSpacing[0]), then converted to RAS. Stored pixel values become HU through the CT Image
+module's ``HU = stored * RescaleSlope + RescaleIntercept`` [2]_. For NIfTI the slice geometry is
+the image's affine (sform, else qform) [3]_, already RAS.
+
 De-identification: ``SliceStack.source`` holds geometry and acquisition facts only (modality,
 scanner model, kVp, spacing ...). UIDs appear only as salted SHA-256 hashes (:func:`salted_hash`);
 patient, study-date and institution fields and file names (often SOP Instance UIDs) are never
 copied.
+
+References
+----------
+.. [1] DICOM PS3.3 "Information Object Definitions", C.7.6.2 Image Plane Module, C.7.6.2.1.1 Image
+   Position and Image Orientation (Equation C.7.6.2.1-1),
+   https://dicom.nema.org/medical/dicom/current/output/chtml/part03/sect_C.7.6.2.html
+.. [2] DICOM PS3.3, C.8.2.1 CT Image Module (Rescale Intercept (0028,1052), Rescale Slope (0028,1053))
+   and C.11.1 Modality LUT Module.
+.. [3] R. W. Cox et al., "A (sort of) new image data format standard: NIfTI-1", NIfTI Data Format
+   Working Group, 2004 (qform / sform, ``nifti1.h``), https://nifti.nimh.nih.gov/nifti-1/
 """
 
 from __future__ import annotations
@@ -80,15 +97,38 @@ _DECODER_PACKAGES = {
 
 
 def lps_to_ras(v: np.ndarray) -> np.ndarray:
-    """Convert points/vectors ``(..., 3)`` from DICOM LPS to RAS: ``(x, y, z) -> (-x, -y, z)``."""
+    """Convert points or directions from DICOM patient coordinates (LPS) to the world frame (RAS).
+
+    Parameters
+    ----------
+    v : array_like, shape (..., 3)
+        Points (mm) or direction vectors in LPS.
+
+    Returns
+    -------
+    ndarray, shape (..., 3), float
+        The same points/vectors in RAS: ``(x, y, z) -> (-x, -y, z)``.
+    """
     return np.asarray(v, dtype=float) @ LPS_TO_RAS
 
 
 def salted_hash(value: str, n: int = 16) -> str:
-    """Salted SHA-256 of an identifier (hex, ``n`` digits); salt from ``$CTSPLAT_DEID_SALT``.
+    """Salted SHA-256 of an identifier; the salt comes from ``$CTSPLAT_DEID_SALT``.
 
     The default salt is fixed so that outputs stay deterministic; set ``CTSPLAT_DEID_SALT`` to a
     private value to make hashes unlinkable across sites.
+
+    Parameters
+    ----------
+    value : str
+        The identifier (e.g. a SeriesInstanceUID).
+    n : int
+        Number of hexadecimal digits kept.
+
+    Returns
+    -------
+    str
+        ``n`` hex digits of ``sha256(f"{salt}:{value}")``.
     """
     salt = os.environ.get("CTSPLAT_DEID_SALT", "ctsplat-deid-v1")
     return hashlib.sha256(f"{salt}:{value}".encode()).hexdigest()[:n]
@@ -153,7 +193,17 @@ class SliceStack:
 
 @dataclass
 class SeriesInfo:
-    """Header facts of one DICOM series found in a folder (``uid`` is the real SeriesInstanceUID)."""
+    """Header facts of one DICOM series found in a folder.
+
+    Attributes
+    ----------
+    uid : str
+        The real SeriesInstanceUID (empty when the files have none); never written to outputs.
+    files : list of Path
+        The series' image files, in directory-walk order.
+    modality, number, description : str
+        Modality, SeriesNumber and SeriesDescription of the first file.
+    """
 
     uid: str
     files: list[Path]
@@ -162,6 +212,7 @@ class SeriesInfo:
     description: str
 
     def label(self) -> str:
+        """One-line description for listings and error messages."""
         uid = self.uid or "<no SeriesInstanceUID>"
         desc = f" '{self.description}'" if self.description else ""
         return f"{uid} (#{self.number or '?'}{desc}, {self.modality or '?'}, {len(self.files)} files)"
@@ -213,7 +264,19 @@ def find_dicom_series(
 
     Non-DICOM files and non-image DICOM objects (DICOMDIR, reports) are ignored. A file that starts
     as a DICOM image but is cut short is corrupt: an error naming it, or with ``skip_corrupt`` a
-    warning. Returns the series sorted by decreasing number of files.
+    warning.
+
+    Parameters
+    ----------
+    folder : path
+        Folder to search (sub-folders included; hidden files skipped).
+    skip_corrupt : bool
+        Skip corrupt files with a warning instead of failing.
+
+    Returns
+    -------
+    list of SeriesInfo
+        The series found, sorted by decreasing number of files.
     """
     folder = Path(folder)
     if not folder.exists():
@@ -355,7 +418,12 @@ def read_dicom_series(
     Returns
     -------
     SliceStack
-        ``data`` (Columns, Rows, K) float32 in HU (``units="hu"`` for CT, else ``"raw"``).
+        ``data`` (Columns, Rows, K) float32 in HU (``units="hu"`` for CT, else ``"raw"``); geometry in
+        RAS mm.
+
+    References
+    ----------
+    DICOM PS3.3 C.7.6.2 (Image Plane module) and C.8.2.1 (CT Image module); see the module docstring.
     """
     from pydicom.pixels import pixel_array
 
@@ -505,7 +573,7 @@ def read_dicom_series(
 
 
 def _stack_from_affine(data: np.ndarray, affine: np.ndarray, units: str, source: dict[str, Any]) -> SliceStack:
-    """Regular grid with a (possibly sheared along k) affine -> SliceStack (slices ascending)."""
+    """Regular grid with a (possibly sheared along k) RAS affine -> SliceStack (slices ascending)."""
     a = np.asarray(affine, float)
     di, dj = np.linalg.norm(a[:3, 0]), np.linalg.norm(a[:3, 1])
     if di <= 0 or dj <= 0 or np.linalg.norm(a[:3, 2]) <= 0:
@@ -532,7 +600,24 @@ def _stack_from_affine(data: np.ndarray, affine: np.ndarray, units: str, source:
 
 
 def read_nifti(path: str | Path, *, units: str = "hu") -> SliceStack:
-    """Read a 3D NIfTI volume (world frame = its RAS affine); values assumed HU unless ``units="raw"``."""
+    """Read a 3D NIfTI-1/2 volume; its affine (sform, else qform, as nibabel resolves it) is the RAS world frame.
+
+    Parameters
+    ----------
+    path : path
+        ``.nii`` or ``.nii.gz`` file; a 4D file with singleton trailing axes is squeezed.
+    units : {"hu", "raw"}
+        What the stored values (after ``scl_slope`` / ``scl_inter``) are.
+
+    Returns
+    -------
+    SliceStack
+        ``data`` (I, J, K) float32, slices ordered along the slice normal.
+
+    References
+    ----------
+    NIfTI-1 ``qform`` / ``sform`` (Cox et al. 2004); see the module docstring.
+    """
     import nibabel as nib
 
     path = Path(path)
@@ -568,8 +653,17 @@ def read_tiff_stack(
 
     Parameters
     ----------
+    path : path
+        A multi-page ``.tif``/``.tiff`` file (pages = slices) or a folder of 2D TIFFs.
     voxel_size_mm : float or (3,) floats
         Voxel size (x, y, z) in mm; required (HiP-CT style stacks ship it in their metadata).
+    units : {"raw", "hu"}
+        What the stored values are (TIFF stacks carry no rescale; default raw intensities).
+
+    Returns
+    -------
+    SliceStack
+        ``data`` (X, Y, Z) float32, centred on the world origin.
     """
     import tifffile
 
@@ -621,7 +715,21 @@ def read_source(
     skip_corrupt: bool = False,
     tiff_voxel_size_mm: float | Sequence[float] | None = None,
 ) -> SliceStack:
-    """Dispatch on the input: ``.nii``/``.nii.gz`` file, ``.tif``/``.tiff`` file or folder of TIFFs, else DICOM."""
+    """Read a scan, dispatching on the input: NIfTI file, TIFF file or folder of TIFFs, else a DICOM folder.
+
+    Parameters
+    ----------
+    source : path
+        ``.nii``/``.nii.gz`` file, ``.tif``/``.tiff`` file, folder holding only TIFFs, or DICOM folder.
+    series_uid, allow_modalities, skip_corrupt
+        Passed to :func:`read_dicom_series`.
+    tiff_voxel_size_mm : float or (3,) floats, optional
+        Passed to :func:`read_tiff_stack` (required for TIFF input).
+
+    Returns
+    -------
+    SliceStack
+    """
     source = Path(source)
     name = source.name.lower()
     if not source.exists():
@@ -681,9 +789,31 @@ def write_dicom_series(
     ----------
     hu : ndarray, shape (I, J, K)
         HU values indexed ``[column, row, slice]``.
+    out_dir : path
+        Folder to write into (created if missing; existing files of the same names are overwritten).
     spacing_mm : (3,) floats
         Column spacing, row spacing, slice spacing (the last is used only when neither
         ``slice_positions_mm`` nor ``slice_step_lps`` is given).
+    origin_lps : (3,) floats
+        ImagePositionPatient of slice 0 (LPS, mm).
+    row_dir_lps, col_dir_lps : (3,) floats
+        ImageOrientationPatient row and column direction cosines (LPS).
+    slice_positions_mm : (K,) floats, optional
+        Slice positions along the normal (mm), relative to ``origin_lps``.
+    slice_step_lps : (3,) floats, optional
+        Full step between consecutive IPPs (LPS, mm); overrides ``slice_positions_mm``.
+    modality : str
+        ``"CT"`` (CT Image Storage) or another modality (written as MR Image Storage).
+    uid_seed : str
+        Seed of the deterministic UIDs (same seed -> same Study/Series/SOP UIDs).
+    patient_name, patient_id, series_description : str
+        Header text (synthetic; real patient data never passes through here).
+    filename : str
+        File name pattern, formatted with ``k`` (slice index).
+    intercept : float
+        RescaleIntercept (HU); RescaleSlope is 1.
+    transfer_syntax : str, optional
+        Transfer syntax UID to compress with; default explicit VR little endian (uncompressed).
 
     Returns
     -------

@@ -10,8 +10,9 @@ import numpy as np
 import pydicom
 import pytest
 
-from ctsplat.io import LPS_TO_RAS, read_dicom_series
-from ctsplat.volume import ingest, load_volume
+from ctsplat.formats.sources import LPS_TO_RAS, read_dicom_series
+from ctsplat.formats.volume import load_volume
+from ctsplat.volume import ingest
 
 
 def headers(folder: Path) -> list[tuple[Path, pydicom.Dataset]]:

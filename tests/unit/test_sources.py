@@ -15,7 +15,7 @@ import tifffile
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from ctsplat.io import (
+from ctsplat.formats.sources import (
     LPS_TO_RAS,
     find_dicom_series,
     read_dicom_series,
@@ -283,7 +283,7 @@ def test_truncated_file_named_and_skippable(tmp_path, caplog, cut):
     bad.write_bytes(raw[:-40] if cut == "pixels" else raw[:400])
     msg = assert_fails_cleanly(tmp_path / "s", tmp_path, "corrupt or truncated")
     assert str(bad) in msg and "skip" in msg
-    with caplog.at_level(logging.WARNING, logger="ctsplat.io"):
+    with caplog.at_level(logging.WARNING, logger="ctsplat.formats.sources"):
         vol = ingest(tmp_path / "s", tmp_path / "ok" / "volume.nii.gz", {"grid": 8}, skip_corrupt=True)
     assert any(str(bad) in r.getMessage() for r in caplog.records)
     assert vol.meta["source"]["n_slices"] == 5
@@ -305,7 +305,7 @@ def test_mixed_series_without_choice_lists_them(tmp_path):
 def test_mixed_series_picks_largest_with_warning(tmp_path, caplog):
     make_series(tmp_path / "mix" / "a", uid_seed="a")
     make_series(tmp_path / "mix" / "b", uid_seed="b", shape=(8, 6, 3))
-    with caplog.at_level(logging.WARNING, logger="ctsplat.io"):
+    with caplog.at_level(logging.WARNING, logger="ctsplat.formats.sources"):
         stack = read_dicom_series(tmp_path / "mix")
     assert stack.data.shape[2] == 5
     assert any("several series" in r.getMessage() for r in caplog.records)

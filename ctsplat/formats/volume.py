@@ -1,0 +1,182 @@
+"""The volume file: a NIfTI-1 image (``volume.nii.gz``) plus its provenance JSON (``volume.json``).
+
+A volume is a float32 array indexed ``[i, j, k]`` with a 4x4 affine mapping voxel indices to the
+world frame (RAS+, mm; see ``docs/conventions.md``)::
+
+    world(i, j, k) = affine[:3, :3] @ (i, j, k) + affine[:3, 3]
+
+The affine is stored as both the qform and the sform of the NIfTI header (code 1, "scanner
+anatomical"), with spatial units mm; NIfTI's world frame is RAS+, the same as ctsplat's, so no
+axis flip happens here. The sibling JSON holds ``meta`` (provenance, intensity mapping with
+``mu_scale_per_mm``, ``volume_id``) plus ``shape``, ``spacing_mm`` and ``affine`` as written.
+
+``volume_id`` (:func:`compute_volume_id`) is the identity of a volume file's content: a hash of the
+float32 voxels and the affine as stored. Radiographs, SfM poses and training runs record the
+``volume_id`` they were made from, and readers compare it to detect a stale pairing.
+
+References
+----------
+.. [1] R. W. Cox et al., "A (sort of) new image data format standard: NIfTI-1", NIfTI Data Format
+   Working Group, 2004; header fields ``qform_code``, ``sform_code``, ``srow_x/y/z`` ("Method 3"),
+   https://nifti.nimh.nih.gov/nifti-1/
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import nibabel as nib
+import numpy as np
+
+from ctsplat.utils import CtsplatError, atomic_path, write_json_atomic
+
+__all__ = ["Volume", "load_volume", "save_volume", "json_path_for", "compute_volume_id"]
+
+
+@dataclass
+class Volume:
+    """A CT volume in the world frame.
+
+    Attributes
+    ----------
+    data : ndarray, shape (I, J, K), float32
+        Voxel values: HU, μ in 1/mm, or normalised [0, 1] (see ``meta["intensity"]``).
+    affine : ndarray, shape (4, 4)
+        Voxel index -> world (RAS+, mm).
+    meta : dict
+        Provenance and intensity mapping; ``meta["intensity"]["mu_scale_per_mm"]`` maps values to 1/mm.
+    """
+
+    data: np.ndarray
+    affine: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def spacing_mm(self) -> np.ndarray:
+        """Voxel edge lengths (mm), shape (3,)."""
+        return np.linalg.norm(self.affine[:3, :3], axis=0)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Grid shape ``(I, J, K)``."""
+        return tuple(int(s) for s in self.data.shape)  # type: ignore[return-value]
+
+    @property
+    def mu_scale_per_mm(self) -> float:
+        """Factor mapping ``data`` to attenuation in 1/mm (1.0 when ``data`` already is μ)."""
+        return float(self.meta.get("intensity", {}).get("mu_scale_per_mm", 1.0))
+
+    @property
+    def volume_id(self) -> str:
+        """Content identity recorded in ``meta`` (see :func:`compute_volume_id`); ``"unknown"`` if absent."""
+        return str(self.meta.get("volume_id", "unknown"))
+
+    def center_mm(self) -> np.ndarray:
+        """World position (mm) of the volume's geometric centre, shape (3,)."""
+        idx = (np.asarray(self.shape, float) - 1.0) / 2.0
+        return self.affine[:3, :3] @ idx + self.affine[:3, 3]
+
+    def extent_mm(self) -> np.ndarray:
+        """Physical size (mm) covered by the voxels (shape * spacing), shape (3,)."""
+        return np.asarray(self.shape, float) * self.spacing_mm
+
+
+def compute_volume_id(data: np.ndarray, affine: np.ndarray) -> str:
+    """Short content hash of a volume file: the float32 voxels, the affine (rounded to 1 µm) and the shape.
+
+    Parameters
+    ----------
+    data : ndarray, shape (I, J, K)
+        Voxel values (hashed as float32, C order).
+    affine : ndarray, shape (4, 4)
+        Voxel index -> world RAS (mm).
+
+    Returns
+    -------
+    str
+        12 hexadecimal digits of the SHA-256.
+    """
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(data, dtype=np.float32).tobytes())
+    h.update(np.round(np.asarray(affine, float), 3).astype("<f8").tobytes())
+    h.update(str(tuple(np.shape(data))).encode())
+    return h.hexdigest()[:12]
+
+
+def json_path_for(nii_path: str | Path) -> Path:
+    """The provenance JSON beside a volume file.
+
+    Parameters
+    ----------
+    nii_path : path
+        ``.../name.nii.gz`` or ``.../name.nii`` (any other suffix is replaced).
+
+    Returns
+    -------
+    Path
+        ``.../name.json``.
+    """
+    p = Path(nii_path)
+    name = p.name
+    for ext in (".nii.gz", ".nii"):
+        if name.endswith(ext):
+            return p.with_name(name[: -len(ext)] + ".json")
+    return p.with_suffix(".json")
+
+
+def save_volume(volume: Volume, path: str | Path) -> None:
+    """Write ``volume`` as NIfTI-1 plus its sibling JSON (:func:`json_path_for`), both atomically.
+
+    Parameters
+    ----------
+    volume : Volume
+        ``data`` (I, J, K) is stored as float32; ``affine`` (4, 4) as qform and sform (code 1), units mm.
+    path : path
+        Output ``.nii.gz`` (compressed) or ``.nii``.
+    """
+    data = np.asarray(volume.data, dtype=np.float32)
+    img = nib.Nifti1Image(data, np.asarray(volume.affine, float))
+    img.header.set_xyzt_units("mm")
+    img.set_qform(volume.affine, code=1)
+    img.set_sform(volume.affine, code=1)
+    meta = dict(volume.meta)
+    meta.update(
+        shape=list(data.shape),
+        spacing_mm=[float(s) for s in volume.spacing_mm],
+        affine=np.asarray(volume.affine, float).tolist(),
+    )
+    # Both files go to temp names first; the JSON is renamed into place just before the NIfTI, so a
+    # crash leaves either nothing new or a JSON without its volume - never a volume without its JSON.
+    with atomic_path(path) as tmp:
+        nib.save(img, str(tmp))
+        write_json_atomic(json_path_for(path), meta)
+
+
+def load_volume(path: str | Path) -> Volume:
+    """Read a NIfTI volume and its sibling JSON (if present).
+
+    Parameters
+    ----------
+    path : path
+        ``.nii.gz`` / ``.nii`` file; the world frame is the image's affine (sform, else qform, as
+        nibabel resolves it), voxel index -> RAS mm.
+
+    Returns
+    -------
+    Volume
+        ``data`` float32 (I, J, K), ``affine`` (4, 4), ``meta`` from the JSON (empty when there is none).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise CtsplatError(f"volume file {path} does not exist; run the ingest step first")
+    img = nib.load(str(path))
+    data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
+    meta: dict[str, Any] = {}
+    jp = json_path_for(path)
+    if jp.exists():
+        meta = json.loads(jp.read_text())
+    return Volume(data=data, affine=np.asarray(img.affine, float), meta=meta)
