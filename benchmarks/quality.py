@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from ctsplat.cli.train import load_train_config
-    from ctsplat.train import train
+    from ctsplat.training import train
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -168,8 +168,8 @@ def main() -> None:
     args = ap.parse_args()
 
     import torch
-    from ctsplat.formats.volume import load_volume
 
+    from ctsplat.formats.volume import load_volume
     from ctsplat.sfm.step import naive_slices_sfm, run_sfm
 
     torch.set_num_threads(args.threads)

@@ -124,7 +124,7 @@ def even_subset(n_total: int, n: int) -> np.ndarray:
 def _check_volume(vs: ViewSet, volume: Any, where: str) -> None:
     if vs.volume_id != volume.volume_id:
         raise CtsplatError(
-            f"radiographs in {where} were rendered from volume {vs.volume_id}, but the reference volume is "
+            f"radiographs in {where} were rendered from volume {vs.volume_id}, but train.volume is "
             f"{volume.volume_id}; re-render the radiographs for this volume or point to the matching volume")
     recorded = vs.meta.get("volume_shape")
     if recorded is not None and tuple(recorded) != volume.shape:

@@ -1,6 +1,6 @@
 """Evaluation: image and volume metrics (:mod:`.metrics`), a run's held-out evaluation (:mod:`.evaluate`), its
 figures (:mod:`.figures`)."""
 
-from ctsplat.evaluation.evaluate import evaluate
+from ctsplat.evaluation.run import evaluate
 
 __all__ = ["evaluate"]

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ctsplat.evaluation.evaluate import peak_memory_mb, render_views, view_metrics, volume_metrics, voxelize_model
+from ctsplat.evaluation.run import peak_memory_mb, render_views, view_metrics, volume_metrics, voxelize_model
 from ctsplat.formats.runlog import LOG_COLUMNS, LOG_EXTRAS, PER_VIEW_COLUMNS, CsvLog
 from ctsplat.scene import Scene, ViewData, even_subset, load_scene
 from ctsplat.splat.render import random_region, render, voxelize

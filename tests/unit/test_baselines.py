@@ -18,10 +18,10 @@ from ctsplat.baselines import (
     select_views,
     sirt_volume,
 )
+from ctsplat.evaluation.metrics import psnr3d, ssim3d
 from ctsplat.formats.viewset import ViewSet
 from ctsplat.formats.volume import Volume, load_volume, save_volume
 from ctsplat.geometry import ConeCamera, ParallelCamera, circular_orbit
-from ctsplat.metrics import psnr3d, ssim3d
 from ctsplat.projector import line_integrals, render_radiographs
 from ctsplat.utils import CtsplatError
 

@@ -5,16 +5,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from orbit_helpers import design_orbit
 from scipy.spatial.transform import Rotation
 
-from ctsplat.bundle import (
+from ctsplat.geometry import ConeCamera, project_points
+from ctsplat.sfm.align import rotation_error_deg
+from ctsplat.sfm.bundle import (
     isocentre_from_poses,
     isocentric_bundle_adjustment,
     isocentric_poses,
     reprojection_jacobians,
 )
-from ctsplat.geometry import ConeCamera, project_points
-from ctsplat.sfm import design_orbit, rotation_error_deg
 from ctsplat.utils import CtsplatError
 
 CAM = ConeCamera(width=128, height=128, pitch_mm=2.0, dso_mm=400.0, dsd_mm=800.0)

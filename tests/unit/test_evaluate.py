@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from ctsplat import evaluate as ev
 from ctsplat import metrics
+from ctsplat.evaluation import run as ev
 from ctsplat.utils import CtsplatError
 
 

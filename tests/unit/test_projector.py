@@ -12,6 +12,7 @@ import pytest
 import torch
 from skimage.transform import radon
 
+from ctsplat.formats.viewset import load_radiographs
 from ctsplat.formats.volume import Volume, load_volume, save_volume
 from ctsplat.geometry import ConeCamera, ParallelCamera, camera_rays, pose_from_angles
 from ctsplat.phantom import Ellipsoid, rasterize, shepp_logan_ellipsoids
@@ -20,7 +21,6 @@ from ctsplat.projector import (
     add_noise,
     clip_rays_to_box,
     line_integrals,
-    load_radiographs,
     render_radiographs,
 )
 from ctsplat.utils import CtsplatError

@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 
 from ctsplat.cli import main
+from ctsplat.formats.viewset import load_radiographs
 from ctsplat.formats.volume import Volume, save_volume
-from ctsplat.projector import load_radiographs
 
 
 def test_project_and_baseline_commands(tmp_path, capsys):

@@ -4,21 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from orbit_helpers import design_orbit
 from scipy.spatial.transform import Rotation
 
-from ctsplat.geometry import ConeCamera, project_points
-from ctsplat.sfm import (
-    SFM_DEFAULTS,
-    design_orbit,
-    enhance_for_features,
-    evaluate_poses,
-    robust_sim3,
-    rotation_error_deg,
-    summarize,
-    support_radius_mm,
-    umeyama,
-    write_points_ply,
-)
+from ctsplat.geometry import ConeCamera, project_points, support_radius_mm
+from ctsplat.sfm.align import evaluate_poses, robust_sim3, rotation_error_deg, umeyama
+from ctsplat.sfm.colmap import write_points_ply
+from ctsplat.sfm.features import enhance_for_features
+from ctsplat.sfm.step import SFM_DEFAULTS, summarize
 from ctsplat.utils import CtsplatError, merge_config
 
 
@@ -204,7 +197,7 @@ def test_unknown_config_key_is_rejected() -> None:
 
 
 def test_orbit_basis_shapes_and_span() -> None:
-    from ctsplat.sfm import orbit_basis
+    from ctsplat.sfm.align import orbit_basis
 
     az = np.arange(36) * 10.0
     B = orbit_basis(az, 3, True)
@@ -219,7 +212,7 @@ def test_fuse_with_design_keeps_view_to_view_detail_and_drops_the_smooth_bend() 
     Fusing takes the bend (and the frame) from the design and the per-view jitter from SfM."""
     from scipy.spatial.transform import Rotation
 
-    from ctsplat.sfm import fuse_with_design
+    from ctsplat.sfm.align import fuse_with_design
 
     V = 120
     design = design_orbit(V, 360.0, 15.0, 2.0, 500.0)

@@ -1,4 +1,4 @@
-"""End-to-end SfM with a real (tiny) pycolmap run on cone-beam views of a bead volume, and the failure path."""
+"""End-to-end SfM with a real (tiny) pycolmap run on a C-arm view set of a bead volume, and the failure path."""
 
 from __future__ import annotations
 
@@ -11,9 +11,12 @@ import pytest
 
 pycolmap = pytest.importorskip("pycolmap")
 
+from orbit_helpers import design_orbit  # noqa: E402
+
 from ctsplat.formats.viewset import ViewSet  # noqa: E402
 from ctsplat.formats.volume import Volume, save_volume  # noqa: E402
-from ctsplat.sfm import SFM_DEFAULTS, design_orbit, run_sfm  # noqa: E402
+from ctsplat.projector import render_radiographs  # noqa: E402
+from ctsplat.sfm.step import SFM_DEFAULTS, run_sfm  # noqa: E402
 from ctsplat.utils import CtsplatError  # noqa: E402
 
 N, SP = 40, 4.0  # 40^3 voxels of 4 mm
@@ -40,17 +43,24 @@ def _bead_volume(path: Path, n_beads: int = 70, seed: int = 0) -> np.ndarray:
     return centres
 
 
-CFG = {"n_views": 36, "arc_deg": 120.0, "detector_px": 112, "dso_mm": 300.0, "dsd_mm": 600.0,
-       "pose_prior": "none", "highpass_frac": 0.03, "lowpass_px": 1.0, "percentile_low": 0.5,
+ORBIT = {"camera": "cone", "orbit": "carm", "n_views": 36, "arc_deg": 120.0, "wobble_deg": 15.0,
+         "detector_width": 112, "detector_height": 112, "dso_mm": 300.0, "dsd_mm": 600.0}
+CFG = {"pose_prior": "none", "highpass_frac": 0.03, "lowpass_px": 1.0, "percentile_low": 0.5,
        "percentile_high": 99.5, "background_frac": 0.0, "silhouette_margin_frac": 0.0, "num_threads": 1,
        "max_median_rotation_error_deg": 10.0}
+
+
+def _carm(volume: Path, out: Path, **over: object) -> Path:
+    """The C-arm view set SfM reads, rendered by the projector as the workflow's `project` rule does."""
+    render_radiographs(volume, out, {**ORBIT, **over}, seed=0)
+    return out
 
 
 @pytest.fixture(scope="module")
 def bead_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, np.ndarray]:
     d = tmp_path_factory.mktemp("sfm_beads")
     centres = _bead_volume(d / "volume.nii.gz")
-    summary = run_sfm(d / "volume.nii.gz", d / "out", CFG, seed=0)
+    summary = run_sfm(_carm(d / "volume.nii.gz", d / "carm"), d / "out", CFG, seed=0)
     return d / "out", summary, centres
 
 
@@ -66,7 +76,8 @@ def test_bead_views_register_in_one_model_with_accurate_poses(bead_run) -> None:
     assert s["ok"] is True
     on_disk = json.loads((out / "summary.json").read_text())
     assert on_disk["registration_rate"] == pytest.approx(s["registration_rate"])
-    assert on_disk["config"]["n_views"] == CFG["n_views"] and "code_version" in on_disk
+    assert on_disk["n_views"] == ORBIT["n_views"] and "code_version" in on_disk
+    assert on_disk["config"]["pose_prior"] == CFG["pose_prior"]
 
 
 def test_colmap_export_is_readable_and_keeps_the_known_intrinsics(bead_run) -> None:
@@ -82,30 +93,32 @@ def test_colmap_export_is_readable_and_keeps_the_known_intrinsics(bead_run) -> N
     c = s["camera"]
     assert cam.model.name == "PINHOLE"
     np.testing.assert_allclose(cam.params, [c["fx"], c["fy"], c["cx"], c["cy"]], rtol=1e-9)
-    assert c["fx"] == pytest.approx(CFG["dsd_mm"] / c["pitch_mm"])  # fx = DSD / pitch
-    assert c["cx"] == CFG["detector_px"] / 2
+    assert c["fx"] == pytest.approx(ORBIT["dsd_mm"] / c["pitch_mm"])  # fx = DSD / pitch
+    assert c["cx"] == ORBIT["detector_width"] / 2
 
 
 def test_poses_csv_and_aligned_views_agree(bead_run) -> None:
     out, s, _ = bead_run
     df = pd.read_csv(out / "poses.csv")
-    assert len(df) == CFG["n_views"]
+    assert len(df) == ORBIT["n_views"]
     assert int(df["registered"].sum()) == s["n_registered"]
     assert df.loc[df.registered, "rot_err_deg"].notna().all()
     assert df.loc[~df.registered, "rot_err_deg"].isna().all()
     assert df["rot_err_deg"].median() == pytest.approx(s["rot_err_deg_median"])
     vs = ViewSet.load(out / "aligned_views.json")
-    assert s["n_plausible"] >= 0.9 * CFG["n_views"]  # recovered axes point at the object
-    assert sorted(v.id for v in vs.views) == sorted(df.loc[df.registered & df.plausible, "view"].tolist())
-    orbit = design_orbit(CFG["n_views"], CFG["arc_deg"], SFM_DEFAULTS["wobble_deg"], SFM_DEFAULTS["wobble_cycles"],
-                         CFG["dso_mm"], vs.isocenter_mm)
+    assert s["n_plausible"] >= 0.9 * ORBIT["n_views"]  # recovered axes point at the object
+    assert sorted(v.id for v in vs.views) == sorted(df.loc[df.registered & df.plausible, "view_id"].tolist())
+    orbit = design_orbit(ORBIT["n_views"], ORBIT["arc_deg"], ORBIT["wobble_deg"], 2.0, ORBIT["dso_mm"],
+                         vs.isocenter_mm)
     registered = df.loc[df.registered]
     errs = [np.linalg.norm(v.center_mm - orbit["centres"][v.id]) for v in vs.views]
-    np.testing.assert_allclose(errs, registered.set_index("view").loc[[v.id for v in vs.views], "centre_err_mm"],
+    np.testing.assert_allclose(errs, registered.set_index("view_id").loc[[v.id for v in vs.views], "centre_err_mm"],
                                rtol=1e-6)
-    true = ViewSet.load(out / "true_views.json")  # jitter 0: the true poses are the designed ones
-    assert len(true) == CFG["n_views"]
-    np.testing.assert_allclose(true.Rs(), orbit["Rs"], atol=1e-12)
+    # the recovered views keep the ids and designed poses of the C-arm view set (jitter 0: design = truth)
+    carm = ViewSet.load(out.parent / "carm" / "views.json")
+    assert len(carm) == ORBIT["n_views"] and carm.has_design()
+    np.testing.assert_allclose(carm.Rs(), orbit["Rs"], atol=1e-12)
+    np.testing.assert_allclose(vs.design_Rs(), carm.design_Rs()[[v.id for v in vs.views]], atol=1e-12)
 
 
 def test_aligned_points_are_in_world_mm_inside_the_volume(bead_run) -> None:
@@ -124,7 +137,8 @@ def test_featureless_volume_records_failure_without_crashing(tmp_path: Path) -> 
     empty = np.zeros((N, N, N), np.float32)  # nothing to see: no features, no registration
     save_volume(Volume(empty, aff, {"volume_id": "empty", "intensity": {"mu_scale_per_mm": 0.02}}),
                 tmp_path / "empty.nii.gz")
-    s = run_sfm(tmp_path / "empty.nii.gz", tmp_path / "out", {**CFG, "n_views": 8, "detector_px": 64})
+    rad = _carm(tmp_path / "empty.nii.gz", tmp_path / "carm", n_views=8, detector_width=64, detector_height=64)
+    s = run_sfm(rad, tmp_path / "out", CFG)
     assert s["ok"] is False
     assert s["registration_rate"] < SFM_DEFAULTS["min_registration_rate"]
     assert "registration rate" in s["reason"]
@@ -137,12 +151,19 @@ def test_featureless_volume_records_failure_without_crashing(tmp_path: Path) -> 
 
 def test_bad_config_fails_fast_and_writes_nothing(tmp_path: Path) -> None:
     aff, _ = _grid()
-    save_volume(Volume(np.zeros((N, N, N), np.float32), aff, {}), tmp_path / "v.nii.gz")
+    save_volume(Volume(np.full((N, N, N), 0.1, np.float32), aff, {}), tmp_path / "v.nii.gz")
+    rad = _carm(tmp_path / "v.nii.gz", tmp_path / "carm", n_views=4, detector_width=16, detector_height=16)
     for bad, msg in (({"matching": "vocab"}, "sfm.matching"), ({"mapper": "hier"}, "sfm.mapper"),
-                     ({"dsd_mm": 100.0, "dso_mm": 300.0}, "dsd_mm"), ({"nviews": 3}, "sfm.nviews")):
+                     ({"n_views": 3}, "sfm.n_views"), ({"naive_slices": True}, "naive_slices needs the volume")):
         with pytest.raises(CtsplatError, match=msg):
-            run_sfm(tmp_path / "v.nii.gz", tmp_path / "out", bad)
-    assert not (tmp_path / "out").exists()
+            run_sfm(rad, tmp_path / "out", bad)
+    with pytest.raises(CtsplatError, match="dsd_mm"):  # the orbit's geometry is checked where it is rendered
+        render_radiographs(tmp_path / "v.nii.gz", tmp_path / "bad", {**ORBIT, "dsd_mm": 100.0})
+    circular = tmp_path / "circular"
+    render_radiographs(tmp_path / "v.nii.gz", circular, {"n_views": 4, "detector_width": 16, "detector_height": 16})
+    with pytest.raises(CtsplatError, match="cone-beam view set"):
+        run_sfm(circular, tmp_path / "out", {})
+    assert not (tmp_path / "out").exists() and not (tmp_path / "bad").exists()
 
 
 def test_cli_sfm_help_and_bad_set(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -152,7 +173,7 @@ def test_cli_sfm_help_and_bad_set(tmp_path: Path, capsys: pytest.CaptureFixture[
         main(["sfm", "--help"])
     assert exc.value.code == 0
     assert "aligned_views.json" in capsys.readouterr().out
-    assert main(["sfm", str(tmp_path / "missing.nii.gz"), str(tmp_path / "o")]) == 2
+    assert main(["sfm", str(tmp_path / "missing"), str(tmp_path / "o")]) == 2
     assert "does not exist" in capsys.readouterr().err
 
 
@@ -169,7 +190,7 @@ def _model(names: list[str], Rs: np.ndarray, ts: np.ndarray):  # noqa: ANN202 - 
 def test_merge_models_maps_a_partial_model_into_the_largest_frame() -> None:
     from scipy.spatial.transform import Rotation
 
-    from ctsplat.sfm import merge_models
+    from ctsplat.sfm.colmap import merge_models
 
     orb = design_orbit(15, 360.0, 10.0, 2.0, 400.0)
     names = [f"view_{i:04d}.png" for i in range(15)]

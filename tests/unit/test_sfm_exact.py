@@ -14,10 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from orbit_helpers import design_orbit
 
 from ctsplat.geometry import ConeCamera, project_points
 from ctsplat.projector import line_integrals
-from ctsplat.sfm import SFM_DEFAULTS, design_orbit, enhance_for_features, evaluate_poses, write_pngs
+from ctsplat.sfm.align import evaluate_poses
+from ctsplat.sfm.features import enhance_for_features, write_pngs
+from ctsplat.sfm.step import SFM_DEFAULTS
 from ctsplat.utils import merge_config
 
 
@@ -67,7 +70,7 @@ def _exact_database(work: Path, cam: ConeCamera, Rs: np.ndarray, ts: np.ndarray,
     true correspondences, geometrically verified by COLMAP itself (as after feature matching)."""
     import pycolmap
 
-    from ctsplat.sfm import _options
+    from ctsplat.sfm.colmap import _options
 
     names = write_pngs(np.zeros((len(Rs), cam.height, cam.width), np.uint8), work / "images")
     db_path = work / "database.db"
@@ -101,7 +104,7 @@ def _exact_database(work: Path, cam: ConeCamera, Rs: np.ndarray, ts: np.ndarray,
 @pytest.mark.parametrize("mapper", ["incremental", "global"])
 def test_exact_correspondences_give_exact_poses_through_the_colmap_path(tmp_path: Path, mapper: str) -> None:
     pytest.importorskip("pycolmap")
-    from ctsplat.sfm import colmap_map, merge_models
+    from ctsplat.sfm.colmap import colmap_map, merge_models
 
     cfg = merge_config("sfm", {"mapper": mapper}, SFM_DEFAULTS)
     iso = np.array([4.0, -7.0, 10.0])
@@ -127,7 +130,7 @@ def test_refine_from_a_jittered_design_recovers_the_true_orbit(tmp_path: Path, m
     (with the designed centres as priors of sigma 5 mm; then with every camera a rotation about the isocentre):
     consistent image data pull the poses onto the truth."""
     pytest.importorskip("pycolmap")
-    from ctsplat.sfm import colmap_map, merge_models
+    from ctsplat.sfm.colmap import colmap_map, merge_models
 
     cfg = merge_config("sfm", {"pose_prior": mode, "prior_sigma_mm": 5.0}, SFM_DEFAULTS)
     design = design_orbit(16, 120.0, 15.0, 2.0, 300.0)

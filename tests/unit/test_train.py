@@ -1,5 +1,5 @@
-"""Training on a tiny scene: outputs and log format, determinism, resume after a kill, NaN guard, densification,
-view sampling, init strategies, poses: colmap, and bad input."""
+"""Training on a tiny scene: outputs and log format, evaluation, determinism, resume after a kill, NaN guard,
+densification, view sampling, init strategies, poses: colmap (C-arm view set), and bad input."""
 
 from __future__ import annotations
 
@@ -16,7 +16,10 @@ import numpy as np
 import pytest
 import torch
 
-from ctsplat import train as tr
+from ctsplat import scene as sc
+from ctsplat.evaluation import evaluate
+from ctsplat.training import checkpoint, config, loop, seeding, state
+from ctsplat.training.densify import GradientDensify
 from ctsplat.utils import CtsplatError
 
 N = 20  # voxels per side
@@ -69,7 +72,10 @@ def _metric_rows(path: Path) -> list[tuple]:
 @pytest.fixture(scope="module")
 def full_run(scene_dir: Path, tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("run_full")
-    res = tr.train(_cfg(scene_dir, figures=True, turntable_frames=4), out)
+    trained = loop.train(_cfg(scene_dir, figures=True, turntable_frames=4), out)
+    assert not (out / "metrics.json").exists()  # training writes the model; evaluation the metrics
+    res = evaluate(out, device="cpu")
+    assert res["wall_time_s"] == trained["wall_time_s"] and res["iterations"] == trained["iterations"] == 30
     return out, res
 
 
@@ -88,7 +94,9 @@ def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
     assert float(rows[-1]["psnr2d"]) > float(rows[0]["psnr2d"])
     pv = list(csv.DictReader(open(out / "per_view.csv", newline="")))
     assert list(pv[0]) == ["iteration", "view_id", "azimuth_deg", "elevation_deg", "split", "psnr2d", "ssim2d"]
-    assert {r["split"] for r in pv} == {"val", "test"}
+    assert {r["split"] for r in pv} == {"val"}
+    pt = list(csv.DictReader(open(out / "per_view_test.csv", newline="")))
+    assert list(pt[0]) == list(pv[0]) and {r["split"] for r in pt} == {"test"} and len(pt) == res["n_views"]
     m = json.loads((out / "metrics.json").read_text())
     for key in ("psnr2d", "ssim2d", "lpips", "lpips_reason", "psnr3d", "ssim3d", "wall_time_s", "iters_per_s",
                 "time_to_psnr2d_30_s", "time_to_ssim2d_090_s", "fps_forward", "peak_memory_mb", "n_gaussians",
@@ -100,12 +108,12 @@ def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
         assert m["lpips_reason"]
     assert m["model_size_bytes"] == os.path.getsize(out / "model.pt")
     for name in ("model.pt", "model.ply", "model_volume.nii.gz", "gallery.png", "slices.png", "turntable.gif",
-                 "config.json"):
+                 "config.json", "training.json"):
         assert (out / name).stat().st_size > 0, name
     # test metrics recomputed independently from the written files
+    from ctsplat.evaluation.metrics import psnr3d
     from ctsplat.formats.volume import load_volume
     from ctsplat.gaussians import Gaussians
-    from ctsplat.metrics import psnr3d
 
     g = Gaussians.load(out / "model.pt")
     assert len(g) == m["n_gaussians"]
@@ -116,27 +124,27 @@ def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
     import imageio.v3 as iio
 
     assert iio.imread(out / "turntable.gif").shape[0] == 4
-    # evaluate() reproduces the final test metrics from model.pt
-    from ctsplat.evaluate import evaluate
-
-    e = evaluate(out, device="cpu")
-    assert e["psnr2d"] == pytest.approx(m["psnr2d"], abs=1e-6)
-    assert e["psnr3d"] == pytest.approx(m["psnr3d"], abs=1e-6)
-    assert (out / "eval_test.json").exists()
+    # evaluation is deterministic, and the validation split goes to its own file
+    e = evaluate(out, device="cpu", write=False)
+    assert e["psnr2d"] == m["psnr2d"] and e["psnr3d"] == m["psnr3d"]
+    v = evaluate(out, split="val", device="cpu")
+    assert v["split"] == "val" and json.loads((out / "metrics_val.json").read_text())["psnr2d"] == v["psnr2d"]
+    assert json.loads((out / "metrics.json").read_text())["split"] == "test"
 
 
 def test_deterministic_and_resume_after_kill(full_run, scene_dir: Path, tmp_path: Path) -> None:
     ref_out, ref_res = full_run
     # same config + seed -> same CSV values (the figures flag does not touch training)
     again = tmp_path / "again"
-    res2 = tr.train(_cfg(scene_dir), again)
+    loop.train(_cfg(scene_dir), again)
     assert _metric_rows(again / "train_log.csv") == _metric_rows(ref_out / "train_log.csv")
+    res2 = evaluate(again, device="cpu", write=False)
     assert res2["psnr3d"] == ref_res["psnr3d"]
     # kill a run (SIGKILL) right after the checkpoint at iteration 20, then resume
     killed = tmp_path / "killed"
     code = (
         "import os, signal, json, sys\n"
-        "from ctsplat.train import train\n"
+        "from ctsplat.training import train\n"
         "cfg = json.loads(sys.argv[1])\n"
         "def cb(it, state):\n"
         "    if it == 20: os.kill(os.getpid(), signal.SIGKILL)\n"
@@ -148,69 +156,76 @@ def test_deterministic_and_resume_after_kill(full_run, scene_dir: Path, tmp_path
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == -9, proc.stderr
     assert not (killed / "metrics.json").exists()
-    assert tr.latest_checkpoint(killed).name == "ckpt_00000020.pt"
-    res3 = tr.train(cfg, killed, resume=True)
+    assert checkpoint.latest_checkpoint(killed).name == "ckpt_00000020.pt"
+    loop.train(cfg, killed, resume=True)
+    res3 = evaluate(killed, device="cpu", write=False)
     assert _metric_rows(killed / "train_log.csv") == _metric_rows(again / "train_log.csv")
     assert res3["psnr3d"] == res2["psnr3d"] and res3["psnr2d"] == res2["psnr2d"]
     assert res3["n_gaussians"] == res2["n_gaussians"]
     # resuming with a different config is refused
     with pytest.raises(CtsplatError, match="different config"):
-        tr.train({**cfg, "lambda_ssim": 0.3}, killed, resume=True)
+        loop.train({**cfg, "lambda_ssim": 0.3}, killed, resume=True)
 
 
 # ------------------------------------------------------------------------------------------ NaN guard
 def test_nan_guard_rolls_back_and_lowers_lr(scene_dir: Path, tmp_path: Path) -> None:
-    def poison_once(it: int, state: tr.TrainState) -> None:
+    def poison_once(it: int, state: state.TrainState) -> None:
         if it == 5:
             with torch.no_grad():
                 state.params["means"][0, 0] = float("nan")
 
-    res = tr.train(_cfg(scene_dir, iterations=12, eval_every=12), tmp_path / "a", callback=poison_once)
+    res = loop.train(_cfg(scene_dir, iterations=12, eval_every=12), tmp_path / "a", callback=poison_once)
     assert res["nan_events"] == 1
-    assert math.isfinite(res["psnr3d"])
+    assert math.isfinite(evaluate(tmp_path / "a", device="cpu", write=False)["psnr3d"])
     rows = list(csv.DictReader(open(tmp_path / "a" / "train_log.csv", newline="")))
     assert int(rows[-1]["nan_events"]) == 1
-    base = _cfg(scene_dir)["lr"] if "lr" in _cfg(scene_dir) else tr.TRAIN_DEFAULTS["lr"]
+    base = _cfg(scene_dir)["lr"] if "lr" in _cfg(scene_dir) else config.TRAIN_DEFAULTS["lr"]
     # learning rate halved relative to the schedule: lr_means at 12 < schedule value / 1.9
     voxel = 2.0
-    sched = base["means"] * voxel * tr._cosine(11, 12, tr.TRAIN_DEFAULTS["lr_final_factor"])
+    sched = base["means"] * voxel * state.cosine_factor(11, 12, config.TRAIN_DEFAULTS["lr_final_factor"])
     assert float(rows[-1]["lr_means"]) == pytest.approx(0.5 * sched, rel=1e-6)
 
-    def poison_always(it: int, state: tr.TrainState) -> None:
+    def poison_always(it: int, state: state.TrainState) -> None:
         with torch.no_grad():
             state.params["density_raw"][:] = float("inf")
 
     with pytest.raises(CtsplatError, match="3 non-finite steps in a row"):
-        tr.train(_cfg(scene_dir, iterations=12), tmp_path / "b", callback=poison_always)
+        loop.train(_cfg(scene_dir, iterations=12), tmp_path / "b", callback=poison_always)
 
 
 # ------------------------------------------------------------------------------------------ densification
-def _state_from(means, scales, dens, cfg) -> tr.TrainState:
-    from ctsplat.seeding import Seed
+def _densify(st, cfg, scene, gen):  # noqa: ANN001, ANN202
+    """One densify-and-prune step of the run's strategy."""
+    return GradientDensify(cfg["densify"], compositor=cfg["compositor"], iterations=cfg["iterations"]).step(
+        st, scene.volume, gen)
+
+
+def _state_from(means, scales, dens, cfg) -> state.TrainState:
+    from ctsplat.training.seeding import Seed
 
     seed = Seed(np.asarray(means, np.float32), np.asarray(scales, np.float32), np.asarray(dens, np.float32),
                 False, "test")
-    params = tr.init_params(seed, cfg, torch.device("cpu"))
-    opt = tr._make_optimizer(params, cfg, 2.0)
+    params = state.init_params(seed, cfg, torch.device("cpu"))
+    opt = state.make_optimizer(params, cfg, 2.0)
     n = len(seed)
-    return tr.TrainState(params=params, opt=opt, grad_accum=torch.zeros(n), grad_count=torch.ones(n))
+    return state.TrainState(params=params, opt=opt, grad_accum=torch.zeros(n), grad_count=torch.ones(n))
 
 
 def test_densify_clone_split_prune_and_cap(scene_dir: Path) -> None:
-    cfg = tr.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "clone_max_scale_voxels": 1.5,
+    cfg = config.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "clone_max_scale_voxels": 1.5,
                                                      "prune_density": 1e-3, "max_gaussians": 100}))
-    scene = tr.load_scene(cfg)
+    scene = sc.load_scene(cfg)
     means = [[0, 0, 0], [5, 0, 0], [-5, 3, 0], [0, 0, 4], [200, 0, 0]]
     scales = [[1, 1, 1], [6, 4, 4], [1, 2, 1], [1, 1, 1], [1, 1, 1]]
     dens = [0.8, 0.6, 0.5, 1e-4, 0.7]
     st = _state_from(means, scales, dens, cfg)
     st.grad_accum = torch.tensor([2.0, 3.0, 0.5, 0.1, 0.1])  # 0 cloned (small), 1 split (large)
     gen = torch.Generator().manual_seed(0)
-    counts = tr.densify_and_prune(st, cfg, scene, gen)
+    counts = _densify(st, cfg, scene, gen)
     assert counts["cloned"] == 1 and counts["split"] == 1
     # pruned: the low-density one (3) and the out-of-volume one (4)
     assert counts["pruned"] == 2
-    g = tr.as_gaussians({k: v.detach() for k, v in st.params.items()})
+    g = state.as_gaussians({k: v.detach() for k, v in st.params.items()})
     m = g.means.numpy()
     d = g.densities.numpy()
     s = g.scales.numpy()
@@ -235,46 +250,46 @@ def test_densify_clone_split_prune_and_cap(scene_dir: Path) -> None:
     assert all(g_["params"][0] is st.params[g_["name"]] for g_ in st.opt.param_groups)
 
     # the literal "halve" rule for splits
-    cfg_h = tr.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "split_mass": "halve"}))
+    cfg_h = config.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "split_mass": "halve"}))
     st_h = _state_from(means[1:2], scales[1:2], dens[1:2], cfg_h)
     st_h.grad_accum = torch.tensor([3.0])
-    tr.densify_and_prune(st_h, cfg_h, scene, gen)
+    _densify(st_h, cfg_h, scene, gen)
     assert np.allclose(torch.nn.functional.softplus(st_h.params["density_raw"]).detach().numpy(), 0.3, rtol=1e-5)
 
     # cap: only the highest-gradient candidate may grow when one slot is left
-    cfg2 = tr.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "max_gaussians": 4}))
+    cfg2 = config.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "max_gaussians": 4}))
     st2 = _state_from(means[:3], scales[:3], dens[:3], cfg2)
     st2.grad_accum = torch.tensor([2.0, 3.0, 1.5])
-    c2 = tr.densify_and_prune(st2, cfg2, scene, gen)
+    c2 = _densify(st2, cfg2, scene, gen)
     assert c2["cloned"] + c2["split"] == 1 and c2["split"] == 1 and c2["n"] == 4
 
 
 def test_alpha_mode_split_keeps_density(scene_dir: Path) -> None:
-    cfg = tr.resolve_config(_cfg(scene_dir, compositor="alpha", densify={"grad_threshold": 1.0}))
-    scene = tr.load_scene(cfg)
+    cfg = config.resolve_config(_cfg(scene_dir, compositor="alpha", densify={"grad_threshold": 1.0}))
+    scene = sc.load_scene(cfg)
     st = _state_from([[0, 0, 0]], [[1, 1, 1]], [0.8], cfg)
     st.grad_accum = torch.tensor([5.0])
-    tr.densify_and_prune(st, cfg, scene, torch.Generator().manual_seed(0))
+    _densify(st, cfg, scene, torch.Generator().manual_seed(0))
     d = torch.nn.functional.softplus(st.params["density_raw"]).detach().numpy()
     assert d.shape == (2,) and np.allclose(d, 0.8, rtol=1e-5)
 
 
 def test_view_sampler_is_stratified() -> None:
     az = np.arange(12) * 30.0
-    s = tr.ViewSampler(az, np.zeros(12), batch=3)
+    s = state.ViewSampler(az, np.zeros(12), batch=3)
     rng = np.random.default_rng(0)
     epoch = s.refill(rng)
     assert sorted(v for b in epoch for v in b) == list(range(12))
     for b in epoch:  # one view from each 120-degree sector
         assert sorted(az[i] // 120 for i in b) == [0, 1, 2]
-    one = tr.ViewSampler(az, np.zeros(12), batch=1).refill(rng)
+    one = state.ViewSampler(az, np.zeros(12), batch=1).refill(rng)
     assert sorted(b[0] for b in one) == list(range(12))
 
 
 def test_cosine_schedule() -> None:
-    assert tr._cosine(0, 100, 0.1) == pytest.approx(1.0)
-    assert tr._cosine(50, 100, 0.1) == pytest.approx(0.55)
-    assert tr._cosine(100, 100, 0.1) == pytest.approx(0.1)
+    assert state.cosine_factor(0, 100, 0.1) == pytest.approx(1.0)
+    assert state.cosine_factor(50, 100, 0.1) == pytest.approx(0.55)
+    assert state.cosine_factor(100, 100, 0.1) == pytest.approx(0.1)
 
 
 # ------------------------------------------------------------------------------------------ variants
@@ -283,9 +298,9 @@ def test_cosine_schedule() -> None:
     {"init": "uniform", "compositor": "alpha", "mip": True, "lambda_tv": 0.1, "tv_size": 6},
 ])
 def test_variants_run_and_learn(scene_dir: Path, tmp_path: Path, kw: dict) -> None:
-    res = tr.train(_cfg(scene_dir, iterations=20, **kw), tmp_path / "v")
+    loop.train(_cfg(scene_dir, iterations=20, **kw), tmp_path / "v")
     rows = list(csv.DictReader(open(tmp_path / "v" / "train_log.csv", newline="")))
-    assert res["uses_reference_volume"] is False
+    assert json.loads((tmp_path / "v" / "config.json").read_text())["uses_reference_volume"] is False
     assert all(math.isfinite(float(r["loss"])) for r in rows)
     assert float(rows[-1]["loss"]) < float(rows[0]["loss"]) * 1.5
     if kw.get("lambda_tv"):
@@ -294,20 +309,21 @@ def test_variants_run_and_learn(scene_dir: Path, tmp_path: Path, kw: dict) -> No
 
 def test_fbp_init_uses_training_projections_only(scene_dir: Path, tmp_path: Path) -> None:
     pytest.importorskip("ctsplat.baselines")
-    cfg = tr.resolve_config(_cfg(scene_dir, init="fbp"))
-    scene = tr.load_scene(cfg)
+    cfg = config.resolve_config(_cfg(scene_dir, init="fbp"))
+    scene = sc.load_scene(cfg)
     # the reference voxel values are not read: zero them and the seed is unchanged
     rng_a, rng_b = np.random.default_rng(0), np.random.default_rng(0)
-    a = tr.make_seed(cfg, scene, rng_a)
+    a = seeding.make_seed(cfg, scene, rng_a)
     scene.volume.data = np.zeros_like(scene.volume.data)
-    b = tr.make_seed(cfg, scene, rng_b)
+    b = seeding.make_seed(cfg, scene, rng_b)
     assert not a.uses_reference_volume
     assert np.array_equal(a.means, b.means) and np.array_equal(a.densities, b.densities)
     assert np.allclose(a.scales, 1.5 * 2.0)  # default fbp seed scale: 1.5 voxels of 2 mm
-    cfg_v = tr.resolve_config(_cfg(scene_dir, init="volume"))
-    v = tr.make_seed(cfg_v, tr.load_scene(cfg_v), np.random.default_rng(0))
+    cfg_v = config.resolve_config(_cfg(scene_dir, init="volume"))
+    v = seeding.make_seed(cfg_v, sc.load_scene(cfg_v), np.random.default_rng(0))
     assert v.uses_reference_volume and np.allclose(v.scales, 0.75 * 2.0)  # the method's 0.75 voxel
-    res = tr.train(_cfg(scene_dir, init="fbp", iterations=10), tmp_path / "f")
+    loop.train(_cfg(scene_dir, init="fbp", iterations=10), tmp_path / "f")
+    res = evaluate(tmp_path / "f", device="cpu", write=False)
     assert res["init"] == "fbp" and res["uses_reference_volume"] is False
 
 
@@ -318,15 +334,15 @@ def test_fbp_init_on_cone_beam_uses_sirt(scene_dir: Path, tmp_path: Path) -> Non
     render_radiographs(scene_dir / "volume.nii.gz", tmp_path / "cone",
                        {"camera": "cone", "dso_mm": 120.0, "dsd_mm": 240.0, "detector_width": 32,
                         "detector_height": 32, "n_views": 16, "device": "cpu"})
-    cfg = tr.resolve_config(_cfg(scene_dir, init="fbp", radiographs=str(tmp_path / "cone")))
-    scene = tr.load_scene(cfg)
+    cfg = config.resolve_config(_cfg(scene_dir, init="fbp", radiographs=str(tmp_path / "cone")))
+    scene = sc.load_scene(cfg)
     truth = scene.volume.data.copy()
-    recon, method = tr.fbp_reconstruction(scene)
+    recon, method = seeding.fbp_reconstruction(scene)
     assert method == "sirt" and recon.shape == truth.shape
     # the reconstruction is the phantom (correlated with it), not the reference voxels read back
     assert np.corrcoef(recon.ravel(), truth.ravel())[0, 1] > 0.8
     scene.volume.data = np.zeros_like(truth)
-    seed = tr.make_seed(cfg, scene, np.random.default_rng(0))
+    seed = seeding.make_seed(cfg, scene, np.random.default_rng(0))
     assert seed.strategy == "fbp (sirt)" and not seed.uses_reference_volume
     ijk = np.rint((seed.means - scene.volume.affine[:3, 3]) / 2.0).astype(int).clip(0, N - 1)
     inside = truth[tuple(ijk.T)] > 0
@@ -334,7 +350,7 @@ def test_fbp_init_on_cone_beam_uses_sirt(scene_dir: Path, tmp_path: Path) -> Non
 
 
 def test_sfm_init_reads_points(scene_dir: Path, tmp_path: Path) -> None:
-    from ctsplat.seeding import read_ply_points
+    from ctsplat.training.seeding import read_ply_points
 
     sfm = tmp_path / "sfm"
     sfm.mkdir()
@@ -343,86 +359,102 @@ def test_sfm_init_reads_points(scene_dir: Path, tmp_path: Path) -> None:
            "property float z\nend_header\n"
     (sfm / "points3d.ply").write_bytes(head.encode() + pts.tobytes())
     assert np.allclose(read_ply_points(sfm / "points3d.ply"), pts)
-    cfg = tr.resolve_config(_cfg(scene_dir, init="sfm", sfm_dir=str(sfm), n_init=100))
-    seed = tr.make_seed(cfg, tr.load_scene(cfg), np.random.default_rng(0))
+    cfg = config.resolve_config(_cfg(scene_dir, init="sfm", sfm_dir=str(sfm), n_init=100))
+    seed = seeding.make_seed(cfg, sc.load_scene(cfg), np.random.default_rng(0))
     assert len(seed) == 100 and np.allclose(seed.means[:40], pts)
 
 
 # ------------------------------------------------------------------------------------------ poses: colmap
-def _fake_sfm(scene_dir: Path, sfm: Path, keep_ids: list[int], rate: float, ok: bool = True,
-              rad: Path | None = None) -> None:
-    """An sfm folder in the sfm step's layout: aligned_views.json (registered subset, perturbed poses),
-    summary.json, and views.json + line_integrals.tif with the true poses and targets (of ``rad``, default the
-    scene's parallel-beam radiographs)."""
-    import tifffile
+CARM = {"camera": "cone", "orbit": "carm", "n_views": 12, "dso_mm": 120.0, "dsd_mm": 240.0, "detector_width": 24,
+        "detector_height": 24, "wobble_deg": 10.0, "orbit_jitter_deg": 1.0, "device": "cpu"}
 
+
+@pytest.fixture(scope="module")
+def carm_dir(scene_dir: Path) -> Path:
+    """The C-arm view set, as the workflow's `project` rule renders it for SfM."""
+    from ctsplat.projector import render_radiographs
+
+    render_radiographs(scene_dir / "volume.nii.gz", scene_dir / "carm", CARM, seed=3)
+    return scene_dir / "carm"
+
+
+def _sfm_result(carm: Path, sfm: Path, keep_ids: list[int], rate: float, ok: bool = True) -> None:
+    """What the sfm step writes for its C-arm view set: aligned_views.json (the registered views, their recovered
+    poses — here the true ones shifted by 0.1 mm — and the same ids) and summary.json."""
     from ctsplat.formats.viewset import ViewSet
-    from ctsplat.projector import load_radiographs
 
     sfm.mkdir(parents=True, exist_ok=True)
-    images, vs = load_radiographs(rad or scene_dir / "rad")
-    train_rows = [i for i, v in enumerate(vs.views) if v.split == "train"]
-    true = ViewSet(vs.camera, [vs.views[i] for i in train_rows], vs.volume_id, vs.isocenter_mm, {})
-    true.save(sfm / "views.json")
-    tifffile.imwrite(sfm / "line_integrals.tif", images[train_rows])
-    aligned = ViewSet(vs.camera, [v for v in true.views if v.id in keep_ids], vs.volume_id, vs.isocenter_mm, {})
+    vs = ViewSet.load(carm / "views.json")
+    aligned = ViewSet(vs.camera, [v for v in vs.views if v.id in keep_ids], vs.volume_id, vs.isocenter_mm, {})
     for v in aligned.views:
         v.t = v.t + 0.1
     aligned.save(sfm / "aligned_views.json")
-    (sfm / "summary.json").write_text(json.dumps({"n_views": len(train_rows), "registration_rate": rate, "ok": ok,
-                                                  "reason": "" if ok else "too few"}))
+    (sfm / "summary.json").write_text(json.dumps({"n_views": len(vs), "registration_rate": rate, "ok": ok,
+                                                  "reason": "" if ok else "too few", "radiographs": str(carm)}))
 
 
-def test_colmap_poses_drop_unregistered(scene_dir: Path, tmp_path: Path) -> None:
+def test_colmap_poses_drop_unregistered(scene_dir: Path, carm_dir: Path, tmp_path: Path) -> None:
     keep = [0, 1, 2, 4, 5, 6, 7, 9, 10, 11]
-    _fake_sfm(scene_dir, tmp_path / "sfm", keep, rate=10 / 12)
-    cfg = tr.resolve_config(_cfg(scene_dir, poses="colmap", sfm_dir=str(tmp_path / "sfm")))
-    scene = tr.load_scene(cfg)
+    _sfm_result(carm_dir, tmp_path / "sfm", keep, rate=10 / 12)
+    cfg = config.resolve_config(_cfg(scene_dir, poses="colmap", sfm_dir=str(tmp_path / "sfm")))
+    scene = sc.load_scene(cfg)
     assert list(scene.train.ids) == keep
     assert scene.info["views_dropped_unregistered"] == 2
-    # the poses are the COLMAP ones (perturbed), the targets the true-pose images divided by mu_scale
-    from ctsplat.projector import load_radiographs
+    # the poses are the COLMAP ones (perturbed), the targets the C-arm view set's radiographs divided by mu_scale
+    from ctsplat.formats.viewset import load_radiographs
 
-    images, vs = load_radiographs(scene_dir / "rad")
-    by_id = {v.id: (i, v) for i, v in enumerate(vs.views)}
-    i4, v4 = by_id[4]
-    assert np.allclose(scene.train.ts[3], v4.t + 0.1)
-    assert np.allclose(scene.train.images[3], images[i4] / MU, rtol=1e-6)
-    res = tr.train(_cfg(scene_dir, poses="colmap", sfm_dir=str(tmp_path / "sfm"), iterations=10), tmp_path / "r")
-    assert res["views_dropped_unregistered"] == 2 and res["poses"] == "colmap"
+    images, vs = load_radiographs(carm_dir)
+    assert np.allclose(scene.train.ts[3], vs.views[4].t + 0.1)
+    assert np.allclose(scene.train.images[3], images[4] / MU, rtol=1e-6)
+    assert scene.train.camera.model == "cone" and scene.test.camera.model == "parallel"
+    res = loop.train(_cfg(scene_dir, poses="colmap", sfm_dir=str(tmp_path / "sfm"), iterations=10), tmp_path / "r")
+    assert res["n_train_views"] == 10
+    m = evaluate(tmp_path / "r", device="cpu", write=False)
+    assert m["views_dropped_unregistered"] == 2 and m["poses"] == "colmap"
 
 
-def test_colmap_cone_poses_train_with_fbp_init(scene_dir: Path, tmp_path: Path) -> None:
+def test_colmap_poses_honour_views(scene_dir: Path, carm_dir: Path, tmp_path: Path) -> None:
+    """`views` picks that many registered views, evenly along the orbit; more than were registered is an error."""
+    keep = [0, 1, 2, 4, 5, 6, 7, 9, 10, 11]
+    _sfm_result(carm_dir, tmp_path / "sfm", keep, rate=10 / 12)
+    cfg = config.resolve_config(_cfg(scene_dir, poses="colmap", views=5, sfm_dir=str(tmp_path / "sfm")))
+    assert list(sc.load_scene(cfg).train.ids) == [keep[i] for i in (0, 2, 4, 6, 8)]
+    cfg = config.resolve_config(_cfg(scene_dir, poses="colmap", views=11, sfm_dir=str(tmp_path / "sfm")))
+    with pytest.raises(CtsplatError, match="asks for 11 training views but SfM registered only 10 of the 12"):
+        sc.load_scene(cfg)
+    cfg = config.resolve_config(_cfg(scene_dir, views=99))
+    with pytest.raises(CtsplatError, match="asks for 99 training views but .* has only"):
+        sc.load_scene(cfg)
+
+
+def test_colmap_cone_poses_train_with_fbp_init(scene_dir: Path, carm_dir: Path, tmp_path: Path) -> None:
     # COLMAP poses are cone-beam views: init fbp then seeds from SIRT of those views (FBP needs parallel beams)
-    from ctsplat.projector import render_radiographs
-
-    render_radiographs(scene_dir / "volume.nii.gz", tmp_path / "cone",
-                       {"camera": "cone", "dso_mm": 120.0, "dsd_mm": 240.0, "detector_width": 24,
-                        "detector_height": 24, "n_views": 12, "device": "cpu"})
-    _fake_sfm(scene_dir, tmp_path / "sfm", list(range(12)), rate=1.0, rad=tmp_path / "cone")
-    res = tr.train(_cfg(scene_dir, poses="colmap", init="fbp", sfm_dir=str(tmp_path / "sfm"), iterations=10),
-                   tmp_path / "r")
+    _sfm_result(carm_dir, tmp_path / "sfm", list(range(12)), rate=1.0)
+    cfg = config.resolve_config(_cfg(scene_dir, poses="colmap", init="fbp", sfm_dir=str(tmp_path / "sfm")))
+    seed = seeding.make_seed(cfg, sc.load_scene(cfg), np.random.default_rng(0))
+    assert seed.strategy == "fbp (sirt)" and not seed.uses_reference_volume
+    loop.train(_cfg(scene_dir, poses="colmap", init="fbp", sfm_dir=str(tmp_path / "sfm"), iterations=10),
+               tmp_path / "r")
+    res = evaluate(tmp_path / "r", device="cpu", write=False)
     assert res["poses"] == "colmap" and res["init"] == "fbp" and res["uses_reference_volume"] is False
-    cfg = tr.resolve_config(_cfg(scene_dir, poses="colmap", init="fbp", sfm_dir=str(tmp_path / "sfm")))
-    assert tr.load_scene(cfg).train.camera.model == "cone"
 
 
-def test_colmap_poses_fail_on_low_registration(scene_dir: Path, tmp_path: Path) -> None:
-    _fake_sfm(scene_dir, tmp_path / "sfm", [0, 1, 2], rate=0.25, ok=False)
+def test_colmap_poses_fail_on_low_registration(scene_dir: Path, carm_dir: Path, tmp_path: Path) -> None:
+    _sfm_result(carm_dir, tmp_path / "sfm", [0, 1, 2], rate=0.25, ok=False)
     cfg = _cfg(scene_dir, poses="colmap", sfm_dir=str(tmp_path / "sfm"))
     with pytest.raises(CtsplatError, match=r"registered only 25% of 12 views"):
-        tr.train(cfg, tmp_path / "r")
-    assert not (tmp_path / "r" / "metrics.json").exists()
+        loop.train(cfg, tmp_path / "r")
+    assert not (tmp_path / "r" / "model.pt").exists()
 
 
 # ------------------------------------------------------------------------------------------ bad input
 def test_unknown_config_key_names_key_and_allowed(scene_dir: Path, tmp_path: Path) -> None:
     with pytest.raises(CtsplatError, match=r"train\.learning_rate.*allowed keys in train: .*batch_views"):
-        tr.train(_cfg(scene_dir, learning_rate=1.0), tmp_path / "r")
+        loop.train(_cfg(scene_dir, learning_rate=1.0), tmp_path / "r")
     with pytest.raises(CtsplatError, match=r"train\.densify\.intervall.*interval"):
-        tr.train(_cfg(scene_dir, densify={"intervall": 3}), tmp_path / "r")
+        loop.train(_cfg(scene_dir, densify={"intervall": 3}), tmp_path / "r")
     with pytest.raises(CtsplatError, match="unknown train.init 'random'; allowed: volume, uniform, fbp, sfm"):
-        tr.train(_cfg(scene_dir, init="random"), tmp_path / "r")
+        loop.train(_cfg(scene_dir, init="random"), tmp_path / "r")
     assert not (tmp_path / "r").exists() or not any((tmp_path / "r").iterdir())
 
 
@@ -430,14 +462,14 @@ def test_missing_and_mismatched_inputs(scene_dir: Path, tmp_path: Path) -> None:
     from ctsplat.formats.volume import Volume, load_volume, save_volume
 
     with pytest.raises(CtsplatError, match="does not exist"):
-        tr.train(_cfg(scene_dir, radiographs=str(tmp_path / "nope")), tmp_path / "r")
+        loop.train(_cfg(scene_dir, radiographs=str(tmp_path / "nope")), tmp_path / "r")
     with pytest.raises(CtsplatError, match="does not exist"):
-        tr.train(_cfg(scene_dir, volume=str(tmp_path / "nope.nii.gz")), tmp_path / "r")
+        loop.train(_cfg(scene_dir, volume=str(tmp_path / "nope.nii.gz")), tmp_path / "r")
     ref = load_volume(scene_dir / "volume.nii.gz")
     other = Volume(ref.data[:16, :16, :16].copy(), ref.affine, {**ref.meta, "volume_id": "other02"})
     save_volume(other, tmp_path / "other.nii.gz")
     with pytest.raises(CtsplatError, match="rendered from volume tiny01, but train.volume is other02"):
-        tr.train(_cfg(scene_dir, volume=str(tmp_path / "other.nii.gz")), tmp_path / "r")
+        loop.train(_cfg(scene_dir, volume=str(tmp_path / "other.nii.gz")), tmp_path / "r")
     assert not (tmp_path / "r" / "train_log.csv").exists()
 
 
@@ -450,21 +482,21 @@ def test_empty_train_split(scene_dir: Path, tmp_path: Path) -> None:
             v["split"] = "test"
     (rad / "views.json").write_text(json.dumps(d))
     with pytest.raises(CtsplatError, match="empty train split"):
-        tr.train(_cfg(scene_dir, radiographs=str(rad)), tmp_path / "r")
+        loop.train(_cfg(scene_dir, radiographs=str(rad)), tmp_path / "r")
 
 
 def test_unwritable_output_folder(scene_dir: Path, tmp_path: Path) -> None:
     blocker = tmp_path / "file"
     blocker.write_text("x")
     with pytest.raises(CtsplatError, match="not writable"):
-        tr.train(_cfg(scene_dir), blocker / "run")
+        loop.train(_cfg(scene_dir), blocker / "run")
     if os.geteuid() != 0:  # permissions do not stop root
         ro = tmp_path / "ro"
         ro.mkdir()
         ro.chmod(0o500)
         try:
             with pytest.raises(CtsplatError, match="not writable"):
-                tr.train(_cfg(scene_dir), ro)
+                loop.train(_cfg(scene_dir), ro)
         finally:
             ro.chmod(0o700)
 
@@ -491,42 +523,3 @@ def test_cli_train_and_evaluate(scene_dir: Path, tmp_path: Path, capsys) -> None
     rc = main(["train", "--config", str(tmp_path / "c.yaml"), "--out", str(tmp_path / "r2"), "--set", "bogus=1"])
     assert rc == 2
     assert "unknown config key train.bogus" in capsys.readouterr().err
-
-
-@pytest.mark.parametrize("mode", ["orbit", "true_views"])
-def test_colmap_targets_rerendered_at_true_poses(scene_dir: Path, tmp_path: Path, mode: str) -> None:
-    """Without views.json/line_integrals.tif in the sfm folder, the targets are rendered with the projector at the
-    true poses: from true_views.json when the sfm step wrote it, else on its designed orbit (config + seed);
-    unregistered views are dropped."""
-    from ctsplat.formats.viewset import View, ViewSet
-    from ctsplat.formats.volume import load_volume
-    from ctsplat.geometry import ConeCamera
-    from ctsplat.projector import line_integrals
-    from ctsplat.sfm import SFM_DEFAULTS, design_orbit
-
-    vol = load_volume(scene_dir / "volume.nii.gz")
-    scfg = {"n_views": 8, "detector_px": 24, "dso_mm": 200.0, "dsd_mm": 300.0}
-    full = {**SFM_DEFAULTS, **scfg}
-    kw = {"jitter_deg": float(full["orbit_jitter_deg"]), "seed": 3} if "orbit_jitter_deg" in full else {}
-    orbit = design_orbit(8, float(full["arc_deg"]), float(full["wobble_deg"]), float(full["wobble_cycles"]), 200.0,
-                         vol.center_mm(), **kw)
-    cam = ConeCamera(24, 24, 2.5, 200.0, 300.0)
-    keep = [0, 1, 3, 4, 6, 7]
-    views = [View(i, orbit["Rs"][i], orbit["ts"][i], float(orbit["azimuth_deg"][i]),
-                  float(orbit["elevation_deg"][i]), "train") for i in keep]
-    sfm = tmp_path / "sfm"
-    sfm.mkdir()
-    ViewSet(cam, views, "tiny01", vol.center_mm(), {}).save(sfm / "aligned_views.json")
-    summary = {"n_views": 8, "registration_rate": 0.75, "ok": True, "config": scfg, "seed": 3}
-    if mode == "true_views":
-        all_views = [View(i, orbit["Rs"][i], orbit["ts"][i], 0.0, 0.0, "train") for i in range(8)]
-        ViewSet(cam, all_views, "tiny01", vol.center_mm(), {}).save(sfm / "true_views.json")
-        summary["config"] = {**scfg, "n_views": 5, "wobble_deg": 40.0}  # the orbit fallback would differ
-    (sfm / "summary.json").write_text(json.dumps(summary))
-    cfg = tr.resolve_config(_cfg(scene_dir, poses="colmap", sfm_dir=str(sfm)))
-    scene = tr.load_scene(cfg)
-    assert scene.info["views_dropped_unregistered"] == 2 and list(scene.train.ids) == keep
-    mu = torch.from_numpy(vol.data * MU)
-    expect = line_integrals(mu, vol.affine, cam, orbit["Rs"][keep], orbit["ts"][keep]).numpy() / MU
-    assert np.allclose(scene.train.images, expect, rtol=1e-5, atol=1e-5)
-    assert scene.train.camera.model == "cone" and scene.test.camera.model == "parallel"
