@@ -1,4 +1,4 @@
-"""Quality benchmark (issue 5): Gaussian models vs FBP/SART on ct0051_head.
+"""Quality benchmark: Gaussian models vs FBP/SART on ct0051_head.
 
 Protocol: ``ct0051_head`` ingested to 128^3 normalised attenuation; circular parallel-beam orbits with 25/50/75
 training views at 128 detector pixels, 10 validation and 100 random test views; FBP (ramp, Shepp-Logan) and SART
@@ -86,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from ctsplat.cli.train import load_train_config
+    from ctsplat.evaluation import evaluate
     from ctsplat.training import train
 
     out = Path(args.out)
@@ -109,7 +110,8 @@ def main(argv: list[str] | None = None) -> int:
                        iterations=args.iterations, n_init=args.n_init, device="cpu", progress=False)
             run_dir = out / f"run_{init}_n{n:03d}{args.tag}"
             t0 = time.perf_counter()
-            res = train(cfg, run_dir)
+            train(cfg, run_dir)
+            res = evaluate(run_dir, device="cpu")
             total = time.perf_counter() - t0
             log = pd.read_csv(run_dir / "train_log.csv")
             log.insert(0, "run", run_dir.name)

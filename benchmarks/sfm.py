@@ -10,7 +10,7 @@ Usage::
     python benchmarks/sfm.py --only head --quick  # one head configuration
     python benchmarks/sfm.py --set detector_px=192 --set n_views=120 --only head
 
-Targets (issue 6): head at 128-256 detector px, <= 180 views: >= 95 % of views registered in one model and
+Targets: head at 128-256 detector px, <= 180 views: >= 95 % of views registered in one model and
 median rotation error <= 0.5 deg after Sim(3) alignment. Met by ``isocentric-256-180-j1-w25`` (180 views, 256 px,
 DSO/DSD 400/800 mm, 25 deg elevation wobble, true orbit N(0, 1 deg) off the design, pose-prior BA then isocentric
 BA): 100 % in one model, median 0.36-0.47 deg over ``--seed 0..7`` (the design alone: 1.0-1.3 deg; free SfM

@@ -30,13 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in STEP_MODULES:
-        try:
-            mod = importlib.import_module(f"ctsplat.cli.{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name == f"ctsplat.cli.{name}":
-                continue  # step not implemented yet
-            raise
-        mod.register(sub)
+        importlib.import_module(f"ctsplat.cli.{name}").register(sub)
     return parser
 
 

@@ -215,7 +215,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     from ctsplat.formats.volume import Volume, save_volume
     from ctsplat.scene import load_scene
     from ctsplat.splat.gaussians import Gaussians
-    from ctsplat.training.config import render_kwargs
+    from ctsplat.training.config import mip_filter, render_kwargs
 
     run_dir = Path(run_dir)
     needed = [run_dir / n for n in ("config.json", "model.pt", "training.json")]
@@ -233,7 +233,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     g = Gaussians.load(run_dir / "model.pt", device=dev)
     views = scene.split(split)
     tr = scene.train
-    rk = render_kwargs(cfg, g, tr.camera, tr.Rs, tr.ts)
+    rk = render_kwargs(cfg, mip_filter(cfg, g, tr.camera, tr.Rs, tr.ts))
     preds = render_views(g, views.camera, views.Rs, views.ts, rk)
     vm = view_metrics(preds, views.images, with_lpips=True)
     vol_model = voxelize_model(g, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))

@@ -14,7 +14,7 @@ import numpy as np
 from ctsplat.splat.render import COMPOSITORS
 from ctsplat.utils import CtsplatError, merge_config
 
-__all__ = ["TRAIN_DEFAULTS", "INITS", "POSES", "SUPERVISIONS", "resolve_config", "render_kwargs"]
+__all__ = ["TRAIN_DEFAULTS", "INITS", "POSES", "SUPERVISIONS", "resolve_config", "render_kwargs", "mip_filter"]
 
 INITS = ("volume", "uniform", "fbp", "sfm")
 POSES = ("gt", "colmap")
@@ -107,27 +107,38 @@ def resolve_config(config: dict[str, Any] | None) -> dict[str, Any]:
     return cfg
 
 
-def render_kwargs(cfg: dict[str, Any], gaussians: Any, camera: Any, Rs: np.ndarray, ts: np.ndarray
-                  ) -> dict[str, Any]:
-    """Renderer keyword arguments of a run config.
+def render_kwargs(cfg: dict[str, Any], filter_3d_var: Any = None) -> dict[str, Any]:
+    """Renderer keyword arguments of a run config: the same for training, validation and evaluation.
 
     Parameters
     ----------
     cfg : dict
         Resolved ``train`` config (``compositor``, ``mip``).
-    gaussians : ctsplat.splat.Gaussians
-    camera, Rs, ts
-        The *training* cameras (Rs (V, 3, 3), ts (V, 3) mm): with ``mip`` the 3D smoothing filter is the
-        Mip-Splatting sampling-rate bound over them (:func:`ctsplat.splat.render.compute_3d_filter`).
+    filter_3d_var : tensor (N,), optional
+        The 3D smoothing filter's variance per Gaussian (mm²) from :func:`mip_filter`; used only with ``mip``.
 
     Returns
     -------
     dict
-        ``compositor``, ``mip_2d`` and, with ``mip``, ``filter_3d_var`` ((N,) mm²).
+        ``compositor``, ``mip_2d`` and, with ``mip``, ``filter_3d_var``.
     """
     kw: dict[str, Any] = {"compositor": cfg["compositor"], "mip_2d": bool(cfg["mip"])}
     if cfg["mip"]:
-        from ctsplat.splat.render import compute_3d_filter
-
-        kw["filter_3d_var"] = compute_3d_filter(gaussians.detach(), camera, Rs, ts)
+        kw["filter_3d_var"] = filter_3d_var
     return kw
+
+
+def mip_filter(cfg: dict[str, Any], gaussians: Any, camera: Any, Rs: np.ndarray, ts: np.ndarray) -> Any:
+    """The Mip-Splatting 3D filter variance (N,) mm² of ``gaussians`` over the *training* cameras, or None without
+    ``mip`` (:func:`ctsplat.splat.render.compute_3d_filter`; Rs (V, 3, 3), ts (V, 3) mm).
+
+    References
+    ----------
+    Yu, Z., Chen, A., Huang, B., Sattler, T., Geiger, A. (2024). Mip-Splatting: alias-free 3D Gaussian splatting.
+    CVPR.
+    """
+    if not cfg["mip"]:
+        return None
+    from ctsplat.splat.render import compute_3d_filter
+
+    return compute_3d_filter(gaussians.detach(), camera, Rs, ts)

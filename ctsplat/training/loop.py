@@ -50,7 +50,7 @@ from ctsplat.scene import Scene, ViewData, even_subset, load_scene
 from ctsplat.splat.render import random_region, render, voxelize
 from ctsplat.training import losses
 from ctsplat.training.checkpoint import checkpoint_dir, latest_checkpoint, load_checkpoint, save_checkpoint
-from ctsplat.training.config import render_kwargs, resolve_config
+from ctsplat.training.config import mip_filter, render_kwargs, resolve_config
 from ctsplat.training.densify import GradientDensify
 from ctsplat.training.seeding import make_seed
 from ctsplat.training.state import (
@@ -90,9 +90,7 @@ def _evaluate_periodic(state: TrainState, cfg: dict[str, Any], scene: Scene, val
                        ) -> tuple[dict[str, float], list[dict[str, Any]]]:
     """Validation metrics of the current model: a ``train_log.csv`` row and ``per_view.csv`` rows."""
     g = as_gaussians({k: v.detach() for k, v in state.params.items()})
-    rk = {"compositor": cfg["compositor"], "mip_2d": bool(cfg["mip"])}
-    if cfg["mip"]:
-        rk["filter_3d_var"] = state.filter_var
+    rk = render_kwargs(cfg, state.filter_var)
     preds = render_views(g, val.camera, val.Rs, val.ts, rk)
     vm = view_metrics(preds, val.images)
     vol = voxelize_model(g, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
@@ -185,8 +183,7 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
     total = int(cfg["iterations"])
     densify = GradientDensify(cfg["densify"], compositor=cfg["compositor"], iterations=total)
     tr = scene.train
-    if cfg["mip"]:
-        state.filter_var = render_kwargs(cfg, as_gaussians(state.params), tr.camera, tr.Rs, tr.ts)["filter_3d_var"]
+    state.filter_var = mip_filter(cfg, as_gaussians(state.params), tr.camera, tr.Rs, tr.ts)
 
     lam = {k: float(cfg[k]) for k in ("lambda_l1", "lambda_ssim", "lambda_density", "lambda_scale", "lambda_tv")}
     snap = snapshot(state)
@@ -213,9 +210,7 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
         outs = []
         if ok:
             g = as_gaussians(state.params)
-            rk = {"compositor": cfg["compositor"], "mip_2d": bool(cfg["mip"])}
-            if cfg["mip"]:
-                rk["filter_3d_var"] = state.filter_var
+            rk = render_kwargs(cfg, state.filter_var)
             imgs = []
             for vi in batch:
                 out = render(g, scene.train.camera, tr_R[vi], tr_t[vi], **rk)
@@ -267,9 +262,7 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
             for k in state.densify_counts:
                 state.densify_counts[k] += counts[k]
             log.info("densify at %d: %s", it, counts)
-            if cfg["mip"]:
-                state.filter_var = render_kwargs(cfg, as_gaussians(state.params), tr.camera, tr.Rs,
-                                                 tr.ts)["filter_3d_var"]
+            state.filter_var = mip_filter(cfg, as_gaussians(state.params), tr.camera, tr.Rs, tr.ts)
         if ok and (counts is not None or it % 10 == 0):
             snap = snapshot(state)
 

@@ -1,6 +1,6 @@
 """Training losses for radiative Gaussian splatting: L1, differentiable SSIM, TV and regularisers.
 
-The total objective (issue 5) is
+The total objective is
 
 .. math::
 
