@@ -298,3 +298,64 @@ def test_fov_fraction_and_warning():
     cone = ConeCamera(1000, 1000, 1.0, 5.0, 10.0)
     R, t = pose_from_angles(0.0, 0.0, ISO, 5.0)
     assert fov_outside_fraction(cone, R[None], t[None], pts)[0] == pytest.approx(0.25)  # x > 5 mm
+
+
+# ------------------------------------------------------------------------------------------ C-arm orbit
+def test_arc_rule_is_shared_by_circular_and_carm_orbits() -> None:
+    from ctsplat.geometry import arc_azimuths, carm_orbit
+
+    np.testing.assert_allclose(arc_azimuths(4, 360.0), [0, 90, 180, 270])
+    np.testing.assert_allclose(arc_azimuths(4, 180.0, 10.0), [10, 55, 100, 145])  # the end is not repeated
+    circ = [v.azimuth_deg for v in circular_orbit(6, np.zeros(3), 500.0, arc_deg=120.0,
+                                                  split_fractions={"train": 1.0})]
+    carm = [v.design.azimuth_deg for v in carm_orbit(6, np.zeros(3), 500.0, arc_deg=120.0, wobble_deg=0.0)]
+    np.testing.assert_allclose(circ, carm)
+    with pytest.raises(CtsplatError, match="arc_deg"):
+        arc_azimuths(3, 400.0)
+
+
+def test_carm_orbit_design_and_true_poses() -> None:
+    from ctsplat.geometry import carm_orbit, pose_from_angles
+
+    iso = np.array([1.0, -2.0, 3.0])
+    design = carm_orbit(24, iso, 500.0, wobble_deg=15.0, wobble_cycles=2.0)
+    for v in design:  # no jitter: the truth is the design, on the sinusoidal wobble, looking at the isocentre
+        assert v.split == "train" and v.design is not None
+        np.testing.assert_allclose(v.R, v.design.R, atol=1e-12)
+        assert v.elevation_deg == pytest.approx(15.0 * np.sin(np.radians(2.0 * v.azimuth_deg)))
+        R, t = pose_from_angles(v.azimuth_deg, v.elevation_deg, iso, 500.0)
+        np.testing.assert_allclose(v.R, R, atol=1e-12)
+        np.testing.assert_allclose(np.linalg.norm(v.center_mm - iso), 500.0)
+    jit = carm_orbit(24, iso, 500.0, wobble_deg=15.0, jitter_deg=1.0, jitter_mm=2.0, seed=3)
+    again = carm_orbit(24, iso, 500.0, wobble_deg=15.0, jitter_deg=1.0, jitter_mm=2.0, seed=3)
+    np.testing.assert_array_equal(np.stack([v.R for v in jit]), np.stack([v.R for v in again]))  # seeded
+    np.testing.assert_allclose(np.stack([v.design.R for v in jit]), np.stack([v.R for v in design]), atol=1e-12)
+    d_az = np.array([v.azimuth_deg - v.design.azimuth_deg for v in jit])
+    assert 0.3 < d_az.std() < 2.0  # N(0, 1 deg) per view
+    # the whole assembly shifts: the true source still sits at DSO from its own (shifted) isocentre on the axis
+    for v in jit:
+        axis = v.R[2]
+        c = v.center_mm
+        foot = c + axis * np.dot(iso - c, axis)  # closest point of the optical axis to the design isocentre
+        assert np.linalg.norm(foot - iso) < 10.0
+    with pytest.raises(CtsplatError, match="n_views >= 2"):
+        carm_orbit(1, iso, 500.0)
+    with pytest.raises(CtsplatError, match="orbit_jitter_deg"):
+        carm_orbit(4, iso, 500.0, jitter_deg=-1.0)
+
+
+def test_view_set_round_trips_designed_poses(tmp_path) -> None:
+    from ctsplat.geometry import carm_orbit
+
+    views = carm_orbit(5, np.zeros(3), 400.0, jitter_deg=1.0, seed=1)
+    vs = ViewSet(ConeCamera(16, 16, 1.0, 400.0, 800.0), views, "v1", np.zeros(3), {"orbit": "carm"})
+    vs.save(tmp_path / "views.json")
+    back = ViewSet.load(tmp_path / "views.json")
+    assert back.has_design()
+    np.testing.assert_allclose(back.design_Rs(), vs.design_Rs())
+    np.testing.assert_allclose(back.Rs(), vs.Rs())
+    assert [v.design.azimuth_deg for v in back.views] == pytest.approx([v.design.azimuth_deg for v in views])
+    plain = ViewSet(vs.camera, [View(0, np.eye(3), np.zeros(3), 0.0, 0.0)], "v1")
+    assert not plain.has_design()
+    with pytest.raises(CtsplatError, match="orbit: carm"):
+        plain.design_Rs()

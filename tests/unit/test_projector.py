@@ -349,3 +349,33 @@ def test_render_radiographs_bad_input(tmp_path, small_volume):
         load_radiographs(tmp_path / "nothing")
     assert set(RADIOGRAPHS_DEFAULTS) >= {"camera", "orbit", "n_views", "split", "noise"}
     json.dumps(RADIOGRAPHS_DEFAULTS)
+
+
+def test_carm_view_set_fits_the_object_and_stores_the_design(tmp_path) -> None:
+    """orbit: carm renders the SfM view set: every view a training view with its designed pose; the detector pitch
+    fits the object's bounding sphere; the true orbit's error is seeded by the projection seed."""
+    from ctsplat.formats.viewset import ViewSet
+    from ctsplat.geometry import support_radius_mm
+    from ctsplat.projector import fitted_pitch_mm
+
+    data = np.zeros((24, 24, 24), np.float32)
+    data[6:18, 6:18, 6:18] = 1.0
+    aff = np.diag([2.0, 2.0, 2.0, 1.0])
+    save_volume(Volume(data, aff, {"volume_id": "cube", "intensity": {"mu_scale_per_mm": 0.02}}),
+                tmp_path / "v.nii.gz")
+    cfg = {"camera": "cone", "orbit": "carm", "n_views": 10, "detector_width": 20, "detector_height": 20,
+           "dso_mm": 300.0, "dsd_mm": 600.0, "wobble_deg": 10.0, "orbit_jitter_deg": 1.0, "device": "cpu"}
+    vs = render_radiographs(tmp_path / "v.nii.gz", tmp_path / "a", cfg, seed=4)
+    assert len(vs) == 10 and set(vs.indices("train")) == set(range(10)) and vs.has_design()
+    radius = support_radius_mm(data, aff, vs.isocenter_mm)
+    assert vs.camera.pitch_mm == pytest.approx(fitted_pitch_mm(radius, 300.0, 600.0, 20))
+    p, back = load_radiographs(tmp_path / "a")
+    assert p.shape == (10, 20, 20) and back.has_design()
+    # the object's shadow fits on the detector: no ray through the corner pixels hits it
+    assert np.all(p[:, 0, 0] == 0) and np.all(p.max(axis=(1, 2)) > 0)
+    again = ViewSet.load(tmp_path / "a" / "views.json")
+    np.testing.assert_allclose(again.Rs(), vs.Rs())
+    other = render_radiographs(tmp_path / "v.nii.gz", tmp_path / "b", cfg, seed=5)
+    assert not np.allclose(other.Rs(), vs.Rs()) and np.allclose(other.design_Rs(), vs.design_Rs())
+    with pytest.raises(CtsplatError, match="camera: cone"):
+        render_radiographs(tmp_path / "v.nii.gz", tmp_path / "c", {**cfg, "camera": "parallel"})
