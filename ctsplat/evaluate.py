@@ -66,7 +66,7 @@ def render_views(
     -------
     ndarray, shape (V, H, W), float32
     """
-    from ctsplat.render import render
+    from ctsplat.splat.render import render
 
     kw = dict(render_kwargs or {})
     dev, dt = gaussians.means.device, gaussians.means.dtype
@@ -108,7 +108,7 @@ def view_metrics(preds: np.ndarray, refs: np.ndarray, *, with_lpips: bool = Fals
 def voxelize_model(gaussians: Any, shape: tuple[int, int, int], affine: np.ndarray,
                    filter_3d_var: torch.Tensor | None = None) -> np.ndarray:
     """The model's density field at the voxel centres of a grid, shape ``shape``, float32 (no gradient)."""
-    from ctsplat.render import voxelize
+    from ctsplat.splat.render import voxelize
 
     with torch.no_grad():
         vol = voxelize(gaussians, tuple(shape), torch.as_tensor(np.asarray(affine, float), dtype=gaussians.means.dtype,
@@ -280,7 +280,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto", 
     PSNR/SSIM/LPIPS 2D and PSNR/SSIM 3D.
     """
     from ctsplat import train as train_mod
-    from ctsplat.gaussians import Gaussians
+    from ctsplat.splat.gaussians import Gaussians
     from ctsplat.utils import resolve_device, write_json_atomic
 
     run_dir = Path(run_dir)

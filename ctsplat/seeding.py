@@ -17,7 +17,6 @@ makes the expected seeded field equal to the voxel values ``V`` ("density propor
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -28,7 +27,6 @@ __all__ = [
     "seed_from_grid",
     "seed_uniform",
     "seed_from_points",
-    "read_ply_points",
     "grid_bounds_mm",
 ]
 
@@ -200,56 +198,3 @@ def seed_from_points(
         uses_reference_volume=False,
         strategy="sfm",
     )
-
-
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
-def read_ply_points(path: str | Path) -> np.ndarray:
-    """Vertex positions ``(P, 3)`` (x, y, z) of a PLY point cloud (ASCII or binary, vertex element first).
-
-    Only scalar vertex properties are supported (as written by COLMAP / 3DGS tools).
-    """
-    path = Path(path)
-    if not path.exists():
-        raise CtsplatError(f"SfM point cloud {path} does not exist; run the sfm step first")
-    raw = path.read_bytes()
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise CtsplatError(f"{path} is not a PLY file (no 'ply' magic / end_header)")
-    header = raw[:end].decode("ascii", "replace").splitlines()
-    body = raw[raw.index(b"\n", end) + 1:]
-    fmt, count, props, element = "ascii", 0, [], None
-    for line in header:
-        parts = line.split()
-        if not parts:
-            continue
-        if parts[0] == "format":
-            fmt = parts[1]
-        elif parts[0] == "element":
-            element = parts[1]
-            if element == "vertex":
-                count = int(parts[2])
-        elif parts[0] == "property" and element == "vertex":
-            if parts[1] == "list":
-                raise CtsplatError(f"{path}: list properties on vertices are not supported")
-            props.append((parts[2], _PLY_TYPES[parts[1]]))
-    names = [p[0] for p in props]
-    if not {"x", "y", "z"} <= set(names):
-        raise CtsplatError(f"{path}: vertex element lacks x/y/z properties")
-    if count == 0:
-        return np.zeros((0, 3))
-    if fmt == "ascii":
-        rows = body.decode("ascii").split("\n")[:count]
-        table = np.array([[float(v) for v in r.split()[: len(props)]] for r in rows], float)
-        cols = {nm: table[:, i] for i, nm in enumerate(names)}
-    else:
-        order = "<" if fmt == "binary_little_endian" else ">"
-        dt = np.dtype([(nm, order + t) for nm, t in props])
-        arr = np.frombuffer(body, dtype=dt, count=count)
-        cols = {nm: arr[nm].astype(float) for nm in names}
-    return np.stack([cols["x"], cols["y"], cols["z"]], axis=1)

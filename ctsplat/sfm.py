@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from ctsplat.formats.ply import write_points_ply
 from ctsplat.utils import CtsplatError, atomic_path, code_version, merge_config, write_json_atomic
 
 __all__ = [
@@ -66,7 +67,6 @@ __all__ = [
     "rotation_error_deg",
     "evaluate_poses",
     "summarize",
-    "write_points_ply",
     "run_sfm",
     "run_sfm_on_images",
     "naive_slices_sfm",
@@ -1036,25 +1036,6 @@ def _per_image_reproj(rec: Any) -> dict[str, float]:
             if proj is not None:
                 errs.setdefault(img.name, []).append(float(np.linalg.norm(np.asarray(proj) - np.asarray(uv))))
     return {k: float(np.mean(v)) for k, v in errs.items()}
-
-
-def write_points_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> None:
-    """ASCII PLY of points (N, 3) mm with optional uint8 colours (N, 3), written atomically."""
-    xyz = np.asarray(xyz, float).reshape(-1, 3)
-    lines = ["ply", "format ascii 1.0", f"element vertex {len(xyz)}", "property float x", "property float y",
-             "property float z"]
-    if rgb is not None:
-        lines += ["property uchar red", "property uchar green", "property uchar blue"]
-    lines.append("end_header")
-    body = []
-    for i, p in enumerate(xyz):
-        s = f"{p[0]:.6f} {p[1]:.6f} {p[2]:.6f}"
-        if rgb is not None:
-            c = np.asarray(rgb[i]).astype(int)
-            s += f" {c[0]} {c[1]} {c[2]}"
-        body.append(s)
-    with atomic_path(path) as tmp:
-        tmp.write_text("\n".join(lines + body) + "\n")
 
 
 def _write_model(rec: Any, out_dir: Path) -> None:

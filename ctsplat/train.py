@@ -47,6 +47,8 @@ import torch
 
 from ctsplat import evaluate as ev
 from ctsplat import losses, seeding
+from ctsplat.formats.ply import read_ply_points
+from ctsplat.splat.render import COMPOSITORS
 from ctsplat.utils import (
     CtsplatError,
     atomic_path,
@@ -63,7 +65,6 @@ __all__ = ["TRAIN_DEFAULTS", "ViewData", "Scene", "load_scene", "render_kwargs",
 log = logging.getLogger(__name__)
 
 INITS = ("volume", "uniform", "fbp", "sfm")
-COMPOSITORS = ("radiative", "radiative_unrectified", "alpha")
 POSES = ("gt", "colmap")
 SUPERVISIONS = ("line_integral", "transmission")
 LOG_COLUMNS = ["iteration", "timestamp", "psnr2d", "ssim2d", "psnr3d", "ssim3d"]
@@ -387,7 +388,7 @@ def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> se
     if cfg["init"] == "uniform":
         return seeding.seed_uniform(lo, hi, n, rng, density=cfg["init_density"])
     if cfg["init"] == "sfm":
-        pts = seeding.read_ply_points(Path(cfg["sfm_dir"]) / "points3d.ply")
+        pts = read_ply_points(Path(cfg["sfm_dir"]) / "points3d.ply")
         return seeding.seed_from_points(pts, lo, hi, n, rng, fill_fraction=cfg["sfm_fill_fraction"],
                                         density=cfg["init_density"])
     recon, method = fbp_reconstruction(scene, cfg.get("fbp_filter", "ramp"))
@@ -435,7 +436,7 @@ PARAM_GROUPS = {"means": "means", "log_scales": "scales", "quats": "quats", "den
 
 def init_params(seed: seeding.Seed, cfg: dict[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
     """Leaf parameter tensors (float32, requires_grad) from a seed."""
-    from ctsplat.gaussians import Gaussians
+    from ctsplat.splat.gaussians import Gaussians
 
     kw: dict[str, Any] = {}
     if cfg["compositor"] == "alpha":
@@ -445,7 +446,7 @@ def init_params(seed: seeding.Seed, cfg: dict[str, Any], device: torch.device) -
 
 
 def as_gaussians(params: dict[str, torch.Tensor]) -> Any:
-    from ctsplat.gaussians import Gaussians
+    from ctsplat.splat.gaussians import Gaussians
 
     return Gaussians(**params)
 
@@ -454,7 +455,7 @@ def render_kwargs(cfg: dict[str, Any], gaussians: Any, scene: Scene) -> dict[str
     """Renderer keyword arguments for this config (3D mip filter from the training cameras when ``mip``)."""
     kw: dict[str, Any] = {"compositor": cfg["compositor"], "mip_2d": bool(cfg["mip"])}
     if cfg["mip"]:
-        from ctsplat.render import compute_3d_filter
+        from ctsplat.splat.render import compute_3d_filter
 
         kw["filter_3d_var"] = compute_3d_filter(gaussians.detach(), scene.train.camera, scene.train.Rs,
                                                 scene.train.ts)
@@ -540,7 +541,7 @@ class ViewSampler:
 # ------------------------------------------------------------------------------------------ densification
 def densify_and_prune(state: TrainState, cfg: dict[str, Any], scene: Scene, gen: torch.Generator) -> dict[str, int]:
     """One adaptive density control step (see module docstring). Returns counts of cloned/split/pruned."""
-    from ctsplat.gaussians import inverse_softplus, quat_to_rotmat
+    from ctsplat.splat.gaussians import inverse_softplus, quat_to_rotmat
 
     d = cfg["densify"]
     p = state.params
@@ -881,7 +882,7 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
     if cfg["mip"]:
         state.filter_var = render_kwargs(cfg, as_gaussians(state.params), scene)["filter_3d_var"]
 
-    from ctsplat.render import random_region, render, voxelize
+    from ctsplat.splat.render import random_region, render, voxelize
 
     lam = {k: float(cfg[k]) for k in ("lambda_l1", "lambda_ssim", "lambda_density", "lambda_scale", "lambda_tv")}
     snap = _snapshot(state)

@@ -10,9 +10,9 @@ import tifffile
 import torch
 
 from ctsplat.cli import main
-from ctsplat.gaussians import Gaussians
 from ctsplat.geometry import ParallelCamera, View, ViewSet, pose_from_angles
-from ctsplat.render import compute_3d_filter, render
+from ctsplat.splat.gaussians import Gaussians
+from ctsplat.splat.render import compute_3d_filter, render
 
 
 def _setup(tmp_path):

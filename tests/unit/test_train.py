@@ -103,8 +103,8 @@ def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
                  "config.json"):
         assert (out / name).stat().st_size > 0, name
     # test metrics recomputed independently from the written files
-    from ctsplat.gaussians import Gaussians
     from ctsplat.metrics import psnr3d
+    from ctsplat.splat.gaussians import Gaussians
     from ctsplat.volume import load_volume
 
     g = Gaussians.load(out / "model.pt")
@@ -334,7 +334,7 @@ def test_fbp_init_on_cone_beam_uses_sirt(scene_dir: Path, tmp_path: Path) -> Non
 
 
 def test_sfm_init_reads_points(scene_dir: Path, tmp_path: Path) -> None:
-    from ctsplat.seeding import read_ply_points
+    from ctsplat.formats.ply import read_ply_points
 
     sfm = tmp_path / "sfm"
     sfm.mkdir()
