@@ -34,7 +34,7 @@ FOV_MM = 200.0
 def _scene(n: int, device: str, seed: int = 0):
     import torch
 
-    from ctsplat.gaussians import Gaussians
+    from ctsplat.splat.gaussians import Gaussians
 
     g = torch.Generator().manual_seed(seed)
     means = (torch.rand(n, 3, generator=g) - 0.5) * 160.0
@@ -53,9 +53,9 @@ def run_one(n: int, width: int, height: int, mode: str, backend: str, compositor
     """Time one configuration in this process; ``mode`` is 'fwdbwd', 'fwd' or 'voxelize' (grid width³)."""
     import torch
 
-    from ctsplat import _render_kernel
     from ctsplat.geometry import ParallelCamera
-    from ctsplat.render import render
+    from ctsplat.splat import _kernel
+    from ctsplat.splat.render import render
 
     torch.set_num_threads(threads)
     spacing = FOV_MM / min(width, height)
@@ -77,7 +77,7 @@ def run_one(n: int, width: int, height: int, mode: str, backend: str, compositor
         sync()
 
     if mode == "voxelize":
-        from ctsplat.render import voxelize
+        from ctsplat.splat.render import voxelize
 
         affine = torch.eye(4, dtype=torch.float64)
         affine[:3, :3] *= FOV_MM / width  # grid covering the field of view
@@ -99,7 +99,7 @@ def run_one(n: int, width: int, height: int, mode: str, backend: str, compositor
         cpu.append(time.process_time() - c0)
     wall.sort()
     cpu.sort()
-    used_kernel = device == "cpu" and backend != "reference" and _render_kernel.available()
+    used_kernel = device == "cpu" and backend != "reference" and _kernel.available()
     peak = (torch.cuda.max_memory_allocated() / 2**20 if device.startswith("cuda")
             else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     return {

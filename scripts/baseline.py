@@ -3,6 +3,7 @@
 from pathlib import Path
 
 from _adapter import logged
+
 from ctsplat.baselines import run_baselines
 
 with logged(snakemake):  # noqa: F821

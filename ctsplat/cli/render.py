@@ -25,9 +25,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> None:
-    from ctsplat.render import render_views
+    from ctsplat.splat.render import render_to_folder
 
-    info = render_views(args.model, args.views, args.out, compositor=args.compositor, split=args.split,
-                        mip=args.mip, mu_scale=args.mu_scale, device=args.device)
+    info = render_to_folder(args.model, args.views, args.out, compositor=args.compositor, split=args.split,
+                            mip=args.mip, mu_scale=args.mu_scale, device=args.device)
     print(f"rendered {info['n_views']} views of {info['n_gaussians']} Gaussians in {info['seconds']:.2f} s "
           f"-> {args.out}")

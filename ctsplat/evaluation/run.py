@@ -17,8 +17,8 @@ import logging
 import os
 import resource
 import time
-from pathlib import Path
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -57,18 +57,18 @@ def render_views(
 
     Parameters
     ----------
-    gaussians : ctsplat.gaussians.Gaussians
+    gaussians : ctsplat.splat.Gaussians
     camera : ParallelCamera | ConeCamera
     Rs : (V, 3, 3), ts : (V, 3)
         World-to-camera poses (mm).
     render_kwargs : dict
-        Passed to :func:`ctsplat.render.render` (compositor, filter_3d_var, mip_2d).
+        Passed to :func:`ctsplat.splat.render` (compositor, filter_3d_var, mip_2d).
 
     Returns
     -------
     ndarray, shape (V, H, W), float32
     """
-    from ctsplat.render import render
+    from ctsplat.splat.render import render
 
     kw = dict(render_kwargs or {})
     dev, dt = gaussians.means.device, gaussians.means.dtype
@@ -110,7 +110,7 @@ def view_metrics(preds: np.ndarray, refs: np.ndarray, *, with_lpips: bool = Fals
 def voxelize_model(gaussians: Any, shape: tuple[int, int, int], affine: np.ndarray,
                    filter_3d_var: torch.Tensor | None = None) -> np.ndarray:
     """The model's density field at the voxel centres of a grid, shape ``shape``, float32 (no gradient)."""
-    from ctsplat.render import voxelize
+    from ctsplat.splat.render import voxelize
 
     with torch.no_grad():
         vol = voxelize(gaussians, tuple(shape), torch.as_tensor(np.asarray(affine, float), dtype=gaussians.means.dtype,

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ctsplat.formats.ply import read_ply_points
 from ctsplat.utils import CtsplatError
 
 if TYPE_CHECKING:
@@ -34,7 +35,6 @@ __all__ = [
     "seed_from_grid",
     "seed_uniform",
     "seed_from_points",
-    "read_ply_points",
     "grid_bounds_mm",
 ]
 
@@ -208,58 +208,6 @@ def seed_from_points(
     )
 
 
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
-def read_ply_points(path: str | Path) -> np.ndarray:
-    """Vertex positions ``(P, 3)`` (x, y, z) of a PLY point cloud (ASCII or binary, vertex element first).
-
-    Only scalar vertex properties are supported (as written by COLMAP / 3DGS tools).
-    """
-    path = Path(path)
-    if not path.exists():
-        raise CtsplatError(f"SfM point cloud {path} does not exist; run the sfm step first")
-    raw = path.read_bytes()
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise CtsplatError(f"{path} is not a PLY file (no 'ply' magic / end_header)")
-    header = raw[:end].decode("ascii", "replace").splitlines()
-    body = raw[raw.index(b"\n", end) + 1:]
-    fmt, count, props, element = "ascii", 0, [], None
-    for line in header:
-        parts = line.split()
-        if not parts:
-            continue
-        if parts[0] == "format":
-            fmt = parts[1]
-        elif parts[0] == "element":
-            element = parts[1]
-            if element == "vertex":
-                count = int(parts[2])
-        elif parts[0] == "property" and element == "vertex":
-            if parts[1] == "list":
-                raise CtsplatError(f"{path}: list properties on vertices are not supported")
-            props.append((parts[2], _PLY_TYPES[parts[1]]))
-    names = [p[0] for p in props]
-    if not {"x", "y", "z"} <= set(names):
-        raise CtsplatError(f"{path}: vertex element lacks x/y/z properties")
-    if count == 0:
-        return np.zeros((0, 3))
-    if fmt == "ascii":
-        rows = body.decode("ascii").split("\n")[:count]
-        table = np.array([[float(v) for v in r.split()[: len(props)]] for r in rows], float)
-        cols = {nm: table[:, i] for i, nm in enumerate(names)}
-    else:
-        order = "<" if fmt == "binary_little_endian" else ">"
-        dt = np.dtype([(nm, order + t) for nm, t in props])
-        arr = np.frombuffer(body, dtype=dt, count=count)
-        cols = {nm: arr[nm].astype(float) for nm in names}
-    return np.stack([cols["x"], cols["y"], cols["z"]], axis=1)
-
 
 # ------------------------------------------------------------------------------------------ the init setting
 def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> Seed:
@@ -270,18 +218,18 @@ def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> Se
     scale = cfg["init_scale_voxels"]
     if cfg["init"] == "volume":
         return seed_from_grid(vol.data, vol.affine, n, rng, top_fraction=cfg["init_top_fraction"],
-                                      scale_voxels=0.75 if scale is None else float(scale), uses_reference_volume=True,
-                                      strategy="volume")
+                              scale_voxels=0.75 if scale is None else float(scale), uses_reference_volume=True,
+                              strategy="volume")
     if cfg["init"] == "uniform":
         return seed_uniform(lo, hi, n, rng, density=cfg["init_density"])
     if cfg["init"] == "sfm":
         pts = read_ply_points(Path(cfg["sfm_dir"]) / "points3d.ply")
         return seed_from_points(pts, lo, hi, n, rng, fill_fraction=cfg["sfm_fill_fraction"],
-                                        density=cfg["init_density"])
+                                density=cfg["init_density"])
     recon, method = fbp_reconstruction(scene, cfg.get("fbp_filter", "ramp"))
     return seed_from_grid(recon, vol.affine, n, rng, top_fraction=cfg["init_top_fraction"],
-                                  scale_voxels=1.5 if scale is None else float(scale), uses_reference_volume=False,
-                                  strategy="fbp" if method == "fbp" else "fbp (sirt)")
+                          scale_voxels=1.5 if scale is None else float(scale), uses_reference_volume=False,
+                          strategy="fbp" if method == "fbp" else "fbp (sirt)")
 
 
 SIRT_SEED_ITERATIONS = 10

@@ -32,7 +32,7 @@ def test_view_metrics_match_metrics_module() -> None:
 
 
 def test_voxelize_model_matches_analytic_gaussian() -> None:
-    from ctsplat.gaussians import Gaussians
+    from ctsplat.splat.gaussians import Gaussians
 
     m = np.array([[1.0, -2.0, 0.5]])
     s = np.array([[2.0, 3.0, 1.5]])
@@ -122,8 +122,8 @@ def test_turntable_gif_and_figures(tmp_path) -> None:
 
 
 def test_speed_and_memory() -> None:
-    from ctsplat.gaussians import Gaussians
     from ctsplat.geometry import ParallelCamera, look_at
+    from ctsplat.splat.gaussians import Gaussians
 
     g = Gaussians.from_values(np.zeros((5, 3)), 1.0, 0.5)
     R, t = look_at(np.array([50.0, 0, 0]), np.zeros(3))

@@ -9,7 +9,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from ctsplat.gaussians import SH_C0, Gaussians, eval_sh, inverse_softplus, quat_to_rotmat, read_ply
+from ctsplat.formats.ply import read_ply_vertices
+from ctsplat.splat.gaussians import SH_C0, Gaussians, eval_sh, inverse_softplus, quat_to_rotmat
 from ctsplat.utils import CtsplatError
 
 # the vertex properties a standard 3DGS viewer reads (for SH degree 3), in the reference implementation's order
@@ -96,7 +97,7 @@ def test_ply_has_3dgs_layout_and_values(tmp_path):
     props = [ln.split()[-1] for ln in header.splitlines() if ln.startswith("property")]
     assert props == STANDARD_3DGS + ["density"]
     assert "binary_little_endian" in header and "element vertex 7" in header
-    # raw numpy read of the body (independent of read_ply)
+    # raw numpy read of the body (independent of read_ply_vertices)
     body = path.read_bytes()[len(header) + len("end_header\n"):]
     arr = np.frombuffer(body, dtype=np.float32).reshape(7, len(props))
     col = dict(zip(props, arr.T, strict=True))
@@ -112,13 +113,13 @@ def test_ply_has_3dgs_layout_and_values(tmp_path):
         np.testing.assert_allclose(SH_C0 * col[f"f_dc_{c}"] + 0.5, grey, atol=1e-6)
     # f_rest is channel-major: f_rest_{c*15 + k} = sh_rest[:, k, c]
     np.testing.assert_allclose(col["f_rest_16"], g.sh_rest[:, 1, 0].numpy(), rtol=1e-6)
-    assert read_ply(path)["density"].shape == (7,)
+    assert read_ply_vertices(path)["density"].shape == (7,)
 
 
 def test_ply_of_a_density_only_model(tmp_path):
     g = Gaussians.from_values(np.zeros((3, 3)), 1.0, [0.5, 1.0, 2.0])
     g.to_ply(tmp_path / "m.ply")
-    p = read_ply(tmp_path / "m.ply")
+    p = read_ply_vertices(tmp_path / "m.ply")
     assert [k for k in p if k.startswith("f_rest")] == []
     np.testing.assert_allclose(SH_C0 * p["f_dc_0"] + 0.5, [0.25, 0.5, 1.0], atol=1e-6)
     assert np.all(np.isfinite(p["opacity"]))

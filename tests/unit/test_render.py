@@ -10,9 +10,9 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from ctsplat.gaussians import Gaussians
 from ctsplat.geometry import ConeCamera, ParallelCamera, camera_rays, pose_from_angles
-from ctsplat.render import EPS_2D, compute_3d_filter, project, render, voxelize
+from ctsplat.splat.gaussians import Gaussians
+from ctsplat.splat.render import EPS_2D, compute_3d_filter, project, render, voxelize
 from ctsplat.utils import CtsplatError
 
 D64 = torch.float64
@@ -249,10 +249,10 @@ def test_gradcheck_small_scene(compositor, model):
 
 @pytest.mark.parametrize("model", ["parallel", "cone"])
 def test_kernel_matches_reference_forward_and_backward(model):
-    from ctsplat import _render_kernel
+    from ctsplat.splat import _kernel
 
-    if not _render_kernel.available():
-        pytest.skip(f"C kernel unavailable: {_render_kernel._failed}")
+    if not _kernel.available():
+        pytest.skip(f"C kernel unavailable: {_kernel._failed}")
     for dtype, tol in ((D64, 1e-10), (torch.float32, 2e-4)):
         g = _mixture(300, seed=11, spread=30.0, smin=0.3, smax=4.0, dtype=dtype)
         for p in g.tensors().values():
@@ -286,10 +286,10 @@ def test_kernel_matches_reference_forward_and_backward(model):
 
 @pytest.mark.parametrize("model", ["parallel", "cone"])
 def test_alpha_kernel_matches_reference(model):
-    from ctsplat import _render_kernel
+    from ctsplat.splat import _kernel
 
-    if not _render_kernel.available():
-        pytest.skip(f"C kernel unavailable: {_render_kernel._failed}")
+    if not _kernel.available():
+        pytest.skip(f"C kernel unavailable: {_kernel._failed}")
     for dtype, tol in ((D64, 1e-10), (torch.float32, 2e-5)):
         g = _mixture(300, seed=11, spread=30.0, smin=0.3, smax=4.0, dtype=dtype)
         g.colors = torch.rand(300, 3, generator=torch.Generator().manual_seed(3), dtype=dtype)  # RGB
@@ -371,10 +371,10 @@ def test_bad_filter_variance_raises(backend):
 def test_float32_kernel_rows_of_every_length_and_image_corners():
     # footprint rows 1..37 px long (every remainder of the kernel's 8-lane row chunks), clipped at all four image
     # corners and edges; float32 kernel against the float64 reference, values and gradients
-    from ctsplat import _render_kernel
+    from ctsplat.splat import _kernel
 
-    if not _render_kernel.available():
-        pytest.skip(f"C kernel unavailable: {_render_kernel._failed}")
+    if not _kernel.available():
+        pytest.skip(f"C kernel unavailable: {_kernel._failed}")
     cam = ParallelCamera(37, 29, 1.0)
     n = 400
     gen = torch.Generator().manual_seed(21)
@@ -467,10 +467,10 @@ def _dense_field(g: Gaussians, shape, affine) -> torch.Tensor:
 
 @pytest.mark.parametrize("backend", ["reference", "kernel"])
 def test_voxelize_matches_dense_evaluation_and_chunks_and_regions(backend):
-    from ctsplat import _render_kernel
+    from ctsplat.splat import _kernel
 
-    if backend == "kernel" and not _render_kernel.available():
-        pytest.skip(f"C kernel unavailable: {_render_kernel._failed}")
+    if backend == "kernel" and not _kernel.available():
+        pytest.skip(f"C kernel unavailable: {_kernel._failed}")
     g = _mixture(12, seed=5, spread=6.0, smin=0.6, smax=2.5)
     shape = (20, 18, 16)
     affine = np.array([[0.0, 0.9, 0.0, -8.0], [0.8, 0.0, 0.1, -7.0], [0.0, 0.0, 1.1, -9.0], [0, 0, 0, 1.0]])
@@ -523,11 +523,11 @@ def test_cuda_matches_cpu():
 def test_kernel_builds_when_a_compiler_exists_and_is_deterministic():
     import shutil
 
-    from ctsplat import _render_kernel
+    from ctsplat.splat import _kernel
 
     if not any(shutil.which(c) for c in ("c++", "g++", "clang++")):
         pytest.skip("no C++ compiler on PATH")
-    assert _render_kernel.available(), _render_kernel._failed
+    assert _kernel.available(), _kernel._failed
     g = _mixture(6000, seed=8, spread=40.0, smin=0.3, smax=2.0, dtype=torch.float32)
     g.means.requires_grad_(True)
     cam, (R, t) = ParallelCamera(96, 80, 1.0), _pose(20.0, 5.0)
@@ -543,7 +543,7 @@ def test_kernel_builds_when_a_compiler_exists_and_is_deterministic():
 
 @pytest.mark.parametrize("backend", ["reference", "auto"])
 def test_alpha_sh_colour_depends_on_view_direction(backend):
-    from ctsplat.gaussians import eval_sh
+    from ctsplat.splat.gaussians import eval_sh
 
     g = Gaussians.from_values([[0.0, 0.0, 0.0]], 1.0, 1.0, opacities=0.8, colors=[[0.5, 0.4, 0.3]], sh_degree=1,
                               dtype=D64)

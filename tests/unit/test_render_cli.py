@@ -11,9 +11,9 @@ import torch
 
 from ctsplat.cli import main
 from ctsplat.formats.viewset import View, ViewSet
-from ctsplat.gaussians import Gaussians
 from ctsplat.geometry import ParallelCamera, pose_from_angles
-from ctsplat.render import compute_3d_filter, render
+from ctsplat.splat.gaussians import Gaussians
+from ctsplat.splat.render import compute_3d_filter, render
 
 
 def _setup(tmp_path):

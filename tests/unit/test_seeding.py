@@ -1,4 +1,4 @@
-"""Seeding strategies: candidate voxels, jitter, mass conservation, uniform boxes, SfM points + PLY reader."""
+"""Seeding strategies: candidate voxels, jitter, mass conservation, uniform boxes, SfM points."""
 
 from __future__ import annotations
 
@@ -105,27 +105,3 @@ def test_points_seed_drops_outside_and_fills() -> None:
     kept = seed2.means[:75].astype(float)
     d = np.abs(kept[:, None, :] - many[None]).max(-1).min(1)
     assert np.all(d < 1e-6)
-
-
-@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
-def test_read_ply_points(tmp_path, fmt: str) -> None:
-    rng = np.random.default_rng(0)
-    xyz = rng.normal(size=(7, 3))
-    rgb = rng.integers(0, 255, size=(7, 3)).astype(np.uint8)
-    head = (f"ply\nformat {fmt} 1.0\nelement vertex 7\nproperty float x\nproperty float y\nproperty float z\n"
-            "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    path = tmp_path / "p.ply"
-    if fmt == "ascii":
-        lines = [" ".join([*(f"{v:.9g}" for v in p), *(str(c) for c in q)]) for p, q in zip(xyz, rgb, strict=True)]
-        body = "\n".join(lines) + "\n"
-        path.write_text(head + body)
-    else:
-        dt = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
-        arr = np.zeros(7, dt)
-        arr["x"], arr["y"], arr["z"] = xyz.T
-        arr["r"], arr["g"], arr["b"] = rgb.T
-        path.write_bytes(head.encode() + arr.tobytes())
-    got = seeding.read_ply_points(path)
-    assert np.allclose(got, xyz.astype(np.float32), atol=1e-6)
-    with pytest.raises(CtsplatError, match="does not exist"):
-        seeding.read_ply_points(tmp_path / "missing.ply")

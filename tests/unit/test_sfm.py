@@ -9,7 +9,6 @@ from scipy.spatial.transform import Rotation
 
 from ctsplat.geometry import ConeCamera, project_points, support_radius_mm
 from ctsplat.sfm.align import evaluate_poses, robust_sim3, rotation_error_deg, umeyama
-from ctsplat.sfm.colmap import write_points_ply
 from ctsplat.sfm.features import enhance_for_features
 from ctsplat.sfm.step import SFM_DEFAULTS, summarize
 from ctsplat.utils import CtsplatError, merge_config
@@ -180,15 +179,6 @@ def test_evaluate_poses_with_too_few_registrations_reports_not_ok() -> None:
     assert all(np.isnan(r["rot_err_deg"]) for r in rows)
     summ = summarize(rows, {"models_found": 1, "model_sizes": [2]}, merge_config("sfm", {}, SFM_DEFAULTS))
     assert summ["ok"] is False and summ["registration_rate"] == 0.0 and "registration rate" in summ["reason"]
-
-
-def test_write_points_ply_roundtrip(tmp_path) -> None:
-    xyz = np.array([[0.0, 1.5, -2.25], [10.0, 20.0, 30.0]])
-    write_points_ply(tmp_path / "p.ply", xyz)
-    lines = (tmp_path / "p.ply").read_text().splitlines()
-    assert "element vertex 2" in lines
-    body = np.array([[float(v) for v in ln.split()] for ln in lines[lines.index("end_header") + 1:]])
-    np.testing.assert_allclose(body, xyz)
 
 
 def test_unknown_config_key_is_rejected() -> None:

@@ -113,7 +113,7 @@ def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
     # test metrics recomputed independently from the written files
     from ctsplat.evaluation.metrics import psnr3d
     from ctsplat.formats.volume import load_volume
-    from ctsplat.gaussians import Gaussians
+    from ctsplat.splat.gaussians import Gaussians
 
     g = Gaussians.load(out / "model.pt")
     assert len(g) == m["n_gaussians"]
@@ -350,7 +350,7 @@ def test_fbp_init_on_cone_beam_uses_sirt(scene_dir: Path, tmp_path: Path) -> Non
 
 
 def test_sfm_init_reads_points(scene_dir: Path, tmp_path: Path) -> None:
-    from ctsplat.training.seeding import read_ply_points
+    from ctsplat.formats.ply import read_ply_points
 
     sfm = tmp_path / "sfm"
     sfm.mkdir()

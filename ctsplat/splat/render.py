@@ -30,8 +30,9 @@ Pipeline (all vectorised over Gaussians; no Python loop over Gaussians)
    (half widths ``k sqrt(Σ̂_00)``, ``k sqrt(Σ̂_11)`` px), so footprints adapt to the Gaussian's size -- a large Gaussian
    is never clipped and a small one costs a few pixels. (Gaussian, pixel) pairs are generated with
    ``repeat_interleave`` and scattered with ``index_add`` (alpha: stably sorted by pixel, then depth) in the
-   reference path; the fast CPU path runs projection and rasterisation as fused C++ kernels with hand-written
-   backward passes (:mod:`ctsplat._render_kernel`; tested against the reference and by gradcheck).
+   reference path (:mod:`ctsplat.splat._reference`); the fast CPU path runs projection and rasterisation as fused
+   C++ kernels with hand-written backward passes (:mod:`ctsplat.splat._kernel`; tested against the reference and
+   by gradcheck).
    The bounding box truncates the tails: with the default ``k = 3`` the lost mass of a Gaussian is between
    ``1 - erf(3/√2) ≈ 0.27 %`` and ``1 - erf(3/√2)² ≈ 0.54 %`` (Šidák); pass ``sigma_cutoff=5`` for ~1e-6.
 
@@ -56,8 +57,8 @@ unfiltered amplitude). Unrectified and alpha modes use Mip-Splatting's ``sqrt(|�
 All modes add a numerical floor of ``1e-4`` px² to ``Σ̂`` (mass-conserving in radiative mode), which keeps
 degenerate (flat, edge-on) Gaussians finite and differentiable.
 
-Notes for training (engineer D)
--------------------------------
+Notes for training
+------------------
 * ``out.means2d`` is the projected-mean tensor actually used by the rasteriser, with ``retain_grad()`` already
   called when it requires grad: after ``loss.backward()`` read ``out.means2d.grad`` (N, 2) px for densification.
 * ``out.visible`` / ``out.radii`` (px, 0 when culled) mark Gaussians that touched at least one pixel.
@@ -69,8 +70,22 @@ Notes for training (engineer D)
   differentiable w.r.t. means, log-scales, quats, density_raw (alpha: also opacity_raw, colours, sh_rest);
   float32 and float64.
 * Thread count = ``torch.get_num_threads()``. On a shared, overloaded CPU set ``OMP_WAIT_POLICY=PASSIVE`` in the
-  environment before starting Python: torch's idle OpenMP workers otherwise spin and steal the cores (measured
-  here: 2-thread fwd+bwd ~5x slower without it).
+  environment before starting Python: torch's idle OpenMP workers otherwise spin and steal the cores (2-thread
+  fwd+bwd measured ~5x slower without it).
+
+References
+----------
+.. [1] M. Zwicker, H. Pfister, J. van Baar, M. Gross, "EWA Volume Splatting", IEEE Visualization 2001 (ray-space
+   Jacobian, local-affine projection of 3D Gaussians).
+.. [2] B. Kerbl, G. Kopanas, T. Leimkühler, G. Drettakis, "3D Gaussian Splatting for Real-Time Radiance Field
+   Rendering", ACM Transactions on Graphics 42(4), 2023 (alpha compositor, 0.3 px² low-pass, clamped
+   linearisation point, bounding-box footprints).
+.. [3] R. Zha, T. J. Lin, Y. Cai, J. Cao, Y. Zhang, H. Li, "R²-Gaussian: Rectifying Radiative Gaussian Splatting
+   for Tomographic Reconstruction", NeurIPS 2024 (rectified radiative line integrals, voxelizer).
+.. [4] Y. Cai, Y. Liang, J. Wang, A. Wang, Y. Zhang, X. Yang, Z. Zhou, L. Zhang, "Radiative Gaussian Splatting for
+   Efficient X-ray Novel View Synthesis", ECCV 2024 (X-Gaussian: the unrectified radiative compositor).
+.. [5] Z. Yu, A. Chen, B. Huang, T. Sattler, A. Geiger, "Mip-Splatting: Alias-free 3D Gaussian Splatting",
+   CVPR 2024 (3D smoothing and 2D mip filters).
 """
 
 from __future__ import annotations
@@ -82,23 +97,26 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from ctsplat.gaussians import Gaussians, eval_sh, quat_to_rotmat
+from ctsplat.splat import _kernel, _reference
+from ctsplat.splat.gaussians import Gaussians, eval_sh, quat_to_rotmat
 from ctsplat.utils import CtsplatError
 
 __all__ = [
     "COMPOSITORS",
+    "BACKENDS",
     "RenderOutput",
     "Projection",
     "camera_intrinsics",
     "project",
     "render",
-    "render_reference",
     "compute_3d_filter",
     "voxelize",
     "random_region",
+    "render_to_folder",
 ]
 
 COMPOSITORS = ("radiative", "radiative_unrectified", "alpha")
+BACKENDS = ("auto", "reference", "kernel")  # auto: the fused C++ kernels on CPU when they build, else the reference
 LOWPASS_ALPHA = 0.3  # px², 3DGS dilation
 MIP_2D_VAR = 0.1  # px², Mip-Splatting 2D filter
 EPS_2D = 1e-4  # px², numerical floor
@@ -147,8 +165,17 @@ class Projection:
 def camera_intrinsics(camera: Any) -> dict[str, Any]:
     """Read a (duck-typed) camera: ``model``, ``width``, ``height`` and ``spacing_mm`` or ``pitch_mm/dso_mm/dsd_mm``.
 
-    Returns ``{"model", "W", "H", "cx", "cy"}`` plus ``"sx", "sy"`` (mm/px, parallel) or ``"fx", "fy"`` (px, cone),
-    and ``"pixel_area_mm2"`` (detector pixel area, for mass checks; for cone at the detector plane).
+    Parameters
+    ----------
+    camera : ParallelCamera | ConeCamera or any object with those attributes
+        Optional ``cx``, ``cy`` (principal point, px; default the image centre) and, for cone beam, ``fx``, ``fy``
+        (px; default ``dsd_mm / pitch_mm``).
+
+    Returns
+    -------
+    dict
+        ``{"model", "W", "H", "cx", "cy"}`` (px) plus ``"sx", "sy"`` (mm/px, parallel) or ``"fx", "fy"`` (px,
+        cone), and ``"pixel_area_mm2"`` (detector pixel area, for mass checks; for cone at the detector plane).
     """
     model = getattr(camera, "model", None)
     try:
@@ -208,7 +235,32 @@ def project(
 ) -> Projection:
     """Project Gaussians into the image: 2D means, filtered conics, amplitudes and pixel bounding boxes.
 
-    See the module docstring for the math. ``R (3,3)``, ``t (3,)``: world-to-camera pose (x_cam = R x + t).
+    Pure PyTorch (differentiable, any device); the math is in the module docstring (EWA local-affine projection,
+    rectification, 3D / 2D filters). :func:`render` uses it on the reference path; the fused kernel computes the
+    same quantities.
+
+    Parameters
+    ----------
+    gaussians : Gaussians (N)
+    camera : ParallelCamera | ConeCamera
+        See :func:`camera_intrinsics`.
+    R : array_like (3, 3)
+    t : array_like (3,)
+        World-to-camera pose, ``x_cam = R x + t`` (mm).
+    compositor : {"radiative", "radiative_unrectified", "alpha"}
+        Sets the amplitude and the 2D filter.
+    filter_3d_var : Tensor (N,) or None
+        3D smoothing-filter variance, mm² (:func:`compute_3d_filter`).
+    mip_2d : bool
+        2D mip filter (0.1 px²) instead of the compositor's default dilation.
+    sigma_cutoff : float
+        Bounding-box half-width in standard deviations of the filtered 2D footprint.
+
+    Returns
+    -------
+    Projection
+        ``means2d (N, 2)`` px, ``conics (N, 3)`` px⁻², ``cov2d (N, 3)`` px², ``amps (N,)``, ``depths (N,)`` mm,
+        ``valid (N,)`` bool, ``bbox (N, 4)`` int64 half-open pixel ranges.
     """
     cam = camera_intrinsics(camera)
     means = gaussians.means
@@ -269,7 +321,6 @@ def project(
         detj2 = torch.linalg.det(J) ** 2
 
     # |Σ̂| (unfiltered 2D); the floor keeps sqrt differentiable for degenerate (edge-on flat) Gaussians
-    # |Σ̂| (unfiltered 2D); the floor keeps sqrt differentiable for degenerate (edge-on flat) Gaussians
     det_hat = _det2(c00, c01, c11).clamp_min(1e-20)
     k2 = _dilation(compositor, mip_2d)
     f00, f01, f11 = c00 + k2, c01, c11 + k2
@@ -316,82 +367,19 @@ def project(
                       depths=z, valid=valid, bbox=bbox)
 
 
-# ---------------------------------------------------------------------------------------------- pairs
-def _pairs(bbox: torch.Tensor, width: int, order: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """(Gaussian index, flat pixel index) for every pixel of every bounding box, Gaussians in ``order``.
-
-    Returns int64 tensors (P,), grouped contiguously per Gaussian.
-    """
-    bb = bbox if order is None else bbox[order]
-    bw = bb[:, 1] - bb[:, 0]
-    counts = bw * (bb[:, 3] - bb[:, 2])
-    ids = torch.arange(bb.shape[0], device=bb.device)
-    gid_local = torch.repeat_interleave(ids, counts)
-    if gid_local.numel() == 0:
-        empty = torch.zeros(0, dtype=torch.int64, device=bb.device)
-        return empty, empty
-    starts = torch.cumsum(counts, 0) - counts
-    local = torch.arange(gid_local.numel(), device=bb.device) - starts[gid_local]
-    bwg = bw[gid_local]
-    pu = bb[gid_local, 0] + local % bwg
-    pv = bb[gid_local, 2] + local // bwg
-    gid = gid_local if order is None else order[gid_local]
-    return gid, pv * width + pu
-
-
-def _pair_power(proj: Projection, gid: torch.Tensor, pix: torch.Tensor, width: int) -> torch.Tensor:
-    """``-½ dᵀ Σ̂'⁻¹ d`` per pair (differentiable w.r.t. means2d and conics)."""
-    pu = (pix % width).to(proj.means2d.dtype) + 0.5
-    pv = torch.div(pix, width, rounding_mode="floor").to(proj.means2d.dtype) + 0.5
-    m = proj.means2d[gid]
-    con = proj.conics[gid]
-    dx = pu - m[:, 0]
-    dy = pv - m[:, 1]
-    return -0.5 * (con[:, 0] * dx * dx + con[:, 2] * dy * dy) - con[:, 1] * dx * dy
-
-
-def splat_additive_reference(proj: Projection, height: int, width: int) -> torch.Tensor:
-    """Reference additive rasteriser (pure PyTorch autograd): ``img[p] = Σ_i amp_i exp(power_i(p))``."""
-    gid, pix = _pairs(proj.bbox, width)
-    val = proj.amps[gid] * torch.exp(_pair_power(proj, gid, pix, width))
-    img = torch.zeros(height * width, dtype=proj.amps.dtype, device=proj.amps.device)
-    img = img.index_add(0, pix, val)
-    return img.reshape(height, width)
-
-
-def splat_alpha_reference(proj: Projection, colors: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Front-to-back alpha compositing (pure PyTorch autograd), vectorised over (Gaussian, pixel) pairs.
-
-    Pairs are generated in increasing depth, then stably sorted by pixel, so each pixel's run lists its Gaussians
-    front to back; ``T = exp(exclusive segment cumsum of log(1 - α))`` (float64 cumsum for accuracy).
-
-    colors : (N, C). Returns (H, W, C).
-    """
-    order = torch.argsort(proj.depths.detach(), stable=True)
-    gid, pix = _pairs(proj.bbox, width, order)
-    c = colors.shape[1]
-    out = torch.zeros(height * width, c, dtype=colors.dtype, device=colors.device)
-    if gid.numel() == 0:
-        return out.reshape(height, width, c)
-    srt = torch.sort(pix, stable=True)
-    pix = srt.values
-    gid = gid[srt.indices]
-    alpha = torch.clamp(proj.amps[gid] * torch.exp(_pair_power(proj, gid, pix, width)), max=0.99)
-    log1m = torch.log1p(-alpha).double()
-    csum = torch.cumsum(log1m, 0)
-    excl = csum - log1m
-    # subtract the cumulative sum before each pixel's run
-    new_seg = torch.ones_like(pix, dtype=torch.bool)
-    new_seg[1:] = pix[1:] != pix[:-1]
-    seg_id = torch.cumsum(new_seg.to(torch.int64), 0) - 1
-    seg_base = excl[new_seg]
-    trans = torch.exp(excl - seg_base[seg_id]).to(alpha.dtype)
-    w = trans * alpha
-    out = out.index_add(0, pix, w[:, None] * colors[gid])
-    return out.reshape(height, width, c)
-
-
 # ---------------------------------------------------------------------------------------------- render
+def _check_backend(backend: str, what: str) -> None:
+    if backend not in BACKENDS:
+        raise CtsplatError(f"unknown {what} backend {backend!r}; expected auto, reference or kernel")
+
+
+def _use_kernel(backend: str, device: torch.device) -> bool:
+    """Whether the fused C++ kernels run: CPU tensors only; ``auto`` when they build, ``kernel`` always."""
+    if backend == "reference" or device.type != "cpu":
+        return False
+    return _kernel.available() if backend == "auto" else True
+
+
 def _check_inputs(gaussians: Gaussians, filter_3d_var: torch.Tensor | None) -> None:
     gaussians.validate()
     if filter_3d_var is not None:
@@ -460,19 +448,14 @@ def render(
     """
     if compositor not in COMPOSITORS:
         raise CtsplatError(f"unknown compositor {compositor!r}; expected one of {', '.join(COMPOSITORS)}")
-    if backend not in ("auto", "reference", "kernel"):
-        raise CtsplatError(f"unknown render backend {backend!r}; expected auto, reference or kernel")
+    _check_backend(backend, "render")
     if transmission and compositor == "alpha":
         raise CtsplatError("transmission=True only applies to the radiative compositors")
     if not sigma_cutoff > 0:
         raise CtsplatError(f"sigma_cutoff must be > 0, got {sigma_cutoff}")
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
-    use_kernel = False
-    if backend != "reference" and gaussians.means.device.type == "cpu":
-        from ctsplat import _render_kernel
-
-        use_kernel = _render_kernel.available() if backend == "auto" else True
+    use_kernel = _use_kernel(backend, gaussians.means.device)
     if use_kernel:
         # the kernel flags NaN/Inf in what it reads (one pass, no per-view torch reductions); the full check
         # then names the parameter. Colours, which the kernel does not read, are checked here (alpha only).
@@ -498,21 +481,17 @@ def render(
         R_t, t_t = _as_pose(R, t, gaussians.means)
         cols = _colors_for_view(gaussians, R_t, t_t, cam["model"])
         if use_kernel:
-            from ctsplat._render_kernel import AlphaComposite
-
-            img = AlphaComposite.apply(proj.means2d, proj.conics, proj.amps, cols.to(proj.amps.dtype), proj.bbox,
-                                       proj.depths, H, W)
+            img = _kernel.AlphaComposite.apply(proj.means2d, proj.conics, proj.amps, cols.to(proj.amps.dtype),
+                                               proj.bbox, proj.depths, H, W)
         else:
-            img = splat_alpha_reference(proj, cols, H, W)
+            img = _reference.splat_alpha_reference(proj, cols, H, W)
         if img.shape[-1] == 1:
             img = img[..., 0]
     else:
         if use_kernel:
-            from ctsplat._render_kernel import splat_additive_kernel
-
-            img = splat_additive_kernel(proj, H, W)
+            img = _kernel.SplatAdditive.apply(proj.means2d, proj.conics, proj.amps, proj.bbox, H, W)
         else:
-            img = splat_additive_reference(proj, H, W)
+            img = _reference.splat_additive_reference(proj, H, W)
         if mu_scale != 1.0:
             img = img * mu_scale
         if transmission:
@@ -526,8 +505,6 @@ def _project_kernel(
 ) -> tuple[Projection, torch.Tensor, torch.Tensor, bool]:
     """:func:`project` through the fused C kernel (CPU, float32/float64); also returns ``radii`` (N,) int32,
     ``visible`` (N,) bool and whether an input held NaN/Inf (or a negative filter variance)."""
-    from ctsplat._render_kernel import ProjectAdditive, camera_vector
-
     means = gaussians.means
     R_t, t_t = _as_pose(R, t, means)
     fv = None
@@ -535,22 +512,17 @@ def _project_kernel(
         fv = torch.as_tensor(filter_3d_var, dtype=means.dtype, device=means.device).reshape(-1)
         if fv.shape[0] != means.shape[0]:
             raise CtsplatError(f"filter_3d_var has {fv.shape[0]} entries for {means.shape[0]} Gaussians")
-    cam_vec = camera_vector(cam, R_t, t_t, _dilation(compositor, mip_2d), NEAR_MM, sigma_cutoff)
+    cam_vec = _kernel.camera_vector(cam, R_t, t_t, _dilation(compositor, mip_2d), NEAR_MM, sigma_cutoff)
     mode = {"radiative": 0, "radiative_unrectified": 1, "alpha": 2}[compositor]
     raw = gaussians.density_raw
     if compositor == "alpha":
         # no opacity -> opacity 1 (sigmoid(40) == 1 in float32), as Gaussians.opacities says
         raw = gaussians.opacity_raw if gaussians.opacity_raw is not None else torch.full_like(raw.detach(), 40.0)
-    m2d, con, amp, depth, bb, radii, valid, visible, nonfinite = ProjectAdditive.apply(
+    m2d, con, amp, depth, bb, radii, valid, visible, nonfinite = _kernel.Project.apply(
         means, gaussians.log_scales, gaussians.quats, raw, fv, cam_vec, mode, bool(mip_2d)
     )
     proj = Projection(means2d=m2d, conics=con, cov2d=torch.empty(0), amps=amp, depths=depth, valid=valid, bbox=bb)
     return proj, radii, visible, bool(nonfinite)
-
-
-def render_reference(gaussians: Gaussians, camera: Any, R: Any, t: Any, **kwargs: Any) -> RenderOutput:
-    """:func:`render` forced onto the pure-PyTorch reference path."""
-    return render(gaussians, camera, R, t, backend="reference", **kwargs)
 
 
 # ---------------------------------------------------------------------------------------------- 3D filter
@@ -567,11 +539,21 @@ def compute_3d_filter(
 
     Parameters
     ----------
-    camera : camera shared by the views; Rs : (V, 3, 3); ts : (V, 3)
+    gaussians : Gaussians (N)
+    camera : ParallelCamera | ConeCamera
+        Shared by the views (see :func:`camera_intrinsics`).
+    Rs : array_like (V, 3, 3)
+    ts : array_like (V, 3)
+        World-to-camera poses of the training views (mm).
+    margin : float
+        Fraction of the image size added on each side when deciding whether a camera sees a Gaussian.
+    factor : float
+        ``v = factor · T_min²``.
 
     Returns
     -------
-    Tensor (N,) variance in mm², same dtype/device as the means.
+    Tensor (N,)
+        Variance in mm², same dtype/device as the means.
     """
     cam = camera_intrinsics(camera)
     m = gaussians.means.detach()
@@ -608,7 +590,22 @@ def compute_3d_filter(
 def random_region(
     shape: tuple[int, int, int], size: int | tuple[int, int, int], generator: torch.Generator | None = None
 ) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int]]:
-    """A random sub-volume ``((i0, i1), (j0, j1), (k0, k1))`` of ``size`` voxels (clipped to ``shape``)."""
+    """A random sub-volume of ``size`` voxels per axis (clipped to ``shape``), for :func:`voxelize`'s ``region``.
+
+    Parameters
+    ----------
+    shape : (I, J, K)
+        Grid size in voxels.
+    size : int or (int, int, int)
+        Sub-volume size in voxels (per axis).
+    generator : torch.Generator or None
+        Source of the random start indices.
+
+    Returns
+    -------
+    ((i0, i1), (j0, j1), (k0, k1))
+        Half-open voxel index ranges.
+    """
     sz = (size,) * 3 if isinstance(size, int) else tuple(size)
     out = []
     for dim, s in zip(shape, sz, strict=True):
@@ -616,64 +613,6 @@ def random_region(
         start = int(torch.randint(0, int(dim) - s + 1, (1,), generator=generator))
         out.append((start, start + s))
     return tuple(out)  # type: ignore[return-value]
-
-
-def _voxel_pairs(
-    lo: torch.Tensor, ext: torch.Tensor, affine: torch.Tensor, origin: torch.Tensor, out_shape: tuple[int, int, int],
-    dtype: torch.dtype,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(local Gaussian index, voxel centre in mm, flat output index) for every voxel of every box in a chunk."""
-    counts = ext.prod(-1)
-    ids = torch.arange(lo.shape[0], device=lo.device)
-    g = torch.repeat_interleave(ids, counts)
-    starts = torch.cumsum(counts, 0) - counts
-    local = torch.arange(g.numel(), device=lo.device) - starts[g]
-    e = ext[g]
-    k = local % e[:, 2]
-    rest = local // e[:, 2]
-    idx = lo[g] + torch.stack([rest // e[:, 1], rest % e[:, 1], k], -1)  # absolute voxel indices
-    pos = idx.to(dtype) @ affine[:3, :3].T + affine[:3, 3]
-    rel = idx - origin
-    flat = (rel[:, 0] * out_shape[1] + rel[:, 1]) * out_shape[2] + rel[:, 2]
-    return g, pos, flat
-
-
-def _voxel_values(means: torch.Tensor, prec6: torch.Tensor, dens: torch.Tensor, g: torch.Tensor,
-                  pos: torch.Tensor) -> torch.Tensor:
-    """``ρ exp(-½ dᵀ P d)`` per pair; ``prec6`` = (P00, P11, P22, P01, P02, P12) per Gaussian."""
-    d = pos - means[g]
-    p = prec6[g]
-    q = (p[:, 0] * d[:, 0] ** 2 + p[:, 1] * d[:, 1] ** 2 + p[:, 2] * d[:, 2] ** 2
-         + 2 * (p[:, 3] * d[:, 0] * d[:, 1] + p[:, 4] * d[:, 0] * d[:, 2] + p[:, 5] * d[:, 1] * d[:, 2]))
-    return dens[g] * torch.exp(-0.5 * q)
-
-
-class _Voxelize(torch.autograd.Function):
-    """Chunked scatter of Gaussian values into a grid; the backward recomputes each chunk (memory-bounded)."""
-
-    @staticmethod
-    def forward(ctx, means, prec6, dens, lo, ext, bounds, affine, origin, out_shape):  # noqa: ANN001
-        out = torch.zeros(out_shape[0] * out_shape[1] * out_shape[2], dtype=means.dtype, device=means.device)
-        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
-            g, pos, flat = _voxel_pairs(lo[a:b], ext[a:b], affine, origin, out_shape, means.dtype)
-            out.index_add_(0, flat, _voxel_values(means[a:b], prec6[a:b], dens[a:b], g, pos))
-        ctx.save_for_backward(means, prec6, dens, lo, ext, affine, origin)
-        ctx.bounds, ctx.out_shape = bounds, out_shape
-        return out
-
-    @staticmethod
-    def backward(ctx, grad_out):  # noqa: ANN001
-        means, prec6, dens, lo, ext, affine, origin = ctx.saved_tensors
-        grads = [torch.zeros_like(means), torch.zeros_like(prec6), torch.zeros_like(dens)]
-        for a, b in zip(ctx.bounds[:-1], ctx.bounds[1:], strict=True):
-            g, pos, flat = _voxel_pairs(lo[a:b], ext[a:b], affine, origin, ctx.out_shape, means.dtype)
-            with torch.enable_grad():
-                chunk = [t[a:b].detach().requires_grad_(True) for t in (means, prec6, dens)]
-                vals = _voxel_values(*chunk, g, pos)
-                gc = torch.autograd.grad(vals, chunk, grad_out[flat])
-            for acc, part in zip(grads, gc, strict=True):
-                acc[a:b] = part
-        return (*grads, None, None, None, None, None, None)
 
 
 def voxelize(
@@ -697,10 +636,19 @@ def voxelize(
 
     Parameters
     ----------
-    shape : (I, J, K) full grid; affine : (4, 4) voxel -> world mm
+    gaussians : Gaussians (N)
+    shape : (I, J, K)
+        Full grid size in voxels.
+    affine : array_like (4, 4)
+        Voxel index -> world mm.
+    chunk : int
+        Reference path: (Gaussian, voxel) pairs per chunk.
     region : ((i0, i1), (j0, j1), (k0, k1)) or None
         Evaluate only this half-open sub-volume (see :func:`random_region`); output has the region's shape.
-    filter_3d_var : (N,) or None — apply the mass-conserving 3D filter (as in :func:`render`).
+    filter_3d_var : Tensor (N,) or None
+        Variance in mm² of the mass-conserving 3D filter (as in :func:`render`).
+    sigma_cutoff : float
+        Box half-extent in standard deviations.
     backend : "auto" | "reference" | "kernel"
         "auto": the fused C++ kernel on CPU when available (hand-written backward, memory = output grid + O(N);
         ``chunk`` is then unused), else the chunked PyTorch reference.
@@ -746,38 +694,20 @@ def voxelize(
         keep = torch.nonzero(counts > 0).flatten()
     if keep.numel() == 0:
         return torch.zeros(n_out, dtype=dtype, device=dev).reshape(out_shape) + 0 * dens.sum()
-    cum = torch.cumsum(counts[keep], 0)
-    # chunk boundaries: greedy by pair budget
-    bounds = [0]
-    cum_cpu = cum.cpu()
-    base = 0
-    while bounds[-1] < keep.numel():
-        nxt = int(torch.searchsorted(cum_cpu, torch.tensor(base + chunk), right=True))
-        nxt = max(nxt, bounds[-1] + 1)
-        bounds.append(min(nxt, keep.numel()))
-        base = int(cum_cpu[bounds[-1] - 1])
-    sel = keep
     prec6 = torch.stack([inv_cov[:, 0, 0], inv_cov[:, 1, 1], inv_cov[:, 2, 2], inv_cov[:, 0, 1], inv_cov[:, 0, 2],
                          inv_cov[:, 1, 2]], -1)
-    use_kernel = False
-    if backend not in ("auto", "reference", "kernel"):
-        raise CtsplatError(f"unknown voxelize backend {backend!r}; expected auto, reference or kernel")
-    if backend != "reference" and dev.type == "cpu":
-        from ctsplat import _render_kernel
-
-        use_kernel = _render_kernel.available() if backend == "auto" else True
-    if use_kernel:
-        from ctsplat._render_kernel import VoxelizeKernel
-
-        out = VoxelizeKernel.apply(means[sel], prec6[sel], dens[sel], lo[sel], ext[sel], A, reg[:, 0], out_shape)
+    _check_backend(backend, "voxelize")
+    if _use_kernel(backend, dev):
+        out = _kernel.Voxelize.apply(means[keep], prec6[keep], dens[keep], lo[keep], ext[keep], A, reg[:, 0],
+                                     out_shape)
     else:
-        out = _Voxelize.apply(means[sel], prec6[sel], dens[sel], lo[sel], ext[sel], bounds, A, reg[:, 0],
-                              out_shape)
+        out = _reference.voxelize_reference(means[keep], prec6[keep], dens[keep], lo[keep], ext[keep], A, reg[:, 0],
+                                            out_shape, chunk)
     return out.reshape(out_shape)
 
 
 # ---------------------------------------------------------------------------------------------- batch rendering
-def render_views(
+def render_to_folder(
     model_path: Any,
     views_path: Any,
     out_dir: Any,
@@ -788,13 +718,34 @@ def render_views(
     mu_scale: float | None = None,
     device: str = "cpu",
 ) -> dict[str, Any]:
-    """Render every view of a ``views.json`` with a saved model; write ``images.tif`` + PNGs + ``render.json``.
+    """Render every view of a ``views.json`` with a saved model into a folder (the ``ctsplat render`` step).
 
-    ``images.tif``: float32 pages (V, H, W) in view-set order -- line integrals (radiative modes, times
-    ``mu_scale``) or composited grey values (alpha). ``png/view_{id:04d}.png``: 16-bit transmission
-    ``exp(-p)`` (radiative) or the clipped [0, 1] image (alpha). With ``mip`` the 3D filter comes from the view
-    set's ``train`` views (all views if it has none) and the 2D mip filter is on. ``mu_scale`` defaults to the
-    model's ``meta["mu_scale_per_mm"]`` when present, else 1 (normalised units).
+    Writes ``images.tif``: float32 pages (V, H, W) in view-set order -- line integrals (radiative modes, times
+    ``mu_scale``) or composited grey values (alpha); ``png/view_{id:04d}.png``: 16-bit transmission ``exp(-p)``
+    (radiative) or the clipped [0, 1] image (alpha); ``render.json``: what was rendered and how long it took.
+
+    Parameters
+    ----------
+    model_path : str or Path
+        Model ``.pt`` (:meth:`Gaussians.save`).
+    views_path : str or Path
+        ``views.json`` of a radiograph view set.
+    out_dir : str or Path
+        Output folder (created).
+    compositor : {"radiative", "radiative_unrectified", "alpha"}
+    split : {"train", "val", "test"} or None
+        Only this split's views.
+    mip : bool
+        3D filter from the view set's ``train`` views (all views if it has none) and the 2D mip filter.
+    mu_scale : float or None
+        Density factor (1/mm per normalised unit); default the model's ``meta["mu_scale_per_mm"]``, else 1.
+    device : str
+        "cpu", "cuda" or "auto".
+
+    Returns
+    -------
+    dict
+        The ``render.json`` content (``n_views``, ``n_gaussians``, ``seconds``, ...).
     """
     import time
     from pathlib import Path

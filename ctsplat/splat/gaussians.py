@@ -13,6 +13,13 @@ normalised volume; multiply by ``mu_scale_per_mm`` for 1/mm). For the alpha comp
 ``opacity = sigmoid(opacity_raw)`` and a colour: ``colors (N, C)`` is the view-independent base colour (grey ``C=1``
 or RGB ``C=3``) and optional ``sh_rest (N, K-1, C)`` holds real spherical-harmonic coefficients of degree
 1..3 (``K = (deg+1)^2``) added on top (3DGS convention: ``c(d) = colors + sum_k Y_k(d) sh_rest_k``, clamped at 0).
+
+References
+----------
+.. [1] B. Kerbl, G. Kopanas, T. Leimkühler, G. Drettakis, "3D Gaussian Splatting for Real-Time Radiance Field
+   Rendering", ACM Transactions on Graphics 42(4), 2023 (parameterisation, SH basis, PLY layout).
+.. [2] R. Zha, T. J. Lin, Y. Cai, J. Cao, Y. Zhang, H. Li, "R²-Gaussian: Rectifying Radiative Gaussian Splatting
+   for Tomographic Reconstruction", NeurIPS 2024 (Gaussians as a density field).
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ctsplat.formats.ply import write_ply_vertices
 from ctsplat.utils import CtsplatError, atomic_path
 
 __all__ = ["Gaussians", "quat_to_rotmat", "covariance", "inverse_softplus", "eval_sh", "SH_C0"]
@@ -40,7 +48,18 @@ _FORMAT_VERSION = 1
 
 
 def inverse_softplus(y: torch.Tensor) -> torch.Tensor:
-    """Inverse of ``softplus``: ``x = y + log(-expm1(-y))`` (stable for small and large ``y > 0``)."""
+    """Inverse of ``softplus``: ``x = y + log(-expm1(-y))`` (stable for small and large ``y > 0``).
+
+    Parameters
+    ----------
+    y : Tensor (any shape)
+        Values > 0 (activated densities).
+
+    Returns
+    -------
+    Tensor (same shape)
+        ``x`` with ``softplus(x) = y``.
+    """
     y = torch.as_tensor(y)
     return y + torch.log(-torch.expm1(-y))
 
@@ -56,6 +75,7 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     Returns
     -------
     Tensor (N, 3, 3)
+        Rotation matrices (world from local axes).
     """
     q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     w, x, y, z = q.unbind(-1)
@@ -71,7 +91,20 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
 
 
 def covariance(log_scales: torch.Tensor, quats: torch.Tensor) -> torch.Tensor:
-    """World covariances ``Σ = R diag(s²) Rᵀ`` in mm², shape (N, 3, 3), from log-scales (N, 3) and quats (N, 4)."""
+    """World covariances ``Σ = R diag(s²) Rᵀ``.
+
+    Parameters
+    ----------
+    log_scales : Tensor (N, 3)
+        Natural log of the standard deviations (mm).
+    quats : Tensor (N, 4)
+        wxyz quaternions (normalised here).
+
+    Returns
+    -------
+    Tensor (N, 3, 3)
+        Covariances in mm².
+    """
     rot = quat_to_rotmat(quats)
     m = rot * torch.exp(log_scales)[..., None, :]  # R S
     return m @ m.transpose(-1, -2)
@@ -83,12 +116,14 @@ def eval_sh(sh_rest: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     Parameters
     ----------
     sh_rest : Tensor (N, K-1, C), K in {4, 9, 16}
+        Coefficients of degrees 1..3 (colour units).
     dirs : Tensor (N, 3)
         Unit viewing directions (camera centre -> Gaussian) in world frame.
 
     Returns
     -------
     Tensor (N, C)
+        ``sum_k Y_k(d) sh_rest_k`` (colour units), to be added to the base colour.
     """
     k = sh_rest.shape[1] + 1
     x, y, z = dirs.unbind(-1)
@@ -158,13 +193,25 @@ class Gaussians:
 
         Parameters
         ----------
-        means : (N, 3) mm
-        scales_mm : (N, 3), (N,) or scalar, standard deviations in mm (> 0)
-        densities : (N,) or scalar, ρ > 0
-        quats : (N, 4) wxyz or None (identity)
-        opacities : (N,) or scalar in (0, 1), optional
-        colors : (N, C), optional
-        sh_degree : int in 0..3; allocates zero ``sh_rest`` of ``(deg+1)^2 - 1`` coefficients when > 0.
+        means : array_like (N, 3)
+            Centres, world mm.
+        scales_mm : array_like (N, 3), (N,) or scalar
+            Standard deviations in mm (> 0).
+        densities : array_like (N,) or scalar
+            ρ > 0 (normalised-volume units).
+        quats : array_like (N, 4) or None
+            wxyz rotations; None is the identity.
+        opacities : array_like (N,) or scalar in (0, 1), optional
+        colors : array_like (N, C), optional
+        sh_degree : int in 0..3
+            Allocates zero ``sh_rest`` of ``(deg+1)^2 - 1`` coefficients when > 0.
+        dtype, device
+            Of the tensors.
+
+        Returns
+        -------
+        Gaussians
+            With ``log_scales = log(scales_mm)``, ``density_raw = softplus⁻¹(ρ)``, ``opacity_raw = logit(o)``.
         """
         kw = {"dtype": dtype, "device": device}
         means_t = torch.as_tensor(means, **kw).reshape(-1, 3)
@@ -218,6 +265,7 @@ class Gaussians:
 
     @property
     def num(self) -> int:
+        """Number of Gaussians ``N`` (as ``len``)."""
         return len(self)
 
     @property
@@ -249,10 +297,17 @@ class Gaussians:
 
     @property
     def sh_degree(self) -> int:
+        """Degree (0..3) of the spherical-harmonic colour; 0 without ``sh_rest``."""
         return 0 if self.sh_rest is None else int(round(math.sqrt(self.sh_rest.shape[1] + 1))) - 1
 
     def masses(self) -> torch.Tensor:
-        """Integral of each Gaussian, ``ρ (2π)^{3/2} |Σ|^{1/2} = ρ (2π)^{3/2} s_x s_y s_z`` (density × mm³)."""
+        """Integral of each Gaussian, ``ρ (2π)^{3/2} |Σ|^{1/2} = ρ (2π)^{3/2} s_x s_y s_z``.
+
+        Returns
+        -------
+        Tensor (N,)
+            Density units × mm³.
+        """
         return self.densities * (2 * math.pi) ** 1.5 * torch.exp(self.log_scales.sum(-1))
 
     def tensors(self) -> dict[str, torch.Tensor]:
@@ -267,7 +322,10 @@ class Gaussians:
     def validate(self, check_finite: bool | tuple[str, ...] = True) -> None:
         """Raise ``CtsplatError`` naming the first parameter with a wrong shape or a NaN/Inf value.
 
-        ``check_finite``: True checks every tensor for NaN/Inf, False none, a tuple of names only those.
+        Parameters
+        ----------
+        check_finite : bool or tuple of str
+            True checks every tensor for NaN/Inf, False none, a tuple of names only those.
         """
         n = len(self)
         shapes = {"means": (n, 3), "log_scales": (n, 3), "quats": (n, 4), "density_raw": (n,), "opacity_raw": (n,)}
@@ -295,6 +353,7 @@ class Gaussians:
         return Gaussians(**kw)
 
     def detach(self) -> Gaussians:
+        """The same tensors detached from the autograd graph (``meta`` shared)."""
         kw = {f.name: getattr(self, f.name) for f in fields(self)}
         for k, v in kw.items():
             if isinstance(v, torch.Tensor):
@@ -311,7 +370,12 @@ class Gaussians:
 
     # ------------------------------------------------------------------ I/O
     def save(self, path: str | Path) -> None:
-        """Save to a ``.pt`` file (tensors on CPU, detached; atomic write)."""
+        """Save to a ``.pt`` file (tensors on CPU, detached; atomic write).
+
+        Parameters
+        ----------
+        path : str or Path
+        """
         payload = {
             "format": "ctsplat.gaussians",
             "version": _FORMAT_VERSION,
@@ -323,7 +387,19 @@ class Gaussians:
 
     @classmethod
     def load(cls, path: str | Path, device: torch.device | str | None = None) -> Gaussians:
-        """Load a model written by :meth:`save` (also accepts a training checkpoint with a ``gaussians`` entry)."""
+        """Load a model written by :meth:`save` (also accepts a training checkpoint with a ``gaussians`` entry).
+
+        Parameters
+        ----------
+        path : str or Path
+        device : torch.device, str or None
+            Where to put the tensors (default CPU).
+
+        Returns
+        -------
+        Gaussians
+            Validated (shapes, finiteness); ``meta`` as saved.
+        """
         path = Path(path)
         if not path.is_file():
             raise CtsplatError(f"model file not found: {path}")
@@ -350,7 +426,13 @@ class Gaussians:
         encodings (``f_dc = (colour - 0.5) / C0``, ``opacity`` = logit, ``scale`` = log, ``rot`` = wxyz) plus the
         radiative ``density`` ρ (activated). Grey colours are replicated to RGB; a model without colours is
         shown grey with brightness ``ρ / max ρ``; a model without opacity gets opacity ``1 - exp(-ρ·2 s̄)``
-        clamped to [0.01, 0.99] (viewer display only).
+        clamped to [0.01, 0.99] (viewer display only). Read back with
+        :func:`ctsplat.formats.ply.read_ply_vertices`.
+
+        Parameters
+        ----------
+        path : str or Path
+            Output ``.ply`` (atomic write).
         """
         n = len(self)
         with torch.no_grad():
@@ -374,9 +456,10 @@ class Gaussians:
                 rest = sr.transpose(1, 2).reshape(n, -1)  # channel-major as in 3DGS
             q = self.quats.detach().cpu().double()
             q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            normal = torch.zeros(n)
             cols = [
                 ("x", self.means[:, 0]), ("y", self.means[:, 1]), ("z", self.means[:, 2]),
-                ("nx", None), ("ny", None), ("nz", None),
+                ("nx", normal), ("ny", normal), ("nz", normal),
                 *[(f"f_dc_{i}", f_dc[:, i]) for i in range(3)],
                 *[(f"f_rest_{i}", rest[:, i]) for i in range(rest.shape[1])],
                 ("opacity", op_raw),
@@ -384,35 +467,6 @@ class Gaussians:
                 *[(f"rot_{i}", q[:, i]) for i in range(4)],
                 ("density", dens),
             ]
-            arr = np.zeros(n, dtype=[(name, "<f4") for name, _ in cols])
-            for name, v in cols:
-                if v is not None:
-                    arr[name] = v.detach().cpu().numpy().astype(np.float32)
-        header = "ply\nformat binary_little_endian 1.0\n"
-        header += "comment ctsplat Gaussians (3DGS layout + radiative density)\n"
-        header += f"element vertex {n}\n" + "".join(f"property float {name}\n" for name, _ in cols)
-        header += "end_header\n"
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            fh.write(header.encode("ascii"))
-            fh.write(arr.tobytes())
-
-
-def read_ply(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a binary little-endian float PLY written by :meth:`Gaussians.to_ply` into ``{property: (N,)}``."""
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    header = data[:end].decode("ascii").splitlines()
-    if header[0] != "ply" or "binary_little_endian" not in header[1]:
-        raise CtsplatError(f"{path}: not a binary little-endian PLY")
-    n = 0
-    names = []
-    for line in header:
-        parts = line.split()
-        if parts[:2] == ["element", "vertex"]:
-            n = int(parts[2])
-        elif parts[:1] == ["property"]:
-            if parts[1] != "float":
-                raise CtsplatError(f"{path}: only float properties are supported, got {parts[1]}")
-            names.append(parts[2])
-    arr = np.frombuffer(data[end:], dtype=[(nm, "<f4") for nm in names], count=n)
-    return {nm: np.array(arr[nm]) for nm in names}
+            cols = [(name, "float", v.detach().cpu().numpy()) for name, v in cols]
+        write_ply_vertices(path, cols, fmt="binary_little_endian",
+                           comments=["ctsplat Gaussians (3DGS layout + radiative density)"])

@@ -1,0 +1,75 @@
+"""The fused kernels' ctypes boundary: every C entry point has declared argument and return types (one table), the
+table matches the C++ sources, and calls with a wrong argument count raise instead of reading garbage."""
+
+from __future__ import annotations
+
+import ctypes
+import re
+import shutil
+
+import pytest
+import torch
+
+from ctsplat.splat import _kernel
+
+
+def _exported_c_names() -> set[str]:
+    """``extern "C"`` function names of csrc/render.cpp (``NAME_##SUF`` expanded for the EXPORT instances)."""
+    src = (_kernel.CSRC / "render.cpp").read_text()
+    names = set(re.findall(r'extern "C" \w+ ([\w#]+)\(', src))
+    sufs = re.findall(r"^EXPORT\(\w+, (\w+)\)", src, flags=re.M)
+    assert sufs == ["f32", "f64"]
+    out = {n for n in names if "##" not in n}
+    for n in names - out:
+        out |= {n.replace("##SUF", s) for s in sufs}
+    return out
+
+
+def test_signature_table_matches_the_cpp_exports_and_the_python_calls():
+    assert _exported_c_names() == set(_kernel.SIGNATURES)
+    # every name the Python side looks up (_fn("name"[, dtype])) is in the table, for each dtype it may use
+    called = re.findall(r'_fn\("(\w+)"(, [^)]+)?\)', (_kernel.CSRC.parent / "_kernel.py").read_text())
+    assert called
+    for name, dtype_arg in called:
+        wanted = [f"{name}_f32", f"{name}_f64"] if dtype_arg else [name]
+        assert all(w in _kernel.SIGNATURES for w in wanted), name
+    for name, (argtypes, restype) in _kernel.SIGNATURES.items():
+        assert restype is None, name  # all entry points return void
+        assert all(t in (ctypes.c_void_p, ctypes.c_int64, ctypes.c_int) for t in argtypes), name
+
+
+@pytest.fixture(scope="module")
+def lib():
+    if not any(shutil.which(c) for c in ("c++", "g++", "clang++")):
+        pytest.skip("no C++ compiler on PATH")
+    if not _kernel.available():
+        pytest.skip(f"C kernel unavailable: {_kernel._failed}")
+    return _kernel._get_lib()
+
+
+def test_every_called_function_has_argtypes_and_restype(lib):
+    for name, (argtypes, restype) in _kernel.SIGNATURES.items():
+        fn = getattr(lib, name)
+        assert fn.argtypes is not None and tuple(fn.argtypes) == tuple(argtypes), name
+        assert fn.restype is restype, name
+
+
+def test_wrong_argument_count_raises(lib):
+    # too few: ctypes itself refuses once argtypes is set; too many: the checked wrapper refuses
+    with pytest.raises(TypeError):
+        lib.splat_fwd_f32(1, None, None)
+    for name in ("splat_fwd", "proj_fwd", "alpha_bwd", "vox_bwd"):
+        fn = _kernel._fn(name, torch.float32)
+        n = len(_kernel.SIGNATURES[f"{name}_f32"][0])
+        with pytest.raises(TypeError, match="arguments"):
+            fn(*[0] * (n - 1))
+        with pytest.raises(TypeError, match="arguments"):
+            fn(*[0] * (n + 1))
+    with pytest.raises(TypeError, match="arguments"):
+        _kernel._fn("alpha_lists_c")(0, None)
+    # a correct call still works: an empty image from zero Gaussians
+    out = torch.full((2, 3), 7.0)
+    empty = torch.zeros(0)
+    _kernel._fn("splat_fwd", torch.float32)(0, empty.data_ptr(), empty.data_ptr(), empty.data_ptr(), None, 2, 3,
+                                             out.data_ptr(), 1)
+    assert torch.equal(out, torch.zeros(2, 3))
