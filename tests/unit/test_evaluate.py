@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from ctsplat import metrics
+from ctsplat.evaluation import metrics
 from ctsplat.evaluation import run as ev
 from ctsplat.utils import CtsplatError
 

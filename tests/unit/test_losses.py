@@ -7,7 +7,7 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from ctsplat import losses
+from ctsplat.training import losses
 
 
 @pytest.mark.parametrize("data_range", [1.0, 7.5])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ctsplat import seeding
+from ctsplat.training import seeding
 from ctsplat.utils import CtsplatError
 
 
