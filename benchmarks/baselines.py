@@ -23,10 +23,10 @@ import pandas as pd
 import torch
 
 from ctsplat.baselines import run_baselines
-from ctsplat.formats.viewset import ViewSet
+from ctsplat.formats.viewset import ViewSet, write_radiographs
 from ctsplat.formats.volume import load_volume
 from ctsplat.geometry import circular_orbit
-from ctsplat.projector import build_view_set, line_integrals, render_radiographs, write_radiographs
+from ctsplat.projector import build_view_set, line_integrals, render_radiographs
 from ctsplat.volume import ingest
 
 ROOT = Path(__file__).resolve().parent.parent

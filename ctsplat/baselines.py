@@ -15,7 +15,7 @@ the volume independently: detector row ``v`` holds the line integrals of the sli
    1..N iterations, each started from the previous one);
 4. crop the ``n x n`` image onto the reference grid; optionally clip to [0, 1].
 
-3D PSNR/SSIM against the reference use :mod:`ctsplat.metrics` (normalised volumes, data range 1).
+3D PSNR/SSIM against the reference use :mod:`ctsplat.evaluation.metrics` (normalised volumes, data range 1).
 """
 
 from __future__ import annotations
@@ -319,9 +319,9 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
     """
     import pandas as pd
 
+    from ctsplat.evaluation.metrics import psnr3d, ssim3d
+    from ctsplat.formats.viewset import load_radiographs
     from ctsplat.formats.volume import Volume, load_volume, save_volume
-    from ctsplat.metrics import psnr3d, ssim3d
-    from ctsplat.projector import load_radiographs
 
     cfg = merge_config("baselines", config, BASELINE_DEFAULTS)
     for f in cfg["fbp_filters"]:

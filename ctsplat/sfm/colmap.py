@@ -239,7 +239,7 @@ def _refine_from_design(db_path: Path, image_dir: Path, out: Path, image_names: 
 
 def isocentric_adjust(rec: Any, design: dict[str, tuple[np.ndarray, np.ndarray]], cfg: dict[str, Any]
                        ) -> dict[str, Any]:
-    """Isocentric bundle adjustment (:mod:`ctsplat.bundle`) of a model's registered views and points, in place.
+    """Isocentric bundle adjustment (:mod:`ctsplat.sfm.bundle`) of a model's registered views and points, in place.
 
     The isocentre and DSO come from the designed poses (``design``: image name -> (R, t)); the rotations start
     from the model's, every view keeps the prior ``N(0, design_sigma_deg²)`` on its deviation from the design.

@@ -106,7 +106,7 @@ SFM_DEFAULTS: dict[str, Any] = {
     #   refine   - triangulate the matches from the designed poses, then bundle-adjust all poses freely
     #              (intrinsics fixed), re-triangulating between rounds (C-arm style calibration refinement)
     #   refine_prior - as refine, but bundle adjustment keeps the designed centres as priors (σ prior_sigma_mm)
-    #   isocentric - refine_prior, then isocentric bundle adjustment (ctsplat.bundle): every camera a rotation
+    #   isocentric - refine_prior, then isocentric bundle adjustment (ctsplat.sfm.bundle): every camera a rotation
     #                about the designed isocentre at the designed DSO (a rigid C-arm), its rotation kept near the
     #                design by N(0, design_sigma_deg²)
     "pose_prior": "none",

@@ -1,4 +1,4 @@
-"""Isocentric bundle adjustment (ctsplat.bundle): Jacobians against finite differences, exact recovery of a
+"""Isocentric bundle adjustment (ctsplat.sfm.bundle): Jacobians against finite differences, exact recovery of a
 jittered isocentric orbit from noisy correspondences with outliers, the soft isocentre, and bad input."""
 
 from __future__ import annotations
