@@ -1,8 +1,9 @@
 """Evaluation of a trained Gaussian model: held-out projections, voxelised 3D metrics, speed; the run's metrics.
 
 2D metrics are computed on line-integral images of the *normalised* volume (the training targets divided by
-``mu_scale_per_mm``), PSNR/SSIM with each reference image's own range (``ctsplat.evaluation.metrics``). 3D metrics compare
-the model voxelised on the reference grid with the normalised reference volume (data range 1). LPIPS uses
+``mu_scale_per_mm``), PSNR/SSIM with each reference image's own range (``ctsplat.evaluation.metrics``). 3D
+metrics compare the model voxelised on the reference grid with the normalised reference volume (data range 1).
+LPIPS uses
 ``ctsplat.evaluation.metrics.lpips_distance`` and is ``None`` with a recorded reason when it cannot be computed.
 
 :func:`evaluate` is the one implementation of a run's held-out metrics (``metrics.json``); training only logs
