@@ -1,10 +1,13 @@
 """ctsplat: CT scans to rectified radiative Gaussian-splatting models.
 
-Modules (one job each): ``io`` (DICOM/NIfTI/TIFF readers and writers), ``volume`` (preprocessing),
-``phantom`` (Shepp–Logan head phantom), ``geometry`` (cameras, orbits, view sets), ``projector``
-(Beer–Lambert line integrals), ``baselines`` (FBP/SART), ``gaussians`` (model container, PLY),
-``render`` (compositors, voxelizer), ``seeding``, ``train``, ``metrics``, ``sfm``, ``analysis``,
-``plots``, ``cli``. Conventions (frames, units, cameras) are fixed in ``docs/conventions.md``.
+Data flows one way — volume → view sets → poses → model → metrics → figures — through packages with one job each:
+``formats`` (DICOM/NIfTI/TIFF sources, the volume file, view sets and radiograph folders, PLY, run logs),
+``volume`` (ingestion and preprocessing), ``phantom`` (Shepp–Logan head phantom), ``geometry`` (cameras, orbits),
+``projector`` (Beer–Lambert line integrals; the only place radiographs are rendered), ``baselines`` (FBP/SART),
+``sfm`` (COLMAP poses of the C-arm view set), ``scene`` (view sets + poses for a run), ``splat`` (the Gaussian
+model, compositors, voxelizer, C++ kernel), ``training``, ``evaluation``, ``config`` and ``grid`` (workflow
+settings), ``analysis`` (statistics and figures across runs) and ``cli``. Conventions (frames, units, cameras) are
+fixed in ``docs/conventions.md``.
 """
 
 __version__ = "0.1.0"
