@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
 import os
 import resource
 import time
@@ -31,7 +30,6 @@ __all__ = [
     "view_metrics",
     "voxelize_model",
     "volume_metrics",
-    "milestones",
     "peak_memory_mb",
     "forward_fps",
     "orbit_poses",
@@ -120,28 +118,6 @@ def voxelize_model(gaussians: Any, shape: tuple[int, int, int], affine: np.ndarr
 def volume_metrics(model_vol: np.ndarray, reference: np.ndarray) -> dict[str, float]:
     """``psnr3d`` (whole normalised volume, range 1) and ``ssim3d`` (mean 2D SSIM over the three axes)."""
     return {"psnr3d": metrics.psnr3d(model_vol, reference), "ssim3d": metrics.ssim3d(model_vol, reference)}
-
-
-def milestones(log_rows: list[dict[str, Any]], *, psnr_target: float = 30.0, ssim_target: float = 0.90
-               ) -> dict[str, float | None]:
-    """Time (s) and iteration at which the logged validation PSNR2D / SSIM2D first reached the targets.
-
-    ``None`` when never reached. ``log_rows`` are ``train_log.csv`` rows (dicts with ``iteration``,
-    ``timestamp``, ``psnr2d``, ``ssim2d``) in iteration order.
-    """
-    out: dict[str, float | None] = {
-        "time_to_psnr2d_30_s": None, "iter_to_psnr2d_30": None, "time_to_ssim2d_090_s": None,
-        "iter_to_ssim2d_090": None,
-    }
-    for row in log_rows:
-        p, s = float(row["psnr2d"]), float(row["ssim2d"])
-        if out["time_to_psnr2d_30_s"] is None and math.isfinite(p) and p >= psnr_target:
-            out["time_to_psnr2d_30_s"] = float(row["timestamp"])
-            out["iter_to_psnr2d_30"] = int(row["iteration"])
-        if out["time_to_ssim2d_090_s"] is None and math.isfinite(s) and s >= ssim_target:
-            out["time_to_ssim2d_090_s"] = float(row["timestamp"])
-            out["iter_to_ssim2d_090"] = int(row["iteration"])
-    return out
 
 
 def peak_memory_mb(device: torch.device) -> tuple[float, str]:

@@ -29,7 +29,6 @@ so ``resume`` continues bit-for-bit.
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
@@ -47,6 +46,9 @@ import torch
 
 from ctsplat import evaluate as ev
 from ctsplat import losses, seeding
+from ctsplat.analysis.stats import milestones
+from ctsplat.config import schema_defaults
+from ctsplat.formats.runlog import LOG_COLUMNS, LOG_EXTRAS, PER_VIEW_COLUMNS, CsvLog, read_train_log
 from ctsplat.utils import (
     CtsplatError,
     atomic_path,
@@ -66,10 +68,6 @@ INITS = ("volume", "uniform", "fbp", "sfm")
 COMPOSITORS = ("radiative", "radiative_unrectified", "alpha")
 POSES = ("gt", "colmap")
 SUPERVISIONS = ("line_integral", "transmission")
-LOG_COLUMNS = ["iteration", "timestamp", "psnr2d", "ssim2d", "psnr3d", "ssim3d"]
-LOG_EXTRAS = ["loss", "l1", "dssim", "density_reg", "scale_reg", "tv", "n_gaussians", "lr_means", "iters_per_s",
-              "nan_events", "cloned", "split", "pruned"]
-PER_VIEW_COLUMNS = ["iteration", "view_id", "azimuth_deg", "elevation_deg", "split", "psnr2d", "ssim2d"]
 
 TRAIN_DEFAULTS: dict[str, Any] = {
     "volume": "",  # reference volume (.nii.gz): grid for 3D metrics, and the values for init: volume
@@ -626,50 +624,6 @@ def densify_and_prune(state: TrainState, cfg: dict[str, Any], scene: Scene, gen:
     return {"cloned": int(ci.numel()), "split": int(si.numel()), "pruned": int(bad.sum()), "n": m}
 
 
-# ------------------------------------------------------------------------------------------ logging
-class CsvLog:
-    """Append-only CSV with a fixed header; ``truncate_after(it)`` drops rows logged after a checkpoint."""
-
-    def __init__(self, path: Path, columns: list[str]) -> None:
-        self.path = path
-        self.columns = columns
-
-    def reset(self) -> None:
-        with atomic_path(self.path) as tmp:
-            tmp.write_text(",".join(self.columns) + "\n")
-
-    def truncate_after(self, iteration: int) -> None:
-        if not self.path.exists():
-            self.reset()
-            return
-        with open(self.path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-        with atomic_path(self.path) as tmp, open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=self.columns)
-            w.writeheader()
-            for r in rows:
-                if int(r["iteration"]) <= iteration:
-                    w.writerow({k: r.get(k, "") for k in self.columns})
-
-    def append(self, rows: list[dict[str, Any]]) -> None:
-        with open(self.path, "a", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=self.columns)
-            for r in rows:
-                w.writerow({k: _fmt(r.get(k, "")) for k in self.columns})
-            fh.flush()
-            os.fsync(fh.fileno())
-
-    def read(self) -> list[dict[str, str]]:
-        with open(self.path, newline="") as fh:
-            return list(csv.DictReader(fh))
-
-
-def _fmt(v: Any) -> Any:
-    if isinstance(v, float):
-        return repr(v)
-    return v
-
-
 # ------------------------------------------------------------------------------------------ checkpoints
 def _ckpt_dir(out_dir: Path) -> Path:
     return out_dir / "checkpoints"
@@ -1041,7 +995,6 @@ def _finalize(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: Pat
     fps = ev.forward_fps(g, test.camera, test.Rs[0], test.ts[0], rk, width=int(cfg["fps_width"]),
                          height=int(cfg["fps_height"]))
     mem, mem_kind = ev.peak_memory_mb(device)
-    rows = train_log.read()
     lpips_vals = vm["lpips"]
     result = {
         "psnr2d": float(np.mean(vm["psnr2d"])),
@@ -1056,7 +1009,7 @@ def _finalize(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: Pat
         "wall_time_s": round(train_time, 3),
         "iterations": state.iteration,
         "iters_per_s": round(state.iteration / max(train_time, 1e-9), 3),
-        **ev.milestones(rows),
+        **milestones(read_train_log(train_log.path), schema_defaults("analysis")["milestones"]),
         "fps_forward": fps,
         "fps_resolution": [int(cfg["fps_width"]), int(cfg["fps_height"])],
         "peak_memory_mb": round(mem, 1),

@@ -1,0 +1,1 @@
+"""File formats: sources, the volume file, view sets, PLY and run logs."""
