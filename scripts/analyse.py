@@ -1,8 +1,9 @@
-"""Snakemake adapter: rule analyse -> ctsplat.plots.analyse (results/figures/)."""
+"""Snakemake adapter: rule analyse -> ctsplat.analysis.plots.analyse (results/figures/)."""
 
 from _adapter import logged
 
-from ctsplat.plots import ANALYSIS_OUTPUTS, analyse
+from ctsplat.analysis import ANALYSIS_OUTPUTS
+from ctsplat.analysis.plots import analyse
 
 with logged(snakemake):  # noqa: F821
     sm = snakemake  # noqa: F821

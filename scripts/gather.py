@@ -1,10 +1,10 @@
-"""Snakemake adapter: rule gather -> ctsplat.analysis.gather (results/summary.csv)."""
+"""Snakemake adapter: rule gather -> ctsplat.analysis.gather.gather (results/summary.csv)."""
 
 from pathlib import Path
 
 from _adapter import logged
 
-from ctsplat.analysis import gather
+from ctsplat.analysis.gather import gather
 
 with logged(snakemake):  # noqa: F821
     sm = snakemake  # noqa: F821

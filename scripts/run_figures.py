@@ -1,10 +1,11 @@
-"""Snakemake adapter: rule run_figures -> ctsplat.plots.run_figures."""
+"""Snakemake adapter: rule run_figures -> ctsplat.analysis.plots.run_figures."""
 
 from pathlib import Path
 
 from _adapter import logged
 
-from ctsplat.plots import RUN_FIGURES, run_figures
+from ctsplat.analysis import RUN_FIGURES
+from ctsplat.analysis.plots import run_figures
 
 with logged(snakemake):  # noqa: F821
     sm = snakemake  # noqa: F821

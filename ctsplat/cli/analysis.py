@@ -4,12 +4,31 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from ctsplat.utils import CtsplatError
 
+# Options that default to the workflow schema's `analysis` section (resolved when a command runs, so that
+# `ctsplat --help` does not load the schema).
+ANALYSIS_OPTIONS = ("window", "max_gap_iters", "velocity_per_iters", "acf_max_lag", "kde_windows")
 
-def _thresholds(items: list[str] | None) -> dict[str, float]:
-    out = {"psnr2d": 30.0, "ssim2d": 0.9}
+
+def _default(key: str) -> str:
+    return f"(default: analysis.{key} of the config schema)"
+
+
+def _analysis_config(args: argparse.Namespace) -> dict[str, Any]:
+    """The schema's ``analysis`` defaults, overridden by the options given on the command line."""
+    from ctsplat.config import schema_defaults
+
+    cfg = schema_defaults("analysis")
+    cfg.update({k: getattr(args, k) for k in ANALYSIS_OPTIONS if getattr(args, k, None) is not None})
+    cfg["milestones"] = _thresholds(cfg["milestones"], args.milestone)
+    return cfg
+
+
+def _thresholds(defaults: dict[str, float], items: list[str] | None) -> dict[str, float]:
+    out = dict(defaults)
     for item in items or []:
         key, sep, val = item.partition("=")
         if not sep:
@@ -39,35 +58,35 @@ def _run_dirs(paths: list[str]) -> list[Path]:
 
 
 def run_gather(args: argparse.Namespace) -> None:
-    from ctsplat.analysis import gather
+    from ctsplat.analysis.gather import gather
 
-    thresholds = _thresholds(args.milestone)
-    df = gather(_run_dirs(args.runs), args.out, thresholds=thresholds,
-                max_gap_iters=args.max_gap_iters, per_iters=args.velocity_per_iters)
+    cfg = _analysis_config(args)
+    df = gather(_run_dirs(args.runs), args.out, thresholds=cfg["milestones"],
+                max_gap_iters=cfg["max_gap_iters"], per_iters=cfg["velocity_per_iters"])
     print(f"{args.out}: {len(df)} runs")
 
 
 def run_analyse(args: argparse.Namespace) -> None:
-    from ctsplat.plots import ANALYSIS_OUTPUTS, analyse
+    from ctsplat.analysis import ANALYSIS_OUTPUTS
+    from ctsplat.analysis.plots import analyse
 
     out_dir = Path(args.out_dir)
     outputs = {name: out_dir / fname for name, (fname, _) in ANALYSIS_OUTPUTS.items()}
     if not Path(args.summary).exists():
         raise CtsplatError(f"summary {args.summary} does not exist; run `ctsplat gather` first")
-    analyse(args.summary, outputs, baselines_csvs=args.baselines or [],
-            analysis={"window": args.window, "max_gap_iters": args.max_gap_iters,
-                      "velocity_per_iters": args.velocity_per_iters, "acf_max_lag": args.acf_max_lag,
-                      "kde_windows": args.kde_windows, "milestones": _thresholds(args.milestone)})
+    analyse(args.summary, outputs, baselines_csvs=args.baselines or [], analysis=_analysis_config(args))
     for path in outputs.values():
         print(path)
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--max-gap-iters", type=int, default=10,
-                   help="forward-fill missing metrics from a value fewer than this many iterations earlier")
-    p.add_argument("--velocity-per-iters", type=int, default=1000, help="velocity unit: gain per N iterations")
+    p.add_argument("--max-gap-iters", type=int,
+                   help="forward-fill missing metrics from a value fewer than this many iterations earlier "
+                        + _default("max_gap_iters"))
+    p.add_argument("--velocity-per-iters", type=int,
+                   help="velocity unit: gain per N iterations " + _default("velocity_per_iters"))
     p.add_argument("--milestone", action="append", metavar="METRIC=VALUE",
-                   help="milestone threshold (repeatable; default psnr2d=30, ssim2d=0.9)")
+                   help="milestone threshold, repeatable; adds to or overrides " + _default("milestones"))
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -86,8 +105,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a.add_argument("summary", help="summary.csv written by `ctsplat gather`")
     a.add_argument("--out-dir", default="results/figures", help="output folder (default: %(default)s)")
     a.add_argument("--baselines", nargs="*", help="baselines.csv files from `ctsplat baseline`")
-    a.add_argument("--window", type=int, default=25, help="centred rolling-mean window (evaluations)")
-    a.add_argument("--acf-max-lag", type=int, default=40)
-    a.add_argument("--kde-windows", type=int, default=4)
+    a.add_argument("--window", type=int, help="centred rolling-mean window (evaluations) " + _default("window"))
+    a.add_argument("--acf-max-lag", type=int, help="largest ACF lag (evaluations) " + _default("acf_max_lag"))
+    a.add_argument("--kde-windows", type=int, help="training windows of the KDE figure " + _default("kde_windows"))
     _common(a)
     a.set_defaults(func=run_analyse)

@@ -29,7 +29,6 @@ from ctsplat.evaluation import metrics
 from ctsplat.utils import CtsplatError, code_version, resolve_device, write_json_atomic
 
 __all__ = [
-    "DEFAULT_MILESTONES",
     "render_views",
     "view_metrics",
     "voxelize_model",
@@ -42,9 +41,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-#: Validation targets of the ``iter_to_*`` / ``time_to_*_s`` milestones when none are given.
-DEFAULT_MILESTONES = {"psnr2d": 30.0, "ssim2d": 0.9}
 
 
 def render_views(
@@ -198,8 +194,8 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     device : str
         ``auto`` | ``cpu`` | ``cuda``.
     milestones : mapping, optional
-        Validation targets, ``{metric: threshold}`` (default ``{"psnr2d": 30, "ssim2d": 0.9}``), for the
-        ``iter_to_*`` / ``time_to_*_s`` columns (:func:`ctsplat.analysis.stats.milestones`).
+        Validation targets, ``{metric: threshold}``, for the ``iter_to_*`` / ``time_to_*_s`` columns
+        (:func:`ctsplat.analysis.stats.milestones`); default: the ``analysis.milestones`` section's defaults.
     write : bool
         Write ``metrics.json`` (``metrics_{split}.json`` for other splits), ``per_view_{split}.csv`` and, for the
         test split, ``model_volume.nii.gz`` and the figures (``gallery.png``, ``slices.png``, ``turntable.gif``)
@@ -211,6 +207,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         The metrics (JSON-serialisable; see ``metrics.json``).
     """
     from ctsplat.analysis.stats import milestones as milestone_times
+    from ctsplat.config import schema_defaults
     from ctsplat.evaluation import figures
     from ctsplat.formats.runlog import PER_VIEW_COLUMNS, CsvLog, read_train_log
     from ctsplat.formats.volume import Volume, save_volume
@@ -240,8 +237,8 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     vol_model = voxelize_model(g, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
     m3 = volume_metrics(vol_model, scene.volume.data)
     log_path = run_dir / "train_log.csv"
-    times = milestone_times(read_train_log(log_path), dict(milestones or DEFAULT_MILESTONES)) \
-        if log_path.exists() else {}
+    targets = dict(milestones) if milestones else schema_defaults("analysis")["milestones"]
+    times = milestone_times(read_train_log(log_path), targets) if log_path.exists() else {}
     times.pop("iters_per_s", None)  # training.json has the exact value
     fps = forward_fps(g, views.camera, views.Rs[0], views.ts[0], rk, width=int(cfg["fps_width"]),
                       height=int(cfg["fps_height"]))

@@ -1,4 +1,5 @@
-"""ctsplat.analysis on synthetic logs with known answers (AR(1) ACF, linear-ramp velocity, milestones, ...)."""
+"""ctsplat.analysis (stats, gather) and the run-log format on synthetic logs with known answers (AR(1) ACF,
+linear-ramp velocity, milestones, ...)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,20 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from ctsplat import analysis as an
+from ctsplat.analysis.gather import gather, load_runs
+from ctsplat.analysis.stats import (
+    acf,
+    convergence_velocity,
+    correlations,
+    mean_iters_per_s,
+    milestones,
+    porkchop_table,
+    rolling_centered,
+    velocity_curve,
+    window_labels,
+)
+from ctsplat.formats.runlog import LOG_COLUMNS, PER_VIEW_COLUMNS, CsvLog, read_per_view, read_train_log
+from ctsplat.grid import parse_run_dir, run_relpath
 from ctsplat.utils import CtsplatError
 
 
@@ -46,7 +60,7 @@ def test_acf_of_ar1_matches_phi_power_k():
     eps = rng.normal(size=n)
     for t in range(1, n):
         x[t] = phi * x[t - 1] + eps[t]
-    r = an.acf(x, 6)
+    r = acf(x, 6)
     assert r[0] == 1.0
     # standard error of r_k for n = 20000 is ~ 0.01-0.02; compare with the theoretical phi^k
     np.testing.assert_allclose(r[1:], phi ** np.arange(1, 7), atol=0.03)
@@ -54,21 +68,21 @@ def test_acf_of_ar1_matches_phi_power_k():
 
 def test_acf_matches_direct_formula_and_handles_nan_and_constant():
     x = np.array([1.0, 3.0, np.nan, 2.0, 5.0, 4.0])
-    r = an.acf(x, 10)
+    r = acf(x, 10)
     y = np.array([1.0, 3.0, 2.0, 5.0, 4.0]) - 3.0
     expect = [np.sum(y[: 5 - k] * y[k:]) / np.sum(y * y) for k in range(5)]
     np.testing.assert_allclose(r, expect)
     assert r.size == 5  # lags capped at n - 1
-    c = an.acf(np.ones(5), 3)
+    c = acf(np.ones(5), 3)
     assert c[0] == 1.0 and np.isnan(c[1:]).all()
 
 
 def test_velocity_of_linear_ramp_is_slope_times_per():
     it = np.arange(0, 5001, 50)
     v = 0.004 * it + 12.0  # 4 dB per 1000 iterations
-    assert an.convergence_velocity(it, v, 1000) == pytest.approx(4.0)
-    assert an.convergence_velocity(it, v, 100) == pytest.approx(0.4)
-    curve = an.velocity_curve(it, v, 1000)
+    assert convergence_velocity(it, v, 1000) == pytest.approx(4.0)
+    assert convergence_velocity(it, v, 100) == pytest.approx(0.4)
+    curve = velocity_curve(it, v, 1000)
     assert len(curve) == 5
     np.testing.assert_allclose(curve["velocity"], 4.0)
     np.testing.assert_allclose(curve["iteration"], [500, 1500, 2500, 3500, 4500])
@@ -78,18 +92,18 @@ def test_velocity_is_median_not_mean_and_skips_nan():
     it = np.array([0, 100, 200, 300, 400, 500])
     v = np.array([10.0, 11.0, 12.0, np.nan, 14.0, 30.0])  # one outlier jump at the end
     # steps (finite pairs): 0->100: 1, 100->200: 1, 200->400: 2 over 200 its = 1, 400->500: 16
-    assert an.convergence_velocity(it, v, 100) == pytest.approx(1.0)
-    assert np.isnan(an.convergence_velocity([0], [1.0]))
+    assert convergence_velocity(it, v, 100) == pytest.approx(1.0)
+    assert np.isnan(convergence_velocity([0], [1.0]))
 
 
 def test_rolling_centered_mean_matches_manual_window():
     x = np.array([1.0, 2.0, 3.0, 4.0, 10.0, 6.0, 7.0])
-    r = an.rolling_centered(x, 3)
+    r = rolling_centered(x, 3)
     expect = [np.mean(x[max(0, i - 1): i + 2]) for i in range(len(x))]
     np.testing.assert_allclose(r, expect)
-    np.testing.assert_allclose(an.rolling_centered(x, 1), x)
+    np.testing.assert_allclose(rolling_centered(x, 1), x)
     with pytest.raises(CtsplatError):
-        an.rolling_centered(x, 0)
+        rolling_centered(x, 0)
 
 
 def test_milestones_first_crossing_and_iters_per_s():
@@ -97,14 +111,35 @@ def test_milestones_first_crossing_and_iters_per_s():
     psnr = np.linspace(20, 35, it.size)  # 20, 21.5, ... crosses 30 at index 7 (30.5)
     ssim = np.linspace(0.5, 0.95, it.size)  # 0.5 + 0.045 k >= 0.9 at k = 9 (0.905)
     log = _log(it, psnr, ssim, dt=0.25)
-    m = an.milestones(log, {"psnr2d": 30.0, "ssim2d": 0.9, "psnr3d": 99.0})
+    m = milestones(log, {"psnr2d": 30.0, "ssim2d": 0.9, "psnr3d": 99.0})
+    speed = mean_iters_per_s(log)
     first_p = int(it[np.argmax(psnr >= 30)])
     first_s = int(it[np.argmax(ssim >= 0.9)])
     assert m["iter_to_psnr2d_30"] == first_p == 700
     assert m["time_to_psnr2d_30_s"] == pytest.approx(first_p * 0.25)
     assert m["iter_to_ssim2d_090"] == first_s == 900
     assert m["iter_to_psnr3d_99"] is None and m["time_to_psnr3d_99_s"] is None
-    assert m["iters_per_s"] == pytest.approx(4.0)
+    assert speed == pytest.approx(4.0)
+
+
+def test_milestones_of_a_written_log_with_keys_named_from_thresholds(tmp_path):
+    p = tmp_path / "train_log.csv"
+    CsvLog(p, LOG_COLUMNS).reset()
+    CsvLog(p, LOG_COLUMNS).append([
+        {"iteration": 10, "timestamp": 1.0, "psnr2d": 25.0, "ssim2d": 0.80},
+        {"iteration": 20, "timestamp": 2.5, "psnr2d": 30.5, "ssim2d": 0.89},
+        {"iteration": 30, "timestamp": 4.0, "psnr2d": 29.0, "ssim2d": 0.91},
+        {"iteration": 40, "timestamp": 5.0, "psnr2d": 33.0, "ssim2d": 0.95},
+    ])
+    log = read_train_log(p)
+    m = milestones(log, {"psnr2d": 30.0, "ssim2d": 0.9})
+    assert m["time_to_psnr2d_30_s"] == 2.5 and m["iter_to_psnr2d_30"] == 20
+    assert m["time_to_ssim2d_090_s"] == 4.0 and m["iter_to_ssim2d_090"] == 30
+    never = milestones(log.iloc[:1], {"psnr2d": 30.0, "ssim2d": 0.9})
+    assert never["time_to_psnr2d_30_s"] is None and never["time_to_ssim2d_090_s"] is None
+    other = milestones(log, {"psnr2d": 32.5, "ssim2d": 0.95})  # keys follow the targets
+    assert other == {"iter_to_psnr2d_32.5": 40, "time_to_psnr2d_32.5_s": 5.0, "iter_to_ssim2d_095": 40,
+                     "time_to_ssim2d_095_s": 5.0}
 
 
 def test_correlations_agree_with_scipy_and_detect_monotone_nonlinear():
@@ -113,21 +148,21 @@ def test_correlations_agree_with_scipy_and_detect_monotone_nonlinear():
     y_lin = 0.5 * x + rng.normal(0, 0.5, x.size)
     y_exp = np.exp(x / 3.0)  # monotone, non-linear: Spearman 1, Pearson < 1
     log = pd.DataFrame({"psnr2d": x, "psnr3d": y_lin, "ssim2d": x, "ssim3d": y_exp})
-    c = an.correlations(log).set_index("x")
+    c = correlations(log).set_index("x")
     assert c.loc["psnr2d", "pearson"] == pytest.approx(np.corrcoef(x, y_lin)[0, 1])
     assert c.loc["psnr2d", "spearman"] == pytest.approx(stats.spearmanr(x, y_lin).statistic)
     assert c.loc["ssim2d", "spearman"] == pytest.approx(1.0)
     assert c.loc["ssim2d", "pearson"] < 0.95
     assert c.loc["ssim2d", "n"] == 50
     # too few / constant -> NaN, not an exception
-    short = an.correlations(pd.DataFrame({"psnr2d": [1.0, 2.0], "psnr3d": [1.0, 3.0],
+    short = correlations(pd.DataFrame({"psnr2d": [1.0, 2.0], "psnr3d": [1.0, 3.0],
                                           "ssim2d": [1.0, 1.0], "ssim3d": [2.0, 3.0]}))
     assert short["pearson"].isna().all()
 
 
 def test_window_labels_equal_iteration_ranges():
     it = np.arange(0, 1001, 100)
-    labels = an.window_labels(it, 4)
+    labels = window_labels(it, 4)
     assert labels[0] == labels[2] == "0–250"  # 0, 100, 200
     assert labels[3] == "250–500"
     assert labels[-1] == "750–1000"  # right end included in the last window
@@ -139,20 +174,20 @@ def test_porkchop_table_orders_views_by_azimuth_and_averages_duplicates():
     az = {3: 10.0, 1: 200.0, 2: 90.0}
     for it in (0, 100):
         for v, a in az.items():
-            rows.append({"iteration": it, "view": v, "azimuth": a, "elevation": 0.0, "split": "val",
+            rows.append({"iteration": it, "view_id": v, "azimuth_deg": a, "elevation_deg": 0.0, "split": "val",
                          "psnr2d": 20 + v + it / 100, "ssim2d": 0.5})
-    rows.append({"iteration": 100, "view": 3, "azimuth": 10.0, "elevation": 0.0, "split": "val",
+    rows.append({"iteration": 100, "view_id": 3, "azimuth_deg": 10.0, "elevation_deg": 0.0, "split": "val",
                  "psnr2d": 25.0, "ssim2d": 0.5})
-    rows.append({"iteration": 100, "view": 9, "azimuth": 0.0, "elevation": 0.0, "split": "test",
+    rows.append({"iteration": 100, "view_id": 9, "azimuth_deg": 0.0, "elevation_deg": 0.0, "split": "test",
                  "psnr2d": 99.0, "ssim2d": 0.9})
     df = pd.DataFrame(rows)
-    t = an.porkchop_table(df, "psnr2d", split="val")
+    t = porkchop_table(df, "psnr2d", split="val")
     assert list(t.index) == [3, 2, 1]
     assert list(t.columns) == [0, 100]
     assert t.loc[3, 100] == pytest.approx((24.0 + 25.0) / 2)
     assert t.loc[1, 0] == pytest.approx(21.0)
-    assert 9 in an.porkchop_table(df, "psnr2d").index
-    assert an.porkchop_table(df, "psnr2d", split="nope").empty
+    assert 9 in porkchop_table(df, "psnr2d").index
+    assert porkchop_table(df, "psnr2d", split="nope").empty
 
 
 # ---------------------------------------------------------------------------------------------- log reading
@@ -164,15 +199,15 @@ def test_read_train_log_fills_short_gaps_and_keeps_long_gaps(tmp_path):
     df = _log(it, psnr)
     df.loc[1, "ssim3d"] = np.nan
     p = _write_log(tmp_path / "train_log.csv", df)
-    log = an.read_train_log(p, max_gap_iters=10)
+    log = read_train_log(p, max_gap_iters=10)
     # it 5: last valid at 0 (gap 5 < 10) -> filled; it 20: last valid at 10 (gap 10, not < 10) -> NaN
     assert log.loc[1, "psnr2d"] == 10.0
     assert np.isnan(log.loc[3, "psnr2d"]) and np.isnan(log.loc[4, "psnr2d"]) and np.isnan(log.loc[5, "psnr2d"])
     assert log.loc[6, "psnr2d"] == 16.0
     assert log.loc[1, "ssim3d"] == df.loc[0, "ssim3d"]
-    assert list(log.columns[:6]) == list(an.LOG_COLUMNS) and "loss" in log.columns
+    assert list(log.columns[:6]) == list(LOG_COLUMNS) and "loss" in log.columns
     # a larger tolerance fills the long gap too
-    log20 = an.read_train_log(p, max_gap_iters=21)
+    log20 = read_train_log(p, max_gap_iters=21)
     assert log20.loc[3, "psnr2d"] == 12.0 and log20.loc[4, "psnr2d"] == 12.0 and np.isnan(log20.loc[5, "psnr2d"])
 
 
@@ -186,7 +221,7 @@ def test_read_train_log_drops_rows_without_iteration_and_dedups(tmp_path):
         "100,2.5,13,0.35,7,0.31,0.7\n"
         "50,1.5,,,,,0.85\n"
     )
-    log = an.read_train_log(p)
+    log = read_train_log(p)
     assert list(log["iteration"]) == [0, 50, 100]
     assert log.loc[2, "psnr2d"] == 13.0  # resumed run: last duplicate wins
     assert np.isnan(log.loc[1, "psnr2d"])  # 50 iterations after the last value: not filled
@@ -196,20 +231,26 @@ def test_read_train_log_rejects_wrong_columns(tmp_path):
     p = tmp_path / "train_log.csv"
     p.write_text("iteration,psnr2d,timestamp,ssim2d,psnr3d,ssim3d\n0,1,2,3,4,5\n")
     with pytest.raises(CtsplatError, match="first columns must be iteration,timestamp"):
-        an.read_train_log(p)
+        read_train_log(p)
     with pytest.raises(CtsplatError, match="cannot read"):
-        an.read_train_log(tmp_path / "missing.csv")
+        read_train_log(tmp_path / "missing.csv")
 
 
-def test_read_per_view_accepts_train_column_names(tmp_path):
+def test_read_per_view_reads_the_written_columns(tmp_path):
     p = tmp_path / "per_view.csv"
-    p.write_text("iteration,view_id,azimuth_deg,elevation_deg,split,psnr2d,ssim2d\n"
-                 "0,1,10.0,0.0,val,20.0,0.5\n0,2,20.0,0.0,val,,\n100,1,10.0,0.0,test,22.0,0.6\n")
-    df = an.read_per_view(p)
-    assert list(df["view"]) == [1, 1] and list(df["split"]) == ["val", "test"]
-    p.write_text("iteration,view,split,psnr2d,ssim2d\n0,1,val,1,1\n")
-    with pytest.raises(CtsplatError, match="missing column 'azimuth'"):
-        an.read_per_view(p)
+    log = CsvLog(p, PER_VIEW_COLUMNS)
+    log.reset()
+    log.append([{"iteration": 0, "view_id": 1, "azimuth_deg": 10.0, "elevation_deg": 0.0, "split": "val",
+                 "psnr2d": 20.0, "ssim2d": 0.5},
+                {"iteration": 0, "view_id": 2, "azimuth_deg": 20.0, "elevation_deg": 0.0, "split": "val"},
+                {"iteration": 100, "view_id": 1, "azimuth_deg": 10.0, "elevation_deg": 0.0, "split": "test",
+                 "psnr2d": 22.0, "ssim2d": 0.6}])
+    assert p.read_text().splitlines()[0] == "iteration,view_id,azimuth_deg,elevation_deg,split,psnr2d,ssim2d"
+    df = read_per_view(p)
+    assert list(df["view_id"]) == [1, 1] and list(df["split"]) == ["val", "test"]
+    p.write_text("iteration,view_id,split,psnr2d,ssim2d\n0,1,val,1,1\n")
+    with pytest.raises(CtsplatError, match="missing column 'azimuth_deg'"):
+        read_per_view(p)
 
 
 # ---------------------------------------------------------------------------------------------- gather
@@ -218,7 +259,7 @@ def test_read_per_view_accepts_train_column_names(tmp_path):
 def _fake_run(root, volume="phantom", init="fbp", compositor="radiative", mip="on", poses="gt", views=8, seed=0,
               slope=0.01, with_metrics=True):
     cell = {"init": init, "compositor": compositor, "mip": mip, "poses": poses, "views": views, "seed": seed}
-    rd = root / volume / "runs" / an.run_relpath(cell)
+    rd = root / volume / "runs" / run_relpath(cell)
     rd.mkdir(parents=True)
     it = np.arange(0, 2001, 100)
     _write_log(rd / "train_log.csv", _log(it, 20 + slope * it))
@@ -231,7 +272,7 @@ def _fake_run(root, volume="phantom", init="fbp", compositor="radiative", mip="o
 def test_gather_one_row_per_run_with_axes_and_metrics(tmp_path):
     runs = [_fake_run(tmp_path, init=i, seed=s, slope=0.001 * (s + 1)) for i in ("fbp", "uniform") for s in (0, 1)]
     out = tmp_path / "summary.csv"
-    df = an.gather(runs, out)
+    df = gather(runs, out)
     back = pd.read_csv(out)
     assert len(back) == 4 and out.exists()
     assert set(back["init"]) == {"fbp", "uniform"} and set(back["seed"]) == {0, 1}
@@ -249,27 +290,27 @@ def test_gather_one_row_per_run_with_axes_and_metrics(tmp_path):
 
 def test_gather_errors(tmp_path):
     with pytest.raises(CtsplatError, match="no run folders"):
-        an.gather([], tmp_path / "s.csv")
+        gather([], tmp_path / "s.csv")
     with pytest.raises(CtsplatError, match="not a run folder"):
-        an.gather([tmp_path], tmp_path / "s.csv")
+        gather([tmp_path], tmp_path / "s.csv")
     rd = tmp_path / "v" / "runs" / "init~fbp/compositor~alpha/mip~off/poses~gt/views~3/seed~0"
     rd.mkdir(parents=True)
     with pytest.raises(CtsplatError, match="neither metrics.json nor train_log.csv"):
-        an.gather([rd], tmp_path / "s.csv")
+        gather([rd], tmp_path / "s.csv")
     assert not (tmp_path / "s.csv").exists()
 
 
 def test_parse_run_dir_roundtrip():
     row = {"volume": "head", "init": "sfm", "compositor": "radiative_unrectified", "mip": "off", "poses": "colmap",
            "views": 75, "seed": 2}
-    path = f"results/{row['volume']}/runs/{an.run_relpath(row)}"
+    path = f"results/{row['volume']}/runs/{run_relpath(row)}"
     assert path == "results/head/runs/init~sfm/compositor~radiative_unrectified/mip~off/poses~colmap/views~75/seed~2"
-    assert an.parse_run_dir(path) == row
+    assert parse_run_dir(path) == row
 
 
 def test_load_runs_tags_rows(tmp_path):
     runs = [_fake_run(tmp_path, compositor=c) for c in ("radiative", "alpha")]
-    summary = an.gather(runs, tmp_path / "summary.csv")
-    logs = an.load_runs(summary)
+    summary = gather(runs, tmp_path / "summary.csv")
+    logs = load_runs(summary)
     assert len(logs) == 2 * 21
     assert set(logs["compositor"]) == {"radiative", "alpha"}

@@ -7,14 +7,14 @@ import json
 import numpy as np
 import pandas as pd
 
-from ctsplat import analysis as an
+from ctsplat.analysis import ANALYSIS_OUTPUTS
 from ctsplat.cli import main
-from ctsplat.plots import ANALYSIS_OUTPUTS
+from ctsplat.grid import run_relpath
 
 
 def _run(root, seed):
     cell = {"init": "fbp", "compositor": "radiative", "mip": "on", "poses": "gt", "views": 8, "seed": seed}
-    rd = root / "results" / "phantom" / "runs" / an.run_relpath(cell)
+    rd = root / "results" / "phantom" / "runs" / run_relpath(cell)
     rd.mkdir(parents=True)
     it = np.arange(0, 501, 50)
     pd.DataFrame({"iteration": it, "timestamp": it / 10, "psnr2d": 20 + it / 25, "ssim2d": 0.5 + it / 1000,

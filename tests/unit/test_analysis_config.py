@@ -1,15 +1,26 @@
-"""Workflow config validation (JSON schema, defaults, key paths), library-defaults mirror, grid expansion."""
+"""Workflow config validation (JSON schema, defaults, key paths), library-defaults mirror, schema shipped as package
+data, grid expansion."""
 
 from __future__ import annotations
 
 import importlib
 import itertools
+from importlib import resources
 from pathlib import Path
 
 import pytest
 import yaml
 
-from ctsplat import analysis as an
+from ctsplat.config import (
+    LIBRARY_SECTIONS,
+    check_library_sections,
+    load_schema,
+    prepare_config,
+    schema_defaults,
+    sync_library_defaults,
+    validate_config,
+)
+from ctsplat.grid import expand_grid
 from ctsplat.utils import CtsplatError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -17,7 +28,7 @@ CONFIGS = sorted((ROOT / "config").glob("*.yaml"))
 
 
 def test_defaults_filled_from_empty_config():
-    cfg = an.validate_config({})
+    cfg = validate_config({})
     vol = cfg["volumes"]["phantom"]
     assert vol["source"] == "phantom" and vol["phantom"]["size"] == 64 and vol["phantom"]["beads"] is True
     assert vol["series_uid"] is None and vol["allow_modalities"] == ["CT"] and vol["preprocessing"] == {}
@@ -47,39 +58,39 @@ def test_defaults_filled_from_empty_config():
 )
 def test_bad_values_name_the_key_path(config, where):
     with pytest.raises(CtsplatError) as err:
-        an.validate_config(config)
+        validate_config(config)
     assert f"invalid config at {where}:" in str(err.value)
     assert "\n" not in str(err.value)
 
 
 def test_unknown_key_lists_allowed_keys():
     with pytest.raises(CtsplatError, match=r"invalid config at grid: .*'axis'.*allowed: axes, exclude, geometry"):
-        an.validate_config({"grid": {"axis": {}}})
+        validate_config({"grid": {"axis": {}}})
     with pytest.raises(CtsplatError, match=r"invalid config at <config>: .*'trian'"):
-        an.validate_config({"trian": {}})
+        validate_config({"trian": {}})
 
 
 def test_validate_does_not_mutate_input():
     cfg = {"grid": {"axes": {"views": [5]}}}
-    an.validate_config(cfg)
+    validate_config(cfg)
     assert cfg == {"grid": {"axes": {"views": [5]}}}
 
 
-@pytest.mark.parametrize(
-    ("section", "module", "attr", "path"),
-    [
-        ("preprocessing", "ctsplat.volume", "PREPROCESSING_DEFAULTS", ("preprocessing",)),
-        ("radiographs", "ctsplat.projector", "RADIOGRAPHS_DEFAULTS", ("radiographs", "circular")),
-        ("sfm", "ctsplat.sfm", "SFM_DEFAULTS", ("sfm", "settings")),
-        ("train", "ctsplat.train", "TRAIN_DEFAULTS", ("train",)),
-        ("baselines", "ctsplat.baselines", "BASELINES_DEFAULTS", ("baselines", "settings")),
-    ],
-)
-def test_schema_defaults_mirror_library_defaults(section, module, attr, path):
+SECTION_PATHS = {"preprocessing": ("preprocessing",), "radiographs": ("radiographs", "circular"),
+                 "sfm": ("sfm", "settings"), "train": ("train",), "baselines": ("baselines", "settings")}
+
+
+def test_every_library_section_is_checked():
+    assert set(SECTION_PATHS) == set(LIBRARY_SECTIONS)
+
+
+@pytest.mark.parametrize(("section", "path"), SECTION_PATHS.items(), ids=list(SECTION_PATHS))
+def test_schema_defaults_mirror_library_defaults(section, path):
     """The schema's library sections fill exactly the owning module's DEFAULTS (minus grid-controlled keys)."""
+    module, attr = LIBRARY_SECTIONS[section]
     mod = pytest.importorskip(module)
     defaults = getattr(mod, attr)
-    filled = an.validate_config({})
+    filled = validate_config({})
     for p in path:
         filled = filled[p]
     grid_keys = {"volume", "radiographs", "sfm_dir", "init", "compositor", "mip", "poses", "views", "seed", "device"}
@@ -91,12 +102,33 @@ def test_schema_defaults_mirror_library_defaults(section, module, attr, path):
     assert filled == expect
 
 
+def test_sync_library_defaults_reproduces_the_shipped_schema(tmp_path):
+    """The generated block of the schema is what ``python -m ctsplat.config --sync-defaults`` writes today."""
+    for module, _ in LIBRARY_SECTIONS.values():
+        pytest.importorskip(module)
+    shipped = resources.files("ctsplat").joinpath("schemas/config.schema.yaml").read_text(encoding="utf-8")
+    copy = tmp_path / "config.schema.yaml"
+    copy.write_text(shipped, encoding="utf-8")
+    assert sync_library_defaults(copy) == copy
+    assert copy.read_text(encoding="utf-8") == shipped
+
+
+def test_schema_is_package_data_and_defaults_are_copies():
+    assert load_schema() == yaml.safe_load(
+        resources.files("ctsplat").joinpath("schemas/config.schema.yaml").read_text(encoding="utf-8"))
+    analysis = schema_defaults("analysis")
+    assert analysis["milestones"] == {"psnr2d": 30.0, "ssim2d": 0.9}
+    analysis["milestones"]["psnr2d"] = 0.0
+    assert schema_defaults("analysis")["milestones"]["psnr2d"] == 30.0
+    assert schema_defaults()["analysis"] == schema_defaults("analysis")
+
+
 def test_schema_phantom_defaults_mirror_write_phantom_dicom():
     import inspect
 
     phantom = pytest.importorskip("ctsplat.phantom")
     sig = inspect.signature(phantom.write_phantom_dicom)
-    filled = an.validate_config({})["volumes"]["phantom"]["phantom"]
+    filled = validate_config({})["volumes"]["phantom"]["phantom"]
     assert filled.keys() <= sig.parameters.keys()
     assert {k: sig.parameters[k].default for k in filled if k != "size"} == {k: v for k, v in filled.items()
                                                                              if k != "size"}
@@ -106,21 +138,21 @@ def test_check_library_sections_uses_module_defaults(monkeypatch):
     fake = type("M", (), {"FAKE_DEFAULTS": {"alpha": 1}})
     monkeypatch.setattr(importlib, "import_module", lambda name: fake)
     cfg = {"train": {"alpha": 2}}
-    an.check_library_sections(cfg, modules={"train": ("fake", "FAKE_DEFAULTS")})
+    check_library_sections(cfg, modules={"train": ("fake", "FAKE_DEFAULTS")})
     with pytest.raises(CtsplatError, match="unknown config key train.beta"):
-        an.check_library_sections({"train": {"beta": 1}}, modules={"train": ("fake", "FAKE_DEFAULTS")})
+        check_library_sections({"train": {"beta": 1}}, modules={"train": ("fake", "FAKE_DEFAULTS")})
 
 
 def test_expand_grid_product_and_exclusions():
     axes = {"init": ["fbp", "volume"], "compositor": ["radiative", "alpha"], "mip": [True, "off"],
             "poses": ["gt", "colmap"], "views": [25, 50], "seed": [0]}
-    full = an.expand_grid(axes, ["a", "b"])
+    full = expand_grid(axes, ["a", "b"])
     assert len(full) == 2 * 2 * 2 * 2 * 2 * 2
     assert set(full["mip"]) == {"on", "off"}
     expect = set(itertools.product(["a", "b"], ["fbp", "volume"], ["radiative", "alpha"], ["on", "off"],
                                    ["gt", "colmap"], [25, 50], [0]))
     assert set(map(tuple, full.itertuples(index=False))) == expect
-    ex = an.expand_grid(axes, ["a", "b"], exclude=[{"poses": "colmap", "init": ["volume"]},
+    ex = expand_grid(axes, ["a", "b"], exclude=[{"poses": "colmap", "init": ["volume"]},
                                                    {"volume": "b", "views": 50}, {"mip": False}])
     n = sum(1 for r in expect if not ((r[4] == "colmap" and r[1] == "volume") or (r[0] == "b" and r[5] == 50)
                                       or r[3] == "off"))
@@ -132,46 +164,46 @@ def test_expand_grid_product_and_exclusions():
 def test_empty_grid_is_an_error():
     axes = {"init": ["fbp"], "compositor": ["radiative"], "mip": ["on"], "poses": ["gt"], "views": [5], "seed": [0]}
     with pytest.raises(CtsplatError, match="expands to zero runs"):
-        an.expand_grid(axes, ["a"], exclude=[{"init": "fbp"}])
+        expand_grid(axes, ["a"], exclude=[{"init": "fbp"}])
     with pytest.raises(CtsplatError, match="expands to zero runs"):
-        an.prepare_config({"grid": {"exclude": [{"seed": 0}]}})
+        prepare_config({"grid": {"exclude": [{"seed": 0}]}})
 
 
 def test_missing_volume_source_is_reported_with_key(tmp_path):
     with pytest.raises(CtsplatError, match=r"volumes\.head\.source: 'nope/ct'"):
-        an.prepare_config({"volumes": {"head": {"source": "nope/ct"}}}, base_dir=tmp_path)
+        prepare_config({"volumes": {"head": {"source": "nope/ct"}}}, base_dir=tmp_path)
     (tmp_path / "ct").mkdir()
-    cfg = an.prepare_config({"volumes": {"head": {"source": "ct"}}}, base_dir=tmp_path)
+    cfg = prepare_config({"volumes": {"head": {"source": "ct"}}}, base_dir=tmp_path)
     assert cfg["grid"]["geometry"] == "circular"
 
 
 def test_grid_geometry_must_exist():
     with pytest.raises(CtsplatError, match="grid.geometry: 'cone' is not a radiographs geometry"):
-        an.prepare_config({"grid": {"geometry": "cone"}})
+        prepare_config({"grid": {"geometry": "cone"}})
 
 
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
 def test_shipped_configs_validate(path):
     with open(path) as fh:
         config = yaml.safe_load(fh)
-    cfg = an.validate_config(config)
-    runs = an.expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
+    cfg = validate_config(config)
+    runs = expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
     assert len(runs) >= 1
 
 
 def test_baselines_geometry_defaults_to_grid_geometry_and_must_exist():
-    cfg = an.prepare_config({"radiographs": {"sph": {"orbit": "sphere"}, "circ": {}}, "grid": {"geometry": "sph"}})
+    cfg = prepare_config({"radiographs": {"sph": {"orbit": "sphere"}, "circ": {}}, "grid": {"geometry": "sph"}})
     assert cfg["baselines"]["geometry"] == "sph"
-    cfg = an.prepare_config({"radiographs": {"sph": {}, "circ": {}}, "baselines": {"geometry": "circ"}})
+    cfg = prepare_config({"radiographs": {"sph": {}, "circ": {}}, "baselines": {"geometry": "circ"}})
     assert cfg["baselines"]["geometry"] == "circ" and cfg["grid"]["geometry"] == "sph"
     with pytest.raises(CtsplatError, match="baselines.geometry: 'nope' is not a radiographs geometry"):
-        an.prepare_config({"baselines": {"geometry": "nope"}})
+        prepare_config({"baselines": {"geometry": "nope"}})
 
 
 def test_views_axis_must_fit_the_training_geometry():
     with pytest.raises(CtsplatError, match="grid.axes.views: 60 training views requested but geometry 'circular'"):
-        an.prepare_config({"radiographs": {"circular": {"n_views": 50}}, "grid": {"axes": {"views": [25, 60]}}})
-    an.prepare_config({"radiographs": {"circular": {"n_views": 60}}, "grid": {"axes": {"views": [25, 60]}}})
+        prepare_config({"radiographs": {"circular": {"n_views": 50}}, "grid": {"axes": {"views": [25, 60]}}})
+    prepare_config({"radiographs": {"circular": {"n_views": 60}}, "grid": {"axes": {"views": [25, 60]}}})
     with pytest.raises(CtsplatError, match="has only about 70 training views"):
-        an.prepare_config({"radiographs": {"s": {"orbit": "sphere", "n_views": 100}},
+        prepare_config({"radiographs": {"s": {"orbit": "sphere", "n_views": 100}},
                            "grid": {"axes": {"views": [80]}}})

@@ -1,4 +1,4 @@
-"""Evaluation pieces: per-view metrics, voxelised model vs analytic Gaussian, milestones, turntable poses,
+"""Evaluation pieces: per-view metrics, voxelised model vs analytic Gaussian, turntable poses,
 figures and GIF, speed/memory, and bad run folders."""
 
 from __future__ import annotations
@@ -47,20 +47,6 @@ def test_voxelize_model_matches_analytic_gaussian() -> None:
     assert np.allclose(vol[inside], ref[inside], atol=1e-6)
     m3 = ev.volume_metrics(vol, ref.astype(np.float32))
     assert m3["psnr3d"] > 40 and m3["ssim3d"] > 0.99
-
-
-def test_milestones_first_crossing() -> None:
-    rows = [
-        {"iteration": 10, "timestamp": 1.0, "psnr2d": 25.0, "ssim2d": 0.80},
-        {"iteration": 20, "timestamp": 2.5, "psnr2d": 30.5, "ssim2d": 0.89},
-        {"iteration": 30, "timestamp": 4.0, "psnr2d": 29.0, "ssim2d": 0.91},
-        {"iteration": 40, "timestamp": 5.0, "psnr2d": 33.0, "ssim2d": 0.95},
-    ]
-    m = ev.milestones(rows)
-    assert m["time_to_psnr2d_30_s"] == 2.5 and m["iter_to_psnr2d_30"] == 20
-    assert m["time_to_ssim2d_090_s"] == 4.0 and m["iter_to_ssim2d_090"] == 30
-    never = ev.milestones(rows[:1])
-    assert never["time_to_psnr2d_30_s"] is None and never["time_to_ssim2d_090_s"] is None
 
 
 def _rodrigues(axis: np.ndarray, angle: float) -> np.ndarray:

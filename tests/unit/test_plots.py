@@ -1,4 +1,5 @@
-"""ctsplat.plots: figures carry exactly the data of ctsplat.analysis (checked on the returned artists) and PNGs."""
+"""ctsplat.analysis.plots: figures carry exactly the data of ctsplat.analysis.stats (checked on the returned
+artists) and PNGs."""
 
 from __future__ import annotations
 
@@ -9,8 +10,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from ctsplat import analysis as an
-from ctsplat import plots
+from ctsplat.analysis import ANALYSIS_OUTPUTS, RUN_FIGURES, plots
+from ctsplat.analysis.gather import gather, load_runs
+from ctsplat.analysis.stats import acf, porkchop_table, rolling_centered, velocity_curve
+from ctsplat.formats.runlog import METRICS_2D3D, read_per_view
+from ctsplat.grid import run_relpath
 from ctsplat.utils import CtsplatError
 
 
@@ -44,7 +48,7 @@ def _is_png(path):
 
 def _make_run(root, init="fbp", compositor="radiative", views=8, seed=0):
     cell = {"init": init, "compositor": compositor, "mip": "on", "poses": "gt", "views": views, "seed": seed}
-    rd = root / "phantom" / "runs" / an.run_relpath(cell)
+    rd = root / "phantom" / "runs" / run_relpath(cell)
     rd.mkdir(parents=True)
     _log(seed=seed).to_csv(rd / "train_log.csv", index=False)
     _per_view().to_csv(rd / "per_view.csv", index=False)
@@ -60,9 +64,9 @@ def test_convergence_raw_thin_and_centred_mean_thick(tmp_path):
     ax = fig.axes[0]
     raw, smooth = ax.get_lines()
     np.testing.assert_allclose(raw.get_ydata(), log["psnr2d"])
-    np.testing.assert_allclose(smooth.get_ydata(), an.rolling_centered(log["psnr2d"], 5))
+    np.testing.assert_allclose(smooth.get_ydata(), rolling_centered(log["psnr2d"], 5))
     assert smooth.get_linewidth() > 2 * raw.get_linewidth()
-    assert [a.get_ylabel() for a in fig.axes[:4]] == [plots.METRIC_LABELS[m] for m in an.METRICS_2D3D]
+    assert [a.get_ylabel() for a in fig.axes[:4]] == [plots.METRIC_LABELS[m] for m in METRICS_2D3D]
 
 
 def test_convergence_with_missing_3d_metrics(tmp_path):
@@ -74,10 +78,10 @@ def test_convergence_with_missing_3d_metrics(tmp_path):
 
 
 def test_porkchop_heatmap_holds_the_pivot_table(tmp_path):
-    pv = an.read_per_view(_write(tmp_path / "pv.csv", _per_view()))
+    pv = read_per_view(_write(tmp_path / "pv.csv", _per_view()))
     fig = plots.plot_porkchop(pv, tmp_path / "p.png", split="val")
     mesh = fig.axes[0].collections[0]
-    table = an.porkchop_table(pv, "psnr2d", split="val")
+    table = porkchop_table(pv, "psnr2d", split="val")
     np.testing.assert_allclose(np.asarray(mesh.get_array()).reshape(table.shape), table.to_numpy())
     assert _is_png(tmp_path / "p.png")
 
@@ -91,7 +95,7 @@ def test_acf_plot_values(tmp_path):
     log = _log()
     fig = plots.plot_acf(log, tmp_path / "a.png", max_lag=10)
     pts = fig.axes[0].get_lines()[0]
-    np.testing.assert_allclose(pts.get_ydata(), an.acf(log["psnr2d"], 10))
+    np.testing.assert_allclose(pts.get_ydata(), acf(log["psnr2d"], 10))
 
 
 def test_kde_windows_one_curve_per_window(tmp_path):
@@ -102,8 +106,8 @@ def test_kde_windows_one_curve_per_window(tmp_path):
 
 def test_convergence_by_axis_colours_runs_by_axis_value(tmp_path):
     runs = [_make_run(tmp_path, init=i, seed=s) for i in ("fbp", "uniform") for s in (0, 1)]
-    summary = an.gather(runs, tmp_path / "summary.csv")
-    logs = an.load_runs(summary)
+    summary = gather(runs, tmp_path / "summary.csv")
+    logs = load_runs(summary)
     fig = plots.plot_convergence_by_axis(logs, "init", tmp_path / "ci.png", window=3)
     lines = fig.axes[0].get_lines()
     assert len(lines) == 4
@@ -114,10 +118,10 @@ def test_convergence_by_axis_colours_runs_by_axis_value(tmp_path):
 
 def test_velocity_plot_matches_velocity_curve(tmp_path):
     runs = [_make_run(tmp_path)]
-    logs = an.load_runs(an.gather(runs, tmp_path / "s.csv"))
+    logs = load_runs(gather(runs, tmp_path / "s.csv"))
     fig = plots.plot_velocity(logs, tmp_path / "v.png", per_iters=500)
     line = fig.axes[0].get_lines()[0]
-    vc = an.velocity_curve(logs["iteration"], logs["psnr2d"], 500)
+    vc = velocity_curve(logs["iteration"], logs["psnr2d"], 500)
     np.testing.assert_allclose(line.get_ydata(), vc["velocity"])
 
 
@@ -137,7 +141,7 @@ def test_baselines_plot_has_gs_and_classical_lines(tmp_path):
 
 def test_ablation_plot_panels_for_varying_axes(tmp_path):
     runs = [_make_run(tmp_path, init=i, views=v) for i in ("fbp", "uniform") for v in (8, 16)]
-    summary = an.gather(runs, tmp_path / "s.csv")
+    summary = gather(runs, tmp_path / "s.csv")
     fig = plots.plot_ablation(summary, tmp_path / "ab.png")
     titles = {ax.get_xlabel() for ax in fig.axes}
     assert {"init", "views"} <= titles  # only the two axes that vary
@@ -146,12 +150,12 @@ def test_ablation_plot_panels_for_varying_axes(tmp_path):
 
 def test_analyse_and_run_figures_write_every_output(tmp_path):
     runs = [_make_run(tmp_path, init=i, compositor=c) for i in ("fbp", "uniform") for c in ("radiative", "alpha")]
-    an.gather(runs, tmp_path / "summary.csv")
+    gather(runs, tmp_path / "summary.csv")
     base = tmp_path / "phantom" / "baselines" / "circular" / "baselines.csv"
     base.parent.mkdir(parents=True)
     pd.DataFrame({"method": ["fbp"], "filter": ["ramp"], "iterations": [0], "n_views": [8], "psnr3d": [15.0],
                   "ssim3d": [0.3], "seconds": [0.1]}).to_csv(base, index=False)
-    outputs = {name: tmp_path / "figures" / fname for name, (fname, _) in plots.ANALYSIS_OUTPUTS.items()}
+    outputs = {name: tmp_path / "figures" / fname for name, (fname, _) in ANALYSIS_OUTPUTS.items()}
     plots.analyse(tmp_path / "summary.csv", outputs, baselines_csvs=[base], analysis={"window": 3})
     for name, path in outputs.items():
         assert path.exists(), name
@@ -159,7 +163,7 @@ def test_analyse_and_run_figures_write_every_output(tmp_path):
     assert len(ms) == 4 and {"iter_to_psnr2d_30", "iters_per_s"} <= set(ms.columns)
     corr = pd.read_csv(outputs["correlations"])
     assert len(corr) == 2 * 5 and set(corr["run_dir"]) >= {"all"}
-    run_out = {name: runs[0] / "figures" / f"{name}.png" for name in plots.RUN_FIGURES}
+    run_out = {name: runs[0] / "figures" / f"{name}.png" for name in RUN_FIGURES}
     plots.run_figures(runs[0], run_out, {"window": 3})
     assert all(_is_png(p) for p in run_out.values())
     with pytest.raises(CtsplatError, match="unknown analysis output 'nope'"):

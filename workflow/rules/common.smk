@@ -1,11 +1,14 @@
 # Shared helpers: config validation (before any job runs), the ablation grid (Paramspace), input functions.
-# All logic lives in ctsplat.analysis; these are thin wrappers used by the rules.
+# All logic lives in ctsplat.config (schema: ctsplat/schemas/config.schema.yaml) and ctsplat.grid; these are thin
+# wrappers used by the rules.
 import os
 from pathlib import Path
 
 from snakemake.utils import Paramspace
 
-from ctsplat.analysis import ANALYSIS_OUTPUTS, GRID_AXES, expand_grid, prepare_config
+from ctsplat.analysis import ANALYSIS_OUTPUTS
+from ctsplat.config import prepare_config
+from ctsplat.grid import GRID_AXES, expand_grid
 from ctsplat.utils import CtsplatError, config_hash
 
 try:

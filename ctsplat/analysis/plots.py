@@ -2,9 +2,9 @@
 
 Every function takes plain DataFrames, writes one PNG atomically and returns the matplotlib Figure (closed, so
 tests can inspect its artists without a display). Per-run figures: :func:`plot_convergence`,
-:func:`plot_porkchop`, :func:`plot_acf`, :func:`plot_kde_windows`. Grid figures: :func:`plot_convergence_by_axis`,
-:func:`plot_velocity`, :func:`plot_ablation`, :func:`plot_baselines`, :func:`plot_correlations`;
-:func:`analyse` writes all of them plus the milestones and correlations tables.
+:func:`plot_porkchop`, :func:`plot_acf`, :func:`plot_kde_windows`, all written by :func:`run_figures`. Grid
+figures: :func:`plot_convergence_by_axis`, :func:`plot_velocity`, :func:`plot_ablation`, :func:`plot_baselines`,
+:func:`plot_correlations`; :func:`analyse` writes all of them plus the milestones and correlations tables.
 """
 
 from __future__ import annotations
@@ -24,12 +24,24 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import seaborn as sns  # noqa: E402
 
-from ctsplat import analysis as an  # noqa: E402
+from ctsplat.analysis import ANALYSIS_OUTPUTS  # noqa: E402
+from ctsplat.analysis.gather import load_runs  # noqa: E402
+from ctsplat.analysis.stats import (  # noqa: E402
+    acf,
+    correlations,
+    mean_iters_per_s,
+    milestones,
+    porkchop_table,
+    rolling_centered,
+    velocity_curve,
+    window_labels,
+)
+from ctsplat.config import schema_defaults  # noqa: E402
+from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, read_per_view, read_train_log  # noqa: E402
+from ctsplat.grid import GRID_AXES  # noqa: E402
 from ctsplat.utils import CtsplatError, atomic_path  # noqa: E402
 
 __all__ = [
-    "ANALYSIS_OUTPUTS",
-    "RUN_FIGURES",
     "plot_convergence",
     "plot_porkchop",
     "plot_acf",
@@ -42,9 +54,6 @@ __all__ = [
     "run_figures",
     "analyse",
 ]
-
-ANALYSIS_OUTPUTS = an.ANALYSIS_OUTPUTS
-RUN_FIGURES = an.RUN_FIGURES
 
 METRIC_LABELS = {"psnr2d": "PSNR 2D (dB)", "ssim2d": "SSIM 2D", "psnr3d": "PSNR 3D (dB)", "ssim3d": "SSIM 3D"}
 
@@ -69,15 +78,32 @@ def _empty(ax: plt.Axes, text: str) -> None:
 
 def plot_convergence(log: pd.DataFrame, out: str | os.PathLike[str], *, window: int = 25,
                      title: str = "") -> plt.Figure:
-    """2×2 panels (PSNR2D, SSIM2D, PSNR3D, SSIM3D vs iteration): raw values thin, centred rolling mean thick."""
+    """2×2 panels (PSNR2D, SSIM2D, PSNR3D, SSIM3D vs iteration): raw values thin, centred rolling mean thick.
+
+    Parameters
+    ----------
+    log : pandas.DataFrame
+        A training log (:func:`ctsplat.formats.runlog.read_train_log`).
+    out : path-like
+        PNG file to write.
+    window : int
+        Rolling-mean window (evaluations).
+    title : str
+        Figure title (default: a generic one).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
+    """
     fig, axes = plt.subplots(2, 2, figsize=(10, 6.5), sharex=True)
-    for ax, m in zip(axes.ravel(), an.METRICS_2D3D, strict=True):
+    for ax, m in zip(axes.ravel(), METRICS_2D3D, strict=True):
         sub = log[["iteration", m]].dropna()
         if sub.empty:
             _empty(ax, f"no {m} logged")
             continue
         ax.plot(sub["iteration"], sub[m], lw=0.6, alpha=0.5, color="C0", label="raw")
-        ax.plot(sub["iteration"], an.rolling_centered(sub[m], window), lw=2.2, color="C0",
+        ax.plot(sub["iteration"], rolling_centered(sub[m], window), lw=2.2, color="C0",
                 label=f"centred mean (W={window})")
         ax.set_ylabel(METRIC_LABELS[m])
         ax.grid(alpha=0.3)
@@ -90,10 +116,27 @@ def plot_convergence(log: pd.DataFrame, out: str | os.PathLike[str], *, window: 
 
 def plot_porkchop(per_view: pd.DataFrame, out: str | os.PathLike[str], *, split: str | None = None,
                   title: str = "") -> plt.Figure:
-    """Heatmaps of PSNR2D and SSIM2D per view (rows, ordered by azimuth) over iterations (columns)."""
+    """Heatmaps of PSNR2D and SSIM2D per view (rows, ordered by azimuth) over iterations (columns).
+
+    Parameters
+    ----------
+    per_view : pandas.DataFrame
+        A per-view log (:func:`ctsplat.formats.runlog.read_per_view`).
+    out : path-like
+        PNG file to write.
+    split : str, optional
+        Show only this split's views.
+    title : str
+        Figure title (default: a generic one).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
+    """
     fig, axes = plt.subplots(1, 2, figsize=(12, 5))
     for ax, m in zip(axes, ("psnr2d", "ssim2d"), strict=True):
-        table = an.porkchop_table(per_view, m, split=split)
+        table = porkchop_table(per_view, m, split=split)
         if table.empty:
             _empty(ax, "no per-view evaluations")
             continue
@@ -107,10 +150,29 @@ def plot_porkchop(per_view: pd.DataFrame, out: str | os.PathLike[str], *, split:
 
 def plot_acf(log: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 40, metric: str = "psnr2d",
              title: str = "") -> plt.Figure:
-    """Autocorrelation of a metric (default PSNR2D) by lag (in evaluations) with the ±1.96/√n band."""
+    """Autocorrelation of a metric by lag (in evaluations) with the ±1.96/√n band.
+
+    Parameters
+    ----------
+    log : pandas.DataFrame
+        A training log.
+    out : path-like
+        PNG file to write.
+    max_lag : int
+        Largest lag (evaluations).
+    metric : str
+        Log column.
+    title : str
+        Figure title (default: a generic one).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
+    """
     fig, ax = plt.subplots(figsize=(7, 4))
     vals = log[metric].dropna().to_numpy() if metric in log else np.array([])
-    r = an.acf(vals, max_lag)
+    r = acf(vals, max_lag)
     if r.size < 2:
         _empty(ax, "fewer than two evaluations")
     else:
@@ -127,14 +189,31 @@ def plot_acf(log: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 4
 
 def plot_kde_windows(log: pd.DataFrame, out: str | os.PathLike[str], *, n_windows: int = 4,
                      title: str = "") -> plt.Figure:
-    """KDEs of PSNR2D and SSIM2D over successive training windows (equal iteration ranges)."""
+    """KDEs of PSNR2D and SSIM2D over successive training windows (equal iteration ranges).
+
+    Parameters
+    ----------
+    log : pandas.DataFrame
+        A training log (or several pooled).
+    out : path-like
+        PNG file to write.
+    n_windows : int
+        Number of windows (:func:`ctsplat.analysis.stats.window_labels`).
+    title : str
+        Figure title (default: a generic one).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
+    """
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for ax, m in zip(axes, ("psnr2d", "ssim2d"), strict=True):
         sub = log[["iteration", m]].dropna()
         if len(sub) < 2:
             _empty(ax, f"too few {m} values")
             continue
-        sub = sub.assign(window=an.window_labels(sub["iteration"], n_windows))
+        sub = sub.assign(window=window_labels(sub["iteration"], n_windows))
         # windows with a single distinct value have no density: draw them as rugs only
         ok = sub.groupby("window")[m].transform("nunique") > 1
         if ok.any():
@@ -147,15 +226,25 @@ def plot_kde_windows(log: pd.DataFrame, out: str | os.PathLike[str], *, n_window
 
 def run_figures(run_dir: str | os.PathLike[str], outputs: Mapping[str, str | os.PathLike[str]],
                 analysis: Mapping[str, Any] | None = None) -> None:
-    """All per-run figures of one run folder (``outputs``: name in :data:`RUN_FIGURES` -> PNG path)."""
-    cfg = {"window": 25, "max_gap_iters": 10, "acf_max_lag": 40, "kde_windows": 4, **(analysis or {})}
+    """All per-run figures of one run folder.
+
+    Parameters
+    ----------
+    run_dir : path-like
+        The run folder, with ``train_log.csv`` and ``per_view.csv``.
+    outputs : mapping of str to path-like
+        Figure name (in :data:`ctsplat.analysis.RUN_FIGURES`) -> PNG path; only these are written.
+    analysis : mapping, optional
+        The workflow config's ``analysis`` section; missing keys take the schema defaults.
+    """
+    cfg = {**schema_defaults("analysis"), **(analysis or {})}
     run_dir = Path(run_dir)
-    log = an.read_train_log(run_dir / "train_log.csv", max_gap_iters=cfg["max_gap_iters"])
+    log = read_train_log(run_dir / "train_log.csv", max_gap_iters=cfg["max_gap_iters"])
     title = str(run_dir)
     if "convergence" in outputs:
         plot_convergence(log, outputs["convergence"], window=cfg["window"], title=title)
     if "porkchop" in outputs:
-        per_view = an.read_per_view(run_dir / "per_view.csv")
+        per_view = read_per_view(run_dir / "per_view.csv")
         split = "val" if (per_view["split"] == "val").any() else None
         plot_porkchop(per_view, outputs["porkchop"], split=split, title=title)
     if "acf" in outputs:
@@ -170,12 +259,29 @@ def run_figures(run_dir: str | os.PathLike[str], outputs: Mapping[str, str | os.
 
 
 def _run_label(df: pd.DataFrame) -> pd.Series:
-    return df["volume"].astype(str) + "/" + df[list(an.GRID_AXES)].astype(str).agg("/".join, axis=1)
+    return df["volume"].astype(str) + "/" + df[list(GRID_AXES)].astype(str).agg("/".join, axis=1)
 
 
 def plot_convergence_by_axis(logs: pd.DataFrame, axis: str, out: str | os.PathLike[str], *,
                              window: int = 25) -> plt.Figure:
-    """All runs' PSNR2D/SSIM2D/PSNR3D/SSIM3D centred rolling means overlaid, coloured by one ablation axis."""
+    """All runs' PSNR2D/SSIM2D/PSNR3D/SSIM3D centred rolling means overlaid, coloured by one ablation axis.
+
+    Parameters
+    ----------
+    logs : pandas.DataFrame
+        All runs' logs (:func:`ctsplat.analysis.gather.load_runs`).
+    axis : str
+        A grid axis (:data:`ctsplat.grid.GRID_AXES`).
+    out : path-like
+        PNG file to write.
+    window : int
+        Rolling-mean window (evaluations).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
+    """
     fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
     if logs.empty:
         for ax in axes.ravel():
@@ -184,12 +290,12 @@ def plot_convergence_by_axis(logs: pd.DataFrame, axis: str, out: str | os.PathLi
     logs = logs.assign(run=_run_label(logs))
     levels = sorted(logs[axis].astype(str).unique())
     palette = dict(zip(levels, sns.color_palette(n_colors=len(levels)), strict=True))
-    for ax, m in zip(axes.ravel(), an.METRICS_2D3D, strict=True):
+    for ax, m in zip(axes.ravel(), METRICS_2D3D, strict=True):
         for _run, g in logs.groupby("run", sort=True):
             sub = g[["iteration", m]].dropna()
             if sub.empty:
                 continue
-            ax.plot(sub["iteration"], an.rolling_centered(sub[m], window), lw=1.6,
+            ax.plot(sub["iteration"], rolling_centered(sub[m], window), lw=1.6,
                     color=palette[str(g[axis].iloc[0])], alpha=0.85)
         ax.set_ylabel(METRIC_LABELS[m])
         ax.grid(alpha=0.3)
@@ -202,13 +308,28 @@ def plot_convergence_by_axis(logs: pd.DataFrame, axis: str, out: str | os.PathLi
 
 
 def plot_velocity(logs: pd.DataFrame, out: str | os.PathLike[str], *, per_iters: int = 1000) -> plt.Figure:
-    """Convergence velocity (median PSNR2D gain per ``per_iters`` iterations) over training, one line per run."""
+    """Convergence velocity (median PSNR2D gain per ``per_iters`` iterations) over training, one line per run.
+
+    Parameters
+    ----------
+    logs : pandas.DataFrame
+        All runs' logs (:func:`ctsplat.analysis.gather.load_runs`).
+    out : path-like
+        PNG file to write.
+    per_iters : int
+        Block length and velocity unit (iterations).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
+    """
     fig, ax = plt.subplots(figsize=(8, 4.5))
     drawn = 0
     if not logs.empty:
         logs = logs.assign(run=_run_label(logs))
         for run, g in logs.groupby("run", sort=True):
-            vc = an.velocity_curve(g["iteration"], g["psnr2d"], per_iters)
+            vc = velocity_curve(g["iteration"], g["psnr2d"], per_iters)
             if len(vc):
                 ax.plot(vc["iteration"], vc["velocity"], marker="o", ms=3, label=run)
                 drawn += 1
@@ -225,9 +346,22 @@ def plot_velocity(logs: pd.DataFrame, out: str | os.PathLike[str], *, per_iters:
 
 
 def plot_correlations(logs: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
-    """Scatter of 2D vs 3D metrics over training (all runs), with pooled Pearson/Spearman in the titles."""
+    """Scatter of 2D vs 3D metrics over training (all runs), with pooled Pearson/Spearman in the titles.
+
+    Parameters
+    ----------
+    logs : pandas.DataFrame
+        All runs' logs (:func:`ctsplat.analysis.gather.load_runs`).
+    out : path-like
+        PNG file to write.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
+    """
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
-    pooled = an.correlations(logs) if not logs.empty else None
+    pooled = correlations(logs) if not logs.empty else None
     for ax, (x, y) in zip(axes, (("psnr2d", "psnr3d"), ("ssim2d", "ssim3d")), strict=True):
         sub = logs[[x, y]].dropna() if not logs.empty else pd.DataFrame()
         if sub.empty:
@@ -245,10 +379,10 @@ def _final_long(summary: pd.DataFrame) -> pd.DataFrame:
     """Summary in long form: one row per (run, axis, metric) for the ablation plot."""
     metric_cols = [c for c in ("psnr3d", "ssim3d", "psnr2d", "ssim2d") if c in summary]
     if not metric_cols:
-        metric_cols = [f"final_{m}" for m in an.METRICS_2D3D if f"final_{m}" in summary]
+        metric_cols = [f"final_{m}" for m in METRICS_2D3D if f"final_{m}" in summary]
     rows = []
     for _, r in summary.iterrows():
-        for axis in an.GRID_AXES:
+        for axis in GRID_AXES:
             for m in metric_cols:
                 v = pd.to_numeric(r[m], errors="coerce")
                 if pd.notna(v):
@@ -258,9 +392,24 @@ def _final_long(summary: pd.DataFrame) -> pd.DataFrame:
 
 
 def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
-    """Final metrics by ablation axis: box plots with every run as a point (strip), metrics × axes grid."""
+    """Final metrics by ablation axis: box plots with every run as a point (strip), metrics × axes grid.
+
+    Only the axes with more than one value get a column of panels.
+
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        The table of :func:`ctsplat.analysis.gather.gather` (test metrics of ``metrics.json``, else ``final_*``).
+    out : path-like
+        PNG file to write.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
+    """
     long = _final_long(summary)
-    axes_used = [a for a in an.GRID_AXES if summary[a].nunique() > 1] or list(an.GRID_AXES[:1])
+    axes_used = [a for a in GRID_AXES if summary[a].nunique() > 1] or list(GRID_AXES[:1])
     metrics = list(dict.fromkeys(long["metric"])) or ["psnr3d"]
     fig, axs = plt.subplots(len(metrics), len(axes_used), figsize=(3.2 * len(axes_used), 2.8 * len(metrics)),
                             squeeze=False)
@@ -294,8 +443,22 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
                    metric: str = "psnr3d") -> plt.Figure:
     """Gaussian runs vs FBP/SART per number of training views (3D metric; Gaussian = mean over seeds, with points).
 
-    ``baselines`` has columns ``method, filter, iterations, n_views, psnr3d, ssim3d`` (+ ``volume``); each
-    (method, filter) is one line; the Gaussian runs are grouped by (init, compositor, mip, poses).
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        The table of :func:`ctsplat.analysis.gather.gather`; runs are grouped by (init, compositor, mip, poses).
+    baselines : pandas.DataFrame
+        Columns ``method, filter, iterations, n_views, psnr3d, ssim3d`` (+ ``volume``); one line per
+        (method, filter), the best value per view count.
+    out : path-like
+        PNG file to write.
+    metric : str
+        ``psnr3d`` or ``ssim3d``.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
     """
     fig, ax = plt.subplots(figsize=(8, 5))
     col = metric if metric in summary else f"final_{metric}"
@@ -330,19 +493,32 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
 
 def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.PathLike[str]], *,
             baselines_csvs: Sequence[str | os.PathLike[str]] = (), analysis: Mapping[str, Any] | None = None) -> None:
-    """Write every grid-level output named in ``outputs`` (keys of :data:`ANALYSIS_OUTPUTS`) from ``summary.csv``.
+    """Write the grid-level figures and tables from ``summary.csv``.
 
-    Baseline CSVs are concatenated (the volume is taken from ``results/{volume}/baselines/...`` when the CSV has
-    no ``volume`` column).
+    Parameters
+    ----------
+    summary_csv : path-like
+        The table of :func:`ctsplat.analysis.gather.gather`.
+    outputs : mapping of str to path-like
+        Output name (a key of :data:`ctsplat.analysis.ANALYSIS_OUTPUTS`) -> file; only these are written.
+    baselines_csvs : sequence of path-like
+        ``baselines.csv`` files, concatenated; the volume is taken from ``results/{volume}/baselines/...`` when a
+        CSV has no ``volume`` column.
+    analysis : mapping, optional
+        The workflow config's ``analysis`` section; missing keys take the schema defaults.
+
+    Raises
+    ------
+    CtsplatError
+        For an output name that is not in :data:`ctsplat.analysis.ANALYSIS_OUTPUTS`.
     """
-    cfg = {"window": 25, "max_gap_iters": 10, "velocity_per_iters": 1000, "acf_max_lag": 40, "kde_windows": 4,
-           "milestones": {"psnr2d": 30.0, "ssim2d": 0.9}, **(analysis or {})}
+    cfg = {**schema_defaults("analysis"), **(analysis or {})}
     unknown = sorted(set(outputs) - set(ANALYSIS_OUTPUTS))
     if unknown:
         raise CtsplatError(f"unknown analysis output {unknown[0]!r}; known: {', '.join(ANALYSIS_OUTPUTS)}")
     summary = pd.read_csv(summary_csv)
-    logs = an.load_runs(summary, max_gap_iters=cfg["max_gap_iters"])
-    for a in an.GRID_AXES:
+    logs = load_runs(summary, max_gap_iters=cfg["max_gap_iters"])
+    for a in GRID_AXES:
         key = f"convergence_by_{a}"
         if key in outputs:
             plot_convergence_by_axis(logs, a, outputs[key], window=cfg["window"])
@@ -357,15 +533,15 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
     if "correlations" in outputs:
         tables = []
         for run, g in logs.groupby("run_dir", sort=True) if not logs.empty else []:
-            tables.append(an.correlations(g).assign(run_dir=run))
-        tables.append(an.correlations(logs if not logs.empty else pd.DataFrame(columns=list(an.LOG_COLUMNS)))
+            tables.append(correlations(g).assign(run_dir=run))
+        tables.append(correlations(logs if not logs.empty else pd.DataFrame(columns=list(LOG_COLUMNS)))
                       .assign(run_dir="all"))
         _write_csv(pd.concat(tables, ignore_index=True), outputs["correlations"])
     if "milestones" in outputs:
         rows = []
         for run, g in logs.groupby("run_dir", sort=True) if not logs.empty else []:
-            rows.append({"run_dir": run, **{a: g[a].iloc[0] for a in ("volume", *an.GRID_AXES)},
-                         **an.milestones(g, cfg["milestones"])})
+            rows.append({"run_dir": run, **{a: g[a].iloc[0] for a in ("volume", *GRID_AXES)},
+                         **milestones(g, cfg["milestones"]), "iters_per_s": mean_iters_per_s(g)})
         _write_csv(pd.DataFrame(rows), outputs["milestones"])
     if "ablation" in outputs:
         plot_ablation(summary, outputs["ablation"])
@@ -388,7 +564,7 @@ def _plot_acf_runs(logs: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: 
     if not logs.empty:
         logs = logs.assign(run=_run_label(logs))
         for run, g in logs.groupby("run", sort=True):
-            r = an.acf(g["psnr2d"].to_numpy(), max_lag)
+            r = acf(g["psnr2d"].to_numpy(), max_lag)
             if r.size >= 2:
                 ax.plot(np.arange(r.size), r, marker="o", ms=2, label=run)
                 drawn += 1

@@ -1,0 +1,300 @@
+"""Statistics of training logs: centred rolling means, autocorrelation, convergence velocity, milestones,
+2D-vs-3D correlations and per-view tables.
+
+Plain functions over arrays and pandas tables of the run logs (:mod:`ctsplat.formats.runlog`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+from ctsplat.utils import CtsplatError
+
+__all__ = [
+    "rolling_centered",
+    "acf",
+    "convergence_velocity",
+    "velocity_curve",
+    "threshold_tag",
+    "milestones",
+    "mean_iters_per_s",
+    "correlations",
+    "window_labels",
+    "porkchop_table",
+]
+
+
+def rolling_centered(values: Sequence[float] | pd.Series, window: int) -> np.ndarray:
+    """Centred rolling mean over ``window`` samples, NaN-aware, shrinking at the ends.
+
+    ``out[i] = mean(x[i - (window-1)//2 - (window+1)%2 ... i + (window-1)//2])`` (pandas ``center=True``),
+    ignoring NaNs; the first/last samples average over the part of the window that exists.
+
+    Parameters
+    ----------
+    values : sequence of float, shape (n,)
+    window : int
+        Window length in samples, >= 1.
+
+    Returns
+    -------
+    numpy.ndarray, shape (n,)
+    """
+    if window < 1:
+        raise CtsplatError(f"rolling window must be >= 1, got {window}")
+    s = pd.Series(np.asarray(values, dtype=float))
+    return s.rolling(window, center=True, min_periods=1).mean().to_numpy()
+
+
+def acf(values: Sequence[float], max_lag: int) -> np.ndarray:
+    r"""Sample autocorrelation function, lags 0..max_lag (NaNs dropped first).
+
+    .. math:: r_k = \frac{\sum_{t=0}^{n-k-1} (x_t - \bar x)(x_{t+k} - \bar x)}{\sum_{t=0}^{n-1} (x_t - \bar x)^2}
+
+    (the standard biased estimator, as in ``statsmodels.tsa.stattools.acf``). For an AR(1) process
+    ``x_t = φ x_{t-1} + ε_t`` the expectation is ``r_k ≈ φ^k``.
+
+    Parameters
+    ----------
+    values : sequence of float, shape (n,)
+    max_lag : int
+        Largest lag (in samples).
+
+    Returns
+    -------
+    numpy.ndarray, shape (min(max_lag, n-1) + 1,)
+        ``r_0 = 1``; a constant series gives NaN for k >= 1.
+    """
+    x = np.asarray(values, dtype=float)
+    x = x[~np.isnan(x)]
+    n = x.size
+    if n < 2:
+        return np.array([1.0]) if n == 1 else np.array([])
+    x = x - x.mean()
+    denom = float(np.dot(x, x))
+    lags = min(max_lag, n - 1)
+    if denom == 0.0:
+        return np.concatenate([[1.0], np.full(lags, np.nan)])
+    return np.array([1.0] + [float(np.dot(x[: n - k], x[k:])) / denom for k in range(1, lags + 1)])
+
+
+def convergence_velocity(iterations: Sequence[float], values: Sequence[float], per_iters: int = 1000) -> float:
+    """Median gain of ``values`` per ``per_iters`` iterations between successive evaluations.
+
+    ``median_j (v_{j+1} - v_j) / (it_{j+1} - it_j) · per_iters`` over consecutive finite samples. For a linear ramp
+    ``v = a·it + b`` this is exactly ``a · per_iters``.
+
+    Parameters
+    ----------
+    iterations : sequence of float, shape (n,)
+    values : sequence of float, shape (n,)
+        A metric at those iterations (e.g. PSNR2D in dB).
+    per_iters : int
+        The velocity's unit: gain per this many iterations.
+
+    Returns
+    -------
+    float
+        Units of ``values`` per ``per_iters`` iterations; NaN when fewer than two finite samples.
+    """
+    it = np.asarray(iterations, dtype=float)
+    v = np.asarray(values, dtype=float)
+    ok = np.isfinite(it) & np.isfinite(v)
+    it, v = it[ok], v[ok]
+    if it.size < 2:
+        return float("nan")
+    d_it = np.diff(it)
+    keep = d_it > 0
+    if not keep.any():
+        return float("nan")
+    return float(np.median(np.diff(v)[keep] / d_it[keep]) * per_iters)
+
+
+def velocity_curve(
+    iterations: Sequence[float], values: Sequence[float], per_iters: int = 1000
+) -> pd.DataFrame:
+    """Convergence velocity over training: the median gain per ``per_iters`` in each block of ``per_iters``.
+
+    A step between two evaluations belongs to the block where it starts.
+
+    Parameters
+    ----------
+    iterations : sequence of float, shape (n,)
+    values : sequence of float, shape (n,)
+    per_iters : int
+        Block length and velocity unit (iterations).
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``iteration`` (block centre) and ``velocity`` (gain per ``per_iters``), one row per block with a step.
+    """
+    it = np.asarray(iterations, dtype=float)
+    v = np.asarray(values, dtype=float)
+    ok = np.isfinite(it) & np.isfinite(v)
+    it, v = it[ok], v[ok]
+    rows = []
+    if it.size >= 2:
+        block = np.floor(it[:-1] / per_iters)
+        rate = np.diff(v) / np.where(np.diff(it) > 0, np.diff(it), np.nan) * per_iters
+        for b in np.unique(block):
+            r = rate[(block == b) & np.isfinite(rate)]
+            if r.size:
+                rows.append({"iteration": (b + 0.5) * per_iters, "velocity": float(np.median(r))})
+    return pd.DataFrame(rows, columns=["iteration", "velocity"])
+
+
+def threshold_tag(thr: float) -> str:
+    """The part of a milestone key that names its threshold.
+
+    Parameters
+    ----------
+    thr : float
+        The threshold.
+
+    Returns
+    -------
+    str
+        ``30 -> "30"``, ``0.9 -> "090"`` (fractions as hundredths, three digits), ``32.5 -> "32.5"``.
+    """
+    return f"{round(thr * 100):03d}" if 0 < thr < 1 else f"{thr:g}"
+
+
+def milestones(log: pd.DataFrame, thresholds: Mapping[str, float]) -> dict[str, float | None]:
+    """First iteration and time at which each metric reaches its threshold.
+
+    Parameters
+    ----------
+    log : pandas.DataFrame
+        A training log (:func:`ctsplat.formats.runlog.read_train_log`) in iteration order, with ``iteration``,
+        ``timestamp`` (s since the start of training) and the metric columns.
+    thresholds : mapping of str to float
+        Metric column -> threshold; reached when the metric is ``>=`` it. The workflow's thresholds are the config's
+        ``analysis.milestones``.
+
+    Returns
+    -------
+    dict
+        For each metric ``iter_to_{metric}_{tag}`` (int) and ``time_to_{metric}_{tag}_s`` (float, s), with
+        ``tag = threshold_tag(threshold)`` (``iter_to_psnr2d_30``, ``time_to_ssim2d_090_s``); None when never
+        reached or the metric is not in the log.
+    """
+    out: dict[str, float | None] = {}
+    for metric, thr in thresholds.items():
+        key = f"{metric}_{threshold_tag(thr)}"
+        hit = log[log[metric] >= thr] if metric in log else log.iloc[0:0]
+        if len(hit):
+            first = hit.iloc[0]
+            out[f"iter_to_{key}"] = int(first["iteration"])
+            ts = first["timestamp"]
+            out[f"time_to_{key}_s"] = float(ts) if pd.notna(ts) else None
+        else:
+            out[f"iter_to_{key}"] = None
+            out[f"time_to_{key}_s"] = None
+    return out
+
+
+def mean_iters_per_s(log: pd.DataFrame) -> float | None:
+    """Mean training speed of a log: last timed iteration / its timestamp.
+
+    Parameters
+    ----------
+    log : pandas.DataFrame
+        A training log with ``iteration`` and ``timestamp`` (s).
+
+    Returns
+    -------
+    float or None
+        Iterations per second; None when no row has a positive timestamp.
+    """
+    timed = log.dropna(subset=["timestamp"])
+    timed = timed[timed["timestamp"] > 0]
+    return float(timed["iteration"].iloc[-1] / timed["timestamp"].iloc[-1]) if len(timed) else None
+
+
+def correlations(
+    log: pd.DataFrame, pairs: Sequence[tuple[str, str]] = (("psnr2d", "psnr3d"), ("ssim2d", "ssim3d"))
+) -> pd.DataFrame:
+    """Pearson and Spearman correlation between 2D and 3D metrics over training (rows with both finite).
+
+    Parameters
+    ----------
+    log : pandas.DataFrame
+        One or more training logs.
+    pairs : sequence of (str, str)
+        Column pairs (x, y).
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns ``x, y, n, pearson, spearman``, one row per pair; NaN coefficients when fewer than 3 pairs or a
+        constant column.
+    """
+    from scipy import stats
+
+    rows = []
+    for x, y in pairs:
+        sub = log[[x, y]].dropna() if x in log and y in log else pd.DataFrame(columns=[x, y])
+        n = len(sub)
+        p = s = float("nan")
+        if n >= 3 and sub[x].nunique() > 1 and sub[y].nunique() > 1:
+            p = float(stats.pearsonr(sub[x], sub[y]).statistic)
+            s = float(stats.spearmanr(sub[x], sub[y]).statistic)
+        rows.append({"x": x, "y": y, "n": n, "pearson": p, "spearman": s})
+    return pd.DataFrame(rows, columns=["x", "y", "n", "pearson", "spearman"])
+
+
+def window_labels(iterations: Sequence[float], n_windows: int) -> np.ndarray:
+    """Label each sample by the training window it falls in.
+
+    Training is split into ``n_windows`` equal iteration ranges covering [min, max] of ``iterations``; the last
+    window includes its right end.
+
+    Parameters
+    ----------
+    iterations : sequence of float, shape (n,)
+    n_windows : int
+
+    Returns
+    -------
+    numpy.ndarray of str, shape (n,)
+        ``"a–b"`` (the window's iteration range) per sample.
+    """
+    it = np.asarray(iterations, dtype=float)
+    if it.size == 0:
+        return np.array([], dtype=object)
+    lo, hi = float(np.nanmin(it)), float(np.nanmax(it))
+    edges = np.linspace(lo, hi, n_windows + 1)
+    idx = np.clip(np.searchsorted(edges, it, side="right") - 1, 0, n_windows - 1)
+    names = [f"{int(edges[i])}–{int(edges[i + 1])}" for i in range(n_windows)]
+    return np.array([names[i] for i in idx], dtype=object)
+
+
+def porkchop_table(per_view: pd.DataFrame, metric: str = "psnr2d", split: str | None = None) -> pd.DataFrame:
+    """Pivot per-view metrics into a (view × iteration) table for a heatmap.
+
+    Parameters
+    ----------
+    per_view : pandas.DataFrame
+        A per-view log (:func:`ctsplat.formats.runlog.read_per_view`).
+    metric : str
+        Column to pivot.
+    split : str, optional
+        Keep only this split (e.g. ``"val"``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        Index ``view_id`` ordered by (azimuth, elevation, id), columns iterations ascending; a view evaluated twice
+        at one iteration keeps the mean. Empty when no row is left.
+    """
+    df = per_view if split is None else per_view[per_view["split"] == split]
+    if df.empty:
+        return pd.DataFrame()
+    order = (df.drop_duplicates("view_id").sort_values(["azimuth_deg", "elevation_deg", "view_id"])["view_id"]
+             .tolist())
+    table = df.pivot_table(index="view_id", columns="iteration", values=metric, aggfunc="mean")
+    return table.reindex(index=order).sort_index(axis=1)

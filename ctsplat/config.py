@@ -1,0 +1,424 @@
+"""The workflow configuration: JSON schema, defaults, and the checks run before any job.
+
+The schema (``ctsplat/schemas/config.schema.yaml``, JSON Schema Draft 2020-12, shipped as package data) defines
+every key of the workflow config with its default; :func:`validate_config` fills those defaults while validating
+and names the key path of the first error. The library sections of the schema (``preprocessing``,
+``radiographs.<geometry>``, ``baselines.settings``, ``sfm.settings``, ``train``) mirror the ``*_DEFAULTS`` dicts
+of the modules listed in :data:`LIBRARY_SECTIONS`; ``python -m ctsplat.config --sync-defaults`` regenerates them
+after a module changes its defaults.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import functools
+import importlib
+import os
+import textwrap
+from collections.abc import Iterable, Mapping
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from ctsplat.grid import expand_grid
+from ctsplat.utils import CtsplatError, merge_config
+
+__all__ = [
+    "LIBRARY_SECTIONS",
+    "load_schema",
+    "validate_config",
+    "schema_defaults",
+    "check_library_sections",
+    "check_volume_sources",
+    "prepare_config",
+    "sync_library_defaults",
+]
+
+SCHEMA_RESOURCE = "schemas/config.schema.yaml"  # inside the ctsplat package
+
+# Library section of the workflow config -> (module, attribute holding the section's defaults).
+LIBRARY_SECTIONS: dict[str, tuple[str, str]] = {
+    "preprocessing": ("ctsplat.volume", "PREPROCESSING_DEFAULTS"),
+    "radiographs": ("ctsplat.projector", "RADIOGRAPHS_DEFAULTS"),
+    "sfm": ("ctsplat.sfm", "SFM_DEFAULTS"),
+    "train": ("ctsplat.train", "TRAIN_DEFAULTS"),
+    "baselines": ("ctsplat.baselines", "BASELINES_DEFAULTS"),
+}
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Validation
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def load_schema(path: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+    """Load the workflow config JSON schema.
+
+    Parameters
+    ----------
+    path : path-like, optional
+        A YAML or JSON schema file; default: the schema shipped in the ``ctsplat`` package.
+
+    Returns
+    -------
+    dict
+        The schema.
+    """
+    import yaml
+
+    if path is None:
+        return yaml.safe_load(resources.files("ctsplat").joinpath(SCHEMA_RESOURCE).read_text(encoding="utf-8"))
+    with open(path, encoding="utf-8") as fh:
+        return yaml.safe_load(fh)
+
+
+def _key_path(parts: Iterable[Any]) -> str:
+    """``grid.axes.views[0]`` from the path parts of a validation error (``<config>`` for the root)."""
+    out = ""
+    for p in parts:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out or "<config>"
+
+
+def _validator_with_defaults():
+    """A Draft 2020-12 validator class that fills ``default`` values of missing properties while validating."""
+    from jsonschema import Draft202012Validator, validators
+
+    base_properties = Draft202012Validator.VALIDATORS["properties"]
+
+    def properties_with_defaults(validator, properties, instance, schema):
+        if validator.is_type(instance, "object"):
+            for name, sub in properties.items():
+                if isinstance(sub, dict) and "default" in sub and name not in instance:
+                    instance[name] = copy.deepcopy(sub["default"])
+        yield from base_properties(validator, properties, instance, schema)
+
+    return validators.extend(Draft202012Validator, {"properties": properties_with_defaults})
+
+
+def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Validate a workflow config against the schema and fill its defaults.
+
+    Parameters
+    ----------
+    config : mapping
+        The workflow config (as loaded from YAML); not modified.
+    schema : mapping, optional
+        Default: :func:`load_schema`.
+
+    Returns
+    -------
+    dict
+        A deep copy of ``config`` with every missing key that has a schema default filled in.
+
+    Raises
+    ------
+    CtsplatError
+        On the first (deepest-path) error, naming the key path, e.g.
+        ``invalid config at grid.axes.views[0]: 'ten' is not of type 'integer'``.
+    """
+    schema = load_schema() if schema is None else schema
+    filled = copy.deepcopy(dict(config))
+    cls = _validator_with_defaults()
+    errors = sorted(cls(schema).iter_errors(filled), key=lambda e: (-len(e.absolute_path), str(e.absolute_path)))
+    if errors:
+        err = errors[0]
+        # oneOf/anyOf errors: report the most specific sub-error
+        if err.context:
+            err = max(err.context, key=lambda e: len(e.absolute_path))
+        where = _key_path(err.absolute_path)
+        msg = err.message
+        if err.validator == "additionalProperties":
+            allowed = sorted((err.schema.get("properties") or {}).keys())
+            msg += f" (allowed: {', '.join(allowed)})" if allowed else ""
+        raise CtsplatError(f"invalid config at {where}: {msg}")
+    return filled
+
+
+@functools.cache
+def _default_config() -> dict[str, Any]:
+    return validate_config({})
+
+
+def schema_defaults(section: str | None = None) -> dict[str, Any]:
+    """The schema's defaults: the config an empty workflow config validates to, or one top-level section of it.
+
+    Parameters
+    ----------
+    section : str, optional
+        A top-level key of the workflow config, e.g. ``"analysis"``.
+
+    Returns
+    -------
+    dict
+        A fresh copy (safe to modify).
+    """
+    cfg = _default_config()
+    return copy.deepcopy(cfg if section is None else cfg[section])
+
+
+def check_library_sections(config: Mapping[str, Any], *, modules: Mapping[str, tuple[str, str]] | None = None) -> None:
+    """Check library sections key by key against the owning modules' ``*_DEFAULTS``.
+
+    A module that cannot be imported is skipped; each step re-checks its config with
+    :func:`ctsplat.utils.merge_config` when it runs.
+
+    Parameters
+    ----------
+    config : mapping
+        The workflow config.
+    modules : mapping, optional
+        Section -> (module, attribute); default :data:`LIBRARY_SECTIONS`.
+
+    Raises
+    ------
+    CtsplatError
+        For a key the module's defaults do not have, naming its key path.
+    """
+    modules = LIBRARY_SECTIONS if modules is None else modules
+
+    def defaults_of(section: str) -> dict[str, Any] | None:
+        if section not in modules:
+            return None
+        mod_name, attr = modules[section]
+        try:
+            mod = importlib.import_module(mod_name)
+        except ImportError:
+            return None
+        return getattr(mod, attr, None)
+
+    for display, section, values in _library_section_values(config):
+        defaults = defaults_of(section)
+        if defaults is not None:
+            merge_config(display, values, defaults)
+
+
+def _library_section_values(config: Mapping[str, Any]) -> list[tuple[str, str, dict[str, Any]]]:
+    """(key path shown in errors, LIBRARY_SECTIONS key, user values) for every library section in ``config``."""
+    out: list[tuple[str, str, dict[str, Any]]] = [("preprocessing", "preprocessing", config.get("preprocessing", {}))]
+    for name, vol in config.get("volumes", {}).items():
+        out.append((f"volumes.{name}.preprocessing", "preprocessing", vol.get("preprocessing", {})))
+    for geo, values in config.get("radiographs", {}).items():
+        out.append((f"radiographs.{geo}", "radiographs", values))
+    out.append(("baselines.settings", "baselines", config.get("baselines", {}).get("settings", {})))
+    out.append(("sfm.settings", "sfm", config.get("sfm", {}).get("settings", {})))
+    out.append(("train", "train", config.get("train", {})))
+    return out
+
+
+def check_volume_sources(volumes: Mapping[str, Mapping[str, Any]], base_dir: str | os.PathLike[str] = ".") -> None:
+    """Check that every volume source is ``phantom`` or an existing path.
+
+    Parameters
+    ----------
+    volumes : mapping
+        The ``volumes`` section: name -> ``{source: ...}``.
+    base_dir : path-like
+        Folder that relative source paths are resolved from (the workflow's working directory).
+
+    Raises
+    ------
+    CtsplatError
+        For the first missing source, naming ``volumes.<name>.source``.
+    """
+    for name, vol in volumes.items():
+        source = vol["source"]
+        if source == "phantom":
+            continue
+        path = Path(source)
+        if not path.is_absolute():
+            path = Path(base_dir) / path
+        if not path.exists():
+            raise CtsplatError(
+                f"volume source not found at volumes.{name}.source: {source!r} (resolved to {path.resolve()}); "
+                "give a DICOM folder, a .nii/.nii.gz file, a TIFF stack, or 'phantom'"
+            )
+
+
+def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] = ".") -> dict[str, Any]:
+    """Everything the workflow checks at parse time, before any job runs.
+
+    Validates against the schema with defaults filled (the schema mirrors the library defaults, so no step module
+    is imported here), checks that volume sources exist, resolves ``grid.geometry`` and ``baselines.geometry``
+    (null = the first radiographs geometry / the grid's), expands the grid (zero runs is an error) and checks that
+    the largest ``views`` value fits the training geometry.
+
+    Parameters
+    ----------
+    config : mapping
+        The workflow config as given by the user; not modified.
+    base_dir : path-like
+        Folder that relative volume source paths are resolved from.
+
+    Returns
+    -------
+    dict
+        The filled config.
+
+    Raises
+    ------
+    CtsplatError
+        One line naming the offending key and how to fix it.
+    """
+    cfg = validate_config(config)
+    check_volume_sources(cfg["volumes"], base_dir)
+    geometries = list(cfg["radiographs"])
+    if cfg["grid"]["geometry"] is None:
+        cfg["grid"]["geometry"] = geometries[0]
+    elif cfg["grid"]["geometry"] not in geometries:
+        raise CtsplatError(
+            f"invalid config at grid.geometry: {cfg['grid']['geometry']!r} is not a radiographs geometry "
+            f"(defined: {', '.join(geometries)})"
+        )
+    if cfg["baselines"]["geometry"] is None:
+        cfg["baselines"]["geometry"] = cfg["grid"]["geometry"]
+    elif cfg["baselines"]["geometry"] not in geometries:
+        raise CtsplatError(
+            f"invalid config at baselines.geometry: {cfg['baselines']['geometry']!r} is not a radiographs geometry "
+            f"(defined: {', '.join(geometries)})"
+        )
+    runs = expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
+    geo = cfg["radiographs"][cfg["grid"]["geometry"]]
+    # circular orbits have exactly n_views training angles; a sphere splits n_views into train/val/test
+    available = geo["n_views"] if geo["orbit"] == "circular" else int(geo["n_views"] * geo["split"]["train"])
+    if int(runs["views"].max()) > available:
+        raise CtsplatError(
+            f"invalid config at grid.axes.views: {int(runs['views'].max())} training views requested but geometry "
+            f"{cfg['grid']['geometry']!r} has only about {available} training views; raise "
+            f"radiographs.{cfg['grid']['geometry']}.n_views or lower the views axis"
+        )
+    return cfg
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Library sections of the schema, generated from the modules' defaults
+# ----------------------------------------------------------------------------------------------------------------
+
+GENERATED_BEGIN = "  # ---- generated from the library DEFAULTS"
+GENERATED_END = "  # ---- end generated"
+
+# Keys of a library's defaults that the workflow sets itself (not user config), with the reason shown in the schema.
+WORKFLOW_KEYS: dict[str, tuple[set[str], str]] = {
+    "train": ({"volume", "radiographs", "sfm_dir", "init", "compositor", "mip", "poses", "views", "seed", "device"},
+              "without the keys the grid sets per run"),
+    "baselines": ({"n_views"}, "without n_views (the grid's view counts)"),
+}
+
+# Schema refinements the defaults cannot express: enums, ranges, nullable and union types.
+REFINE: dict[tuple[str, str], dict[str, Any]] = {
+    ("preprocessing", "voxel_size_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
+    ("preprocessing", "grid"): {"type": ["integer", "array", "null"], "minimum": 2,
+                                "items": {"type": "integer", "minimum": 2}, "minItems": 3, "maxItems": 3},
+    ("preprocessing", "intensity"): {"enum": ["attenuation", "window", "mu", "hu"]},
+    ("preprocessing", "window"): {"type": ["string", "array"], "items": {"type": "number"}, "minItems": 2,
+                                  "maxItems": 2},
+    ("preprocessing", "denoise"): {"enum": [None, "tv", "bilateral"]},
+    ("preprocessing", "mask"): {"enum": [None, "otsu", "convex_hull"]},
+    ("radiographs", "camera"): {"enum": ["parallel", "cone"]},
+    ("radiographs", "orbit"): {"enum": ["circular", "sphere"]},
+    ("radiographs", "sphere_sampling"): {"enum": ["fibonacci", "stratified"]},
+    ("radiographs", "pixel_spacing_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
+    ("radiographs", "parallel_distance_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
+    ("radiographs", "arc_deg"): {"type": ["number", "null"], "exclusiveMinimum": 0, "maximum": 360},
+    ("radiographs", "isocenter_mm"): {"type": ["array", "null"], "items": {"type": "number"}, "minItems": 3,
+                                      "maxItems": 3},
+    ("radiographs", "n_views"): {"type": "integer", "minimum": 1},
+    ("radiographs", "detector_width"): {"type": "integer", "minimum": 1},
+    ("radiographs", "detector_height"): {"type": "integer", "minimum": 1},
+    ("sfm", "pitch_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
+    ("sfm", "matching"): {"enum": ["exhaustive", "sequential", "spatial"]},
+    ("sfm", "mapper"): {"enum": ["incremental", "global"]},
+    ("sfm", "pose_prior"): {"enum": ["none", "position", "refine", "refine_prior", "isocentric"]},
+    ("sfm", "design_sigma_deg"): {"type": ["number", "null"], "exclusiveMinimum": 0},
+    ("sfm", "isocentre_sigma_mm"): {"type": "number", "minimum": 0},
+    ("sfm", "isocentric_loss_px"): {"type": "number", "exclusiveMinimum": 0},
+    ("sfm", "orbit_jitter_mm"): {"type": "number", "minimum": 0},
+    ("sfm", "fuse_harmonics"): {"type": "integer", "minimum": 0},
+    ("train", "supervision"): {"enum": ["line_integral", "transmission"]},
+    ("train", "iterations"): {"type": "integer", "minimum": 1},
+    ("train", "n_init"): {"type": "integer", "minimum": 1},
+    ("baselines", "fbp_filters"): {"type": "array",
+                                   "items": {"enum": ["ramp", "shepp-logan", "cosine", "hamming", "hann"]}},
+    ("baselines", "split"): {"enum": ["train", "val", "test"]},
+    ("baselines", "sart_max_iterations"): {"type": "integer", "minimum": 1},
+}
+
+def _json_type(v: Any) -> dict[str, Any]:
+    if v is None:
+        return {}
+    for py, js in ((bool, "boolean"), (int, "integer"), (float, "number"), (str, "string"), (list, "array"),
+                   (dict, "object")):
+        if isinstance(v, py):
+            return {"type": js}
+    return {}
+
+
+def _schema_section(name: str, defaults: Mapping[str, Any], skip: set[str], description: str) -> dict[str, Any]:
+    props: dict[str, Any] = {}
+    for key, val in defaults.items():
+        if key in skip:
+            continue
+        if isinstance(val, dict) and val:
+            props[key] = {"type": "object", "additionalProperties": False, "default": {},
+                          "properties": _schema_section(name, val, set(), "")["properties"]}
+        else:
+            props[key] = {**_json_type(val), "default": val}
+            if (name, key) in REFINE:
+                props[key].pop("type", None)
+                props[key].update(REFINE[(name, key)])
+    out = {"type": "object", "additionalProperties": False, "properties": props}
+    if description:
+        out["description"] = description
+    return out
+
+
+def _generated_block() -> str:
+    """YAML text of the schema's ``$defs`` for the library sections, from the modules' current defaults."""
+    import yaml
+
+    defs = {}
+    for section, (mod_name, attr) in LIBRARY_SECTIONS.items():
+        defaults = getattr(importlib.import_module(mod_name), attr)
+        skip, why = WORKFLOW_KEYS.get(section, (set(), ""))
+        defs[section] = _schema_section(section, defaults, skip, f"{mod_name}.{attr}" + (f" {why}" if why else ""))
+    return textwrap.indent(yaml.safe_dump(defs, sort_keys=False, default_flow_style=None, width=110), "  ")
+
+
+def sync_library_defaults(schema_path: str | os.PathLike[str] | None = None) -> Path:
+    """Regenerate the library sections of the schema file from the modules' ``*_DEFAULTS``.
+
+    A developer tool: rewrites only the lines between the ``# ---- generated`` and ``# ---- end generated``
+    markers; per-key refinements come from :data:`REFINE`. Run it after a step module changes its defaults
+    (``tests/unit/test_analysis_config.py`` fails while the schema and the library disagree).
+
+    Parameters
+    ----------
+    schema_path : path-like, optional
+        Default: the schema file of this source tree (``ctsplat/schemas/config.schema.yaml``).
+
+    Returns
+    -------
+    pathlib.Path
+        The rewritten file.
+    """
+    path = Path(schema_path) if schema_path is not None else Path(__file__).resolve().parent / SCHEMA_RESOURCE
+    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    b = next(i for i, line in enumerate(lines) if line.startswith(GENERATED_BEGIN))
+    e = next(i for i, line in enumerate(lines) if line.startswith(GENERATED_END))
+    path.write_text("".join(lines[: b + 1]) + _generated_block() + "".join(lines[e:]), encoding="utf-8")
+    return path
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m ctsplat.config --sync-defaults [--schema PATH]``."""
+    parser = argparse.ArgumentParser(prog="python -m ctsplat.config", description="Workflow config schema tools.")
+    parser.add_argument("--sync-defaults", action="store_true", required=True,
+                        help="regenerate the schema's library sections from the modules' *_DEFAULTS")
+    parser.add_argument("--schema", help="schema file to rewrite (default: the one in this source tree)")
+    args = parser.parse_args(argv)
+    print(f"updated {sync_library_defaults(args.schema)}")
+
+
+if __name__ == "__main__":
+    main()
