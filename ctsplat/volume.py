@@ -493,6 +493,7 @@ def ingest(
     allow_modalities: Sequence[str] = ("CT",),
     skip_corrupt: bool = False,
     tiff_voxel_size_mm: float | Sequence[float] | None = None,
+    rescale: Sequence[float] | None = None,
 ) -> Volume:
     """Ingest a CT scan (DICOM folder, NIfTI file or TIFF stack) into a preprocessed NIfTI volume.
 
@@ -518,26 +519,33 @@ def ingest(
         Skip unreadable DICOM files with a warning.
     tiff_voxel_size_mm : float or (3,) floats, optional
         Voxel size of a TIFF stack (required for TIFF input).
+    rescale : (2,) floats, optional
+        DICOM only: ``[slope, intercept]`` for slices without RescaleSlope/RescaleIntercept
+        (``[1, 0]`` = the stored values are HU); see :func:`ctsplat.formats.sources.read_dicom_series`
+        for what happens without it. Recorded in ``volume.json`` under ``source.rescale``.
 
     Returns
     -------
     Volume
         The volume written (``data`` float32 (I, J, K), ``affine``, ``meta``).
     """
-    from ctsplat.formats.sources import SliceStack, read_source
+    from ctsplat.formats.sources import SliceStack, check_rescale, read_source
 
     out_path = Path(out_path)
     if not out_path.name.endswith((".nii.gz", ".nii")):
         raise CtsplatError(f"output {out_path} must end in .nii.gz or .nii")
     cfg = merge_config("preprocessing", preprocessing, PREPROCESSING_DEFAULTS)
     _check_preprocessing(cfg)
+    check_rescale(rescale)
     t0 = time.perf_counter()
     if isinstance(source, SliceStack):
+        if rescale is not None:
+            raise CtsplatError("rescale applies when ingest reads a DICOM series, not to a SliceStack already read")
         stack = source
     else:
         stack = read_source(
             source, series_uid=series_uid, allow_modalities=allow_modalities, skip_corrupt=skip_corrupt,
-            tiff_voxel_size_mm=tiff_voxel_size_mm,
+            tiff_voxel_size_mm=tiff_voxel_size_mm, rescale=rescale,
         )
     t_read = time.perf_counter()
     steps: list[dict[str, Any]] = [
