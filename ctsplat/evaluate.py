@@ -281,7 +281,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto", 
     """
     from ctsplat import train as train_mod
     from ctsplat.gaussians import Gaussians
-    from ctsplat.utils import resolve_device, write_json_atomic
+    from ctsplat.utils import json_safe, resolve_device, write_json_atomic
 
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.json"
@@ -312,7 +312,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto", 
         "uses_reference_volume": cfg["init"] == "volume",
     }
     if write:
-        write_json_atomic(run_dir / f"eval_{split}.json", res)
+        write_json_atomic(run_dir / f"eval_{split}.json", json_safe(res))
     return res
 
 

@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from ctsplat.utils import CtsplatError, atomic_path, code_version, merge_config, write_json_atomic
+from ctsplat.utils import CtsplatError, atomic_path, code_version, json_safe, merge_config, write_json_atomic
 
 __all__ = [
     "SFM_DEFAULTS",
@@ -1297,7 +1297,7 @@ def run_sfm(volume_path: str | Path, out_dir: str | Path, config: dict[str, Any]
     summary.update(config=cfg, seed=seed, code_version=code_version(), volume_id=vol.volume_id,
                    camera={"model": "PINHOLE", "width": W, "height": H, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                            "cy": cam.cy, "pitch_mm": cam.pitch_mm, "dso_mm": cam.dso_mm, "dsd_mm": cam.dsd_mm})
-    write_json_atomic(out_dir / "summary.json", summary)
+    write_json_atomic(out_dir / "summary.json", json_safe(summary))
     return summary
 
 

@@ -52,6 +52,7 @@ from ctsplat.utils import (
     atomic_path,
     code_version,
     config_hash,
+    json_safe,
     merge_config,
     resolve_device,
     seed_everything,
@@ -1079,5 +1080,5 @@ def _finalize(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: Pat
         "code_version": code_version(),
         "volume_id": scene.volume.volume_id,
     }
-    write_json_atomic(out_dir / "metrics.json", result)
+    write_json_atomic(out_dir / "metrics.json", json_safe(result))
     return result

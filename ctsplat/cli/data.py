@@ -69,6 +69,7 @@ def run_ingest(args: argparse.Namespace) -> None:
         args.source, args.out, cfg, series_uid=args.series_uid,
         allow_modalities=tuple(["CT", *(args.allow_modality or [])]),
         skip_corrupt=args.skip_corrupt, tiff_voxel_size_mm=args.tiff_voxel_size, rescale=args.rescale,
+        nonfinite=args.nonfinite,
     )
     sp = ", ".join(f"{x:.3f}" for x in vol.spacing_mm)
     print(f"{args.out}: shape {vol.shape}, voxel ({sp}) mm, volume_id {vol.volume_id}")
@@ -123,4 +124,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     q.add_argument("--rescale", type=_rescale, metavar="SLOPE,INTERCEPT",
                    help="DICOM slices without RescaleSlope/RescaleIntercept: HU = stored * SLOPE + INTERCEPT "
                    "(1,0 if the stored values are HU); without it such CT slices must look like HU")
+    q.add_argument("--nonfinite", choices=["error", "fill_min"], default="error",
+                   help="NaN/Inf source voxels: error (default, names how many and where) or fill_min (replace "
+                   "them by the smallest finite value; recorded in volume.json)")
     q.set_defaults(func=run_ingest)

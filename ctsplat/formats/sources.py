@@ -635,7 +635,7 @@ def read_dicom_series(
         "image_orientation_patient": [float(v) for v in iop],
         "gantry_tilt_deg": round(stack.tilt_deg, 4),
         "rescale": rescale_info,
-        "value_range": [float(data.min()), float(data.max())],
+        "value_range": _finite_range(data),
         "units": units,
     }
     log.info(
@@ -757,10 +757,20 @@ def read_nifti(path: str | Path, *, units: str = "hu") -> SliceStack:
         "kind": "nifti",
         "shape": list(data.shape),
         "zooms_mm": [float(z) for z in img.header.get_zooms()[:3]],
-        "value_range": [float(data.min()), float(data.max())],
+        "value_range": _finite_range(data),
         "units": units,
     }
     return _stack_from_affine(data, img.affine, units, source)
+
+
+def _finite_range(data: np.ndarray) -> list[float] | None:
+    """``[min, max]`` over the finite values (non-finite ones are ingest's business), None if there are none."""
+    finite = np.isfinite(data)
+    if finite.all():
+        return [float(data.min()), float(data.max())]
+    if not finite.any():
+        return None
+    return [float(data[finite].min()), float(data[finite].max())]
 
 
 def _natural_key(p: Path) -> list[Any]:
@@ -825,7 +835,7 @@ def read_tiff_stack(
         "kind": "tiff",
         "shape": list(data.shape),
         "voxel_size_mm": vs.tolist(),
-        "value_range": [float(data.min()), float(data.max())],
+        "value_range": _finite_range(data),
         "units": units,
     }
     return _stack_from_affine(data, affine, units, source)
