@@ -55,6 +55,7 @@ __all__ = [
     "rasterize",
     "write_phantom_dicom",
     "load_phantom_ellipsoids",
+    "PHANTOM_MARKER",
 ]
 
 log = logging.getLogger(__name__)

@@ -1,10 +1,11 @@
 """CT ingestion and preprocessing: a scan on disk -> a preprocessed volume file.
 
 Ingestion (:func:`ingest`) = read (:mod:`ctsplat.formats.sources`: DICOM / NIfTI / TIFF -> geometry-exact
-slice stack, LPS -> RAS once) -> resample in world coordinates onto a regular (isotropic) grid
-(:func:`resample_stack`) -> optional body mask -> intensity mapping (HU -> μ, or a WL/WW window) ->
-normalise to [0, 1] -> optional denoising -> write the volume file (:mod:`ctsplat.formats.volume`:
-NIfTI-1 + provenance JSON) atomically. The world frame is RAS+, mm (see ``docs/conventions.md``).
+slice stack, LPS -> RAS once) -> refuse (or fill) NaN / Inf voxels -> resample in world coordinates onto a
+regular (isotropic) grid (:func:`resample_stack`) -> optional body mask -> intensity mapping (HU -> μ, or a
+WL/WW window) -> normalise to [0, 1] -> optional denoising -> write the volume file
+(:mod:`ctsplat.formats.volume`: NIfTI-1 + provenance JSON) atomically. The world frame is RAS+, mm (see
+``docs/conventions.md``).
 """
 
 from __future__ import annotations
