@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from ctsplat.formats.viewset import ViewSet
-from ctsplat.utils import CtsplatError, atomic_path, code_version, merge_config, write_json_atomic
+from ctsplat.utils import CtsplatError, atomic_path, code_version, json_safe, merge_config, write_json_atomic
 
 __all__ = [
     "BASELINE_DEFAULTS",
@@ -384,10 +384,10 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
             save_volume(Volume(rec, volume.affine, meta), out_dir / f"{name}.nii.gz")
     with atomic_path(out_dir / "sart_iterations.csv") as tmp:
         pd.DataFrame(sart_rows).to_csv(tmp, index=False)
-    write_json_atomic(out_dir / "baselines.json", {
+    write_json_atomic(out_dir / "baselines.json", json_safe({
         "config": cfg, "code_version": code_version(), "volume_path": str(volume_path),
         "volume_id": volume.volume_id, "radiographs_dir": str(radiographs_dir), "results": rows,
-    })
+    }))
     with atomic_path(out_dir / "baselines.csv") as tmp:
         df.to_csv(tmp, index=False)
     return df

@@ -41,8 +41,8 @@ SCHEMA_RESOURCE = "schemas/config.schema.yaml"  # inside the ctsplat package
 LIBRARY_SECTIONS: dict[str, tuple[str, str]] = {
     "preprocessing": ("ctsplat.volume", "PREPROCESSING_DEFAULTS"),
     "radiographs": ("ctsplat.projector", "RADIOGRAPHS_DEFAULTS"),
-    "sfm": ("ctsplat.sfm", "SFM_DEFAULTS"),
-    "train": ("ctsplat.train", "TRAIN_DEFAULTS"),
+    "sfm": ("ctsplat.sfm.step", "SFM_DEFAULTS"),
+    "train": ("ctsplat.training.config", "TRAIN_DEFAULTS"),
     "baselines": ("ctsplat.baselines", "BASELINES_DEFAULTS"),
 }
 
@@ -300,7 +300,8 @@ GENERATED_END = "  # ---- end generated"
 
 # Keys of a library's defaults that the workflow sets itself (not user config), with the reason shown in the schema.
 WORKFLOW_KEYS: dict[str, tuple[set[str], str]] = {
-    "train": ({"volume", "radiographs", "sfm_dir", "init", "compositor", "mip", "poses", "views", "seed", "device"},
+    "train": ({"volume", "radiographs", "sfm_dir", "sfm_radiographs", "init", "compositor", "mip", "poses", "views",
+               "seed", "device"},
               "without the keys the grid sets per run"),
     "baselines": ({"n_views"}, "without n_views (the grid's view counts)"),
 }
@@ -316,7 +317,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("preprocessing", "denoise"): {"enum": [None, "tv", "bilateral"]},
     ("preprocessing", "mask"): {"enum": [None, "otsu", "convex_hull"]},
     ("radiographs", "camera"): {"enum": ["parallel", "cone"]},
-    ("radiographs", "orbit"): {"enum": ["circular", "sphere"]},
+    ("radiographs", "orbit"): {"enum": ["circular", "sphere", "carm"]},
     ("radiographs", "sphere_sampling"): {"enum": ["fibonacci", "stratified"]},
     ("radiographs", "pixel_spacing_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
     ("radiographs", "parallel_distance_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
@@ -328,12 +329,15 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("radiographs", "detector_height"): {"type": "integer", "minimum": 1},
     ("sfm", "pitch_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
     ("sfm", "matching"): {"enum": ["exhaustive", "sequential", "spatial"]},
+    ("sfm", "geometry"): {"type": "string", "pattern": "^[A-Za-z0-9][A-Za-z0-9_.-]*$"},
     ("sfm", "mapper"): {"enum": ["incremental", "global"]},
     ("sfm", "pose_prior"): {"enum": ["none", "position", "refine", "refine_prior", "isocentric"]},
     ("sfm", "design_sigma_deg"): {"type": ["number", "null"], "exclusiveMinimum": 0},
     ("sfm", "isocentre_sigma_mm"): {"type": "number", "minimum": 0},
     ("sfm", "isocentric_loss_px"): {"type": "number", "exclusiveMinimum": 0},
-    ("sfm", "orbit_jitter_mm"): {"type": "number", "minimum": 0},
+    ("radiographs", "orbit_jitter_mm"): {"type": "number", "minimum": 0},
+    ("radiographs", "orbit_jitter_deg"): {"type": "number", "minimum": 0},
+    ("radiographs", "fov_margin"): {"type": "number", "exclusiveMinimum": 0},
     ("sfm", "fuse_harmonics"): {"type": "integer", "minimum": 0},
     ("train", "supervision"): {"enum": ["line_integral", "transmission"]},
     ("train", "iterations"): {"type": "integer", "minimum": 1},

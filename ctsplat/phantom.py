@@ -55,6 +55,7 @@ __all__ = [
     "rasterize",
     "write_phantom_dicom",
     "load_phantom_ellipsoids",
+    "PHANTOM_MARKER",
 ]
 
 log = logging.getLogger(__name__)
@@ -385,7 +386,7 @@ def write_phantom_dicom(
             hu, tmp, spacing_mm=(h, h, h), origin_lps=origin_lps, uid_seed=f"ctsplat-phantom-{seed}-{size}-{variant}",
             series_description=series_description, filename=_SLICE_NAME,
         )
-        (tmp / "phantom.json").write_text(json.dumps(info, indent=2) + "\n")
+        (tmp / "phantom.json").write_text(json.dumps(info, indent=2, allow_nan=False) + "\n")
         os.chmod(tmp, 0o755)
         if not absolute.exists():
             os.replace(tmp, absolute)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import math
 import os
 import random
 import subprocess
@@ -22,6 +23,7 @@ __all__ = [
     "CtsplatError",
     "atomic_path",
     "write_json_atomic",
+    "json_safe",
     "code_version",
     "config_hash",
     "resolve_device",
@@ -62,20 +64,91 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         raise
 
 
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _first_nonfinite(obj: Any, where: str = "") -> str | None:
+    """Key path (``a.b[2]``) of the first NaN/Infinity in ``obj``, or None."""
+    if isinstance(obj, np.ndarray):
+        obj = obj.tolist()
+    if isinstance(obj, float | np.floating):
+        return None if math.isfinite(obj) else where
+    if isinstance(obj, dict):
+        items = ((f"{where}.{k}" if where else str(k), v) for k, v in obj.items())
+    elif isinstance(obj, list | tuple):
+        items = ((f"{where}[{i}]", v) for i, v in enumerate(obj))
+    else:
+        return None
+    for key, value in items:
+        found = _first_nonfinite(value, key)
+        if found is not None:
+            return found
+    return None
+
+
 def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
-    """Write ``obj`` as indented JSON atomically (NumPy scalars/arrays converted)."""
+    """Write ``obj`` as indented, standard JSON atomically (NumPy scalars/arrays converted).
 
-    def default(o: Any) -> Any:
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-        if isinstance(o, np.generic):
-            return o.item()
-        if isinstance(o, Path):
-            return str(o)
-        raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+    NaN and ±Infinity are refused (they are not JSON; strict parsers reject the file): a
+    :class:`CtsplatError` names the key path. Values that may legitimately be undefined (metrics)
+    go through :func:`json_safe` first, which writes them as ``null``.
 
+    Parameters
+    ----------
+    path : path
+        Output file (replaced atomically).
+    obj : JSON-like
+        dicts, lists, str, int, float, bool, None, NumPy arrays/scalars, Paths.
+    """
+    try:
+        text = json.dumps(obj, indent=2, sort_keys=True, default=_json_default, allow_nan=False)
+    except ValueError as exc:
+        if "Out of range float" not in str(exc):
+            raise
+        where = _first_nonfinite(obj)
+        raise CtsplatError(
+            f"{path}: refusing to write NaN/Infinity at {where or '<top>'} (not valid JSON); fix the value, or "
+            f"pass the object through ctsplat.utils.json_safe to write undefined numbers as null"
+        ) from None
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=default) + "\n")
+        tmp.write_text(text + "\n")
+
+
+def json_safe(obj: Any) -> Any:
+    """A copy of ``obj`` with every non-finite float (NaN, ±Infinity) replaced by ``None`` (JSON ``null``).
+
+    For metrics that can be undefined or unbounded (PSNR of identical images is +Infinity, a median
+    over no registered views is NaN). Dicts, lists and tuples are walked; NumPy arrays and scalars
+    become lists and Python numbers; everything else is returned unchanged.
+
+    Parameters
+    ----------
+    obj : JSON-like
+        The object to write.
+
+    Returns
+    -------
+    JSON-like
+        The same structure with ``None`` for each non-finite float.
+    """
+    if isinstance(obj, np.ndarray):
+        return json_safe(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v) for v in obj]
+    return obj
 
 
 def code_version() -> str:

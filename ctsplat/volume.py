@@ -1,14 +1,17 @@
 """CT ingestion and preprocessing: a scan on disk -> a preprocessed volume file.
 
 Ingestion (:func:`ingest`) = read (:mod:`ctsplat.formats.sources`: DICOM / NIfTI / TIFF -> geometry-exact
-slice stack, LPS -> RAS once) -> resample in world coordinates onto a regular (isotropic) grid
-(:func:`resample_stack`) -> optional body mask -> intensity mapping (HU -> μ, or a WL/WW window) ->
-normalise to [0, 1] -> optional denoising -> write the volume file (:mod:`ctsplat.formats.volume`:
-NIfTI-1 + provenance JSON) atomically. The world frame is RAS+, mm (see ``docs/conventions.md``).
+slice stack, LPS -> RAS once) -> refuse (or fill) NaN / Inf voxels -> resample in world coordinates onto a
+regular (isotropic) grid (:func:`resample_stack`) -> optional body mask -> intensity mapping (HU -> μ, or a
+WL/WW window) -> normalise to [0, 1] -> optional denoising -> write the volume file
+(:mod:`ctsplat.formats.volume`: NIfTI-1 + provenance JSON) atomically. The world frame is RAS+, mm (see
+``docs/conventions.md``).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import logging
 import time
 from collections.abc import Sequence
@@ -31,6 +34,7 @@ __all__ = [
     "apply_window",
     "body_mask",
     "denoise",
+    "NONFINITE_RULES",
 ]
 
 log = logging.getLogger(__name__)
@@ -77,6 +81,11 @@ PREPROCESSING_DEFAULTS: dict[str, Any] = {
 }
 
 _INTENSITY_MODES = ("attenuation", "window", "mu", "hu")
+
+#: What ingest does with NaN / ±Inf voxels of the source: ``error`` (default; names how many and
+#: where) or ``fill_min`` (replace them by the smallest finite value, air for CT; recorded in the
+#: provenance as the ``nonfinite`` step).
+NONFINITE_RULES = ("error", "fill_min")
 
 
 def _check_preprocessing(cfg: dict[str, Any]) -> None:
@@ -437,6 +446,43 @@ def denoise(values: np.ndarray, method: str, weight: float) -> np.ndarray:
     raise CtsplatError(f"denoise method {method!r} unknown; allowed: tv, bilateral")
 
 
+def _handle_nonfinite(stack: Any, rule: str, label: str) -> tuple[Any, dict[str, Any] | None]:
+    """Check ``stack.data`` for NaN / ±Inf; fail or fill by ``rule`` (see :data:`NONFINITE_RULES`)."""
+    data = stack.data
+    bad = ~np.isfinite(data)
+    if not bad.any():
+        return stack, None
+    count = int(np.count_nonzero(bad))
+    n_nan = int(np.count_nonzero(np.isnan(data)))
+    lo, hi = [], []
+    for axis in range(3):
+        hit = np.flatnonzero(bad.any(axis=tuple(a for a in range(3) if a != axis)))
+        lo.append(int(hit[0]))
+        hi.append(int(hit[-1]))
+    # world position of the box's corner voxels: origins[k] + i di row_dir + j dj col_dir
+    corners = np.array(list(itertools.product(*zip(lo, hi, strict=True))))
+    di, dj = (float(x) for x in stack.spacing_ij)
+    world = (np.asarray(stack.origins, float)[corners[:, 2]] + np.outer(corners[:, 0] * di, stack.row_dir)
+             + np.outer(corners[:, 1] * dj, stack.col_dir))
+    box = ", ".join(f"{a}..{b}" for a, b in zip(lo, hi, strict=True))
+    wbox = ", ".join(f"{a:.1f}..{b:.1f}" for a, b in zip(world.min(0), world.max(0), strict=True))
+    what = f"{count} non-finite voxels ({n_nan} NaN, {count - n_nan} Inf)"
+    if bad.all():
+        raise CtsplatError(f"{label} has no finite voxel ({what}); check the input file")
+    if rule == "error":
+        raise CtsplatError(
+            f"{label} has {what} within voxel indices [{box}] of its (I, J, K) = {tuple(data.shape)} grid "
+            f"(world RAS mm [{wbox}]); fix the input, or pass nonfinite: fill_min (--nonfinite fill_min) to "
+            f"replace them by the smallest finite value"
+        )
+    fill = float(data[~bad].min())
+    log.warning("replacing %s within voxel indices [%s] by the smallest finite value %g", what, box, fill)
+    filled = np.where(bad, np.float32(fill), data).astype(np.float32)
+    step = {"step": "nonfinite", "rule": rule, "count": count, "n_nan": n_nan, "n_inf": count - n_nan,
+            "bbox_ijk": [lo, hi], "fill_value": fill}
+    return dataclasses.replace(stack, data=filled), step
+
+
 def _map_intensity(values: np.ndarray, cfg: dict[str, Any], units: str) -> tuple[np.ndarray, dict[str, Any]]:
     mode = cfg["intensity"]
     mu_w, hu_max = float(cfg["mu_water_per_mm"]), float(cfg["hu_max"])
@@ -493,6 +539,8 @@ def ingest(
     allow_modalities: Sequence[str] = ("CT",),
     skip_corrupt: bool = False,
     tiff_voxel_size_mm: float | Sequence[float] | None = None,
+    rescale: Sequence[float] | None = None,
+    nonfinite: str = "error",
 ) -> Volume:
     """Ingest a CT scan (DICOM folder, NIfTI file or TIFF stack) into a preprocessed NIfTI volume.
 
@@ -518,31 +566,48 @@ def ingest(
         Skip unreadable DICOM files with a warning.
     tiff_voxel_size_mm : float or (3,) floats, optional
         Voxel size of a TIFF stack (required for TIFF input).
+    rescale : (2,) floats, optional
+        DICOM only: ``[slope, intercept]`` for slices without RescaleSlope/RescaleIntercept
+        (``[1, 0]`` = the stored values are HU); see :func:`ctsplat.formats.sources.read_dicom_series`
+        for what happens without it. Recorded in ``volume.json`` under ``source.rescale``.
+    nonfinite : {"error", "fill_min"}
+        NaN / ±Inf source voxels: an error naming how many and their bounding box (voxel indices of
+        the slice stack as read, and world mm), or replaced by the smallest finite value (recorded
+        as the ``nonfinite`` step). See :data:`NONFINITE_RULES`.
 
     Returns
     -------
     Volume
         The volume written (``data`` float32 (I, J, K), ``affine``, ``meta``).
     """
-    from ctsplat.formats.sources import SliceStack, read_source
+    from ctsplat.formats.sources import SliceStack, check_rescale, read_source
 
     out_path = Path(out_path)
     if not out_path.name.endswith((".nii.gz", ".nii")):
         raise CtsplatError(f"output {out_path} must end in .nii.gz or .nii")
     cfg = merge_config("preprocessing", preprocessing, PREPROCESSING_DEFAULTS)
     _check_preprocessing(cfg)
+    check_rescale(rescale)
+    if nonfinite not in NONFINITE_RULES:
+        raise CtsplatError(f"nonfinite {nonfinite!r} unknown; allowed: {', '.join(NONFINITE_RULES)}")
     t0 = time.perf_counter()
     if isinstance(source, SliceStack):
+        if rescale is not None:
+            raise CtsplatError("rescale applies when ingest reads a DICOM series, not to a SliceStack already read")
         stack = source
     else:
         stack = read_source(
             source, series_uid=series_uid, allow_modalities=allow_modalities, skip_corrupt=skip_corrupt,
-            tiff_voxel_size_mm=tiff_voxel_size_mm,
+            tiff_voxel_size_mm=tiff_voxel_size_mm, rescale=rescale,
         )
     t_read = time.perf_counter()
     steps: list[dict[str, Any]] = [
         {"step": "read", "kind": stack.source.get("kind"), "lps_to_ras": stack.source.get("kind") == "dicom"}
     ]
+    label = "the slice stack" if isinstance(source, SliceStack) else f"source {source}"
+    stack, nonfinite_step = _handle_nonfinite(stack, nonfinite, label)
+    if nonfinite_step is not None:
+        steps.append(nonfinite_step)
     values, affine, rinfo = resample_stack(stack, voxel_size_mm=cfg["voxel_size_mm"], grid=cfg["grid"])
     steps.append(rinfo)
     t_resample = time.perf_counter()

@@ -24,6 +24,13 @@ def _window(text: str) -> str | list[float]:
     return text
 
 
+def _rescale(text: str) -> list[float]:
+    parts = [float(x) for x in text.split(",")]
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError("rescale must be SLOPE,INTERCEPT (e.g. 1,-1024)")
+    return parts
+
+
 def _voxel(text: str) -> float | list[float]:
     parts = [float(x) for x in text.split(",")]
     return parts[0] if len(parts) == 1 else parts
@@ -61,7 +68,8 @@ def run_ingest(args: argparse.Namespace) -> None:
     vol = ingest(
         args.source, args.out, cfg, series_uid=args.series_uid,
         allow_modalities=tuple(["CT", *(args.allow_modality or [])]),
-        skip_corrupt=args.skip_corrupt, tiff_voxel_size_mm=args.tiff_voxel_size,
+        skip_corrupt=args.skip_corrupt, tiff_voxel_size_mm=args.tiff_voxel_size, rescale=args.rescale,
+        nonfinite=args.nonfinite,
     )
     sp = ", ".join(f"{x:.3f}" for x in vol.spacing_mm)
     print(f"{args.out}: shape {vol.shape}, voxel ({sp}) mm, volume_id {vol.volume_id}")
@@ -113,4 +121,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     q.add_argument("--allow-modality", action="append", metavar="MOD", help="accept a non-CT modality (e.g. MR)")
     q.add_argument("--skip-corrupt", action="store_true", help="skip unreadable DICOM files with a warning")
     q.add_argument("--tiff-voxel-size", type=_voxel, help="TIFF stack voxel size in mm: S or X,Y,Z")
+    q.add_argument("--rescale", type=_rescale, metavar="SLOPE,INTERCEPT",
+                   help="DICOM slices without RescaleSlope/RescaleIntercept: HU = stored * SLOPE + INTERCEPT "
+                   "(1,0 if the stored values are HU); without it such CT slices must look like HU")
+    q.add_argument("--nonfinite", choices=["error", "fill_min"], default="error",
+                   help="NaN/Inf source voxels: error (default, names how many and where) or fill_min (replace "
+                   "them by the smallest finite value; recorded in volume.json)")
     q.set_defaults(func=run_ingest)

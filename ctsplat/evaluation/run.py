@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from ctsplat.evaluation import metrics
-from ctsplat.utils import CtsplatError, code_version, resolve_device, write_json_atomic
+from ctsplat.utils import CtsplatError, code_version, json_safe, resolve_device, write_json_atomic
 
 __all__ = [
     "render_views",
@@ -303,7 +303,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
             figures.save_slices(run_dir / "slices.png", vol_model, scene.volume.data)
             Rs, ts = orbit_poses(views.Rs[0], views.ts[0], scene.volume.center_mm(), int(cfg["turntable_frames"]))
             figures.save_turntable(run_dir / "turntable.gif", render_views(g, views.camera, Rs, ts, rk))
-    write_json_atomic(run_dir / ("metrics.json" if split == "test" else f"metrics_{split}.json"), result)
+    write_json_atomic(run_dir / ("metrics.json" if split == "test" else f"metrics_{split}.json"), json_safe(result))
     return result
 
 

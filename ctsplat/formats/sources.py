@@ -68,6 +68,8 @@ __all__ = [
     "read_tiff_stack",
     "read_source",
     "write_dicom_series",
+    "looks_like_hu",
+    "check_rescale",
 ]
 
 log = logging.getLogger(__name__)
@@ -79,6 +81,13 @@ LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0])
 _ORIENT_TOL = 1e-4  # on direction cosines
 _SPACING_RTOL = 1e-4  # relative, pixel spacing across slices
 _DUPLICATE_TOL_MM = 1e-3  # two slices closer than this along the normal are duplicates
+
+#: CT stored values without RescaleSlope/RescaleIntercept are taken as HU only when they look like HU
+#: (see :func:`looks_like_hu`): at least this fraction of the voxels is air, within this HU range ...
+_AIR_FRACTION_MIN = 1e-3
+_AIR_HU = (-1100.0, -900.0)
+#: ... and no value reaches this (12-bit HU data ends at 3071; raw unsigned values run to 4095).
+_HU_MAX_PLAUSIBLE = 4000.0
 
 _DECODER_PACKAGES = {
     "1.2.840.10008.1.2.4.90": "pylibjpeg and pylibjpeg-openjpeg",  # JPEG 2000 lossless
@@ -132,6 +141,55 @@ def salted_hash(value: str, n: int = 16) -> str:
     """
     salt = os.environ.get("CTSPLAT_DEID_SALT", "ctsplat-deid-v1")
     return hashlib.sha256(f"{salt}:{value}".encode()).hexdigest()[:n]
+
+
+def looks_like_hu(values: np.ndarray) -> bool:
+    """Whether values that came without a rescale can be taken as Hounsfield units of a CT scan.
+
+    The rule: air is present (at least 0.1 % of the values within -1000 ± 100 HU; every CT field of
+    view holds air around the body, in the airways or the sinuses) and no value reaches 4000 (the
+    usual 12-bit HU range ends at 3071). Stored values that still need an intercept (typically
+    ``HU + 1024``, unsigned, 0 .. 4095) have their air near 0 - 24 and fail the first test; the
+    second catches raw values of other encodings that happen to reach below -900.
+
+    Parameters
+    ----------
+    values : ndarray, any shape
+        Stored values (finite).
+
+    Returns
+    -------
+    bool
+    """
+    v = np.asarray(values)
+    if v.size == 0:
+        return False
+    air = np.count_nonzero((v >= _AIR_HU[0]) & (v <= _AIR_HU[1]))
+    return bool(air >= _AIR_FRACTION_MIN * v.size and float(v.max()) < _HU_MAX_PLAUSIBLE)
+
+
+def check_rescale(rescale: Sequence[float] | None) -> tuple[float, float] | None:
+    """Validate a user-given rescale for DICOM slices that lack RescaleSlope/RescaleIntercept.
+
+    Parameters
+    ----------
+    rescale : (2,) floats or None
+        ``[slope, intercept]``: ``HU = stored * slope + intercept``.
+
+    Returns
+    -------
+    (float, float) or None
+        ``(slope, intercept)``, or ``None`` when ``rescale`` is ``None``.
+    """
+    if rescale is None:
+        return None
+    try:
+        slope, intercept = (float(x) for x in rescale)
+    except (TypeError, ValueError):
+        raise CtsplatError(f"rescale must be [slope, intercept] (two numbers), got {rescale!r}") from None
+    if not (np.isfinite(slope) and np.isfinite(intercept) and slope != 0):
+        raise CtsplatError(f"rescale [slope, intercept] must be finite with slope != 0, got {rescale!r}")
+    return slope, intercept
 
 
 @dataclass
@@ -391,6 +449,7 @@ def read_dicom_series(
     series_uid: str | None = None,
     allow_modalities: Sequence[str] = ("CT",),
     skip_corrupt: bool = False,
+    rescale: Sequence[float] | None = None,
 ) -> SliceStack:
     """Read one DICOM series from a folder (searched recursively) into a :class:`SliceStack`.
 
@@ -399,6 +458,13 @@ def read_dicom_series(
     ambiguous), check the geometry is consistent, order slices by ``IPP · n`` with
     ``n = row_cos × col_cos`` (never by file name, InstanceNumber or SliceLocation), apply
     ``HU = stored * RescaleSlope + RescaleIntercept``, convert LPS -> RAS.
+
+    Slices without RescaleSlope/RescaleIntercept (both are required in CT images, but converters
+    drop them) use ``rescale`` when given. Without it, CT stored values are taken as HU only when
+    :func:`looks_like_hu` says so (with a warning); otherwise that is an error, because raw stored
+    values (e.g. 0 .. 4095 for HU + 1024) read as HU give a wrong volume without any other sign.
+    Values of other modalities are raw anyway and are kept as stored. ``source["rescale"]`` records
+    what was applied (``from``: ``header``, ``option``, ``assumed_hu`` or ``stored_values``).
 
     Oblique orientations and gantry tilt are supported: the full per-slice geometry is kept and
     resampled exactly by :func:`ctsplat.volume.resample_stack`. Multi-frame (enhanced) objects and
@@ -414,6 +480,9 @@ def read_dicom_series(
         Modalities accepted (default CT only; values of other modalities are not HU).
     skip_corrupt : bool
         Skip unreadable/truncated files with a warning instead of failing.
+    rescale : (2,) floats, optional
+        ``[slope, intercept]`` for slices lacking the rescale tags (``[1, 0]``: stored values are HU).
+        Slices that carry the tags always use their own.
 
     Returns
     -------
@@ -428,11 +497,14 @@ def read_dicom_series(
     from pydicom.pixels import pixel_array
 
     folder = Path(folder)
+    user_rescale = check_rescale(rescale)
     skipped: list[Path] = []
     series = find_dicom_series(folder, skip_corrupt=skip_corrupt, _skipped=skipped)
     pick = _choose_series(series, series_uid, allow_modalities, folder)
 
     slices: list[tuple[Path, Any, np.ndarray]] = []
+    without_rescale: list[int] = []  # indices into ``slices`` whose values are still stored values
+    header_rescales: set[tuple[float, float]] = set()
     ref: dict[str, Any] = {}
     for path in pick.files:
         try:
@@ -486,9 +558,13 @@ def read_dicom_series(
         if pixels.shape != (rows, cols):
             _handle_corrupt(path, f"pixel array shape {pixels.shape} != {(rows, cols)}", skip_corrupt, skipped)
             continue
-        slope = float(ds.get("RescaleSlope", 1.0) or 1.0)
-        intercept = float(ds.get("RescaleIntercept", 0.0) or 0.0)
-        values = pixels.astype(np.float32) * np.float32(slope) + np.float32(intercept)
+        values = pixels.astype(np.float32)
+        if ds.get("RescaleSlope") not in (None, "") and ds.get("RescaleIntercept") not in (None, ""):
+            slope, intercept = float(ds.RescaleSlope), float(ds.RescaleIntercept)
+            header_rescales.add((slope, intercept))
+            values = values * np.float32(slope) + np.float32(intercept)
+        else:
+            without_rescale.append(len(slices))
         del ds.PixelData  # keep only the header in memory
         slices.append((path, ds, values.T))  # (Columns, Rows): i along row_dir, j along col_dir
 
@@ -521,11 +597,12 @@ def read_dicom_series(
             f"({dup.size} duplicate pair(s)); remove the duplicate files or choose the right series"
         )
 
-    data = np.stack([slices[o][2] for o in order], axis=2).astype(np.float32, copy=False)
     first = slices[order[0]][1]
     ts = getattr(getattr(first, "file_meta", None), "TransferSyntaxUID", None)
     modality = str(first.get("Modality", "") or "")
     units = "hu" if modality.upper() == "CT" else "raw"
+    rescale_info = _apply_missing_rescale(slices, without_rescale, header_rescales, user_rescale, units, pick, folder)
+    data = np.stack([slices[o][2] for o in order], axis=2).astype(np.float32, copy=False)
     stack = SliceStack(
         data=data,
         row_dir=lps_to_ras(row_lps),
@@ -557,7 +634,8 @@ def read_dicom_series(
         "axial_coverage_mm": float(pos_sorted[-1] - pos_sorted[0]),
         "image_orientation_patient": [float(v) for v in iop],
         "gantry_tilt_deg": round(stack.tilt_deg, 4),
-        "value_range": [float(data.min()), float(data.max())],
+        "rescale": rescale_info,
+        "value_range": _finite_range(data),
         "units": units,
     }
     log.info(
@@ -565,6 +643,52 @@ def read_dicom_series(
         len(slices), ref["cols"], ref["rows"], modality, rounded_gaps, stack.tilt_deg,
     )
     return stack
+
+
+def _apply_missing_rescale(
+    slices: list[tuple[Path, Any, np.ndarray]],
+    without: list[int],
+    header: set[tuple[float, float]],
+    user: tuple[float, float] | None,
+    units: str,
+    pick: SeriesInfo,
+    folder: Path,
+) -> dict[str, Any]:
+    """Rescale the slices that lacked the tags (in place in ``slices``); return the provenance record."""
+
+    def one_or_all(values: set[float]) -> float | list[float]:
+        return next(iter(values)) if len(values) == 1 else sorted(values)
+
+    info: dict[str, Any] = {"from": "header"}
+    if header:
+        info.update(slope=one_or_all({s for s, _ in header}), intercept=one_or_all({i for _, i in header}))
+    info["n_slices_without_tags"] = len(without)
+    if not without:
+        return info
+    if user is not None:
+        slope, intercept = user
+        for n in without:
+            path, ds, values = slices[n]
+            slices[n] = (path, ds, values * np.float32(slope) + np.float32(intercept))
+        return {"from": "option", "slope": slope, "intercept": intercept, "n_slices_without_tags": len(without)}
+    if units != "hu":
+        return {"from": "stored_values", "slope": 1.0, "intercept": 0.0, "n_slices_without_tags": len(without)}
+    stored = np.concatenate([slices[n][2].ravel() for n in without])
+    lo, hi = float(stored.min()), float(stored.max())
+    if not looks_like_hu(stored):
+        raise CtsplatError(
+            f"{len(without)} of {len(slices)} slices of series {pick.label()} in {folder} have no "
+            f"RescaleSlope/RescaleIntercept and their stored values ({lo:g} .. {hi:g}) do not look like HU "
+            f"(no air near -1000, or values >= {_HU_MAX_PLAUSIBLE:g}); give the scanner's rescale as rescale "
+            f"[SLOPE, INTERCEPT] (--rescale SLOPE,INTERCEPT), e.g. 1,-1024, or 1,0 if the stored values are HU"
+        )
+    log.warning(
+        "%d of %d slices have no RescaleSlope/RescaleIntercept; their stored values (%g .. %g) look like HU "
+        "(air present) and are used as HU - pass rescale (--rescale SLOPE,INTERCEPT) if that is wrong",
+        len(without), len(slices), lo, hi,
+    )
+    return {"from": "assumed_hu", "slope": 1.0, "intercept": 0.0, "n_slices_without_tags": len(without),
+            "rule": "looks_like_hu: >= 0.1 % of values within -1000 +- 100, max < 4000"}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -633,10 +757,20 @@ def read_nifti(path: str | Path, *, units: str = "hu") -> SliceStack:
         "kind": "nifti",
         "shape": list(data.shape),
         "zooms_mm": [float(z) for z in img.header.get_zooms()[:3]],
-        "value_range": [float(data.min()), float(data.max())],
+        "value_range": _finite_range(data),
         "units": units,
     }
     return _stack_from_affine(data, img.affine, units, source)
+
+
+def _finite_range(data: np.ndarray) -> list[float] | None:
+    """``[min, max]`` over the finite values (non-finite ones are ingest's business), None if there are none."""
+    finite = np.isfinite(data)
+    if finite.all():
+        return [float(data.min()), float(data.max())]
+    if not finite.any():
+        return None
+    return [float(data[finite].min()), float(data[finite].max())]
 
 
 def _natural_key(p: Path) -> list[Any]:
@@ -701,7 +835,7 @@ def read_tiff_stack(
         "kind": "tiff",
         "shape": list(data.shape),
         "voxel_size_mm": vs.tolist(),
-        "value_range": [float(data.min()), float(data.max())],
+        "value_range": _finite_range(data),
         "units": units,
     }
     return _stack_from_affine(data, affine, units, source)
@@ -714,6 +848,7 @@ def read_source(
     allow_modalities: Sequence[str] = ("CT",),
     skip_corrupt: bool = False,
     tiff_voxel_size_mm: float | Sequence[float] | None = None,
+    rescale: Sequence[float] | None = None,
 ) -> SliceStack:
     """Read a scan, dispatching on the input: NIfTI file, TIFF file or folder of TIFFs, else a DICOM folder.
 
@@ -721,8 +856,8 @@ def read_source(
     ----------
     source : path
         ``.nii``/``.nii.gz`` file, ``.tif``/``.tiff`` file, folder holding only TIFFs, or DICOM folder.
-    series_uid, allow_modalities, skip_corrupt
-        Passed to :func:`read_dicom_series`.
+    series_uid, allow_modalities, skip_corrupt, rescale
+        Passed to :func:`read_dicom_series`; ``rescale`` is refused for NIfTI / TIFF input.
     tiff_voxel_size_mm : float or (3,) floats, optional
         Passed to :func:`read_tiff_stack` (required for TIFF input).
 
@@ -734,6 +869,12 @@ def read_source(
     name = source.name.lower()
     if not source.exists():
         raise CtsplatError(f"input {source} does not exist; give a DICOM folder, a .nii/.nii.gz file or a TIFF stack")
+    is_tiff_folder = source.is_dir() and _only_tiffs(source)
+    if rescale is not None and (source.is_file() or is_tiff_folder):
+        raise CtsplatError(
+            f"rescale applies to DICOM input only, not {source} (NIfTI carries its own scl_slope/scl_inter, "
+            f"TIFF values are raw); remove it"
+        )
     if source.is_file():
         if name.endswith((".nii", ".nii.gz")):
             return read_nifti(source)
@@ -742,12 +883,16 @@ def read_source(
         raise CtsplatError(
             f"input file {source} is not a .nii/.nii.gz or .tif stack; for DICOM give the folder holding the slices"
         )
-    entries = [p for p in source.iterdir() if not p.name.startswith(".")]
-    if entries and all(p.is_file() and p.suffix.lower() in (".tif", ".tiff") for p in entries):
+    if is_tiff_folder:
         return read_tiff_stack(source, tiff_voxel_size_mm)
     return read_dicom_series(
-        source, series_uid=series_uid, allow_modalities=allow_modalities, skip_corrupt=skip_corrupt
+        source, series_uid=series_uid, allow_modalities=allow_modalities, skip_corrupt=skip_corrupt, rescale=rescale
     )
+
+
+def _only_tiffs(folder: Path) -> bool:
+    entries = [p for p in folder.iterdir() if not p.name.startswith(".")]
+    return bool(entries) and all(p.is_file() and p.suffix.lower() in (".tif", ".tiff") for p in entries)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -57,7 +57,7 @@ from ctsplat.sfm.colmap import (
     write_model,
 )
 from ctsplat.sfm.features import enhance_for_features, feature_masks, write_pngs
-from ctsplat.utils import CtsplatError, atomic_path, code_version, merge_config, write_json_atomic
+from ctsplat.utils import CtsplatError, atomic_path, code_version, json_safe, merge_config, write_json_atomic
 
 __all__ = ["SFM_DEFAULTS", "run_sfm", "run_sfm_on_images", "naive_slices_sfm", "summarize"]
 
@@ -373,7 +373,7 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
                    radiographs=str(radiographs_dir),
                    camera={"model": "PINHOLE", "width": W, "height": H, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                            "cy": cam.cy, "pitch_mm": cam.pitch_mm, "dso_mm": cam.dso_mm, "dsd_mm": cam.dsd_mm})
-    write_json_atomic(out_dir / "summary.json", summary)
+    write_json_atomic(out_dir / "summary.json", json_safe(summary))
     return summary
 
 

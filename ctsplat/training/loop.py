@@ -64,7 +64,15 @@ from ctsplat.training.state import (
     restore,
     snapshot,
 )
-from ctsplat.utils import CtsplatError, code_version, config_hash, resolve_device, seed_everything, write_json_atomic
+from ctsplat.utils import (
+    CtsplatError,
+    code_version,
+    config_hash,
+    json_safe,
+    resolve_device,
+    seed_everything,
+    write_json_atomic,
+)
 
 __all__ = ["train", "RUN_OUTPUTS"]
 
@@ -316,5 +324,5 @@ def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: 
     }
     summary["peak_memory_mb"], summary["peak_memory_kind"] = peak_memory_mb(device)
     summary["peak_memory_mb"] = round(summary["peak_memory_mb"], 1)
-    write_json_atomic(out_dir / "training.json", summary)
+    write_json_atomic(out_dir / "training.json", json_safe(summary))
     return summary

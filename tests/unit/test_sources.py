@@ -406,3 +406,89 @@ def test_atomic_writes_leave_nothing_on_error_and_use_normal_permissions(tmp_pat
         tmp.write_bytes(b"partial")
         raise RuntimeError("writer failed")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json"]
+
+
+# ------------------------------------------------------------------------------------------ rescale
+
+
+def head_hu(p_lps: np.ndarray) -> np.ndarray:
+    """Air (-1000 HU) around a water ball (0 HU) with a bone core (+1000 HU), in LPS mm."""
+    r = np.linalg.norm(p_lps - np.array([0.0, 0.0, 25.0]), axis=-1)
+    return np.where(r < 4.0, 1000.0, np.where(r < 8.0, 0.0, -1000.0))
+
+
+def strip_rescale(files, *, signed_hu: bool = False) -> np.ndarray:
+    """Remove RescaleSlope/RescaleIntercept; ``signed_hu`` stores the HU themselves as int16. Returns HU (I, J, K)."""
+    hu = []
+    for f in files:
+        ds = pydicom.dcmread(f)
+        slice_hu = ds.pixel_array.astype(np.int32) * int(ds.RescaleSlope) + int(ds.RescaleIntercept)
+        hu.append(slice_hu.T)
+        if signed_hu:
+            ds.PixelRepresentation = 1
+            ds.PixelData = slice_hu.astype(np.int16).tobytes()
+        del ds.RescaleSlope, ds.RescaleIntercept
+        ds.save_as(f)
+    return np.stack(hu, axis=2).astype(float)
+
+
+def head_series(folder: Path) -> list[Path]:
+    return make_series(folder, shape=(24, 24, 4), spacing=(1.0, 1.0, 2.0), origin=(-11.5, -11.5, 22.0),
+                       field=head_hu)
+
+
+def test_missing_rescale_on_raw_stored_values_is_an_error(tmp_path):
+    files = head_series(tmp_path / "s")
+    strip_rescale(files)  # stored values are HU + 1024 (24 .. 2024): not HU
+    fix = r"rescale \[SLOPE, INTERCEPT\] \(--rescale SLOPE,INTERCEPT\)"
+    with pytest.raises(CtsplatError, match=r"RescaleSlope.*" + fix) as err:
+        read_dicom_series(tmp_path / "s")
+    assert "\n" not in str(err.value) and "24 .. 2024" in str(err.value)
+    assert_fails_cleanly(tmp_path / "s", tmp_path, "RescaleSlope")
+
+
+def test_missing_rescale_with_explicit_option(tmp_path):
+    files = head_series(tmp_path / "s")
+    hu = strip_rescale(files)
+    stack = read_dicom_series(tmp_path / "s", rescale=(1.0, -1024.0))
+    np.testing.assert_array_equal(stack.data, hu)
+    assert stack.source["rescale"] == {"from": "option", "slope": 1.0, "intercept": -1024.0,
+                                       "n_slices_without_tags": 4}
+    vol = ingest(tmp_path / "s", tmp_path / "v.nii.gz", {"grid": 8, "intensity": "hu"}, rescale=[1, -1024])
+    assert vol.meta["source"]["rescale"]["from"] == "option"
+    assert float(vol.data.min()) == pytest.approx(-1000.0, abs=1.0)
+
+
+def test_rescale_option_does_not_override_header_tags(tmp_path):
+    make_series(tmp_path / "s")
+    stack = read_dicom_series(tmp_path / "s", rescale=(2.0, 5.0))
+    assert stack.source["rescale"] == {"from": "header", "slope": 1.0, "intercept": -1024.0,
+                                       "n_slices_without_tags": 0}
+
+
+def test_missing_rescale_on_values_that_already_are_hu_is_accepted_and_recorded(tmp_path, caplog):
+    files = head_series(tmp_path / "s")
+    hu = strip_rescale(files, signed_hu=True)
+    with caplog.at_level(logging.WARNING, logger="ctsplat.formats.sources"):
+        stack = read_dicom_series(tmp_path / "s")
+    np.testing.assert_array_equal(stack.data, hu)
+    assert stack.source["rescale"]["from"] == "assumed_hu"
+    assert "RescaleSlope" in caplog.text
+
+
+def test_rescale_is_refused_for_non_dicom_input(tmp_path):
+    path = tmp_path / "v.nii.gz"
+    nib.save(nib.Nifti1Image(np.full((4, 4, 4), -1000, np.float32), np.eye(4)), str(path))
+    with pytest.raises(CtsplatError, match="rescale applies to DICOM"):
+        read_source(path, rescale=(1.0, 0.0))
+
+
+def test_cli_ingest_rescale_flag(tmp_path, capsys):
+    from ctsplat.cli import main
+
+    strip_rescale(head_series(tmp_path / "s"))
+    out = tmp_path / "o" / "v.nii.gz"
+    assert main(["ingest", str(tmp_path / "s"), str(out), "--grid", "8"]) == 2
+    assert "--rescale" in capsys.readouterr().err and not out.exists()
+    assert main(["ingest", str(tmp_path / "s"), str(out), "--grid", "8", "--rescale", "1,-1024"]) == 0
+    assert out.exists()

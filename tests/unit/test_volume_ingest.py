@@ -246,3 +246,81 @@ def test_cli_config_file_and_native(tmp_path):
     np.testing.assert_allclose(sorted(vol.spacing_mm), [1.0, 1.0, 2.0])
     assert vol.meta["preprocessing"]["hu_max"] == 2000 and vol.mu_scale_per_mm == 1.0
     np.testing.assert_allclose(vol.data, np.clip(0.019 * (1 + hu / 1000), 0, 0.019 * 3), rtol=1e-5, atol=1e-7)
+
+
+# ------------------------------------------------------------------------------------------ non-finite input
+
+
+def strict_json(path):
+    """Parse as standard JSON: NaN / Infinity are not JSON, so they fail here (json.loads accepts them)."""
+
+    def refuse(token):
+        raise ValueError(f"{path} holds {token}, which is not JSON")
+
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def with_bad_block(n=16):
+    hu, _ = head_like(n)
+    hu[3:5, 6:9, 10] = np.nan
+    hu[4, 7, 11] = np.inf
+    return hu
+
+
+def test_nonfinite_input_is_an_error_naming_count_and_bounding_box(tmp_path):
+    src = nifti_input(tmp_path, with_bad_block())
+    out = tmp_path / "o" / "volume.nii.gz"
+    with pytest.raises(CtsplatError, match=r"7 non-finite voxels \(6 NaN, 1 Inf\).*\[3\.\.4, 6\.\.8, 10\.\.11\]"
+                       r".*nonfinite: fill_min \(--nonfinite fill_min\)") as err:
+        ingest(src, out, {"grid": 8})
+    assert "\n" not in str(err.value)
+    assert not out.parent.exists() or not any(out.parent.iterdir())
+
+
+def test_nonfinite_fill_min_is_recorded_and_json_is_valid(tmp_path):
+    hu = with_bad_block()
+    src = nifti_input(tmp_path, hu)
+    out = tmp_path / "o" / "volume.nii.gz"
+    vol = ingest(src, out, {"grid": 8}, nonfinite="fill_min")
+    assert np.isfinite(vol.data).all()
+    meta = strict_json(json_path_for(out))
+    finite_min = float(np.min(hu[np.isfinite(hu)]))
+    step = next(s for s in meta["steps"] if s["step"] == "nonfinite")
+    assert step == {"step": "nonfinite", "rule": "fill_min", "count": 7, "n_nan": 6, "n_inf": 1,
+                    "bbox_ijk": [[3, 6, 10], [4, 8, 11]], "fill_value": pytest.approx(finite_min)}
+    assert meta["source_value_range"][0] == pytest.approx(finite_min)
+    assert all(np.isfinite(meta["source"]["value_range"]))
+    assert meta["volume_id"] == load_volume(out).volume_id
+
+
+def test_nonfinite_all_voxels_or_bad_rule(tmp_path):
+    src = nifti_input(tmp_path, np.full((4, 4, 4), np.nan))
+    with pytest.raises(CtsplatError, match="no finite voxel"):
+        ingest(src, tmp_path / "o" / "v.nii.gz", {"grid": 4}, nonfinite="fill_min")
+    with pytest.raises(CtsplatError, match="nonfinite 'zero' unknown; allowed: error, fill_min"):
+        ingest(src, tmp_path / "o" / "v.nii.gz", {"grid": 4}, nonfinite="zero")
+
+
+def test_cli_ingest_nonfinite(tmp_path, capsys):
+    src = nifti_input(tmp_path, with_bad_block())
+    out = tmp_path / "o" / "v.nii.gz"
+    assert main(["ingest", str(src), str(out), "--grid", "8"]) == 2
+    assert "non-finite" in capsys.readouterr().err and not out.exists()
+    assert main(["ingest", str(src), str(out), "--grid", "8", "--nonfinite", "fill_min"]) == 0
+    strict_json(json_path_for(out))
+
+
+def test_write_json_atomic_refuses_nan_and_json_safe_writes_null(tmp_path):
+    from ctsplat.utils import json_safe, write_json_atomic
+
+    out = tmp_path / "m.json"
+    with pytest.raises(CtsplatError, match=r"m\.json: .*NaN/Infinity at results\[1\]\.psnr3d"):
+        write_json_atomic(out, {"results": [{"psnr3d": 1.0}, {"psnr3d": float("inf")}]})
+    with pytest.raises(CtsplatError, match=r"at a\.b\[2\]"):
+        write_json_atomic(out, {"a": {"b": np.array([1.0, 2.0, np.nan])}})
+    assert list(tmp_path.iterdir()) == []
+    obj = {"psnr": float("inf"), "ssim": np.float32("nan"), "ok": 1.5, "arr": np.array([np.nan, 2.0]),
+           "nested": [{"x": -np.inf}], "n": 3, "s": "nan", "b": True, "none": None}
+    write_json_atomic(out, json_safe(obj))
+    assert strict_json(out) == {"psnr": None, "ssim": None, "ok": 1.5, "arr": [None, 2.0], "nested": [{"x": None}],
+                                "n": 3, "s": "nan", "b": True, "none": None}

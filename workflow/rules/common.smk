@@ -88,6 +88,8 @@ def ingest_params(wildcards):
         "allow_modalities": list(vol["allow_modalities"]),
         "skip_corrupt": vol["skip_corrupt"],
         "tiff_voxel_size_mm": vol["tiff_voxel_size_mm"],
+        "rescale": vol["rescale"],
+        "nonfinite": vol["nonfinite"],
     }
 
 
