@@ -239,7 +239,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     log_path = run_dir / "train_log.csv"
     targets = dict(milestones) if milestones else schema_defaults("analysis")["milestones"]
     times = milestone_times(read_train_log(log_path), targets) if log_path.exists() else {}
-    times.pop("iters_per_s", None)  # training.json has the exact value
+
     fps = forward_fps(g, views.camera, views.Rs[0], views.ts[0], rk, width=int(cfg["fps_width"]),
                       height=int(cfg["fps_height"]))
     uses_ref = cfg["init"] == "volume"

@@ -90,17 +90,19 @@ def test_scaled_camera_keeps_field_of_view() -> None:
 def test_turntable_gif_and_figures(tmp_path) -> None:
     import imageio.v3 as iio
 
+    from ctsplat.evaluation import figures
+
     frames = np.stack([np.full((10, 12), v, np.float32) for v in (0.0, 1.0, 3.0)])
     frames[:, 0, 0] = 2.0
-    ev.save_turntable(tmp_path / "t.gif", frames)
+    figures.save_turntable(tmp_path / "t.gif", frames)
     back = iio.imread(tmp_path / "t.gif", index=None)
     assert back.shape[:3] == (3, 10, 12)
     grey = back[..., 0] if back.ndim == 4 else back
     assert grey[0, 5, 5] == 0 and grey[2, 5, 5] == 255 and grey[1, 5, 5] == 85
     rng = np.random.default_rng(0)
     refs = rng.random((4, 16, 16))
-    ev.save_gallery(tmp_path / "g.png", refs, refs + 0.1, [3, 4, 5, 6], np.array([20.0, 21, 22, 23]))
-    ev.save_slices(tmp_path / "s.png", rng.random((8, 9, 10)), rng.random((8, 9, 10)))
+    figures.save_gallery(tmp_path / "g.png", refs, refs + 0.1, [3, 4, 5, 6], np.array([20.0, 21, 22, 23]))
+    figures.save_slices(tmp_path / "s.png", rng.random((8, 9, 10)), rng.random((8, 9, 10)))
     g = iio.imread(tmp_path / "g.png")
     s = iio.imread(tmp_path / "s.png")
     assert g.shape[0] > g.shape[1] / 2 and s.ndim == 3
