@@ -241,8 +241,9 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
 
     Validates against the schema with defaults filled (the schema mirrors the library defaults, so no step module
     is imported here), checks that volume sources exist, resolves ``grid.geometry`` and ``baselines.geometry``
-    (null = the first radiographs geometry / the grid's), expands the grid (zero runs is an error) and checks that
-    the largest ``views`` value fits the training geometry.
+    (null = the first radiographs geometry that is not a C-arm orbit / the grid's), expands the grid (zero runs is
+    an error), checks that the largest ``views`` value fits the training geometry and that SfM, when a run needs
+    it, has its C-arm geometry (``sfm.settings.geometry``).
 
     Parameters
     ----------
@@ -264,12 +265,21 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
     cfg = validate_config(config)
     check_volume_sources(cfg["volumes"], base_dir)
     geometries = list(cfg["radiographs"])
+    training_geometries = [g for g in geometries if cfg["radiographs"][g]["orbit"] != "carm"]
     if cfg["grid"]["geometry"] is None:
-        cfg["grid"]["geometry"] = geometries[0]
+        if not training_geometries:
+            raise CtsplatError("invalid config at radiographs: every geometry is a C-arm orbit (orbit: carm, no "
+                               "val/test views); add a circular or sphere geometry to train and evaluate on")
+        cfg["grid"]["geometry"] = training_geometries[0]
     elif cfg["grid"]["geometry"] not in geometries:
         raise CtsplatError(
             f"invalid config at grid.geometry: {cfg['grid']['geometry']!r} is not a radiographs geometry "
             f"(defined: {', '.join(geometries)})"
+        )
+    elif cfg["grid"]["geometry"] not in training_geometries:
+        raise CtsplatError(
+            f"invalid config at grid.geometry: {cfg['grid']['geometry']!r} is a C-arm orbit (orbit: carm) with no "
+            "val/test views; name a circular or sphere geometry (C-arm views train through poses: colmap)"
         )
     if cfg["baselines"]["geometry"] is None:
         cfg["baselines"]["geometry"] = cfg["grid"]["geometry"]
@@ -279,6 +289,17 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
             f"(defined: {', '.join(geometries)})"
         )
     runs = expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
+    sfm_geometry = cfg["sfm"]["settings"].get("geometry", "carm")
+    needs_sfm = cfg["sfm"]["enabled"] or bool(((runs["poses"] == "colmap") | (runs["init"] == "sfm")).any())
+    if needs_sfm:
+        carm = cfg["radiographs"].get(sfm_geometry)
+        if carm is None or carm["orbit"] != "carm" or carm["camera"] != "cone":
+            what = "is not a radiographs geometry" if carm is None else "is not a C-arm orbit"
+            raise CtsplatError(
+                f"invalid config at sfm.settings.geometry: {sfm_geometry!r} {what}; SfM (sfm.enabled, poses: colmap "
+                f"or init: sfm) registers a C-arm view set: add radiographs.{sfm_geometry} with camera: cone, "
+                "orbit: carm (config/README.md)"
+            )
     geo = cfg["radiographs"][cfg["grid"]["geometry"]]
     # circular orbits have exactly n_views training angles; a sphere splits n_views into train/val/test
     available = geo["n_views"] if geo["orbit"] == "circular" else int(geo["n_views"] * geo["split"]["train"])

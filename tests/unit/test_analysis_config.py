@@ -208,3 +208,21 @@ def test_views_axis_must_fit_the_training_geometry():
     with pytest.raises(CtsplatError, match="has only about 70 training views"):
         prepare_config({"radiographs": {"s": {"orbit": "sphere", "n_views": 100}},
                            "grid": {"axes": {"views": [80]}}})
+
+
+def test_sfm_needs_its_carm_geometry_and_carm_is_never_the_training_geometry():
+    carm = {"camera": "cone", "orbit": "carm", "n_views": 30}
+    colmap_axes = {"init": ["fbp"], "compositor": ["radiative"], "mip": ["on"], "poses": ["colmap"],
+                   "views": [10], "seed": [0]}
+    with pytest.raises(CtsplatError, match=r"sfm\.settings\.geometry: 'carm' is not a radiographs geometry"):
+        prepare_config({"radiographs": {"circ": {}}, "grid": {"axes": colmap_axes}})
+    with pytest.raises(CtsplatError, match=r"sfm\.settings\.geometry: 'circ' is not a C-arm orbit"):
+        prepare_config({"radiographs": {"circ": {}}, "sfm": {"enabled": True, "settings": {"geometry": "circ"}}})
+    # the first geometry that is not a C-arm orbit trains; naming the C-arm one is refused
+    cfg = prepare_config({"radiographs": {"carm": carm, "circ": {}}, "grid": {"axes": colmap_axes}})
+    assert cfg["grid"]["geometry"] == "circ"
+    with pytest.raises(CtsplatError, match=r"grid\.geometry: 'carm' is a C-arm orbit"):
+        prepare_config({"radiographs": {"carm": carm, "circ": {}}, "grid": {"geometry": "carm"}})
+    with pytest.raises(CtsplatError, match="every geometry is a C-arm orbit"):
+        prepare_config({"radiographs": {"carm": carm}})
+    assert prepare_config({"radiographs": {"circ": {}}})["sfm"]["enabled"] is False  # no SfM, no C-arm needed

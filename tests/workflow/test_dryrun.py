@@ -25,7 +25,8 @@ def test_large_grid_schedules_shared_work_once_and_training_per_cell(tmp_path):
             "poses": ["gt", "colmap"], "views": [10, 20], "seed": [0, 1]}
     config = {
         "volumes": {"phantom": {"source": "phantom"}, "head": {"source": "ct"}},
-        "radiographs": {"circ": {"n_views": 40}, "unused": {"camera": "cone"}},
+        "radiographs": {"circ": {"n_views": 40}, "unused": {"camera": "cone"},
+                        "carm": {"camera": "cone", "orbit": "carm", "n_views": 30}},
         "sfm": {"enabled": False},
         "grid": {"geometry": "circ", "axes": axes,
                  "exclude": [{"poses": "colmap", "init": "volume"}, {"volume": "head", "views": [20]}]},
@@ -36,8 +37,9 @@ def test_large_grid_schedules_shared_work_once_and_training_per_cell(tmp_path):
                    or (c["volume"] == "head" and c["views"] == 20))
     n = len(cells)
     assert n == 80 + 40
-    assert counts == {"phantom": 1, "ingest": 2, "project": 2, "baseline": 2, "sfm": 2, "train": n, "evaluate": n,
-                      "run_figures": n, "gather": 1, "analyse": 1, "all": 1, "total": 12 + 3 * n}
+    # project: the training geometry and the C-arm view set SfM registers, per volume; "unused" is never rendered
+    assert counts == {"phantom": 1, "ingest": 2, "project": 4, "baseline": 2, "sfm": 2, "train": n, "evaluate": n,
+                      "run_figures": n, "gather": 1, "analyse": 1, "all": 1, "total": 14 + 3 * n}
     assert not (tmp_path / "results").exists()
 
 
@@ -45,18 +47,19 @@ def test_optional_steps_switch_off(tmp_path):
     (tmp_path / "ct").mkdir()
     config = {
         "volumes": {"head": {"source": "ct"}},  # replaces the default config: no phantom job
-        "baselines": {"enabled": False}, "sfm": {"enabled": False}, "evaluation": {"enabled": False},
+        "baselines": {"enabled": False}, "sfm": {"enabled": False},
         "grid": {"axes": {"init": ["fbp", "uniform"], "compositor": ["radiative"], "mip": ["on"], "poses": ["gt"],
                           "views": [5, 6, 7], "seed": [3]}},
     }
     counts = job_counts(snakemake(tmp_path, "-n", configfile=write_config(tmp_path / "c.yaml", config)).stdout)
-    assert counts == {"ingest": 1, "project": 1, "train": 6, "run_figures": 6, "gather": 1, "analyse": 1, "all": 1,
-                      "total": 17}
+    assert counts == {"ingest": 1, "project": 1, "train": 6, "evaluate": 6, "run_figures": 6, "gather": 1,
+                      "analyse": 1, "all": 1, "total": 23}
 
 
 def test_default_config_grid(tmp_path):
     counts = job_counts(snakemake(tmp_path, "-n", configfile=ROOT / "config" / "config.yaml").stdout)
-    assert counts["phantom"] == counts["ingest"] == counts["project"] == counts["gather"] == counts["analyse"] == 1
+    assert counts["phantom"] == counts["ingest"] == counts["gather"] == counts["analyse"] == 1
+    assert counts["project"] == 2  # the training geometry and the C-arm view set of SfM
     assert counts["train"] == counts["evaluate"] == counts["run_figures"] >= 2
     assert counts.get("sfm", 0) == 1 and counts.get("baseline", 0) == 1
 
@@ -67,7 +70,7 @@ def test_real_data_example_dry_run(shared_data):
     counts = job_counts(proc.stdout)
     # 3 init x 2 compositors x 2 mip x 2 poses x 3 views, minus colmap for volume/uniform (2 x 2 x 2 x 3)
     assert counts["train"] == 72 - 24 and counts["ingest"] == 1 and "phantom" not in counts
-    assert counts["sfm"] == counts["baseline"] == counts["project"] == 1
+    assert counts["sfm"] == counts["baseline"] == 1 and counts["project"] == 2
 
 
 def test_lint_passes():
