@@ -7,6 +7,7 @@ chain, so it also passes when run alone (upstream outputs are built on first use
 from __future__ import annotations
 
 import json
+import os
 
 import nibabel as nib
 import numpy as np
@@ -24,13 +25,14 @@ VIEWS = 4
 CONFIG = {
     "volumes": {"tiny": {"source": "phantom", "phantom": {"size": SIZE, "beads": True, "seed": 0}}},
     "preprocessing": {"grid": SIZE},
-    "radiographs": {"circular": {"detector_width": SIZE, "detector_height": SIZE, "n_views": N_TRAIN}},
+    "radiographs": {"circular": {"detector_width": SIZE, "detector_height": SIZE, "n_views": N_TRAIN},
+                    "carm": {"camera": "cone", "orbit": "carm", "n_views": 12, "wobble_deg": 15.0, "dso_mm": 600.0,
+                             "dsd_mm": 1000.0, "detector_width": 48, "detector_height": 48}},
     "baselines": {"enabled": True, "settings": {"sart_max_iterations": 1, "save_volumes": False}},
-    "sfm": {"enabled": True, "settings": {"n_views": 12, "detector_px": 48, "max_num_features": 512}},
+    "sfm": {"enabled": True, "settings": {"geometry": "carm", "max_num_features": 512}},
     "train": {"iterations": 10, "n_init": 500, "eval_every": 5, "eval_views": 2, "checkpoint_every": 10,
               "densify": {"interval": 5, "start": 5}, "figures": False, "turntable_frames": 2, "fps_width": 32,
               "fps_height": 32},
-    "evaluation": {"enabled": True, "split": "test"},
     "grid": {"axes": {"init": ["fbp"], "compositor": ["radiative"], "mip": ["on"], "poses": ["gt"],
                       "views": [VIEWS], "seed": [0]}},
     "analysis": {"window": 2, "velocity_per_iters": 5, "acf_max_lag": 2, "kde_windows": 2},
@@ -42,12 +44,12 @@ CHAIN = {
     "ingest": ["phantom"],
     "project": ["phantom", "ingest"],
     "baseline": ["phantom", "ingest", "project"],
-    "sfm": ["phantom", "ingest"],
+    "sfm": ["phantom", "ingest", "project"],
     "train": ["phantom", "ingest", "project"],
     "evaluate": ["phantom", "ingest", "project", "train"],
     "run_figures": ["phantom", "ingest", "project", "train"],
-    "gather": ["phantom", "ingest", "project", "train"],
-    "analyse": ["phantom", "ingest", "project", "train", "baseline", "gather"],
+    "gather": ["phantom", "ingest", "project", "train", "evaluate"],
+    "analyse": ["phantom", "ingest", "project", "train", "evaluate", "baseline", "gather"],
 }
 
 
@@ -109,17 +111,20 @@ def test_rule_sfm(wd):
     summary = json.loads((wd / VOL / "sfm/summary.json").read_text())
     assert "registration_rate" in summary and "ok" in summary  # never crashes on too few registrations
     poses = pd.read_csv(wd / VOL / "sfm/poses.csv")
-    assert len(poses) == CONFIG["sfm"]["settings"]["n_views"]
+    # SfM registered the C-arm view set that `project` rendered: same views, same ids
+    carm = json.loads((wd / VOL / "radiographs/carm/views.json").read_text())
+    assert sorted(poses["view_id"]) == sorted(v["id"] for v in carm["views"])
+    assert len(poses) == CONFIG["radiographs"]["carm"]["n_views"] and all("design" in v for v in carm["views"])
 
 
 def test_rule_train(wd):
-    run_rule(wd, "train", f"{RUN}/metrics.json")
+    run_rule(wd, "train", f"{RUN}/training.json")
     log = pd.read_csv(wd / RUN / "train_log.csv")
     assert list(log.columns[:6]) == ["iteration", "timestamp", "psnr2d", "ssim2d", "psnr3d", "ssim3d"]
     assert log["iteration"].max() == CONFIG["train"]["iterations"]
-    metrics = json.loads((wd / RUN / "metrics.json").read_text())
-    assert metrics["init"] == "fbp" and metrics["mip"] is True and metrics["n_train_views"] == VIEWS
-    assert metrics["uses_reference_volume"] is False and len(metrics["config_hash"]) == 16
+    trained = json.loads((wd / RUN / "training.json").read_text())
+    assert trained["iterations"] == 10 and trained["n_train_views"] == VIEWS and len(trained["config_hash"]) == 16
+    assert not (wd / RUN / "metrics.json").exists()  # test metrics are the evaluate rule's
     cfg = json.loads((wd / RUN / "config.json").read_text())["config"]
     assert cfg["iterations"] == 10 and cfg["views"] == VIEWS and cfg["device"] == "cpu"
     assert (wd / RUN / "logs/train.log").stat().st_size > 0 and (wd / RUN / "logs/train_benchmark.tsv").exists()
@@ -127,27 +132,39 @@ def test_rule_train(wd):
 
 def test_changed_training_params_rerun_only_training(wd):
     """A run folder left by an older config: Snakemake's params trigger reruns it (and only what depends on it)."""
-    run_rule(wd, "train", f"{RUN}/metrics.json")
+    run_rule(wd, "train", f"{RUN}/training.json")
     cfg = yaml.safe_load((wd / "config.yaml").read_text())
     cfg["train"]["lambda_ssim"] = 0.3
     changed = write_config(wd / "changed.yaml", cfg)
-    proc = snakemake(wd, f"{RUN}/metrics.json", "-n", "--allowed-rules", *CHAIN["train"], "train",
+    proc = snakemake(wd, f"{RUN}/training.json", "-n", "--allowed-rules", *CHAIN["train"], "train",
                      configfile=changed)
     out = proc.stdout + proc.stderr
     assert "rule train:" in out and "Params have changed since last execution" in out
     assert "rule ingest:" not in out and "rule project:" not in out
-    same = snakemake(wd, f"{RUN}/metrics.json", "-n", configfile=wd / "config.yaml")
+    same = snakemake(wd, f"{RUN}/training.json", "-n", configfile=wd / "config.yaml")
     assert "Nothing to be done" in same.stdout + same.stderr
 
 
 def test_rule_evaluate(wd):
-    run_rule(wd, "evaluate", f"{RUN}/eval_test.json")
-    ev = json.loads((wd / RUN / "eval_test.json").read_text())
+    run_rule(wd, "evaluate", f"{RUN}/metrics.json")
     metrics = json.loads((wd / RUN / "metrics.json").read_text())
-    assert ev["split"] == "test" and ev["n_views"] == metrics["n_test_views"]
-    # re-evaluating the saved model reproduces the training run's final test metrics
-    assert ev["psnr2d"] == pytest.approx(metrics["psnr2d"], abs=1e-3)
-    assert ev["psnr3d"] == pytest.approx(metrics["psnr3d"], abs=1e-3)
+    views = json.loads((wd / VOL / "radiographs/circular/views.json").read_text())["views"]
+    n_test = sum(v["split"] == "test" for v in views)
+    assert metrics["split"] == "test" and metrics["n_views"] == n_test
+    assert metrics["init"] == "fbp" and metrics["mip"] is True and metrics["n_train_views"] == VIEWS
+    assert metrics["uses_reference_volume"] is False and len(metrics["config_hash"]) == 16
+    assert len(pd.read_csv(wd / RUN / "per_view_test.csv")) == n_test
+    # the rule's numbers are the library's: evaluating the saved model again in this process gives the same
+    from ctsplat.evaluation import evaluate
+
+    cwd = os.getcwd()
+    os.chdir(wd)  # the run's config names its inputs relative to the workflow's directory
+    try:
+        again = evaluate(RUN, device="cpu", write=False)
+    finally:
+        os.chdir(cwd)
+    assert again["psnr2d"] == pytest.approx(metrics["psnr2d"], abs=1e-6)
+    assert again["psnr3d"] == pytest.approx(metrics["psnr3d"], abs=1e-6)
 
 
 def test_rule_run_figures(wd):
