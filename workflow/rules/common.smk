@@ -153,7 +153,9 @@ def run_inputs(wildcards):
 
 def evaluate_inputs(wildcards):
     """Inputs of `evaluate`: the finished run (model, config, log) and the view sets it was trained on."""
-    rd = f"{RESULTS}/{wildcards.volume}/runs/{PARAMSPACE.wildcard_pattern}".format(**wildcards)
+    rd = f"{RESULTS}/{wildcards.volume}/runs/{PARAMSPACE.wildcard_pattern}".format(
+        **wildcards
+    )
     return {
         **run_inputs(wildcards),
         "model": f"{rd}/model.pt",
