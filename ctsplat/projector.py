@@ -472,6 +472,10 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
     cfg = merge_config("radiographs", config, RADIOGRAPHS_DEFAULTS)
     out_dir = Path(out_dir)
     volume = load_volume(volume_path)
+    bad = int(np.size(volume.data) - np.count_nonzero(np.isfinite(volume.data)))
+    if bad:
+        raise CtsplatError(f"volume {volume_path} has {bad} non-finite voxels (NaN/Inf); re-ingest it (ingest names "
+                           "where they are, or fills them with nonfinite: fill_min)")
     view_set = build_view_set(volume, cfg, seed)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

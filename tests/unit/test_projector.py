@@ -379,3 +379,15 @@ def test_carm_view_set_fits_the_object_and_stores_the_design(tmp_path) -> None:
     assert not np.allclose(other.Rs(), vs.Rs()) and np.allclose(other.design_Rs(), vs.design_Rs())
     with pytest.raises(CtsplatError, match="camera: cone"):
         render_radiographs(tmp_path / "v.nii.gz", tmp_path / "c", {**cfg, "camera": "parallel"})
+
+
+def test_project_refuses_a_non_finite_volume(tmp_path) -> None:
+    data = np.ones((8, 8, 8), np.float32)
+    data[2, 3, 4] = np.nan
+    data[5, 5, 5] = np.inf
+    save_volume(Volume(data, np.eye(4), {"volume_id": "bad", "intensity": {"mu_scale_per_mm": 0.02}}),
+                tmp_path / "v.nii.gz")
+    with pytest.raises(CtsplatError, match="2 non-finite voxels"):
+        render_radiographs(tmp_path / "v.nii.gz", tmp_path / "out", {"n_views": 4, "detector_width": 8,
+                                                                      "detector_height": 8})
+    assert not (tmp_path / "out").exists()
