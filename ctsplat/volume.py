@@ -549,6 +549,10 @@ def ingest(
     intensity mapping with ``mu_scale_per_mm``, ``volume_id``, code version), atomically. Nothing is
     written when any check fails.
 
+    A DICOM series with gaps much larger than its slice spacing (slices missing from the export) is
+    still resampled (the gap is interpolated), with a :class:`ctsplat.formats.sources.SliceGapWarning`
+    naming each gap; the gaps are recorded in ``volume.json`` under ``source.missing_slice_gaps``.
+
     Parameters
     ----------
     source : path or SliceStack
@@ -559,7 +563,9 @@ def ingest(
     preprocessing : dict, optional
         Overrides of :data:`PREPROCESSING_DEFAULTS`.
     series_uid : str, optional
-        SeriesInstanceUID or SeriesNumber to read when the folder holds several series.
+        The series to read when the folder holds several: its id as ``ctsplat ingest --list-series``
+        shows it (the salted hash recorded as ``source.series_id``), its SeriesInstanceUID or its
+        SeriesNumber.
     allow_modalities : sequence of str
         DICOM modalities accepted (default CT).
     skip_corrupt : bool

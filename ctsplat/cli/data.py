@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from ctsplat.cli._common import load_section
 from ctsplat.utils import CtsplatError
@@ -51,8 +52,12 @@ def run_ingest(args: argparse.Namespace) -> None:
     from ctsplat.volume import ingest
 
     if args.list_series:
-        for s in find_dicom_series(args.source, skip_corrupt=args.skip_corrupt):
+        # Series are listed by id (the salted hash of the SeriesInstanceUID, as in volume.json), never by UID.
+        series = find_dicom_series(args.source, skip_corrupt=args.skip_corrupt)
+        for s in series:
             print(s.label())
+        if len(series) > 1:
+            print("choose one with --series-uid ID (workflow config: series_uid: ID)", file=sys.stderr)
         return
     cfg = load_section(args.config, "preprocessing")
     for key in ("voxel_size_mm", "grid", "intensity", "window", "denoise", "mask", "hu_max", "mu_water_per_mm"):
@@ -116,8 +121,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     q.add_argument("--mu-water", dest="mu_water_per_mm", type=float, help="mu of water in 1/mm (default 0.019)")
     q.add_argument("--denoise", choices=["tv", "bilateral"], help="optional denoising")
     q.add_argument("--mask", choices=["otsu", "convex_hull"], help="optional body mask; air outside")
-    q.add_argument("--series-uid", help="SeriesInstanceUID or SeriesNumber when the folder holds several series")
-    q.add_argument("--list-series", action="store_true", help="list the DICOM series found and exit")
+    q.add_argument("--series-uid", metavar="ID",
+                   help="the series to read when the folder holds several: its id as --list-series shows it, its "
+                   "SeriesInstanceUID or its SeriesNumber")
+    q.add_argument("--list-series", action="store_true",
+                   help="list the DICOM series found (id, number, description, modality, files) and exit; ids are "
+                   "salted hashes of the SeriesInstanceUIDs, as in volume.json")
     q.add_argument("--allow-modality", action="append", metavar="MOD", help="accept a non-CT modality (e.g. MR)")
     q.add_argument("--skip-corrupt", action="store_true", help="skip unreadable DICOM files with a warning")
     q.add_argument("--tiff-voxel-size", type=_voxel, help="TIFF stack voxel size in mm: S or X,Y,Z")

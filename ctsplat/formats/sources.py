@@ -27,7 +27,10 @@ the image's affine (sform, else qform) [3]_, already RAS.
 De-identification: ``SliceStack.source`` holds geometry and acquisition facts only (modality,
 scanner model, kVp, spacing ...). UIDs appear only as salted SHA-256 hashes (:func:`salted_hash`);
 patient, study-date and institution fields and file names (often SOP Instance UIDs) are never
-copied.
+copied. The same holds for log lines, warnings, error messages and series listings: a series is
+named by its :attr:`SeriesInfo.id` (the salted hash of its SeriesInstanceUID, as in the
+provenance), and pydicom's own warnings, which quote offending header values verbatim, are muted
+while headers are read.
 
 References
 ----------
@@ -42,12 +45,13 @@ References
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
 import re
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -59,10 +63,13 @@ from ctsplat.utils import CtsplatError
 __all__ = [
     "SliceStack",
     "SeriesInfo",
+    "SliceGapWarning",
+    "missing_slice_gaps",
     "LPS_TO_RAS",
     "lps_to_ras",
     "salted_hash",
     "find_dicom_series",
+    "select_series",
     "read_dicom_series",
     "read_nifti",
     "read_tiff_stack",
@@ -88,6 +95,15 @@ _AIR_FRACTION_MIN = 1e-3
 _AIR_HU = (-1100.0, -900.0)
 #: ... and no value reaches this (12-bit HU data ends at 3071; raw unsigned values run to 4095).
 _HU_MAX_PLAUSIBLE = 4000.0
+
+#: A gap between neighbouring slices larger than this multiple of the series' median gap means slices are
+#: missing (a 9 mm gap in a 1.5 mm series); smaller irregularities (the odd 1.0 mm step) are normal.
+_MISSING_GAP_FACTOR = 1.5
+#: How many gaps one warning names before it only counts the rest.
+_GAPS_NAMED = 5
+
+#: A DICOM UID: digit groups separated by dots (used to keep UIDs a user typed out of messages).
+_UID_RE = re.compile(r"^\s*\d+(\.\d+)+\s*$")
 
 _DECODER_PACKAGES = {
     "1.2.840.10008.1.2.4.90": "pylibjpeg and pylibjpeg-openjpeg",  # JPEG 2000 lossless
@@ -141,6 +157,77 @@ def salted_hash(value: str, n: int = 16) -> str:
     """
     salt = os.environ.get("CTSPLAT_DEID_SALT", "ctsplat-deid-v1")
     return hashlib.sha256(f"{salt}:{value}".encode()).hexdigest()[:n]
+
+
+class SliceGapWarning(UserWarning):
+    """A DICOM series has gaps between slices much larger than its spacing (slices probably missing)."""
+
+
+def missing_slice_gaps(positions_mm: Sequence[float] | np.ndarray) -> tuple[float, list[dict[str, Any]]]:
+    """Find gaps between sorted slice positions that are too large for the series' spacing.
+
+    A gap counts as missing slices when it exceeds ``1.5`` times the median gap (the nominal
+    spacing): a 9 mm gap in a 1.5 mm series (about 5 slices lost in the export) is one, the odd
+    1.0 mm step of a 1.5 mm series is not.
+
+    Parameters
+    ----------
+    positions_mm : (K,) floats
+        Slice positions along the slice normal (mm), strictly increasing.
+
+    Returns
+    -------
+    nominal_mm : float
+        The median gap (0.0 for fewer than 2 slices).
+    gaps : list of dict
+        One record per gap, in slice order: ``between_slices`` (sorted indices ``[k, k + 1]``),
+        ``positions_mm`` (the two slice positions), ``gap_mm`` and ``approx_missing_slices``
+        (``round(gap / nominal) - 1``, at least 1). JSON-serialisable.
+    """
+    pos = np.asarray(positions_mm, float)
+    if pos.size < 2:
+        return 0.0, []
+    diffs = np.diff(pos)
+    nominal = float(np.median(diffs))
+    if nominal <= 0:
+        return nominal, []
+    gaps = []
+    for k in np.flatnonzero(diffs > _MISSING_GAP_FACTOR * nominal):
+        g = float(diffs[k])
+        gaps.append({
+            "between_slices": [int(k), int(k) + 1],
+            "positions_mm": [round(float(pos[k]), 3), round(float(pos[k + 1]), 3)],
+            "gap_mm": round(g, 3),
+            "approx_missing_slices": max(1, int(round(g / nominal)) - 1),
+        })
+    return nominal, gaps
+
+
+def _warn_gaps(nominal: float, gaps: list[dict[str, Any]], n_slices: int, what: str) -> None:
+    """One warning (``warnings.warn`` and the log) naming each large gap, its size and where it is."""
+    if not gaps:
+        return
+    named = "; ".join(
+        f"{g['gap_mm']:g} mm between slices {g['between_slices'][0]} and {g['between_slices'][1]} "
+        f"(at {g['positions_mm'][0]:g} and {g['positions_mm'][1]:g} mm along the slice normal, "
+        f"~{g['approx_missing_slices']} slice(s) missing)"
+        for g in gaps[:_GAPS_NAMED]
+    )
+    more = f"; and {len(gaps) - _GAPS_NAMED} more" if len(gaps) > _GAPS_NAMED else ""
+    msg = (
+        f"{what} ({n_slices} slices, spacing {nominal:g} mm) has {len(gaps)} gap(s) larger than "
+        f"{_MISSING_GAP_FACTOR:g}x its spacing, filled by linear interpolation: {named}{more}; slices are "
+        f"probably missing - check the export is complete (recorded in volume.json source.missing_slice_gaps)"
+    )
+    log.warning("%s", msg)
+    warnings.warn(msg, SliceGapWarning, stacklevel=3)
+
+
+def _shown(value: str) -> str:
+    """A series selector as it may appear in a message: a DICOM UID (identifying) only as its salted hash."""
+    if _UID_RE.match(value):
+        return f"<SeriesInstanceUID with hash {salted_hash(value.strip())}>"
+    return repr(value)
 
 
 def looks_like_hu(values: np.ndarray) -> bool:
@@ -256,24 +343,61 @@ class SeriesInfo:
     Attributes
     ----------
     uid : str
-        The real SeriesInstanceUID (empty when the files have none); never written to outputs.
+        The real SeriesInstanceUID (empty when the files have none); never written to outputs, logs
+        or messages (and kept out of ``repr``).
     files : list of Path
         The series' image files, in directory-walk order.
     modality, number, description : str
         Modality, SeriesNumber and SeriesDescription of the first file.
+    id : str
+        The series' identifier in listings, logs and messages, and the value to select it by: the
+        salted hash of ``uid`` (:func:`salted_hash`, the provenance's ``series_uid_hash``), or for
+        files without a SeriesInstanceUID the salted hash of the header facts they were grouped by.
     """
 
-    uid: str
+    uid: str = field(repr=False)
     files: list[Path]
     modality: str
     number: str
     description: str
+    id: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.id:
+            self.id = salted_hash(self.uid) if self.uid else salted_hash("no-SeriesInstanceUID")
 
     def label(self) -> str:
-        """One-line description for listings and error messages."""
-        uid = self.uid or "<no SeriesInstanceUID>"
+        """One-line description for listings and error messages (no UID: the series is named by its ``id``)."""
         desc = f" '{self.description}'" if self.description else ""
-        return f"{uid} (#{self.number or '?'}{desc}, {self.modality or '?'}, {len(self.files)} files)"
+        no_uid = ", no SeriesInstanceUID" if not self.uid else ""
+        return f"{self.id} (#{self.number or '?'}{desc}, {self.modality or '?'}, {len(self.files)} files{no_uid})"
+
+
+@contextlib.contextmanager
+def _quiet_pydicom() -> Iterator[None]:
+    """Mute pydicom while headers are read: its warnings and log lines quote invalid values (UIDs, names) verbatim.
+
+    Value validation is switched off (IGNORE), warnings are ignored and the ``pydicom`` logger is
+    disabled; all three are restored on exit. Warnings ctsplat itself raises are issued outside.
+    """
+    import pydicom.config as cfg
+
+    mode = cfg.settings.reading_validation_mode
+    logger = logging.getLogger("pydicom")
+    disabled = logger.disabled
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cfg.settings.reading_validation_mode = cfg.IGNORE
+        logger.disabled = True
+        try:
+            yield
+        finally:
+            cfg.settings.reading_validation_mode = mode
+            logger.disabled = disabled
+
+
+def _text(ds: Any, key: str) -> str:
+    return str(ds.get(key, "") or "")
 
 
 def _dcmread(path: Path, *, stop_before_pixels: bool) -> Any:
@@ -303,6 +427,10 @@ def _is_image_sop(ds: Any) -> bool:
 def _walk_files(folder: Path) -> list[Path]:
     files = [Path(root) / f for root, _, names in os.walk(folder) for f in names]
     return sorted(p for p in files if p.is_file() and not p.name.startswith("."))
+
+
+#: Header fields that tell series without a SeriesInstanceUID apart (hashed into their id, never shown).
+_NO_UID_KEYS = ("StudyInstanceUID", "FrameOfReferenceUID", "SeriesNumber", "Modality", "SeriesDescription")
 
 
 def _handle_corrupt(path: Path, why: str, skip_corrupt: bool, skipped: list[Path]) -> None:
@@ -343,37 +471,66 @@ def find_dicom_series(
     if not files:
         raise CtsplatError(f"input folder {folder} is empty; point ingest at a folder that contains DICOM slices")
     skipped = _skipped if _skipped is not None else []
-    groups: dict[str, SeriesInfo] = {}
-    for path in files:
-        try:
-            ds = _dcmread(path, stop_before_pixels=True)
-        except Exception as exc:  # noqa: BLE001 - DICOM prefix present but the header does not parse
-            _handle_corrupt(path, f"{type(exc).__name__}: {exc}".split("\n")[0][:120], skip_corrupt, skipped)
-            continue
-        if ds is None:
-            continue
-        if not _is_image_sop(ds) and "Rows" not in ds:
-            continue  # DICOMDIR, structured report, presentation state ...
-        if "Rows" not in ds or "Columns" not in ds:
-            _handle_corrupt(path, "image header ends before Rows/Columns", skip_corrupt, skipped)
-            continue
-        uid = str(ds.get("SeriesInstanceUID", "") or "")
-        info = groups.get(uid)
-        if info is None:
-            info = groups[uid] = SeriesInfo(
-                uid=uid,
-                files=[],
-                modality=str(ds.get("Modality", "") or ""),
-                number=str(ds.get("SeriesNumber", "") or ""),
-                description=str(ds.get("SeriesDescription", "") or ""),
-            )
-        info.files.append(path)
+    groups: dict[tuple[str, ...], SeriesInfo] = {}
+    with _quiet_pydicom():  # header values are read here; pydicom would quote invalid ones
+        for path in files:
+            try:
+                ds = _dcmread(path, stop_before_pixels=True)
+            except Exception as exc:  # noqa: BLE001 - DICOM prefix present but the header does not parse
+                _handle_corrupt(path, f"{type(exc).__name__}: {exc}".split("\n")[0][:120], skip_corrupt, skipped)
+                continue
+            if ds is None:
+                continue
+            if not _is_image_sop(ds) and "Rows" not in ds:
+                continue  # DICOMDIR, structured report, presentation state ...
+            if "Rows" not in ds or "Columns" not in ds:
+                _handle_corrupt(path, "image header ends before Rows/Columns", skip_corrupt, skipped)
+                continue
+            uid = _text(ds, "SeriesInstanceUID").strip()
+            if uid:
+                key = ("uid", uid)
+            else:
+                # No SeriesInstanceUID: keep series apart by what else identifies them, so each stays choosable.
+                key = ("no-SeriesInstanceUID", *(_text(ds, k) for k in _NO_UID_KEYS), str(ds.get("Rows")),
+                       str(ds.get("Columns")))
+            info = groups.get(key)
+            if info is None:
+                info = groups[key] = SeriesInfo(
+                    uid=uid,
+                    files=[],
+                    modality=_text(ds, "Modality"),
+                    number=_text(ds, "SeriesNumber"),
+                    description=_text(ds, "SeriesDescription"),
+                    id=salted_hash(uid) if uid else salted_hash("\x1f".join(key)),
+                )
+            info.files.append(path)
     if not groups:
         raise CtsplatError(
             f"no DICOM image files found in {folder} ({len(files)} other files); "
             f"point ingest at the folder holding the .dcm slices"
         )
-    return sorted(groups.values(), key=lambda s: (-len(s.files), s.uid))
+    return sorted(groups.values(), key=lambda s: (-len(s.files), s.id))
+
+
+def select_series(series: Sequence[SeriesInfo], selector: str) -> list[SeriesInfo]:
+    """The series a user's selector names: its ``id`` (as listed), its SeriesInstanceUID, or its SeriesNumber.
+
+    Parameters
+    ----------
+    series : sequence of SeriesInfo
+        The series found (:func:`find_dicom_series`).
+    selector : str
+        The ``id`` shown by ``ctsplat ingest --list-series`` (the salted hash, case-insensitive), the
+        raw SeriesInstanceUID, or the SeriesNumber.
+
+    Returns
+    -------
+    list of SeriesInfo
+        The matches: by ``id`` or UID first (at most one), else every series with that number.
+    """
+    key = selector.strip()
+    exact = [s for s in series if key.lower() == s.id.lower() or (s.uid and key == s.uid)]
+    return exact or [s for s in series if s.number and key == s.number]
 
 
 def _choose_series(
@@ -381,11 +538,17 @@ def _choose_series(
 ) -> SeriesInfo:
     listing = "; ".join(s.label() for s in series)
     if series_uid is not None:
-        chosen = [s for s in series if series_uid in (s.uid, s.number)]
+        chosen = select_series(series, str(series_uid))
         if not chosen:
-            raise CtsplatError(f"series {series_uid!r} not found in {folder}; series found: {listing}")
+            raise CtsplatError(
+                f"series {_shown(str(series_uid))} not found in {folder}; give the id of one of the series found "
+                f"(series_uid / --series-uid; `ctsplat ingest {folder} --list-series` lists them): {listing}"
+            )
         if len(chosen) > 1:
-            raise CtsplatError(f"series number {series_uid!r} is ambiguous in {folder}; give the UID: {listing}")
+            raise CtsplatError(
+                f"series number {series_uid!r} is ambiguous in {folder}; give the series id instead: "
+                f"{'; '.join(s.label() for s in chosen)}"
+            )
         pick = chosen[0]
     else:
         allowed = [s for s in series if s.modality.upper() in {m.upper() for m in allow_modalities}]
@@ -398,12 +561,15 @@ def _choose_series(
         top = [s for s in allowed if len(s.files) == len(allowed[0].files)]
         if len(top) > 1:
             raise CtsplatError(
-                f"{len(allowed)} series in {folder} and no unique largest one; choose with series_uid "
-                f"(--series-uid): {listing}"
+                f"{len(allowed)} series in {folder} and no unique largest one; choose one by its id with "
+                f"series_uid (--series-uid ID): {listing}"
             )
         pick = allowed[0]
         if len(series) > 1:
-            log.warning("several series in %s; using the largest %s CT series: %s", folder, pick.label(), listing)
+            log.warning(
+                "%d series in %s; using the largest %s one, %s (choose another with series_uid / --series-uid "
+                "ID): %s", len(series), folder, pick.modality or "?", pick.id, listing,
+            )
     if pick.modality.upper() not in {m.upper() for m in allow_modalities}:
         raise CtsplatError(
             f"series {pick.label()} has modality {pick.modality or '?'}, not {'/'.join(allow_modalities)}; ingest "
@@ -453,11 +619,17 @@ def read_dicom_series(
 ) -> SliceStack:
     """Read one DICOM series from a folder (searched recursively) into a :class:`SliceStack`.
 
-    Steps: group files by SeriesInstanceUID, choose the series (``series_uid`` = UID or
-    SeriesNumber; otherwise the allowed-modality series with most files, an error when that is
-    ambiguous), check the geometry is consistent, order slices by ``IPP · n`` with
-    ``n = row_cos × col_cos`` (never by file name, InstanceNumber or SliceLocation), apply
-    ``HU = stored * RescaleSlope + RescaleIntercept``, convert LPS -> RAS.
+    Steps: group files by SeriesInstanceUID, choose the series (``series_uid`` = the series id shown
+    by ``--list-series``, the UID itself or the SeriesNumber, see :func:`select_series`; otherwise the
+    allowed-modality series with most files, an error when that is ambiguous), check the geometry is
+    consistent, order slices by ``IPP · n`` with ``n = row_cos × col_cos`` (never by file name,
+    InstanceNumber or SliceLocation), apply ``HU = stored * RescaleSlope + RescaleIntercept``,
+    convert LPS -> RAS.
+
+    Gaps between neighbouring slices larger than 1.5 times the median gap (slices missing from the
+    export, see :func:`missing_slice_gaps`) are bridged by interpolation when the stack is resampled;
+    each one is named (size, slice indices, positions along the normal) in a
+    :class:`SliceGapWarning` and a log warning, and recorded in ``source["missing_slice_gaps"]``.
 
     Slices without RescaleSlope/RescaleIntercept (both are required in CT images, but converters
     drop them) use ``rescale`` when given. Without it, CT stored values are taken as HU only when
@@ -475,7 +647,8 @@ def read_dicom_series(
     folder : path
         Folder holding the series (sub-folders are searched).
     series_uid : str, optional
-        SeriesInstanceUID or SeriesNumber of the series to read.
+        The series to read: its id (the salted hash ``ctsplat ingest --list-series`` shows), its
+        SeriesInstanceUID or its SeriesNumber.
     allow_modalities : sequence of str
         Modalities accepted (default CT only; values of other modalities are not HU).
     skip_corrupt : bool
@@ -494,9 +667,27 @@ def read_dicom_series(
     ----------
     DICOM PS3.3 C.7.6.2 (Image Plane module) and C.8.2.1 (CT Image module); see the module docstring.
     """
+    with _quiet_pydicom():
+        stack = _read_dicom_series(
+            Path(folder), series_uid=series_uid, allow_modalities=allow_modalities, skip_corrupt=skip_corrupt,
+            rescale=rescale,
+        )
+    src = stack.source
+    _warn_gaps(src["nominal_slice_gap_mm"], src["missing_slice_gaps"], src["n_slices"], f"series {src['series_id']}")
+    return stack
+
+
+def _read_dicom_series(
+    folder: Path,
+    *,
+    series_uid: str | None,
+    allow_modalities: Sequence[str],
+    skip_corrupt: bool,
+    rescale: Sequence[float] | None,
+) -> SliceStack:
+    """:func:`read_dicom_series` without the gap warning (issued once pydicom's warnings are unmuted)."""
     from pydicom.pixels import pixel_array
 
-    folder = Path(folder)
     user_rescale = check_rescale(rescale)
     skipped: list[Path] = []
     series = find_dicom_series(folder, skip_corrupt=skip_corrupt, _skipped=skipped)
@@ -612,9 +803,11 @@ def read_dicom_series(
         units=units,
     )
     rounded_gaps = sorted({round(float(g), 3) for g in gaps})
+    nominal, missing = missing_slice_gaps(pos_sorted)
     study_uid = str(first.get("StudyInstanceUID", "") or "")
     stack.source = {
         "kind": "dicom",
+        "series_id": pick.id,
         "series_uid_hash": salted_hash(pick.uid) if pick.uid else None,
         "study_uid_hash": salted_hash(study_uid) if study_uid else None,
         "modality": modality,
@@ -631,6 +824,8 @@ def read_dicom_series(
         "slice_thickness_mm": float(first.SliceThickness) if first.get("SliceThickness") not in (None, "") else None,
         "slice_gaps_mm": rounded_gaps,
         "uniform_spacing": bool(np.ptp(gaps) < 1e-3),
+        "nominal_slice_gap_mm": round(nominal, 6),
+        "missing_slice_gaps": missing,
         "axial_coverage_mm": float(pos_sorted[-1] - pos_sorted[0]),
         "image_orientation_patient": [float(v) for v in iop],
         "gantry_tilt_deg": round(stack.tilt_deg, 4),

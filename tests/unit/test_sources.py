@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
+import warnings
 from pathlib import Path
 
 import nibabel as nib
@@ -17,11 +19,13 @@ from hypothesis import strategies as st
 
 from ctsplat.formats.sources import (
     LPS_TO_RAS,
+    SliceGapWarning,
     find_dicom_series,
     read_dicom_series,
     read_nifti,
     read_source,
     read_tiff_stack,
+    salted_hash,
     write_dicom_series,
 )
 from ctsplat.utils import CtsplatError
@@ -283,11 +287,12 @@ def test_truncated_file_named_and_skippable(tmp_path, caplog, cut):
     bad.write_bytes(raw[:-40] if cut == "pixels" else raw[:400])
     msg = assert_fails_cleanly(tmp_path / "s", tmp_path, "corrupt or truncated")
     assert str(bad) in msg and "skip" in msg
-    with caplog.at_level(logging.WARNING, logger="ctsplat.formats.sources"):
+    with caplog.at_level(logging.WARNING, logger="ctsplat.formats.sources"), pytest.warns(SliceGapWarning):
         vol = ingest(tmp_path / "s", tmp_path / "ok" / "volume.nii.gz", {"grid": 8}, skip_corrupt=True)
     assert any(str(bad) in r.getMessage() for r in caplog.records)
     assert vol.meta["source"]["n_slices"] == 5
     assert vol.meta["source"]["n_files_skipped"] == 1
+    assert vol.meta["source"]["missing_slice_gaps"][0]["between_slices"] == [1, 2]  # where the skipped slice was
 
 
 def test_mixed_series_without_choice_lists_them(tmp_path):
@@ -297,9 +302,12 @@ def test_mixed_series_without_choice_lists_them(tmp_path):
     assert len(series) == 2
     msg = assert_fails_cleanly(tmp_path / "mix", tmp_path, "no unique largest")
     for s in series:
-        assert s.uid in msg
-    stack = read_dicom_series(tmp_path / "mix", series_uid=series[1].uid)
-    assert stack.data.shape[2] == 5
+        assert s.id in msg and s.uid not in msg  # named by the salted hash, never by the UID
+        assert s.id == salted_hash(s.uid)
+    for selector in (series[1].id, series[1].id.upper(), series[1].uid):  # the listed id, or the UID one knows
+        stack = read_dicom_series(tmp_path / "mix", series_uid=selector)
+        assert stack.data.shape[2] == 5
+        assert stack.source["series_id"] == stack.source["series_uid_hash"] == series[1].id
 
 
 def test_mixed_series_picks_largest_with_warning(tmp_path, caplog):
@@ -308,7 +316,7 @@ def test_mixed_series_picks_largest_with_warning(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="ctsplat.formats.sources"):
         stack = read_dicom_series(tmp_path / "mix")
     assert stack.data.shape[2] == 5
-    assert any("several series" in r.getMessage() for r in caplog.records)
+    assert any("2 series" in r.getMessage() and stack.source["series_id"] in r.getMessage() for r in caplog.records)
 
 
 def test_missing_image_position(tmp_path):
@@ -492,3 +500,48 @@ def test_cli_ingest_rescale_flag(tmp_path, capsys):
     assert "--rescale" in capsys.readouterr().err and not out.exists()
     assert main(["ingest", str(tmp_path / "s"), str(out), "--grid", "8", "--rescale", "1,-1024"]) == 0
     assert out.exists()
+
+
+# ------------------------------------------------------------------------------------------ data quality
+
+
+def test_missing_slices_gap_warns_with_size_and_place_and_is_recorded(tmp_path, caplog):
+    """A 9 mm gap in a 1.5 mm series (5 slices lost) is interpolated, but warned about and kept in volume.json."""
+    positions = [1.5 * k for k in range(20) if not 8 <= k <= 12]  # 10.5 mm -> 19.5 mm: a 9 mm gap
+    make_series(tmp_path / "s", shape=(8, 6, len(positions)), spacing=(1.5, 2.0, 1.5), positions=positions)
+    out = tmp_path / "out" / "volume.nii.gz"
+    with caplog.at_level(logging.WARNING, logger="ctsplat"), pytest.warns(SliceGapWarning) as rec:
+        vol = ingest(tmp_path / "s", out, {"grid": 8})
+    with pytest.warns(SliceGapWarning):
+        stack = read_dicom_series(tmp_path / "s")  # positions along the normal, as named in the warning
+    lo, hi = stack.positions_mm[7], stack.positions_mm[8]
+    assert hi - lo == pytest.approx(9.0)
+    for msg in [str(w.message) for w in rec] + [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]:
+        assert "9 mm between slices 7 and 8" in msg, msg
+        assert f"at {lo:g} and {hi:g} mm" in msg and "spacing 1.5 mm" in msg and "~5 slice(s) missing" in msg
+    assert any(r.levelname == "WARNING" and "gap" in r.getMessage() for r in caplog.records)
+    gaps = [{"between_slices": [7, 8], "positions_mm": [lo, hi], "gap_mm": 9.0, "approx_missing_slices": 5}]
+    assert vol.meta["source"]["missing_slice_gaps"] == gaps
+    on_disk = json.loads((out.parent / "volume.json").read_text())["source"]
+    assert on_disk["missing_slice_gaps"] == gaps and on_disk["nominal_slice_gap_mm"] == 1.5
+
+
+def test_regular_and_slightly_uneven_spacing_do_not_warn(tmp_path):
+    make_series(tmp_path / "a")
+    make_series(tmp_path / "b", positions=[0.0, 2.5, 5.0, 6.0, 9.5])  # one 1.0 and one 3.5 mm step: not missing
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SliceGapWarning)
+        for d in ("a", "b"):
+            assert read_dicom_series(tmp_path / d).source["missing_slice_gaps"] == []
+
+
+def test_many_gaps_are_counted_in_one_warning(tmp_path):
+    positions = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]
+    for _ in range(7):  # seven 3 mm holes in a 1 mm series
+        positions.append(positions[-1] + 3.0)
+        positions.append(positions[-1] + 1.0)
+    make_series(tmp_path / "s", shape=(4, 4, len(positions)), positions=positions)
+    with pytest.warns(SliceGapWarning) as rec:
+        stack = read_dicom_series(tmp_path / "s")
+    assert len(rec) == 1 and "has 7 gap(s)" in str(rec[0].message) and "and 2 more" in str(rec[0].message)
+    assert len(stack.source["missing_slice_gaps"]) == 7
