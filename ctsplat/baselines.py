@@ -16,6 +16,20 @@ the volume independently: detector row ``v`` holds the line integrals of the sli
 4. crop the ``n x n`` image onto the reference grid; optionally clip to [0, 1].
 
 3D PSNR/SSIM against the reference use :mod:`ctsplat.evaluation.metrics` (normalised volumes, data range 1).
+
+For geometries slice-wise reconstruction cannot handle (cone beam, sphere or wobbling orbits),
+:func:`sirt_volume` runs SIRT in 3D with :func:`ctsplat.projector.line_integrals` as the system matrix.
+
+References
+----------
+Andersen, A. H., Kak, A. C. (1984). Simultaneous algebraic reconstruction technique (SART): a superior
+implementation of the ART algorithm. Ultrasonic Imaging 6(1), 81-94.
+Gilbert, P. (1972). Iterative methods for the three-dimensional reconstruction of an object from projections.
+Journal of Theoretical Biology 36(1), 105-117. (SIRT.)
+Kak, A. C., Slaney, M. (1988). Principles of Computerized Tomographic Imaging. IEEE Press. (Filtered
+back-projection, Ch. 3; algebraic reconstruction: ART, SIRT, SART, Ch. 7.)
+Shepp, L. A., Logan, B. F. (1974). The Fourier reconstruction of a head section. IEEE Transactions on Nuclear
+Science 21(3), 21-43. (The ``shepp-logan`` filter.)
 """
 
 from __future__ import annotations
@@ -45,8 +59,10 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: ``skimage.transform.iradon`` filters accepted by :func:`fbp_volume` and ``baselines.fbp_filters``.
 FBP_FILTERS = ("ramp", "shepp-logan", "cosine", "hamming", "hann")
 
+#: Defaults of the ``baselines`` config section (see :func:`run_baselines`).
 BASELINE_DEFAULTS: dict[str, Any] = {
     "fbp_filters": ["ramp", "shepp-logan"],
     "sart_max_iterations": 5,  # SART runs 1..N iterations and keeps the best (3D PSNR)
@@ -85,8 +101,21 @@ def _grid_axes(affine: np.ndarray, shape: tuple[int, int, int]) -> tuple[np.ndar
 
 
 def is_circular_parallel(view_set: ViewSet) -> bool:
-    """True for a parallel-beam view set on a planar circular orbit about +z at elevation 0 (what slice-wise
-    FBP/SART need: every view's rows are axial slices)."""
+    """Whether a view set is parallel-beam on a planar circular orbit about +z at elevation 0.
+
+    That is what slice-wise FBP/SART need: every view's detector rows are axial slices (``y_cam = -z_world``).
+
+    Parameters
+    ----------
+    view_set : ViewSet
+        The views and their camera.
+
+    Returns
+    -------
+    bool
+        True when the camera is parallel, the set is non-empty and every view looks horizontally with world +z
+        at the image top (to 1e-6).
+    """
     if view_set.camera.model != "parallel" or not len(view_set):
         return False
     Rs = view_set.Rs()
@@ -104,18 +133,28 @@ def circular_sinograms(line_integrals: np.ndarray, view_set: ViewSet, affine: np
         Line integrals of μ (dimensionless), page order of ``view_set``.
     view_set : ViewSet
         Parallel camera, every view at elevation 0 (rays in the axial plane, world +z up in the image).
-    affine, shape :
-        The reference grid (axis-aligned) to reconstruct on.
+    affine : ndarray, shape (4, 4)
+        Voxel index -> world mm of the reference grid; axis-aligned (diagonal), square in-plane voxels.
+    shape : tuple of int, shape (3,)
+        ``(I, J, K)`` of the reference grid.
     mu_scale_per_mm : float
         Divides the line integrals so the result reconstructs the normalised volume.
 
     Returns
     -------
-    sinograms : ndarray (K, n, V) float64
-        Sums of normalised voxel values along rays, in pixel units (as ``radon`` returns).
-    theta : ndarray (V,)
+    sinograms : ndarray, shape (K, n, V), float64
+        Per axial slice ``k``, sums of normalised voxel values along rays, in pixel units (as ``radon``
+        returns); ``n = max(I, J)`` bins.
+    theta : ndarray, shape (V,)
         Projection angles (degrees) = azimuths.
     grid : _SliceGrid
+        How the ``n x n`` reconstructions map back onto the reference grid.
+
+    Raises
+    ------
+    CtsplatError
+        For a cone-beam camera, line integrals that do not match the view set, an orbit that is not planar
+        circular at elevation 0, or a reference grid that is not axis-aligned with square in-plane voxels.
     """
     from scipy.ndimage import map_coordinates
 
@@ -198,8 +237,22 @@ def fbp_volume(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *,
 
     Returns
     -------
-    ndarray (I, J, K) float32
+    ndarray, shape (I, J, K), float32
         The normalised volume on the reference grid.
+
+    Raises
+    ------
+    CtsplatError
+        For an unknown filter or a geometry slice-wise FBP cannot handle (:func:`circular_sinograms`).
+
+    Examples
+    --------
+    >>> from ctsplat.formats.viewset import load_radiographs
+    >>> from ctsplat.formats.volume import load_volume
+    >>> volume = load_volume("results/head/volume.nii.gz")
+    >>> p, vs = load_radiographs("results/head/radiographs/circular")
+    >>> rows = vs.indices("train")
+    >>> rec = fbp_volume(p[rows], vs.subset("train"), volume, filter_name="shepp-logan")
     """
     from skimage.transform import iradon
 
@@ -216,10 +269,39 @@ def fbp_volume(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *,
 
 def sart_volumes(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *, iterations: int = 5,
                  relaxation: float = 0.15, mu_scale_per_mm: float | None = None, clip: bool = True):
-    """Yield ``(iteration, volume (I, J, K) float32)`` for SART iterations 1..``iterations``.
+    """Slice-by-slice SART onto a reference grid, yielding the volume after each iteration.
 
-    Each iteration is one ``skimage.transform.iradon_sart`` sweep per axial slice, started from the
-    previous iteration's (unclipped) slice. Same geometry requirements as :func:`fbp_volume`.
+    Each iteration is one ``skimage.transform.iradon_sart`` sweep (Andersen & Kak 1984) per axial slice, started
+    from the previous iteration's (unclipped) slice. Same geometry requirements as :func:`fbp_volume`.
+
+    Parameters
+    ----------
+    line_integrals : ndarray, shape (V, H, W)
+        Line integrals of μ of the views in ``view_set``, same order.
+    view_set : ViewSet
+        Parallel camera, circular orbit at elevation 0.
+    reference : Volume-like
+        Anything with ``affine`` (4, 4) and ``shape`` (I, J, K); see :func:`fbp_volume`.
+    iterations : int
+        Number of SART sweeps, >= 1.
+    relaxation : float
+        SART relaxation factor (``iradon_sart``'s ``relaxation``).
+    mu_scale_per_mm : float, optional
+        Maps normalised values to 1/mm; default ``reference.mu_scale_per_mm`` (1.0 if absent).
+    clip : bool
+        Clip each yielded volume to [0, 1] (the iterate itself stays unclipped).
+
+    Yields
+    ------
+    iteration : int
+        1 .. ``iterations``.
+    volume : ndarray, shape (I, J, K), float32
+        The normalised volume after that iteration.
+
+    Raises
+    ------
+    CtsplatError
+        For ``iterations < 1`` or a geometry slice-wise SART cannot handle (:func:`circular_sinograms`).
     """
     from skimage.transform import iradon_sart
 
@@ -243,11 +325,41 @@ def sirt_volume(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *
 
     ``x <- clip(x + λ C Aᵀ R (b - A x))`` with ``A`` = :func:`ctsplat.projector.line_integrals` (its
     adjoint ``Aᵀ y = ∇_x <A x, y>`` by autograd), ``R = 1 / (A 1)`` per ray and ``C = 1 / (Aᵀ 1)`` per
-    voxel (zero where a ray or voxel is never hit), ``b`` = line integrals / ``mu_scale_per_mm``. Views
+    voxel (zero where a ray or voxel is never hit), ``b`` = line integrals / ``mu_scale_per_mm``, starting
+    from ``x = 0``. This is SIRT (Gilbert 1972) with row- and column-sum normalisation. Views
     are processed ``views_per_batch`` at a time so memory stays bounded. A geometry-agnostic alternative
     to :func:`fbp_volume` for ``init: fbp`` when the orbit is not circular parallel.
 
-    Parameters are as for :func:`fbp_volume`; returns the normalised volume (I, J, K) float32.
+    Parameters
+    ----------
+    line_integrals : ndarray, shape (V, H, W)
+        Line integrals of μ of the views in ``view_set``, same order.
+    view_set : ViewSet
+        Any camera and orbit.
+    reference : Volume-like
+        Anything with ``affine`` (4, 4) and ``shape`` (I, J, K); the grid need not be axis-aligned.
+    iterations : int
+        Number of SIRT updates, >= 1.
+    relaxation : float
+        Step ``λ``.
+    mu_scale_per_mm : float, optional
+        Maps normalised values to 1/mm; default ``reference.mu_scale_per_mm`` (1.0 if absent).
+    clip : bool
+        Clip the iterate to [0, 1] after every update.
+    device : str, optional
+        Torch device; default CPU.
+    views_per_batch : int
+        Views projected at once.
+
+    Returns
+    -------
+    ndarray, shape (I, J, K), float32
+        The normalised volume on the reference grid.
+
+    Raises
+    ------
+    CtsplatError
+        For ``iterations < 1`` or line integrals that do not match the view set.
     """
     import torch
 
@@ -295,6 +407,25 @@ def select_views(view_set: ViewSet, split: str, n: int) -> np.ndarray:
 
     Same rule as training's ``views`` setting: sort the split's views by ``azimuth mod 360`` and take
     positions ``floor(m * N / n)``, ``m = 0..n-1``.
+
+    Parameters
+    ----------
+    view_set : ViewSet
+        The view set.
+    split : {"train", "val", "test"}
+        Which views to choose from.
+    n : int
+        How many; ``<= 0`` or ``>=`` the split's size takes all.
+
+    Returns
+    -------
+    ndarray of int, shape (n,)
+        Row indices into ``view_set.views`` (and the line-integral stack), in azimuth order.
+
+    Raises
+    ------
+    CtsplatError
+        When the split has no views.
     """
     rows = view_set.indices(split)
     if rows.size == 0:
@@ -314,8 +445,30 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
     FBP filter and one SART row (best 3D PSNR over 1..``sart_max_iterations``) to ``out_dir/baselines.csv``
     (columns method, filter, iterations, n_views, psnr3d, ssim3d, seconds; ``seconds`` excludes metrics),
     every SART iteration to ``out_dir/sart_iterations.csv``, the volumes ``fbp_{filter}_n{views:03d}.nii.gz``
-    and ``sart_n{views:03d}.nii.gz`` (normalised, reference grid) and ``baselines.json`` (provenance).
-    Returns the table as a ``pandas.DataFrame``.
+    and ``sart_n{views:03d}.nii.gz`` (normalised, reference grid; when ``save_volumes``) and ``baselines.json``
+    (provenance).
+
+    Parameters
+    ----------
+    volume_path : str or Path
+        The reference volume (its grid, and its values for the metrics).
+    radiographs_dir : str or Path
+        Radiographs of that volume from a circular parallel geometry.
+    out_dir : str or Path
+        Output folder (created).
+    config : dict, optional
+        The ``baselines`` section (:data:`BASELINE_DEFAULTS`).
+
+    Returns
+    -------
+    pandas.DataFrame
+        The ``baselines.csv`` table: PSNR in dB, SSIM in [0, 1], seconds of reconstruction.
+
+    Raises
+    ------
+    CtsplatError
+        For an unknown filter, radiographs of another volume, an invalid ``n_views``, an empty split or a
+        geometry slice-wise FBP/SART cannot handle.
     """
     import pandas as pd
 

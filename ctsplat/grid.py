@@ -20,8 +20,9 @@ if TYPE_CHECKING:
 
 __all__ = ["GRID_AXES", "expand_grid", "normalise_mip", "run_relpath", "parse_run_dir"]
 
-# Order = folder nesting order of a run directory.
+#: The ablation axes, in the folder nesting order of a run directory.
 GRID_AXES: tuple[str, ...] = ("init", "compositor", "mip", "poses", "views", "seed")
+#: Axes whose values are integers (parsed back to int from folder names).
 INT_AXES: tuple[str, ...] = ("views", "seed")
 
 
@@ -42,6 +43,11 @@ def normalise_mip(value: Any) -> str:
     ------
     CtsplatError
         For any other value.
+
+    Examples
+    --------
+    >>> normalise_mip(True), normalise_mip("off")
+    ('on', 'off')
     """
     if value is True or value == "on":
         return "on"
@@ -81,6 +87,14 @@ def expand_grid(
     ------
     CtsplatError
         When an axis is missing or the grid expands to zero runs.
+
+    Examples
+    --------
+    >>> axes = {"init": ["fbp", "random"], "compositor": ["radiative"], "mip": [True], "poses": ["gt"],
+    ...         "views": [50], "seed": [0]}
+    >>> expand_grid(axes, ["head"], exclude=[{"init": "random"}])
+      volume init compositor mip poses  views  seed
+    0   head  fbp  radiative  on    gt     50     0
     """
     import pandas as pd
 
@@ -121,12 +135,17 @@ def run_relpath(row: Mapping[str, Any]) -> str:
     -------
     str
         ``init~fbp/compositor~radiative/mip~on/poses~gt/views~50/seed~0`` (Snakemake Paramspace layout).
+
+    Examples
+    --------
+    >>> run_relpath({"init": "fbp", "compositor": "radiative", "mip": "on", "poses": "gt", "views": 50, "seed": 0})
+    'init~fbp/compositor~radiative/mip~on/poses~gt/views~50/seed~0'
     """
     return "/".join(f"{a}~{row[a]}" for a in GRID_AXES)
 
 
 def parse_run_dir(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Grid cell of a run folder ``.../{volume}/runs/init~x/.../seed~0``.
+    """The grid cell of a run folder ``.../{volume}/runs/init~x/.../seed~0`` (inverse of :func:`run_relpath`).
 
     Parameters
     ----------
@@ -143,6 +162,11 @@ def parse_run_dir(path: str | os.PathLike[str]) -> dict[str, Any]:
     ------
     CtsplatError
         When a ``{axis}~{value}`` component is missing.
+
+    Examples
+    --------
+    >>> parse_run_dir("results/head/runs/init~fbp/compositor~radiative/mip~on/poses~gt/views~50/seed~0")
+    {'init': 'fbp', 'compositor': 'radiative', 'mip': 'on', 'poses': 'gt', 'views': 50, 'seed': 0, 'volume': 'head'}
     """
     parts = Path(path).parts
     out: dict[str, Any] = {}

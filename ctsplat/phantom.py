@@ -27,6 +27,15 @@ Imaging, 1988, p. 102) with normalised unit = ``scale_mm`` = 110 mm, giving a he
 152 mm (left–right) x 202 mm (antero–posterior) x 198 mm (cranio–caudal). Optional beads are small
 dense spheres (default radius 3 mm, value +2.0, i.e. ~2000 HU inside brain) at seeded random
 positions inside the brain, as fiducial markers for feature matching.
+
+References
+----------
+Kak, A. C., Slaney, M. (1988). Principles of Computerized Tomographic Imaging. IEEE Press. (The 3D head
+phantom's ellipsoids and values.)
+Shepp, L. A., Logan, B. F. (1974). The Fourier reconstruction of a head section. IEEE Transactions on Nuclear
+Science 21(3), 21-43. (The head phantom.)
+Yu, H., Ye, Y., Wang, G. (2004). Katsevich-type algorithms for variable radius spiral cone-beam CT. Proc. SPIE
+5535, 550-557. (The higher-contrast values of ``variant="high_contrast"``.)
 """
 
 from __future__ import annotations
@@ -100,7 +109,7 @@ _HIGH_CONTRAST = [2.0, -1.6, -0.4, -0.4, 0.4, 0.4, 0.2, 0.2, 0.4, -0.4]
 class Ellipsoid:
     """One solid ellipsoid of the phantom (see the module docstring for the exact definition).
 
-    Attributes
+    Parameters
     ----------
     centre_mm : ndarray, shape (3,)
         Centre in world RAS (mm).
@@ -111,6 +120,7 @@ class Ellipsoid:
     value : float
         Additive attenuation relative to water (μ / μ_water).
     name : str
+        Label (``skull``, ``brain``, ..., ``bead_00``); empty when not given.
     """
 
     centre_mm: np.ndarray
@@ -120,21 +130,53 @@ class Ellipsoid:
     name: str = ""
 
     def quadratic_form(self) -> np.ndarray:
-        """``Q = R diag(1/s²) Rᵀ`` (1/mm²): ``x`` is inside iff ``(x − c)ᵀ Q (x − c) ≤ 1``."""
+        """The ellipsoid's quadratic form ``Q = R diag(1/s²) Rᵀ``: ``x`` is inside iff ``(x − c)ᵀ Q (x − c) ≤ 1``.
+
+        Returns
+        -------
+        ndarray, shape (3, 3)
+            Symmetric positive definite matrix (1/mm²).
+        """
         return self.rotation @ np.diag(1.0 / np.asarray(self.semi_axes_mm, float) ** 2) @ self.rotation.T
 
     def contains(self, points: np.ndarray) -> np.ndarray:
-        """Boolean mask of ``points`` (..., 3) (world mm) inside the ellipsoid (boundary included)."""
+        """Which points lie inside the ellipsoid (boundary included).
+
+        Parameters
+        ----------
+        points : ndarray, shape (..., 3)
+            World points (mm).
+
+        Returns
+        -------
+        ndarray of bool, shape (...)
+            True inside.
+        """
         d = np.asarray(points, float) - self.centre_mm
         body = d @ self.rotation / self.semi_axes_mm
         return np.einsum("...i,...i->...", body, body) <= 1.0
 
     def bounding_box(self) -> tuple[np.ndarray, np.ndarray]:
-        """Axis-aligned world bounds (lo, hi), each (3,): ``c ± sqrt(diag(R diag(s²) Rᵀ))``."""
+        """Tight axis-aligned world bounds: ``c ± sqrt(diag(R diag(s²) Rᵀ))``.
+
+        Returns
+        -------
+        lo : ndarray, shape (3,)
+            Lower corner (world mm).
+        hi : ndarray, shape (3,)
+            Upper corner (world mm).
+        """
         half = np.sqrt(np.sum((self.rotation * self.semi_axes_mm[None, :]) ** 2, axis=1))
         return self.centre_mm - half, self.centre_mm + half
 
     def to_dict(self) -> dict[str, Any]:
+        """The ellipsoid as the JSON object stored in ``phantom.json``.
+
+        Returns
+        -------
+        dict
+            ``name``, ``centre_mm`` (3,), ``semi_axes_mm`` (3,), ``rotation`` (3, 3) as nested lists, ``value``.
+        """
         return {
             "name": self.name,
             "centre_mm": [float(x) for x in self.centre_mm],
@@ -145,6 +187,17 @@ class Ellipsoid:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Ellipsoid:
+        """The ellipsoid described by a :meth:`to_dict` object.
+
+        Parameters
+        ----------
+        d : dict
+            ``centre_mm``, ``semi_axes_mm``, ``rotation``, ``value`` and optionally ``name``.
+
+        Returns
+        -------
+        Ellipsoid
+        """
         return cls(
             centre_mm=np.asarray(d["centre_mm"], float),
             semi_axes_mm=np.asarray(d["semi_axes_mm"], float),
@@ -178,6 +231,14 @@ def shepp_logan_ellipsoids(
     beads : bool
         Add ``n_beads`` spheres of radius ``bead_radius_mm`` and value ``bead_value`` at seeded
         random positions inside the brain (at least 6 radii apart).
+    n_beads : int
+        Number of beads.
+    bead_radius_mm : float
+        Bead radius (mm).
+    bead_value : float
+        Additive value of a bead, relative to water.
+    seed : int
+        Seeds the bead positions.
     variant : {"kak_slaney", "high_contrast"}
         Kak & Slaney's physical values (skull 2.0, brain 1.02, ventricles 1.00 x water), or the same
         geometry with Yu–Ye–Wang contrast x2 (brain 0.4, ventricles 0.0).
@@ -186,6 +247,17 @@ def shepp_logan_ellipsoids(
     -------
     list of Ellipsoid
         Shepp–Logan ellipsoids first, then beads (names ``bead_00``...).
+
+    Raises
+    ------
+    CtsplatError
+        For an unknown variant, or when the beads do not fit in the brain at the required spacing.
+
+    Examples
+    --------
+    >>> ells = shepp_logan_ellipsoids(beads=False)
+    >>> [e.name for e in ells[:2]], ells[0].semi_axes_mm.round(1).tolist()
+    (['skull', 'brain'], [75.9, 101.2, 99.0])
     """
     if variant not in ("kak_slaney", "high_contrast"):
         raise CtsplatError(f"phantom variant {variant!r} unknown; allowed: kak_slaney, high_contrast")
@@ -222,7 +294,25 @@ def shepp_logan_ellipsoids(
 
 
 def relative_attenuation(points: np.ndarray, ellipsoids: Sequence[Ellipsoid]) -> np.ndarray:
-    """``r(x) = μ / μ_water`` at world points ``(..., 3)`` (mm): the sum of the containing values."""
+    """Relative attenuation ``r(x) = μ / μ_water`` at world points: the summed values of the containing ellipsoids.
+
+    Parameters
+    ----------
+    points : ndarray, shape (..., 3)
+        World points (mm).
+    ellipsoids : sequence of Ellipsoid
+        The phantom.
+
+    Returns
+    -------
+    ndarray, shape (...)
+        ``r`` (dimensionless; 0 in air, 1 in water).
+
+    Examples
+    --------
+    >>> relative_attenuation(np.zeros((1, 3)), shepp_logan_ellipsoids(beads=False))  # centre: brain
+    array([1.02])
+    """
     points = np.asarray(points, float)
     out = np.zeros(points.shape[:-1])
     for e in ellipsoids:
@@ -237,15 +327,20 @@ def rasterize(
 
     Parameters
     ----------
-    shape : (3,) ints
+    ellipsoids : sequence of Ellipsoid
+        The phantom (world mm).
+    shape : sequence of int, shape (3,)
         Grid shape (I, J, K).
     affine : ndarray, shape (4, 4)
         Voxel index -> world RAS mm (any orientation); voxel ``(i, j, k)`` covers index range
         ``[i − ½, i + ½]`` etc.; sub-samples sit at offsets ``(m + ½)/s − ½``, ``m = 0..s−1``.
+    supersample : int
+        Sub-samples ``s`` per voxel and axis.
 
     Returns
     -------
     ndarray, shape (I, J, K), float32
+        Partial-volume averages of ``r`` (dimensionless).
     """
     shape = tuple(int(x) for x in shape)
     affine = np.asarray(affine, float)
@@ -328,10 +423,18 @@ def write_phantom_dicom(
         Output folder.
     size : int
         Voxels per axis (slices, rows and columns), >= 8.
-    beads, n_beads, bead_radius_mm, seed, variant
-        See :func:`shepp_logan_ellipsoids`.
+    beads : bool
+        Add the beads (see :func:`shepp_logan_ellipsoids`).
+    seed : int
+        Seeds the bead positions.
     fov_mm : float
         Field-of-view edge (mm); voxels are ``fov_mm / size`` mm.
+    n_beads : int
+        Number of beads.
+    bead_radius_mm : float
+        Bead radius (mm).
+    variant : {"kak_slaney", "high_contrast"}
+        Phantom values (see :func:`shepp_logan_ellipsoids`).
     supersample : int
         Point samples per voxel and axis for the partial-volume HU.
     force : bool
@@ -341,6 +444,17 @@ def write_phantom_dicom(
     -------
     Path
         ``out_dir``.
+
+    Raises
+    ------
+    CtsplatError
+        For ``size < 8``, a non-positive ``fov_mm``, bad phantom parameters, or an output folder that may not
+        be written (see above); nothing is written then.
+
+    Examples
+    --------
+    >>> write_phantom_dicom("data/phantom", size=64, seed=1)
+    PosixPath('data/phantom')
     """
     if not isinstance(size, int) or size < 8:
         raise CtsplatError(f"phantom size must be an integer >= 8, got {size!r}")
@@ -413,7 +527,7 @@ def _is_phantom_marker(path: Path) -> bool:
 def _check_phantom_target(out_dir: Path, force: bool) -> list[str]:
     """Refuse an output folder the phantom writer may not overwrite; return the previous phantom's slice names.
 
-    Staging folders left by an interrupted earlier write are removed here.
+    Staging folders left by an interrupted write are removed here.
     """
     if not out_dir.exists():
         return []
@@ -439,7 +553,23 @@ def _check_phantom_target(out_dir: Path, force: bool) -> list[str]:
 
 
 def load_phantom_ellipsoids(path: str | Path) -> list[Ellipsoid]:
-    """Ellipsoids from a phantom folder's ``phantom.json`` (or that file itself), world mm."""
+    """Read the ellipsoids of a phantom written by :func:`write_phantom_dicom`.
+
+    Parameters
+    ----------
+    path : str or Path
+        The phantom folder, or its ``phantom.json``.
+
+    Returns
+    -------
+    list of Ellipsoid
+        In world mm, in the order written (Shepp–Logan ellipsoids, then beads).
+
+    Raises
+    ------
+    CtsplatError
+        When ``phantom.json`` does not exist.
+    """
     path = Path(path)
     if path.is_dir():
         path = path / "phantom.json"

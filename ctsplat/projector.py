@@ -23,6 +23,20 @@ classical CT protocol) use an exact-in-the-limit slice-wise Joseph traversal ins
 
 Noise (optional, seeded): counts ``N = Poisson(I0 exp(-p)) + Normal(0, σ_e)``; counts below one photon
 (including non-positive ones from electronic noise) are clipped to one photon, and ``p_noisy = ln(I0 / N)``.
+The model is monochromatic (no beam hardening or scatter): Poisson quantum noise of the transmitted photons
+plus Gaussian detector read-out noise, the usual first-order CT noise model.
+
+References
+----------
+Beer–Lambert law of attenuation: ``I = I0 exp(-∫ μ dl)``.
+Hsieh, J. (2009). Computed Tomography: Principles, Design, Artifacts, and Recent Advances (2nd ed.). SPIE Press.
+(Transmission model, photon and electronic noise.)
+Joseph, P. M. (1982). An improved algorithm for reprojecting rays through pixel images. IEEE Transactions on
+Medical Imaging 1(3), 192-196. (The slice-wise parallel-beam projector.)
+Kak, A. C., Slaney, M. (1988). Principles of Computerized Tomographic Imaging. IEEE Press. (Projections as line
+integrals of the attenuation coefficient.)
+Kay, T. L., Kajiya, J. T. (1986). Ray tracing complex scenes. SIGGRAPH Computer Graphics 20(4), 269-278. (Slab
+test for clipping rays to a box.)
 """
 
 from __future__ import annotations
@@ -62,6 +76,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: Defaults of the ``radiographs`` config section (one geometry); see :func:`build_view_set`.
 RADIOGRAPHS_DEFAULTS: dict[str, Any] = {
     # camera model: "parallel" (orthographic) or "cone" (perspective, source at the camera centre)
     "camera": "parallel",
@@ -109,17 +124,31 @@ def clip_rays_to_box(origins: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: 
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Slab test: entry ``s0 >= 0`` and length ``L >= 0`` of rays ``o + s d`` inside the box ``[lo, hi]``.
 
+    For each axis the ray is inside the slab ``lo <= x <= hi`` for ``s`` between ``(lo - o) / d`` and
+    ``(hi - o) / d``; the ray is inside the box on the intersection of the three intervals, cut at ``s = 0``.
+    A direction component of 0 gives the whole line or nothing, depending on whether the origin is inside
+    that slab.
+
     Parameters
     ----------
-    origins, dirs : ndarray (N, 3)
+    origins, dirs : ndarray, shape (N, 3)
         Ray origins and directions (any consistent units; ``s`` is in units of ``|d|``).
-    lo, hi : ndarray (3,)
+    lo, hi : ndarray, shape (3,)
         Box corners.
 
     Returns
     -------
-    s0, length : ndarray (N,)
-        ``length == 0`` for rays that miss the box.
+    s0 : ndarray, shape (N,)
+        Ray parameter where the ray enters the box (0 when the origin is inside).
+    length : ndarray, shape (N,)
+        Parameter length inside the box; 0 for rays that miss it.
+
+    Examples
+    --------
+    >>> s0, length = clip_rays_to_box(np.array([[-5.0, 0.5, 0.5]]), np.array([[1.0, 0.0, 0.0]]),
+    ...                               np.zeros(3), np.ones(3))
+    >>> s0, length
+    (array([5.]), array([1.]))
     """
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / dirs
@@ -153,15 +182,19 @@ def line_integrals(
 
     Parameters
     ----------
-    mu : Tensor or ndarray (I, J, K)
-        Attenuation in 1/mm, indexed as ``affine`` says. Differentiable when a tensor requiring grad.
-    affine : ndarray (4, 4)
+    mu : Tensor or ndarray, shape (I, J, K)
+        Attenuation in 1/mm (or normalised values: the result scales with them), indexed as ``affine`` says,
+        at least 2 voxels per axis. Differentiable when a tensor requiring grad.
+    affine : ndarray, shape (4, 4)
         Voxel index -> world (mm).
-    camera : ParallelCamera | ConeCamera
-    Rs : ndarray (V, 3, 3), ts : ndarray (V, 3)
-        World-to-camera poses (OpenCV).
+    camera : ParallelCamera or ConeCamera
+        The detector, ``H`` rows by ``W`` columns.
+    Rs : ndarray, shape (V, 3, 3)
+        World-to-camera rotations (OpenCV).
+    ts : ndarray, shape (V, 3)
+        World-to-camera translations (mm).
     step_voxels : float
-        Upper bound of the sampling step in units of the smallest voxel edge (<= 0.5 recommended).
+        Upper bound of the sampling step in units of the smallest voxel edge, in (0, 1] (<= 0.5 recommended).
     device : str | torch.device | None
         Where to compute; default the device of ``mu`` (CPU for arrays).
     batch_samples : int
@@ -174,8 +207,28 @@ def line_integrals(
 
     Returns
     -------
-    Tensor (V, H, W) float32
-        Dimensionless line integrals; 0 for rays that miss the volume.
+    Tensor, shape (V, H, W), float32
+        Line integrals (dimensionless for ``mu`` in 1/mm), on ``device``; 0 for rays that miss the volume.
+
+    Raises
+    ------
+    CtsplatError
+        For ``step_voxels`` outside (0, 1], a volume that is not 3D with >= 2 voxels per axis, no views, an
+        unknown ``method``, or ``method="joseph"`` on a geometry it does not support.
+
+    Examples
+    --------
+    A 32 mm cube of μ = 0.02 / mm in a grid of 2 mm voxels centred on the origin, seen from azimuth 0:
+
+    >>> from ctsplat.geometry import pose_from_angles
+    >>> mu = np.zeros((32, 32, 32), np.float32)
+    >>> mu[8:24, 8:24, 8:24] = 0.02
+    >>> affine = np.diag([2.0, 2.0, 2.0, 1.0])
+    >>> affine[:3, 3] = -31.0
+    >>> R, t = pose_from_angles(0.0, 0.0, [0.0, 0.0, 0.0], 100.0)
+    >>> p = line_integrals(mu, affine, ParallelCamera(64, 64, 1.0), R[None], t[None])
+    >>> p.shape, round(float(p.max()), 2)
+    (torch.Size([1, 64, 64]), 0.64)
     """
     if not (0 < step_voxels <= 1.0):
         raise CtsplatError(f"step_voxels must be in (0, 1], got {step_voxels}")
@@ -277,7 +330,7 @@ def _slice_axis(camera: Camera, Rs: np.ndarray, A: np.ndarray) -> int | None:
 
 def _joseph_slices(mu: torch.Tensor, A: np.ndarray, camera: Camera, Rs: np.ndarray, ts: np.ndarray, c: int,
                    batch_samples: int) -> torch.Tensor:
-    """Joseph's projector, slice by slice, for parallel beams whose detector rows lie in voxel planes.
+    """Joseph's (1982) projector, slice by slice, for parallel beams whose detector rows lie in voxel planes.
 
     Every ray of detector column ``u`` lies in the plane spanned by the other two voxel axes ``(p, q)``
     (in-plane ray ``o + s d``, ``s`` in mm). With ``a`` the axis along which the ray advances fastest
@@ -355,12 +408,31 @@ def add_noise(p: np.ndarray, i0: float, electronic_sigma: float, rng: np.random.
               ) -> tuple[np.ndarray, np.ndarray]:
     """Poisson photon noise with ``i0`` photons plus Gaussian electronic noise, back to line integrals.
 
-    ``N = Poisson(i0 exp(-p)) + Normal(0, electronic_sigma)``, ``N <- max(N, 1)``, ``p_noisy = ln(i0 / N)``.
+    ``N = Poisson(i0 exp(-p)) + Normal(0, electronic_sigma)``, ``N <- max(N, 1)``, ``p_noisy = ln(i0 / N)``
+    (Beer–Lambert: the expected count behind a ray with line integral ``p`` is ``i0 exp(-p)``).
+
+    Parameters
+    ----------
+    p : ndarray, any shape
+        Noise-free line integrals (dimensionless).
+    i0 : float
+        Unattenuated photon count per pixel, positive.
+    electronic_sigma : float
+        Standard deviation of the electronic noise (photon counts), >= 0.
+    rng : numpy.random.Generator
+        Source of the noise (seed it for reproducible radiographs).
 
     Returns
     -------
     p_noisy : ndarray, like ``p``, float32
-    counts : ndarray, like ``p``, float64 (after clipping)
+        Noisy line integrals; at most ``ln(i0)`` (one photon).
+    counts : ndarray, like ``p``, float64
+        Detected counts after clipping to >= 1.
+
+    Raises
+    ------
+    CtsplatError
+        For a non-positive or non-finite ``i0`` or a negative ``electronic_sigma``.
     """
     if not (i0 > 0 and np.isfinite(i0)):
         raise CtsplatError(f"noise i0 (photons per pixel) must be positive, got {i0}")
@@ -380,14 +452,65 @@ def fitted_pitch_mm(radius_mm: float, dso_mm: float, dsd_mm: float, detector_px:
     """Cone-beam detector pitch (mm) at which a sphere of ``radius_mm`` about the isocentre fills the detector.
 
     The sphere's cone half-angle is ``asin(r / DSO)``; on the detector it spans ``DSD · tan(asin(r / DSO))`` to
-    each side, so ``pitch = 2 DSD tan(asin(r / DSO)) · fov_margin / detector_px``.
+    each side, so ``pitch = 2 DSD tan(asin(r / DSO)) · fov_margin / detector_px``. ``r / DSO`` is capped at
+    0.99 so that a sphere reaching the source still gives a finite pitch.
+
+    Parameters
+    ----------
+    radius_mm : float
+        Radius of the object's bounding sphere (mm), e.g. :func:`ctsplat.geometry.support_radius_mm`.
+    dso_mm, dsd_mm : float
+        Source-to-isocentre and source-to-detector distances (mm).
+    detector_px : int
+        Pixels along the detector side the sphere must fit (the shorter side).
+    fov_margin : float
+        Factor > 1 leaves a margin around the sphere.
+
+    Returns
+    -------
+    float
+        Detector pitch (mm).
     """
     half = dsd_mm * math.tan(math.asin(min(radius_mm / dso_mm, 0.99)))
     return 2.0 * half * fov_margin / int(detector_px)
 
 
 def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSet:
-    """The camera and orbit described by a ``radiographs`` config section for ``volume`` (a ``Volume``)."""
+    """The camera and orbit described by a ``radiographs`` config section, for one volume.
+
+    Fills the defaults of :data:`RADIOGRAPHS_DEFAULTS`: the isocentre is the volume's centre, a parallel
+    detector gets one voxel (the largest edge) per pixel and starts its rays just outside the volume's
+    bounding sphere; a cone detector's pitch maps one voxel at the isocentre to one pixel, or (``orbit: carm``)
+    fits the object's bounding sphere (:func:`fitted_pitch_mm`). ``arc_deg`` defaults to 180 for parallel and
+    360 for cone beams.
+
+    Parameters
+    ----------
+    volume : ctsplat.formats.volume.Volume
+        The volume (its grid, centre, id and, for ``carm``, its data).
+    config : dict
+        The ``radiographs`` section of one geometry (:data:`RADIOGRAPHS_DEFAULTS`).
+    seed : int
+        Seeds the orbit's random parts (held-out angles, sphere offsets, C-arm pose errors).
+
+    Returns
+    -------
+    ViewSet
+        Camera, views (``R``, ``t`` in mm, angles in degrees, split) and ``meta`` (orbit settings, seed,
+        ``distance_mm``).
+
+    Raises
+    ------
+    CtsplatError
+        For unknown config keys or values, an isocentre that is not 3 numbers, non-positive distances, a
+        parallel ray plane inside the volume, a C-arm orbit on a parallel camera, or a C-arm geometry with
+        ``dsd_mm <= dso_mm`` or its source inside the object.
+
+    Warns
+    -----
+    UserWarning
+        When a cone-beam source lies inside the volume's bounding sphere.
+    """
     cfg = merge_config("radiographs", config, RADIOGRAPHS_DEFAULTS)
     iso = np.asarray(cfg["isocenter_mm"] if cfg["isocenter_mm"] is not None else volume.center_mm(), float)
     if iso.shape != (3,):
@@ -465,6 +588,33 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
     :class:`~ctsplat.geometry.ViewSet`, page order), ``png/view_{id:04d}.png`` (16-bit transmission
     ``exp(-p)``) and ``radiographs.json`` (provenance: config, seed, code version, volume id, field-of-view
     check, statistics, timing). Every file is written under a temporary name first.
+
+    Parameters
+    ----------
+    volume_path : str or Path
+        An ingested volume (NIfTI with ctsplat metadata).
+    out_dir : str or Path
+        Output folder (created).
+    config : dict, optional
+        The ``radiographs`` section of one geometry (:data:`RADIOGRAPHS_DEFAULTS`).
+    seed : int
+        Seeds the orbit and the noise.
+
+    Returns
+    -------
+    ViewSet
+        The view set written to ``views.json``.
+
+    Raises
+    ------
+    CtsplatError
+        For a volume with non-finite voxels or an invalid config (see :func:`build_view_set`); nothing is
+        written.
+
+    Warns
+    -----
+    UserWarning
+        When the detector does not cover the object (:func:`ctsplat.geometry.check_fov`).
     """
 
     from ctsplat.formats.volume import load_volume

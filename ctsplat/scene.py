@@ -39,19 +39,22 @@ log = logging.getLogger(__name__)
 class ViewData:
     """Views of one split with their camera, poses and target images.
 
-    Attributes
+    Parameters
     ----------
-    camera : ParallelCamera | ConeCamera
-    ids : ndarray (V,) int
+    camera : ParallelCamera or ConeCamera
+        The detector, ``H`` rows by ``W`` columns.
+    ids : ndarray of int, shape (V,)
         View ids of the view set the images come from.
-    Rs : ndarray (V, 3, 3)
+    Rs : ndarray, shape (V, 3, 3)
         World-to-camera rotations.
-    ts : ndarray (V, 3)
+    ts : ndarray, shape (V, 3)
         World-to-camera translations (mm).
-    azimuth_deg, elevation_deg : ndarray (V,)
-    images : ndarray (V, H, W) float32
+    azimuth_deg, elevation_deg : ndarray, shape (V,)
+        View angles (degrees) as recorded in the view set.
+    images : ndarray, shape (V, H, W), float32
         Line integrals of the normalised volume (mm).
     split : str
+        ``"train"``, ``"val"`` or ``"test"``.
     """
 
     camera: Any
@@ -67,7 +70,18 @@ class ViewData:
         return int(len(self.ids))
 
     def take(self, idx: np.ndarray) -> ViewData:
-        """The views at positions ``idx`` (V',)."""
+        """The views at some positions.
+
+        Parameters
+        ----------
+        idx : ndarray of int, shape (V',)
+            Positions (not view ids) into this object's arrays.
+
+        Returns
+        -------
+        ViewData
+            A copy holding those ``V'`` views, same camera and split.
+        """
         idx = np.asarray(idx, int)
         return ViewData(self.camera, self.ids[idx], self.Rs[idx], self.ts[idx], self.azimuth_deg[idx],
                         self.elevation_deg[idx], self.images[idx], self.split)
@@ -75,7 +89,26 @@ class ViewData:
     @classmethod
     def from_view_set(cls, vs: ViewSet, images: np.ndarray, rows: np.ndarray, split: str, mu_scale: float
                       ) -> ViewData:
-        """Rows ``rows`` of a view set and its line-integral stack ``images`` (V, H, W), divided by ``mu_scale``."""
+        """Some rows of a view set with their line-integral images, converted to normalised-volume units.
+
+        Parameters
+        ----------
+        vs : ViewSet
+            The view set.
+        images : ndarray, shape (V, H, W)
+            Its line-integral stack (page order of ``vs``), dimensionless.
+        rows : ndarray of int, shape (V',)
+            Rows of ``vs.views`` to take (may be empty).
+        split : str
+            Split label stored in the result.
+        mu_scale : float
+            The volume's ``mu_scale_per_mm`` (1/mm): images are divided by it.
+
+        Returns
+        -------
+        ViewData
+            ``V'`` views, images float32 in mm.
+        """
         views = [vs.views[i] for i in rows]
         return cls(
             camera=vs.camera,
@@ -94,8 +127,20 @@ class ViewData:
 class Scene:
     """Everything training and evaluation read: views per split, the reference volume, scales, provenance.
 
-    ``volume`` is the normalised reference (:class:`ctsplat.formats.volume.Volume`): its grid is where 3D
-    metrics are measured; its voxel values are read only by ``init: volume`` (labelled as using the reference).
+    Parameters
+    ----------
+    train, val, test : ViewData
+        Training views (true or SfM poses) and the held-out views (true poses). When the view set lacks one of
+        ``val``/``test``, both hold the one it has.
+    volume : ctsplat.formats.volume.Volume
+        The normalised reference: its grid is where 3D metrics are measured; its voxel values are read only by
+        ``init: volume`` (labelled as using the reference) and the evaluation.
+    mu_scale : float
+        The volume's ``mu_scale_per_mm`` (1/mm per normalised unit).
+    eval_split : str
+        The split training validates on: ``"val"``, or ``"test"`` when there are no val views.
+    info : dict
+        Provenance: view counts, cameras, and for ``poses: colmap`` the SfM registration numbers.
     """
 
     train: ViewData
@@ -107,15 +152,50 @@ class Scene:
     info: dict[str, Any] = field(default_factory=dict)
 
     def split(self, name: str) -> ViewData:
-        """The views of ``name`` in {"train", "val", "test"}."""
+        """The views of one split.
+
+        Parameters
+        ----------
+        name : {"train", "val", "test"}
+            The split.
+
+        Returns
+        -------
+        ViewData
+            The split's views (``train``, ``val`` or ``test`` attribute).
+
+        Raises
+        ------
+        CtsplatError
+            For another name.
+        """
         if name not in SPLITS:
             raise CtsplatError(f"unknown split {name!r}; allowed: {', '.join(SPLITS)}")
         return getattr(self, name)
 
 
 def even_subset(n_total: int, n: int) -> np.ndarray:
-    """``n`` indices spread evenly over ``range(n_total)``: ``floor(k n_total / n)``, k < n (all when n is 0 or
-    ``n >= n_total``)."""
+    """``n`` indices spread evenly over ``range(n_total)``: ``floor(k n_total / n)``, ``k < n``.
+
+    Parameters
+    ----------
+    n_total : int
+        Number of candidates.
+    n : int
+        How many to take; ``<= 0`` or ``>= n_total`` takes all.
+
+    Returns
+    -------
+    ndarray of int
+        Increasing indices, shape ``(n,)`` when ``0 < n < n_total``, else ``(n_total,)``.
+
+    Examples
+    --------
+    >>> even_subset(10, 4)
+    array([0, 2, 5, 7])
+    >>> even_subset(5, 0)
+    array([0, 1, 2, 3, 4])
+    """
     if n <= 0 or n >= n_total:
         return np.arange(n_total)
     return np.floor(np.arange(n) * n_total / n).astype(int)
@@ -196,6 +276,15 @@ def load_scene(cfg: dict[str, Any]) -> Scene:
     Returns
     -------
     Scene
+        Views per split (images in normalised-volume units, mm), the reference volume and provenance.
+
+    Raises
+    ------
+    CtsplatError
+        When the radiographs belong to another volume, the volume's ``mu_scale_per_mm`` is not positive,
+        ``views`` asks for more training views than there are, the train split is empty, there are no val or
+        test views, or (``poses: colmap``) the SfM result is missing, registered too few views or belongs to
+        another view set or volume.
     """
     from ctsplat.formats.volume import load_volume
 

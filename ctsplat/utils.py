@@ -32,10 +32,22 @@ __all__ = [
 
 
 class CtsplatError(ValueError):
-    """A user-facing error: one line saying what is wrong and how to fix it."""
+    """A user-facing error: one line saying what is wrong and how to fix it.
+
+    Raised for bad input (config values, files, geometry) before any output is written. It subclasses
+    :class:`ValueError`, so callers that catch ``ValueError`` also catch it; the command-line interface prints
+    its message without a traceback.
+
+    Examples
+    --------
+    >>> raise CtsplatError("n_views must be a positive integer, got 0; set radiographs.n_views")
+    Traceback (most recent call last):
+        ...
+    ctsplat.utils.CtsplatError: n_views must be a positive integer, got 0; set radiographs.n_views
+    """
 
 
-_UMASK = os.umask(0o022)  # read the process umask once (setting it is the only way) and put it back
+_UMASK = os.umask(0o022)  # reading the process umask requires setting it; put it straight back
 os.umask(_UMASK)
 
 
@@ -43,8 +55,25 @@ os.umask(_UMASK)
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` only if the block succeeds.
 
-    The temp name keeps the final suffixes (``x.tmp123.nii.gz``) so writers that infer the format from
-    the extension still work. On error the temp file is removed, so no half-written output is left.
+    The temporary name keeps the final suffixes (``.x.abc123.tmp.nii.gz``) so writers that infer the format
+    from the extension still work. On success the file gets the permissions a plain ``open()`` would give
+    (``0o666`` minus the umask) and replaces ``path`` atomically (``os.replace``); on any error the temporary
+    file is removed and the exception propagates, so no half-written output is left.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The final output file. Its parent folder is created if missing.
+
+    Yields
+    ------
+    pathlib.Path
+        The temporary file (already created, empty) to write to.
+
+    Examples
+    --------
+    >>> with atomic_path("out/table.csv") as tmp:
+    ...     tmp.write_text("view,psnr2d\n0,31.2\n")
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -102,10 +131,19 @@ def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
 
     Parameters
     ----------
-    path : path
-        Output file (replaced atomically).
+    path : str or os.PathLike
+        Output file (replaced atomically, see :func:`atomic_path`).
     obj : JSON-like
-        dicts, lists, str, int, float, bool, None, NumPy arrays/scalars, Paths.
+        Dicts, lists, str, int, float, bool, None, NumPy arrays/scalars, Paths. Keys are sorted.
+
+    Raises
+    ------
+    CtsplatError
+        When ``obj`` holds a NaN or ±Infinity; nothing is written.
+
+    Examples
+    --------
+    >>> write_json_atomic("run/metrics.json", json_safe({"psnr2d": 31.2, "lpips": float("nan")}))
     """
     try:
         text = json.dumps(obj, indent=2, sort_keys=True, default=_json_default, allow_nan=False)
@@ -136,7 +174,12 @@ def json_safe(obj: Any) -> Any:
     Returns
     -------
     JSON-like
-        The same structure with ``None`` for each non-finite float.
+        The same structure with ``None`` for each non-finite float (tuples become lists).
+
+    Examples
+    --------
+    >>> json_safe({"psnr": float("inf"), "x": np.float32(1.5), "v": np.arange(2)})
+    {'psnr': None, 'x': 1.5, 'v': [0, 1]}
     """
     if isinstance(obj, np.ndarray):
         return json_safe(obj.tolist())
@@ -152,7 +195,14 @@ def json_safe(obj: Any) -> Any:
 
 
 def code_version() -> str:
-    """``ctsplat`` version plus the git commit (with ``-dirty``) when run from a checkout."""
+    """The ``ctsplat`` version, plus the git commit when run from a checkout.
+
+    Returns
+    -------
+    str
+        ``"<version>+g<12-hex commit>"`` with ``-dirty`` appended when tracked files under ``ctsplat/`` differ
+        from the commit; the bare version when git or the checkout is unavailable.
+    """
     from ctsplat import __version__
 
     root = Path(__file__).resolve().parent.parent
@@ -171,13 +221,45 @@ def code_version() -> str:
 
 
 def config_hash(config: Any) -> str:
-    """Stable 16-hex-digit SHA-256 of a JSON-serialisable config (key order ignored)."""
+    """Stable 16-hex-digit SHA-256 prefix of a JSON-serialisable config (key order ignored).
+
+    Parameters
+    ----------
+    config : JSON-like
+        The config; values JSON cannot encode are hashed by their ``str()``.
+
+    Returns
+    -------
+    str
+        The first 16 hex digits of the SHA-256 of the compact, key-sorted JSON text.
+
+    Examples
+    --------
+    >>> config_hash({"a": 1})
+    '015abd7f5cc57a2d'
+    """
     blob = json.dumps(config, sort_keys=True, default=str, separators=(",", ":"))
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
 def resolve_device(device: str = "auto") -> torch.device:
-    """``auto`` -> CUDA when available, else CPU; ``cuda`` without a GPU is an error."""
+    """The torch device for a config value: ``auto`` picks CUDA when available, else CPU.
+
+    Parameters
+    ----------
+    device : {"auto", "cpu", "cuda", "cuda:N"}
+        The requested device.
+
+    Returns
+    -------
+    torch.device
+        The device to compute on.
+
+    Raises
+    ------
+    CtsplatError
+        For ``cuda`` without a CUDA GPU, or an unknown device name.
+    """
     import torch
 
     if device == "auto":
@@ -190,7 +272,18 @@ def resolve_device(device: str = "auto") -> torch.device:
 
 
 def seed_everything(seed: int) -> np.random.Generator:
-    """Seed Python, NumPy and torch; return a NumPy Generator for explicit use."""
+    """Seed Python's, NumPy's global and torch's random number generators.
+
+    Parameters
+    ----------
+    seed : int
+        The seed (NumPy's global generator gets ``seed mod 2**32``).
+
+    Returns
+    -------
+    numpy.random.Generator
+        A fresh generator seeded with ``seed``, for code that draws explicitly.
+    """
     import torch
 
     random.seed(seed)
@@ -200,8 +293,30 @@ def seed_everything(seed: int) -> np.random.Generator:
 
 
 def merge_config(section: str, user: dict[str, Any] | None, defaults: dict[str, Any]) -> dict[str, Any]:
-    """Fill ``user`` with ``defaults`` (recursively); unknown keys fail fast naming their path.
+    """Fill a user config section with its defaults (recursively); unknown keys fail fast naming their path.
 
+    Parameters
+    ----------
+    section : str
+        Name of the section, used in error messages (``train``, ``radiographs.noise``).
+    user : dict or None
+        The user's values; ``None`` means all defaults.
+    defaults : dict
+        Every allowed key with its default. A nested dict default is merged key by key when the user gives a
+        dict for it; any other user value replaces the default whole.
+
+    Returns
+    -------
+    dict
+        The merged section, keys in the order of ``defaults``.
+
+    Raises
+    ------
+    CtsplatError
+        When ``user`` has a key that ``defaults`` lacks (the message lists the allowed keys).
+
+    Examples
+    --------
     >>> merge_config("train", {"iterations": 10}, {"iterations": 100, "lr": 3e-3})
     {'iterations': 10, 'lr': 0.003}
     """

@@ -1,5 +1,5 @@
-"""Evaluation: image and volume metrics (:mod:`.metrics`), a run's held-out evaluation (:mod:`.evaluate`), its
-figures (:mod:`.figures`)."""
+"""Evaluation: image and volume metrics (:mod:`.metrics`), a run's held-out evaluation (:mod:`.run`, re-exported as
+:func:`evaluate`), its figures (:mod:`.figures`)."""
 
 from ctsplat.evaluation.run import evaluate
 

@@ -31,7 +31,24 @@ def _save_fig(fig: Any, path: Path) -> None:
 
 def save_gallery(path: str | Path, refs: np.ndarray, preds: np.ndarray, ids: list[int],
                  psnrs: np.ndarray, max_views: int = 6) -> None:
-    """PNG gallery: one row per test view, columns reference | render | signed error."""
+    """Write a PNG gallery: one row per test view, columns reference | render | signed error.
+
+    At most ``max_views`` rows, spread evenly over the views. Reference and render share the reference's grey
+    range; the error map is symmetric about 0.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output PNG (written atomically).
+    refs, preds : ndarray, shape (V, H, W)
+        Reference and rendered line integrals (mm, normalised-volume units).
+    ids : list of int, length V
+        View ids, for the titles.
+    psnrs : ndarray, shape (V,)
+        Per-view PSNR (dB), for the titles.
+    max_views : int
+        Most rows.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -53,7 +70,17 @@ def save_gallery(path: str | Path, refs: np.ndarray, preds: np.ndarray, ids: lis
 
 
 def save_slices(path: str | Path, model_vol: np.ndarray, reference: np.ndarray) -> None:
-    """PNG of the central axial (k), coronal (j) and sagittal (i) slices: reference | model | error."""
+    """Write a PNG of the central sagittal (i), coronal (j) and axial (k) slices: reference | model | error.
+
+    Grey range [0, 1] (normalised volumes), error range [-0.5, 0.5].
+
+    Parameters
+    ----------
+    path : str or Path
+        Output PNG (written atomically).
+    model_vol, reference : ndarray, shape (I, J, K)
+        Voxelised model and reference, normalised.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -73,7 +100,17 @@ def save_slices(path: str | Path, model_vol: np.ndarray, reference: np.ndarray) 
 
 
 def save_turntable(path: str | Path, frames: np.ndarray, *, fps: float = 12.0) -> None:
-    """Animated GIF (looping) of novel projections ``(n, H, W)``, each scaled by the stack's range to 8 bits."""
+    """Write a looping animated GIF of novel projections, scaled together by the stack's range to 8 bits.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output GIF (written atomically).
+    frames : ndarray, shape (n, H, W)
+        The projections, in playback order.
+    fps : float
+        Frames per second.
+    """
     import imageio.v3 as iio
 
     lo, hi = float(frames.min()), float(frames.max())

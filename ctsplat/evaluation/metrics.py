@@ -3,6 +3,13 @@
 3D conventions (shared by baselines and Gaussian models): volumes are normalised to [0, 1] and compared
 with data range 1; 3D PSNR is over the whole volume; 3D SSIM is the mean of the 2D SSIMs over all axial,
 coronal and sagittal slices (the mean of the three per-axis means).
+
+References
+----------
+Wang, Z., Bovik, A. C., Sheikh, H. R., Simoncelli, E. P. (2004). Image quality assessment: from error visibility to
+structural similarity. IEEE Transactions on Image Processing 13(4), 600-612. (SSIM.)
+Zhang, R., Isola, P., Efros, A. A., Shechtman, E., Wang, O. (2018). The unreasonable effectiveness of deep
+features as a perceptual metric. CVPR. (LPIPS.)
 """
 
 from __future__ import annotations
@@ -19,8 +26,28 @@ __all__ = ["psnr", "ssim2d", "psnr3d", "ssim3d", "lpips_distance", "lpips_status
 def psnr(test: np.ndarray, reference: np.ndarray, data_range: float | None = None) -> float:
     """Peak signal-to-noise ratio in dB, ``10 log10(R^2 / MSE)``.
 
-    ``data_range`` defaults to ``reference.max() - reference.min()`` (for 2D projections, whose
-    values are line integrals and have no fixed range). Returns ``inf`` for identical inputs.
+    Parameters
+    ----------
+    test, reference : ndarray
+        Images or volumes of one shape.
+    data_range : float, optional
+        ``R``; default ``reference.max() - reference.min()`` (1 for a constant reference), for 2D projections,
+        whose values are line integrals and have no fixed range.
+
+    Returns
+    -------
+    float
+        PSNR in dB; ``inf`` for identical inputs.
+
+    Raises
+    ------
+    ValueError
+        When the shapes differ.
+
+    Examples
+    --------
+    >>> psnr(np.full((4, 4), 0.1), np.zeros((4, 4)), data_range=1.0)
+    20.0
     """
     test = np.asarray(test, dtype=np.float64)
     reference = np.asarray(reference, dtype=np.float64)
@@ -35,7 +62,20 @@ def psnr(test: np.ndarray, reference: np.ndarray, data_range: float | None = Non
 
 
 def ssim2d(test: np.ndarray, reference: np.ndarray, data_range: float | None = None) -> float:
-    """SSIM of two 2D images (Gaussian-free 7x7 window, as ``skimage``); range as in :func:`psnr`."""
+    """SSIM of two 2D images (``skimage.metrics.structural_similarity`` defaults: uniform 7x7 window).
+
+    Parameters
+    ----------
+    test, reference : ndarray, shape (H, W)
+        The images.
+    data_range : float, optional
+        Dynamic range; default as in :func:`psnr`.
+
+    Returns
+    -------
+    float
+        Mean SSIM, at most 1.
+    """
     reference = np.asarray(reference, dtype=np.float64)
     if data_range is None:
         data_range = float(reference.max() - reference.min()) or 1.0
@@ -43,12 +83,39 @@ def ssim2d(test: np.ndarray, reference: np.ndarray, data_range: float | None = N
 
 
 def psnr3d(test: np.ndarray, reference: np.ndarray) -> float:
-    """3D PSNR of normalised volumes (data range 1) over the whole volume."""
+    """3D PSNR of normalised volumes (data range 1) over the whole volume.
+
+    Parameters
+    ----------
+    test, reference : ndarray, shape (I, J, K)
+        Normalised volumes.
+
+    Returns
+    -------
+    float
+        PSNR in dB.
+    """
     return psnr(test, reference, data_range=1.0)
 
 
 def ssim3d(test: np.ndarray, reference: np.ndarray) -> float:
-    """Mean of 2D SSIM (data range 1) over all slices along each of the three axes, averaged over axes."""
+    """3D SSIM: the mean 2D SSIM (data range 1) over all slices along each axis, averaged over the three axes.
+
+    Parameters
+    ----------
+    test, reference : ndarray, shape (I, J, K)
+        Normalised volumes, every axis at least 7 voxels (the SSIM window).
+
+    Returns
+    -------
+    float
+        Mean SSIM, at most 1.
+
+    Raises
+    ------
+    ValueError
+        When the volumes are not 3D or their shapes differ.
+    """
     test = np.asarray(test, np.float64)
     reference = np.asarray(reference, np.float64)
     if test.shape != reference.shape or test.ndim != 3:
@@ -76,15 +143,33 @@ def _lpips_model() -> tuple[Any, str | None]:
 
 
 def lpips_status() -> str | None:
-    """``None`` when LPIPS can be computed, else the reason it cannot."""
+    """Whether LPIPS can be computed here (the ``lpips`` package and its AlexNet weights load).
+
+    Returns
+    -------
+    str or None
+        ``None`` when it can, else the reason it cannot.
+    """
     return _lpips_model()[1]
 
 
 def lpips_distance(test: np.ndarray, reference: np.ndarray) -> tuple[float | None, str | None]:
     """LPIPS (AlexNet) of two grey images replicated to 3 channels.
 
-    Both images are scaled together to [-1, 1] by the reference's range. Returns ``(value, None)``,
-    or ``(None, reason)`` when the ``lpips`` package or its weights are not usable — never a made-up number.
+    Both images are scaled together to [-1, 1] by the reference's range.
+
+    Parameters
+    ----------
+    test, reference : ndarray, shape (H, W)
+        The images.
+
+    Returns
+    -------
+    value : float or None
+        The LPIPS distance (0 for identical images), or None when the ``lpips`` package or its weights are not
+        usable — never a made-up number.
+    reason : str or None
+        Why ``value`` is None; None otherwise.
     """
     model, reason = _lpips_model()
     if model is None:

@@ -3,8 +3,8 @@
 2D metrics are computed on line-integral images of the *normalised* volume (the training targets divided by
 ``mu_scale_per_mm``), PSNR/SSIM with each reference image's own range (``ctsplat.evaluation.metrics``). 3D
 metrics compare the model voxelised on the reference grid with the normalised reference volume (data range 1).
-LPIPS uses
-``ctsplat.evaluation.metrics.lpips_distance`` and is ``None`` with a recorded reason when it cannot be computed.
+LPIPS uses ``ctsplat.evaluation.metrics.lpips_distance`` and is ``None`` with a recorded reason when it cannot be
+computed.
 
 :func:`evaluate` is the one implementation of a run's held-out metrics (``metrics.json``); training only logs
 validation metrics while it runs.
@@ -50,20 +50,26 @@ def render_views(
     ts: np.ndarray,
     render_kwargs: dict[str, Any] | None = None,
 ) -> np.ndarray:
-    """Render views without gradient.
+    """Render views of a Gaussian model without gradient.
 
     Parameters
     ----------
     gaussians : ctsplat.splat.Gaussians
-    camera : ParallelCamera | ConeCamera
-    Rs : (V, 3, 3), ts : (V, 3)
-        World-to-camera poses (mm).
-    render_kwargs : dict
+        The model (its device and dtype are used).
+    camera : ParallelCamera or ConeCamera
+        The detector, ``H`` rows by ``W`` columns.
+    Rs : ndarray, shape (V, 3, 3)
+        World-to-camera rotations.
+    ts : ndarray, shape (V, 3)
+        World-to-camera translations (mm).
+    render_kwargs : dict, optional
         Passed to :func:`ctsplat.splat.render` (compositor, filter_3d_var, mip_2d).
 
     Returns
     -------
     ndarray, shape (V, H, W), float32
+        The rendered images (line integrals in normalised-volume units, mm; colour renders averaged over
+        channels).
     """
     from ctsplat.splat.render import render
 
@@ -83,10 +89,23 @@ def render_views(
 def view_metrics(preds: np.ndarray, refs: np.ndarray, *, with_lpips: bool = False) -> dict[str, np.ndarray | list]:
     """Per-view PSNR / SSIM (and optionally LPIPS) of predicted vs reference images.
 
+    Parameters
+    ----------
+    preds, refs : ndarray, shape (V, H, W)
+        Rendered and reference images; each reference sets its own data range.
+    with_lpips : bool
+        Also compute LPIPS.
+
     Returns
     -------
-    dict with ``psnr2d`` (V,), ``ssim2d`` (V,), and if ``with_lpips`` ``lpips`` (list of float | None) and
-    ``lpips_reason`` (str | None).
+    dict
+        ``psnr2d`` (V,) dB and ``ssim2d`` (V,); with ``with_lpips`` also ``lpips`` (list of float or None, length
+        V) and ``lpips_reason`` (str or None).
+
+    Raises
+    ------
+    ValueError
+        When the shapes differ.
     """
     if preds.shape != refs.shape:
         raise ValueError(f"prediction shape {preds.shape} != reference shape {refs.shape}")
@@ -106,7 +125,24 @@ def view_metrics(preds: np.ndarray, refs: np.ndarray, *, with_lpips: bool = Fals
 
 def voxelize_model(gaussians: Any, shape: tuple[int, int, int], affine: np.ndarray,
                    filter_3d_var: torch.Tensor | None = None) -> np.ndarray:
-    """The model's density field at the voxel centres of a grid, shape ``shape``, float32 (no gradient)."""
+    """The model's density field at the voxel centres of a grid (no gradient).
+
+    Parameters
+    ----------
+    gaussians : ctsplat.splat.Gaussians
+        The model.
+    shape : tuple of int, shape (3,)
+        Grid shape ``(I, J, K)``.
+    affine : ndarray, shape (4, 4)
+        Voxel index -> world mm.
+    filter_3d_var : Tensor, shape (N,), optional
+        Mip-Splatting 3D filter variance (mm²), so the read-out matches the rendered field.
+
+    Returns
+    -------
+    ndarray, shape (I, J, K), float32
+        Density in normalised-volume units.
+    """
     from ctsplat.splat.render import voxelize
 
     with torch.no_grad():
@@ -117,19 +153,59 @@ def voxelize_model(gaussians: Any, shape: tuple[int, int, int], affine: np.ndarr
 
 
 def volume_metrics(model_vol: np.ndarray, reference: np.ndarray) -> dict[str, float]:
-    """``psnr3d`` (whole normalised volume, range 1) and ``ssim3d`` (mean 2D SSIM over the three axes)."""
+    """3D metrics of a voxelised model against the reference.
+
+    Parameters
+    ----------
+    model_vol, reference : ndarray, shape (I, J, K)
+        Normalised volumes.
+
+    Returns
+    -------
+    dict of str to float
+        ``psnr3d`` (dB, whole volume, data range 1) and ``ssim3d`` (mean 2D SSIM over the three axes).
+    """
     return {"psnr3d": metrics.psnr3d(model_vol, reference), "ssim3d": metrics.ssim3d(model_vol, reference)}
 
 
 def peak_memory_mb(device: torch.device) -> tuple[float, str]:
-    """Peak memory in MiB and its kind: CUDA max allocated on a GPU, else the process's peak RSS."""
+    """Peak memory in MiB and its kind: CUDA max allocated on a GPU, else the process's peak RSS.
+
+    Parameters
+    ----------
+    device : torch.device
+        The device the work ran on.
+
+    Returns
+    -------
+    mib : float
+        Peak memory (MiB).
+    kind : str
+        ``"cuda_max_allocated"`` or ``"process_peak_rss"`` (Linux ``ru_maxrss``, KiB / 1024).
+    """
     if device.type == "cuda":
         return torch.cuda.max_memory_allocated(device) / 2**20, "cuda_max_allocated"
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "process_peak_rss"
 
 
 def scaled_camera(camera: Any, width: int, height: int) -> Any:
-    """The same detector field of view resampled to ``width × height`` pixels (covers the original FOV)."""
+    """The same detector field of view resampled to ``width × height`` pixels.
+
+    The pixel size grows by ``max(W / width, H / height)``, so the new detector covers the original field of
+    view (and more along one axis when the aspect ratios differ).
+
+    Parameters
+    ----------
+    camera : ParallelCamera or ConeCamera
+        The detector.
+    width, height : int
+        New size (px).
+
+    Returns
+    -------
+    ParallelCamera or ConeCamera
+        Same model and distances, new size and pixel spacing / pitch (mm).
+    """
     f = max(camera.width / width, camera.height / height)
     if camera.model == "parallel":
         return dataclasses.replace(camera, width=width, height=height, spacing_mm=camera.spacing_mm * f)
@@ -138,7 +214,30 @@ def scaled_camera(camera: Any, width: int, height: int) -> Any:
 
 def forward_fps(gaussians: Any, camera: Any, R: np.ndarray, t: np.ndarray, render_kwargs: dict[str, Any],
                 *, width: int = 1920, height: int = 1080, repeats: int = 2) -> float:
-    """Frames per second of a forward render at ``width × height`` (median of ``repeats`` after one warm-up)."""
+    """Frames per second of a forward render at ``width × height`` (median of ``repeats`` after one warm-up).
+
+    Parameters
+    ----------
+    gaussians : ctsplat.splat.Gaussians
+        The model.
+    camera : ParallelCamera or ConeCamera
+        The detector; resampled with :func:`scaled_camera`.
+    R : ndarray, shape (3, 3)
+        World-to-camera rotation.
+    t : ndarray, shape (3,)
+        World-to-camera translation (mm).
+    render_kwargs : dict
+        Passed to the renderer.
+    width, height : int
+        Render size (px).
+    repeats : int
+        Timed renders.
+
+    Returns
+    -------
+    float
+        Frames per second (CUDA synchronised around each render on a GPU).
+    """
     cam = scaled_camera(camera, width, height)
     dev = gaussians.means.device
     times = []
@@ -161,9 +260,23 @@ def orbit_poses(R0: np.ndarray, t0: np.ndarray, center_mm: np.ndarray, n: int) -
     ``R = R0 Q``, ``t = t0 + R0 (c - Q c)``. The axis is ``-R0[1]`` (image up), so for a circular CT orbit the
     turntable is a rotation about the scanner axis. Works for any camera model.
 
+    Parameters
+    ----------
+    R0 : ndarray, shape (3, 3)
+        World-to-camera rotation of the first frame.
+    t0 : ndarray, shape (3,)
+        World-to-camera translation of the first frame (mm).
+    center_mm : ndarray, shape (3,)
+        Point on the rotation axis (world mm), e.g. the volume centre.
+    n : int
+        Number of poses, one full turn (``2π k / n``, ``k < n``).
+
     Returns
     -------
-    Rs : (n, 3, 3), ts : (n, 3)
+    Rs : ndarray, shape (n, 3, 3)
+        World-to-camera rotations.
+    ts : ndarray, shape (n, 3)
+        World-to-camera translations (mm).
     """
     from scipy.spatial.transform import Rotation
 
@@ -188,7 +301,8 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
 
     Parameters
     ----------
-    run_dir : path
+    run_dir : str or Path
+        A finished training run.
     split : {"test", "val", "train"}
         Views to evaluate on; model selection uses ``val``, the reported numbers ``test``.
     device : str
@@ -204,7 +318,19 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     Returns
     -------
     dict
-        The metrics (JSON-serialisable; see ``metrics.json``).
+        The metrics (JSON-serialisable; see ``metrics.json``): PSNR in dB, SSIM and LPIPS dimensionless, times
+        in seconds, memory in MiB, sizes in bytes.
+
+    Raises
+    ------
+    CtsplatError
+        When ``run_dir`` lacks ``config.json``, ``model.pt`` or ``training.json``, for an unknown split, or when
+        the scene cannot be loaded (:func:`ctsplat.scene.load_scene`).
+
+    Examples
+    --------
+    >>> m = evaluate("results/head/runs/init~fbp/compositor~radiative/mip~on/poses~gt/views~50/seed~0")
+    >>> m["psnr2d"], m["psnr3d"], m["ssim3d"]
     """
     from ctsplat.analysis.stats import milestones as milestone_times
     from ctsplat.config import schema_defaults
@@ -308,5 +434,16 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
 
 
 def model_size_bytes(*paths: str | Path) -> int:
-    """Total size on disk of the given files (missing ones count 0)."""
+    """Total size on disk of the given files (missing ones count 0).
+
+    Parameters
+    ----------
+    *paths : str or Path
+        Files.
+
+    Returns
+    -------
+    int
+        Bytes.
+    """
     return int(sum(os.path.getsize(p) for p in paths if os.path.exists(p)))

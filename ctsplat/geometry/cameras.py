@@ -83,12 +83,31 @@ def _check_positive(name: str, value: float) -> None:
 class ParallelCamera:
     """Parallel-beam (orthographic) detector.
 
+    Every ray runs along ``+z_cam`` from the plane ``z_cam = 0``; pixel ``(u, v)`` sees the ray through
+    ``x_cam = (u + 0.5 - W/2) spacing_mm``, ``y_cam = (v + 0.5 - H/2) spacing_mm``.
+
     Parameters
     ----------
     width, height : int
-        Detector size in pixels (W columns ``u``, H rows ``v``).
+        Detector size in pixels (W columns ``u``, H rows ``v``), positive.
     spacing_mm : float
-        Detector pixel spacing (mm); ``u = x_cam / spacing_mm + W/2``.
+        Detector pixel spacing (mm), positive; ``u = x_cam / spacing_mm + W/2``.
+
+    Attributes
+    ----------
+    model : str
+        ``"parallel"`` (set by the class, not an argument).
+
+    Raises
+    ------
+    CtsplatError
+        For a non-positive or non-integer size, or a non-positive spacing.
+
+    Examples
+    --------
+    >>> cam = ParallelCamera(128, 128, 1.5)
+    >>> cam.cx, cam.to_dict()["model"]
+    (64.0, 'parallel')
     """
 
     width: int
@@ -105,13 +124,23 @@ class ParallelCamera:
 
     @property
     def cx(self) -> float:
+        """Column of the optical axis (px): ``W / 2``, the detector's centre line."""
         return self.width / 2.0
 
     @property
     def cy(self) -> float:
+        """Row of the optical axis (px): ``H / 2``."""
         return self.height / 2.0
 
     def to_dict(self) -> dict[str, Any]:
+        """The camera as the JSON object stored in ``views.json``.
+
+        Returns
+        -------
+        dict
+            ``model``, ``width``, ``height``, ``spacing_mm`` and the derived ``cx``, ``cy`` (px), which
+            :func:`camera_from_dict` ignores.
+        """
         return {"model": self.model, "width": self.width, "height": self.height, "spacing_mm": self.spacing_mm,
                 "cx": self.cx, "cy": self.cy}
 
@@ -120,19 +149,35 @@ class ParallelCamera:
 class ConeCamera:
     """Cone-beam (perspective) detector with the source at the camera centre.
 
+    Pinhole intrinsics (COLMAP ``PINHOLE``): ``fx = fy = dsd_mm / pitch_mm`` (pixels), ``cx = W/2``, ``cy = H/2``.
+    A voxel at the isocentre is magnified by ``dsd_mm / dso_mm`` on the detector.
+
     Parameters
     ----------
     width, height : int
-        Detector size in pixels.
+        Detector size in pixels, positive.
     pitch_mm : float
-        Detector pixel pitch (mm) on the detector plane.
+        Detector pixel pitch (mm) on the detector plane, positive.
     dso_mm : float
-        Source-to-object (isocentre) distance (mm).
+        Source-to-object (isocentre) distance (mm), positive.
     dsd_mm : float
         Source-to-detector distance (mm), ``> dso_mm``.
 
-    Pinhole intrinsics (COLMAP ``PINHOLE``): ``fx = fy = dsd_mm / pitch_mm`` (pixels), ``cx = W/2``, ``cy = H/2``.
-    A voxel at the isocentre is magnified by ``dsd_mm / dso_mm`` on the detector.
+    Attributes
+    ----------
+    model : str
+        ``"cone"`` (set by the class, not an argument).
+
+    Raises
+    ------
+    CtsplatError
+        For a non-positive size or distance, or ``dsd_mm <= dso_mm``.
+
+    Examples
+    --------
+    >>> cam = ConeCamera(256, 256, pitch_mm=1.0, dso_mm=1000.0, dsd_mm=1500.0)
+    >>> cam.fx, cam.magnification
+    (1500.0, 1.5)
     """
 
     width: int
@@ -159,40 +204,75 @@ class ConeCamera:
 
     @property
     def fx(self) -> float:
+        """Horizontal focal length (px): ``dsd_mm / pitch_mm``."""
         return self.dsd_mm / self.pitch_mm
 
     @property
     def fy(self) -> float:
+        """Vertical focal length (px): ``dsd_mm / pitch_mm`` (square pixels)."""
         return self.dsd_mm / self.pitch_mm
 
     @property
     def cx(self) -> float:
+        """Principal point column (px): ``W / 2``."""
         return self.width / 2.0
 
     @property
     def cy(self) -> float:
+        """Principal point row (px): ``H / 2``."""
         return self.height / 2.0
 
     @property
     def K(self) -> np.ndarray:
-        """3x3 pinhole intrinsic matrix (pixels)."""
+        """Pinhole intrinsic matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, shape (3, 3), pixels."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @property
     def magnification(self) -> float:
+        """Geometric magnification at the isocentre, ``dsd_mm / dso_mm`` (dimensionless)."""
         return self.dsd_mm / self.dso_mm
 
     def to_dict(self) -> dict[str, Any]:
+        """The camera as the JSON object stored in ``views.json``.
+
+        Returns
+        -------
+        dict
+            ``model``, ``width``, ``height``, ``pitch_mm``, ``dso_mm``, ``dsd_mm`` and the derived ``fx``, ``fy``,
+            ``cx``, ``cy`` (px), which :func:`camera_from_dict` ignores.
+        """
         return {"model": self.model, "width": self.width, "height": self.height, "pitch_mm": self.pitch_mm,
                 "dso_mm": self.dso_mm, "dsd_mm": self.dsd_mm, "fx": self.fx, "fy": self.fy, "cx": self.cx,
                 "cy": self.cy}
 
 
+#: Either detector model; dispatch on ``camera.model`` (``"parallel"`` or ``"cone"``).
 Camera = ParallelCamera | ConeCamera
 
 
 def camera_from_dict(d: dict[str, Any]) -> Camera:
-    """Inverse of ``camera.to_dict()`` (derived intrinsics are ignored and recomputed)."""
+    """The camera described by a ``to_dict()`` object (derived intrinsics are ignored and recomputed).
+
+    Parameters
+    ----------
+    d : dict
+        ``model`` (``"parallel"`` or ``"cone"``) and that model's constructor fields (mm, px).
+
+    Returns
+    -------
+    ParallelCamera or ConeCamera
+        The camera, with its derived intrinsics recomputed.
+
+    Raises
+    ------
+    CtsplatError
+        For an unknown ``model`` or invalid field values.
+
+    Examples
+    --------
+    >>> camera_from_dict({"model": "parallel", "width": 4, "height": 4, "spacing_mm": 1})
+    ParallelCamera(width=4, height=4, spacing_mm=1.0, model='parallel')
+    """
     model = d.get("model")
     if model == "parallel":
         return ParallelCamera(d["width"], d["height"], d["spacing_mm"])
@@ -209,6 +289,27 @@ def look_at(
 
     ``z_cam = normalise(target - center)``, ``y_cam = normalise(-up + (up . z) z)``, ``x_cam = y_cam x z_cam``;
     rows of ``R`` are the camera axes in world coordinates, ``t = -R center``.
+
+    Parameters
+    ----------
+    center : ndarray, shape (3,)
+        Camera centre (the source, for cone beam), world mm.
+    target : ndarray, shape (3,)
+        Point on the optical axis, world mm.
+    up : sequence of float, shape (3,)
+        World direction shown towards the image top; default world +z (superior).
+
+    Returns
+    -------
+    R : ndarray, shape (3, 3)
+        World-to-camera rotation (OpenCV axes).
+    t : ndarray, shape (3,)
+        World-to-camera translation (mm).
+
+    Raises
+    ------
+    CtsplatError
+        When ``center == target`` or the view direction is parallel to ``up``.
     """
     center = np.asarray(center, float)
     z = np.asarray(target, float) - center
@@ -228,14 +329,60 @@ def look_at(
 
 
 def direction_from_angles(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
-    """Unit vector ``s`` from the isocentre towards the camera, shape (3,)."""
+    """Unit vector ``s = (cos e cos a, cos e sin a, sin e)`` from the isocentre towards the camera.
+
+    Parameters
+    ----------
+    azimuth_deg : float
+        Azimuth ``a`` about world +z, from +x towards +y (degrees).
+    elevation_deg : float
+        Elevation ``e`` above the axial plane (degrees).
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        World direction (unit length).
+
+    Examples
+    --------
+    >>> direction_from_angles(90.0, 0.0).round(6)
+    array([0., 1., 0.])
+    """
     a, e = math.radians(azimuth_deg), math.radians(elevation_deg)
     return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
 
 
 def pose_from_angles(azimuth_deg: float, elevation_deg: float, isocenter_mm: Sequence[float],
                      distance_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(R (3,3), t (3,))`` of the camera at ``iso + distance * s(azimuth, elevation)`` looking at the isocentre."""
+    """Pose of the camera at ``iso + distance · s(azimuth, elevation)`` looking at the isocentre, world +z up.
+
+    Parameters
+    ----------
+    azimuth_deg, elevation_deg : float
+        View direction (degrees), see :func:`direction_from_angles`; ``|elevation_deg| < 90``.
+    isocenter_mm : sequence of float, shape (3,)
+        Isocentre, world mm.
+    distance_mm : float
+        Camera-centre distance from the isocentre (mm), positive (DSO for cone beam).
+
+    Returns
+    -------
+    R : ndarray, shape (3, 3)
+        World-to-camera rotation.
+    t : ndarray, shape (3,)
+        World-to-camera translation (mm).
+
+    Raises
+    ------
+    CtsplatError
+        For ``|elevation_deg| >= 90`` or a non-positive distance.
+
+    Examples
+    --------
+    >>> R, t = pose_from_angles(0.0, 0.0, [0.0, 0.0, 0.0], 500.0)
+    >>> camera_center(R, t).round(6)
+    array([500.,   0.,   0.])
+    """
     if abs(elevation_deg) >= 90.0:
         raise CtsplatError(f"elevation {elevation_deg} deg is out of range; keep |elevation| < 90")
     _check_positive("camera distance", distance_mm)
@@ -244,28 +391,83 @@ def pose_from_angles(azimuth_deg: float, elevation_deg: float, isocenter_mm: Seq
 
 
 def camera_center(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Camera centre in world mm: ``C = -R^T t``; works batched (``R (..., 3, 3)``, ``t (..., 3)``)."""
+    """Camera centre ``C = -R^T t`` (world mm) of world-to-camera poses.
+
+    Parameters
+    ----------
+    R : ndarray, shape (..., 3, 3)
+        World-to-camera rotations.
+    t : ndarray, shape (..., 3)
+        World-to-camera translations (mm).
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+        Camera centres (the source, for cone beam), world mm.
+    """
     return -np.einsum("...ji,...j->...i", R, t)
 
 
 def world_to_camera(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``x_cam = R x + t`` for points (..., 3)."""
+    """Map world points to the camera frame: ``x_cam = R x + t``.
+
+    Parameters
+    ----------
+    points : ndarray, shape (..., 3)
+        World points (mm).
+    R : ndarray, shape (3, 3)
+        World-to-camera rotation.
+    t : ndarray, shape (3,)
+        World-to-camera translation (mm).
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+        Camera-frame points (mm).
+    """
     return np.asarray(points, float) @ np.asarray(R, float).T + np.asarray(t, float)
 
 
 def camera_to_world(points_cam: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``x = R^T (x_cam - t)`` for points (..., 3)."""
+    """Map camera-frame points to the world: ``x = R^T (x_cam - t)``.
+
+    Parameters
+    ----------
+    points_cam : ndarray, shape (..., 3)
+        Camera-frame points (mm).
+    R : ndarray, shape (3, 3)
+        World-to-camera rotation.
+    t : ndarray, shape (3,)
+        World-to-camera translation (mm).
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+        World points (mm).
+    """
     return (np.asarray(points_cam, float) - np.asarray(t, float)) @ np.asarray(R, float)
 
 
 def project_points(camera: Camera, R: np.ndarray, t: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Project world points (N, 3) mm to continuous pixel coordinates.
+    """Project world points to continuous pixel coordinates.
+
+    Parameters
+    ----------
+    camera : ParallelCamera or ConeCamera
+        The detector.
+    R : ndarray, shape (3, 3)
+        World-to-camera rotation.
+    t : ndarray, shape (3,)
+        World-to-camera translation (mm).
+    points : ndarray, shape (N, 3)
+        World points (mm).
 
     Returns
     -------
-    uv : ndarray (N, 2)
-        ``(u, v)``; a pixel's centre is at ``(u + 0.5, v + 0.5)``. ``nan`` for cone points with ``z_cam <= 0``.
-    depth : ndarray (N,)
+    uv : ndarray, shape (N, 2)
+        ``(u, v)`` in px; pixel ``(i, j)`` covers ``[i, i+1) x [j, j+1)``, its centre at ``(i + 0.5, j + 0.5)``.
+        ``nan`` for cone-beam points with ``z_cam <= 0`` (behind the source).
+    depth : ndarray, shape (N,)
         ``z_cam`` (mm).
     """
     pc = world_to_camera(points, R, t)
@@ -284,12 +486,21 @@ def project_points(camera: Camera, R: np.ndarray, t: np.ndarray, points: np.ndar
 def camera_rays(camera: Camera, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Detector rays through every pixel centre, in world mm.
 
+    Parameters
+    ----------
+    camera : ParallelCamera or ConeCamera
+        The detector, ``H`` rows by ``W`` columns.
+    R : ndarray, shape (3, 3)
+        World-to-camera rotation.
+    t : ndarray, shape (3,)
+        World-to-camera translation (mm).
+
     Returns
     -------
-    origins : ndarray (H, W, 3)
-        Parallel: the pixel centre on the plane ``z_cam = 0``; cone: the source (camera centre).
-    dirs : ndarray (H, W, 3)
-        Unit direction of each ray (towards the detector).
+    origins : ndarray, shape (H, W, 3)
+        Parallel: the pixel centre on the plane ``z_cam = 0``; cone: the source (camera centre). World mm.
+    dirs : ndarray, shape (H, W, 3)
+        Unit direction of each ray (towards the detector), world frame.
     """
     H, W = camera.height, camera.width
     v, u = np.meshgrid(np.arange(H) + 0.5, np.arange(W) + 0.5, indexing="ij")
@@ -309,7 +520,23 @@ def camera_rays(camera: Camera, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarra
 
 # ---------------------------------------------------------------------------- OpenCV / COLMAP helpers
 def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix -> unit quaternion ``(w, x, y, z)`` with ``w >= 0`` (COLMAP ``qvec``)."""
+    """Convert a rotation matrix to a unit quaternion ``(w, x, y, z)`` with ``w >= 0`` (COLMAP ``qvec``).
+
+    Parameters
+    ----------
+    R : ndarray, shape (3, 3)
+        Rotation matrix.
+
+    Returns
+    -------
+    ndarray, shape (4,)
+        ``(w, x, y, z)``, unit norm, sign chosen so that ``w >= 0``.
+
+    Examples
+    --------
+    >>> rotmat_to_qvec(np.eye(3))
+    array([1., 0., 0., 0.])
+    """
     from scipy.spatial.transform import Rotation
 
     x, y, z, w = Rotation.from_matrix(np.asarray(R, float)).as_quat()
@@ -318,7 +545,18 @@ def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
 
 
 def qvec_to_rotmat(qvec: Sequence[float]) -> np.ndarray:
-    """COLMAP ``qvec (w, x, y, z)`` -> 3x3 rotation matrix (normalises the quaternion)."""
+    """Convert a COLMAP ``qvec (w, x, y, z)`` to a rotation matrix (the quaternion is normalised first).
+
+    Parameters
+    ----------
+    qvec : sequence of float, shape (4,)
+        Quaternion ``(w, x, y, z)``, any non-zero norm.
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        Rotation matrix.
+    """
     w, x, y, z = np.asarray(qvec, float) / np.linalg.norm(qvec)
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -328,7 +566,20 @@ def qvec_to_rotmat(qvec: Sequence[float]) -> np.ndarray:
 
 
 def c2w_from_Rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """OpenCV world-to-camera ``(R, t)`` -> 4x4 camera-to-world matrix ``[[R^T, C], [0, 1]]``."""
+    """Convert an OpenCV world-to-camera ``(R, t)`` to the camera-to-world matrix ``[[R^T, C], [0, 1]]``.
+
+    Parameters
+    ----------
+    R : ndarray, shape (3, 3)
+        World-to-camera rotation.
+    t : ndarray, shape (3,)
+        World-to-camera translation (mm).
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+        Camera-to-world matrix (OpenCV camera axes), with the camera centre ``C`` (world mm) in the last column.
+    """
     M = np.eye(4)
     M[:3, :3] = np.asarray(R, float).T
     M[:3, 3] = camera_center(np.asarray(R, float), np.asarray(t, float))
@@ -336,12 +587,38 @@ def c2w_from_Rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def Rt_from_c2w(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """4x4 camera-to-world (OpenCV axes) -> world-to-camera ``(R, t)``."""
+    """Convert a camera-to-world matrix (OpenCV camera axes) to the world-to-camera ``(R, t)``.
+
+    Parameters
+    ----------
+    c2w : ndarray, shape (4, 4)
+        Camera-to-world matrix, translation in mm.
+
+    Returns
+    -------
+    R : ndarray, shape (3, 3)
+        World-to-camera rotation.
+    t : ndarray, shape (3,)
+        World-to-camera translation (mm).
+    """
     c2w = np.asarray(c2w, float)
     R = c2w[:3, :3].T
     return R, -R @ c2w[:3, 3]
 
 
 def opencv_to_opengl_c2w(c2w: np.ndarray) -> np.ndarray:
-    """OpenCV camera-to-world (x right, y down, z forward) -> OpenGL/NeRF (x right, y up, z backward)."""
+    """Convert a camera-to-world matrix from OpenCV axes (x right, y down, z forward) to OpenGL/NeRF axes.
+
+    OpenGL/NeRF camera axes are x right, y up, z backward: the camera's y and z columns change sign.
+
+    Parameters
+    ----------
+    c2w : ndarray, shape (4, 4)
+        Camera-to-world matrix, OpenCV camera axes.
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+        Camera-to-world matrix, OpenGL camera axes (same centre).
+    """
     return np.asarray(c2w, float) @ np.diag([1.0, -1.0, -1.0, 1.0])

@@ -11,6 +11,11 @@ Three orbit families, all about the world +z (axial) axis through an isocentre, 
 One arc rule (:func:`arc_azimuths`) places evenly spaced views on an arc for every family: view ``k`` of ``n``
 sits at ``start + arc · k / n`` — the start of ``n`` equal sectors, so a full circle closes without a repeated
 view, and a parallel-beam half circle gives ``n`` distinct directions.
+
+References
+----------
+González, Á. (2010). Measurement of areas on a sphere using Fibonacci and latitude-longitude lattices.
+Mathematical Geosciences 42(1), 49-64. (The equal-area Fibonacci lattice of :func:`fibonacci_directions`.)
 """
 
 from __future__ import annotations
@@ -51,12 +56,25 @@ def arc_azimuths(n: int, arc_deg: float, start_deg: float = 0.0, offsets: np.nda
         Angular range in (0, 360].
     start_deg : float
         Azimuth of the first sector's start.
-    offsets : ndarray (n,), optional
+    offsets : ndarray, shape (n,), optional
         Position of each view inside its sector, in [0, 1) (0: the sector start; random offsets stratify).
 
     Returns
     -------
-    ndarray (n,)
+    ndarray, shape (n,)
+        Azimuths (degrees), wrapped into [0, 360).
+
+    Raises
+    ------
+    CtsplatError
+        When ``arc_deg`` is outside (0, 360].
+
+    Examples
+    --------
+    >>> arc_azimuths(4, 360.0)
+    array([  0.,  90., 180., 270.])
+    >>> arc_azimuths(4, 180.0, start_deg=10.0)
+    array([ 10.,  55., 100., 145.])
     """
     if not 0 < arc_deg <= 360:
         raise CtsplatError(f"arc_deg {arc_deg} must be in (0, 360]")
@@ -66,10 +84,26 @@ def arc_azimuths(n: int, arc_deg: float, start_deg: float = 0.0, offsets: np.nda
 
 def fibonacci_directions(n: int, elevation_range_deg: Sequence[float] = (-60.0, 60.0),
                          azimuth_offset_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` (azimuth, elevation) pairs (degrees) of a Fibonacci lattice on the spherical band.
+    """``n`` (azimuth, elevation) pairs of a Fibonacci lattice on a spherical band.
 
     Equal-area: ``sin(e_k)`` uniform on ``[sin e_min, sin e_max]`` at midpoints, azimuth by the golden angle
     ``a_k = offset + k * 180 (3 - sqrt 5)``. Ordered by elevation (index ``k``).
+
+    Parameters
+    ----------
+    n : int
+        Number of directions.
+    elevation_range_deg : sequence of float, shape (2,)
+        ``(e_min, e_max)`` of the band (degrees).
+    azimuth_offset_deg : float
+        Azimuth of the first direction (degrees).
+
+    Returns
+    -------
+    azimuth_deg : ndarray, shape (n,)
+        Azimuths (degrees) in [0, 360).
+    elevation_deg : ndarray, shape (n,)
+        Elevations (degrees), increasing.
     """
     lo, hi = (math.sin(math.radians(x)) for x in elevation_range_deg)
     k = np.arange(n)
@@ -81,10 +115,27 @@ def fibonacci_directions(n: int, elevation_range_deg: Sequence[float] = (-60.0, 
 
 def stratified_directions(n: int, elevation_range_deg: Sequence[float] = (-60.0, 60.0),
                           rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` (azimuth, elevation) pairs (degrees), one random direction per equal-area cell of the band.
+    """``n`` (azimuth, elevation) pairs, one random direction per equal-area cell of a spherical band.
 
     The band is cut into ``b = round(sqrt(n / 2))`` rings of equal area (uniform in ``sin e``); ring ``r``
-    gets ``n_r`` cells (largest remainder of ``n / b``), each an azimuth sector; one uniform point per cell.
+    gets ``n_r`` cells (the ``n mod b`` first rings one more than ``n // b``), each an azimuth sector (rotated by a
+    random offset per ring); one uniform point (in azimuth and ``sin e``) per cell.
+
+    Parameters
+    ----------
+    n : int
+        Number of directions.
+    elevation_range_deg : sequence of float, shape (2,)
+        ``(e_min, e_max)`` of the band (degrees).
+    rng : numpy.random.Generator, optional
+        Source of randomness; default ``default_rng(0)``.
+
+    Returns
+    -------
+    azimuth_deg : ndarray, shape (n,)
+        Azimuths (degrees) in [0, 360).
+    elevation_deg : ndarray, shape (n,)
+        Elevations (degrees), ordered by ring.
     """
     rng = rng or np.random.default_rng(0)
     lo, hi = (math.sin(math.radians(x)) for x in elevation_range_deg)
@@ -115,8 +166,28 @@ def _check_elevation_range(elevation_range_deg: Sequence[float]) -> tuple[float,
 def split_counts(n: int, fractions: dict[str, float]) -> dict[str, int]:
     """Largest-remainder allocation of ``n`` views to ``train/val/test`` by ``fractions``.
 
-    A split with a positive fraction that would receive no view is an error (use more views or set its
-    fraction to 0).
+    Parameters
+    ----------
+    n : int
+        Number of views.
+    fractions : dict of str to float
+        Split name -> non-negative weight (normalised to sum 1); missing splits get 0.
+
+    Returns
+    -------
+    dict of str to int
+        ``{"train": ..., "val": ..., "test": ...}``, summing to ``n``.
+
+    Raises
+    ------
+    CtsplatError
+        For an unknown split name, negative or all-zero fractions, or a split with a positive fraction that would
+        receive no view (use more views or set its fraction to 0).
+
+    Examples
+    --------
+    >>> split_counts(10, {"train": 0.7, "val": 0.15, "test": 0.15})
+    {'train': 7, 'val': 2, 'test': 1}
     """
     unknown = set(fractions) - set(SPLITS)
     if unknown:
@@ -145,6 +216,25 @@ def assign_splits(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, fractions:
     serpentine). The test views are drawn one at random from each of ``n_test`` consecutive equal strata of
     that order, then the val views likewise from the remaining views, so held-out directions are spread
     over the orbit rather than clumped. Same inputs and seed -> same labels.
+
+    Parameters
+    ----------
+    azimuth_deg, elevation_deg : ndarray, shape (V,)
+        View directions (degrees).
+    fractions : dict of str to float
+        Split weights, see :func:`split_counts`.
+    seed : int
+        Seeds the draw within each stratum.
+
+    Returns
+    -------
+    list of str, length V
+        ``"train"``, ``"val"`` or ``"test"`` per view, in input order.
+
+    Raises
+    ------
+    CtsplatError
+        For an empty view set or invalid fractions (:func:`split_counts`).
     """
     az = np.asarray(azimuth_deg, float)
     el = np.asarray(elevation_deg, float)
@@ -194,6 +284,33 @@ def sphere_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: float
     ``sampling="fibonacci"`` (equal-area golden-angle lattice, its azimuth rotated by a seeded offset) or
     ``"stratified"`` (one random direction per equal-area cell). Splits by :func:`assign_splits`.
     Cameras sit at ``distance_mm`` from the isocentre (DSO for cone beam).
+
+    Parameters
+    ----------
+    n_views : int
+        Number of views (train + val + test), positive.
+    isocenter_mm : sequence of float, shape (3,)
+        Isocentre, world mm.
+    distance_mm : float
+        Camera-centre distance from the isocentre (mm).
+    elevation_range_deg : sequence of float, shape (2,)
+        ``(min, max)`` elevation (degrees), ``-90 < min <= max < 90``.
+    sampling : {"fibonacci", "stratified"}
+        How directions are placed, see above.
+    split_fractions : dict of str to float, optional
+        Split weights; default 70/15/15 train/val/test.
+    seed : int
+        Seeds the lattice offset or the stratified draw, and the split assignment.
+
+    Returns
+    -------
+    list of View, length ``n_views``
+        View ``i`` has id ``i``, ordered as the sampler returns them (by elevation ring).
+
+    Raises
+    ------
+    CtsplatError
+        For a non-positive ``n_views``, a bad elevation range, an unknown sampling or invalid split fractions.
     """
     if int(n_views) <= 0:
         raise CtsplatError(f"n_views must be a positive integer, got {n_views!r} (empty view set)")
@@ -226,6 +343,45 @@ def circular_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: flo
     and of the held-out sectors. For *parallel* beams the views at ``a`` and ``a + 180`` are mirror images,
     so over 360 deg an even ``n_views`` gives only ``n_views / 2`` distinct directions while an odd one
     gives ``n_views`` interleaved ones; ``arc_deg=180`` gives ``n_views`` distinct directions for any count.
+
+    Parameters
+    ----------
+    n_views : int
+        Number of training views, positive.
+    isocenter_mm : sequence of float, shape (3,)
+        Isocentre, world mm.
+    distance_mm : float
+        Camera-centre distance from the isocentre (mm).
+    split_fractions : dict of str to float, optional
+        Split weights with a positive ``train``; default 70/15/15.
+    wobble_deg : float
+        Elevation amplitude (degrees), ``|wobble_deg| < 90``; 0 keeps the orbit planar.
+    start_deg : float
+        Azimuth of training view 0 (degrees).
+    seed : int
+        Seeds the held-out angles.
+    arc_deg : float
+        Angular range (degrees) in (0, 360].
+    wobble_cycles : float
+        Wobble periods per 360 degrees of azimuth.
+
+    Returns
+    -------
+    list of View
+        The ``n_views`` training views (id ``k`` at azimuth ``start + arc k / n_views``), then the val views, then
+        the test views.
+
+    Raises
+    ------
+    CtsplatError
+        For an arc outside (0, 360], a non-positive ``n_views``, ``|wobble_deg| >= 90``, invalid fractions or a
+        held-out split that would be empty.
+
+    Examples
+    --------
+    >>> views = circular_orbit(4, [0.0, 0.0, 0.0], 500.0, split_fractions={"train": 0.5, "val": 0.25, "test": 0.25})
+    >>> [v.split for v in views]
+    ['train', 'train', 'train', 'train', 'val', 'val', 'test', 'test']
     """
     if not 0 < arc_deg <= 360:
         raise CtsplatError(f"arc_deg {arc_deg} must be in (0, 360]")
@@ -274,7 +430,8 @@ def carm_orbit(n_views: int, isocenter_mm: Sequence[float], dso_mm: float, *, ar
     ----------
     n_views : int
         Number of views (>= 2).
-    isocenter_mm : (3,) world mm
+    isocenter_mm : sequence of float, shape (3,)
+        Designed isocentre, world mm.
     dso_mm : float
         Source-to-isocentre distance (mm).
     arc_deg, start_deg : float
@@ -291,6 +448,11 @@ def carm_orbit(n_views: int, isocenter_mm: Sequence[float], dso_mm: float, *, ar
     list of View, length ``n_views``
         True poses (``R``, ``t``, angles), every view in the ``train`` split, each with its designed pose in
         ``View.design``.
+
+    Raises
+    ------
+    CtsplatError
+        For ``n_views < 2``, ``|wobble_deg| >= 80`` or a negative jitter.
     """
     if n_views < 2:
         raise CtsplatError(f"a C-arm orbit needs n_views >= 2, got {n_views}")
@@ -330,16 +492,19 @@ def support_radius_mm(data: np.ndarray, affine: np.ndarray, centre_mm: np.ndarra
 
     Parameters
     ----------
-    data : ndarray (I, J, K)
-    affine : ndarray (4, 4)
+    data : ndarray, shape (I, J, K)
+        Voxel values (any non-negative unit).
+    affine : ndarray, shape (4, 4)
         Voxel index to world mm.
-    centre_mm : (3,)
+    centre_mm : ndarray, shape (3,)
+        Centre of the sphere, world mm.
     rel_threshold : float
         Fraction of the maximum above which a voxel belongs to the object.
 
     Returns
     -------
-    float, mm
+    float
+        Radius (mm): the farthest object voxel centre plus one voxel diagonal.
     """
     data = np.asarray(data)
     vmax = float(data.max()) if data.size else 0.0
@@ -354,9 +519,23 @@ def support_radius_mm(data: np.ndarray, affine: np.ndarray, centre_mm: np.ndarra
 
 # ------------------------------------------------------------------------------------ field of view
 def fov_outside_fraction(camera: Camera, Rs: np.ndarray, ts: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
-    """Per view, the fraction of ``points_mm`` (N, 3) that project outside the detector (or behind a cone source).
+    """Per view, the fraction of points that project outside the detector (or behind a cone-beam source).
 
-    Returns an array (V,) in [0, 1].
+    Parameters
+    ----------
+    camera : ParallelCamera or ConeCamera
+        The detector.
+    Rs : ndarray, shape (V, 3, 3)
+        World-to-camera rotations.
+    ts : ndarray, shape (V, 3)
+        World-to-camera translations (mm).
+    points_mm : ndarray, shape (N, 3)
+        World points (mm).
+
+    Returns
+    -------
+    ndarray, shape (V,)
+        Fractions in [0, 1].
     """
     out = np.empty(len(Rs))
     for i, (R, t) in enumerate(zip(Rs, ts, strict=True)):
@@ -372,8 +551,37 @@ def check_fov(camera: Camera, Rs: np.ndarray, ts: np.ndarray, data: np.ndarray, 
               threshold: float = 0.01, max_points: int = 20000, seed: int = 0) -> float:
     """Warn when the detector does not cover the object; return the worst view's outside fraction.
 
-    The object is the voxels with ``data > threshold * max(data)`` (all voxels if none), subsampled to
-    ``max_points`` voxel centres. The warning names the fraction of the object outside the field of view.
+    The object is the voxels with ``data > threshold * max(data)`` (all voxels if the maximum is not positive),
+    subsampled to ``max_points`` voxel centres.
+
+    Parameters
+    ----------
+    camera : ParallelCamera or ConeCamera
+        The detector.
+    Rs : ndarray, shape (V, 3, 3)
+        World-to-camera rotations.
+    ts : ndarray, shape (V, 3)
+        World-to-camera translations (mm).
+    data : ndarray, shape (I, J, K)
+        Volume values.
+    affine : ndarray, shape (4, 4)
+        Voxel index to world mm.
+    threshold : float
+        Fraction of the maximum above which a voxel belongs to the object.
+    max_points : int
+        Most voxel centres tested (a seeded random subset beyond that).
+    seed : int
+        Seeds the subset.
+
+    Returns
+    -------
+    float
+        The largest per-view fraction of object points outside the field of view, in [0, 1].
+
+    Warns
+    -----
+    UserWarning
+        When that fraction is positive, naming it and the number of views affected.
     """
     data = np.asarray(data)
     mask = data > threshold * float(data.max()) if data.max() > 0 else np.ones(data.shape, bool)

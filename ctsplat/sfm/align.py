@@ -10,6 +10,10 @@ References
 Umeyama, S. (1991). Least-squares estimation of transformation parameters between two point patterns. IEEE TPAMI
 13(4), 376-380.
 Fischler, M. A., Bolles, R. C. (1981). Random sample consensus. CACM 24(6), 381-395.
+Torr, P. H. S., Zisserman, A. (2000). MLESAC: a new robust estimator with application to estimating image
+geometry. Computer Vision and Image Understanding 78(1), 138-156. (The MSAC score of :func:`robust_sim3`.)
+Hartley, R., Trumpf, J., Dai, Y., Li, H. (2013). Rotation averaging. International Journal of Computer Vision
+103(3), 267-305. (The chordal L2 mean of the residual rotation in :func:`evaluate_poses`.)
 """
 
 from __future__ import annotations
@@ -24,8 +28,23 @@ __all__ = ["orbit_basis", "fuse_with_design", "umeyama", "robust_sim3", "rotatio
 
 
 def orbit_basis(azimuth_deg: np.ndarray, harmonics: int, full_circle: bool) -> np.ndarray:
-    """Smooth functions along the orbit, (V, 2 K + 1): Fourier ``1, cos kφ, sin kφ`` (k <= K) on a full circle,
-    else the cosine series ``cos(k π x)`` (k <= 2K) of the normalised arc position ``x in [0, 1]``."""
+    """Smooth functions along the orbit: a Fourier basis on a full circle, a cosine series on an arc.
+
+    Parameters
+    ----------
+    azimuth_deg : ndarray, shape (V,)
+        Designed azimuth of each view (degrees).
+    harmonics : int
+        ``K``: the number of harmonics.
+    full_circle : bool
+        True: ``1, cos kφ, sin kφ`` (``k = 1..K``) of the azimuth ``φ``. False: ``cos(k π x)`` (``k = 0..2K``) of
+        the normalised arc position ``x = (a - min a) / ptp(a)`` in [0, 1].
+
+    Returns
+    -------
+    ndarray, shape (V, 2 K + 1)
+        The basis functions as columns.
+    """
     a = np.asarray(azimuth_deg, float)
     if full_circle:
         phi = np.deg2rad(a)
@@ -51,7 +70,30 @@ def fuse_with_design(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: lis
     ``B`` (:func:`orbit_basis`, ``2 K + 1`` functions of the designed azimuth): ``ω' = ω - B B⁺ ω``,
     ``R' = exp(ω') R_design``, ``c' = c_design + δ - B B⁺ δ``. The global Sim(3) and any smooth bend
     are thereby taken from the design; what is left of the design's own per-view error is its projection on
-    ``B``, about ``sqrt((2K+1) / V)`` of it. Returns the fused poses (world->camera) in the design frame.
+    ``B``, about ``sqrt((2K+1) / V)`` of it.
+
+    Parameters
+    ----------
+    poses : dict of str to (ndarray, ndarray)
+        Image name -> SfM pose ``(R (3, 3), t (3,))`` world->camera, in the SfM frame.
+    names : list of str, length V
+        Image name of each designed view, in the order of the design arrays.
+    design_Rs : ndarray, shape (V, 3, 3)
+        Designed world->camera rotations.
+    design_ts : ndarray, shape (V, 3)
+        Designed world->camera translations (mm).
+    azimuth_deg : ndarray, shape (V,)
+        Designed azimuths (degrees).
+    harmonics : int
+        ``K`` of :func:`orbit_basis`.
+    full_circle : bool
+        Whether the orbit closes (360 degrees), see :func:`orbit_basis`.
+
+    Returns
+    -------
+    dict of str to (ndarray, ndarray)
+        The fused poses of the registered views (world->camera, design frame, mm). The input poses unchanged
+        (in their own frame) when fewer than ``max(3, 2K + 2)`` views are registered.
     """
     from scipy.spatial.transform import Rotation
 
@@ -82,11 +124,31 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[
 
     Parameters
     ----------
-    src, dst : ndarray (N, 3), N >= 3 (not all collinear)
+    src, dst : ndarray, shape (N, 3)
+        Corresponding points, ``N >= 3``, not all collinear.
+    with_scale : bool
+        Estimate ``s``; False fixes ``s = 1`` (a rigid motion).
 
     Returns
     -------
-    s : float, R : ndarray (3, 3), t : ndarray (3,)
+    s : float
+        Scale (1 without ``with_scale`` or for coincident ``src`` points).
+    R : ndarray, shape (3, 3)
+        Rotation (det +1).
+    t : ndarray, shape (3,)
+        Translation, units of ``dst``.
+
+    Raises
+    ------
+    CtsplatError
+        For point sets of different shapes, not (N, 3), or with fewer than 3 points.
+
+    Examples
+    --------
+    >>> src = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    >>> s, R, t = umeyama(src, 2.0 * src + [1.0, 2.0, 3.0])
+    >>> round(s, 6), np.allclose(R, np.eye(3)), t.round(6)
+    (2.0, True, array([1., 2., 3.]))
     """
     src = np.asarray(src, float)
     dst = np.asarray(dst, float)
@@ -108,10 +170,38 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[
 
 def robust_sim3(src: np.ndarray, dst: np.ndarray, threshold: float, *, iterations: int = 500,
                 seed: int = 0) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """RANSAC Sim(3) (minimal 3-point Umeyama samples), refit on the largest inlier set.
+    """RANSAC Sim(3) from minimal 3-point Umeyama samples, refit on the largest inlier set.
 
-    Inliers: ``|s R src_i + t - dst_i| <= threshold`` (units of ``dst``). Deterministic for a ``seed``.
-    Returns ``(s, R, t, inlier mask (N,))``. With fewer than 3 points raises ``CtsplatError``.
+    Inliers: ``|s R src_i + t - dst_i| <= threshold`` (units of ``dst``). Ties in the inlier count are broken by
+    the MSAC score ``Σ min(err_i, threshold)``. The winner is refit on its inliers and the inliers re-selected,
+    up to three times. When no sample reaches 3 inliers, all points are used. Deterministic for a ``seed``.
+
+    Parameters
+    ----------
+    src, dst : ndarray, shape (N, 3)
+        Corresponding points (e.g. SfM camera centres and true ones, mm).
+    threshold : float
+        Inlier distance, units of ``dst``.
+    iterations : int
+        RANSAC samples (one when ``N == 3``).
+    seed : int
+        Seeds the samples.
+
+    Returns
+    -------
+    s : float
+        Scale.
+    R : ndarray, shape (3, 3)
+        Rotation.
+    t : ndarray, shape (3,)
+        Translation, units of ``dst``.
+    inliers : ndarray of bool, shape (N,)
+        The inlier set of the final fit.
+
+    Raises
+    ------
+    CtsplatError
+        With fewer than 3 points.
     """
     src = np.asarray(src, float)
     dst = np.asarray(dst, float)
@@ -146,7 +236,24 @@ def robust_sim3(src: np.ndarray, dst: np.ndarray, threshold: float, *, iteration
 
 
 def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
-    """Geodesic angle (degrees) between rotations: ``arccos((tr(R_aᵀ R_b) - 1) / 2)``; batched over (..., 3, 3)."""
+    """Geodesic angle between rotations: ``arccos((tr(R_aᵀ R_b) - 1) / 2)``.
+
+    Parameters
+    ----------
+    R_a, R_b : ndarray, shape (..., 3, 3)
+        Rotation matrices (broadcast against each other).
+
+    Returns
+    -------
+    ndarray, shape (...)
+        Angles in degrees, in [0, 180].
+
+    Examples
+    --------
+    >>> from scipy.spatial.transform import Rotation
+    >>> round(float(rotation_error_deg(np.eye(3), Rotation.from_euler("z", 30, degrees=True).as_matrix())), 6)
+    30.0
+    """
     Ra = np.asarray(R_a, float)
     Rb = np.asarray(R_b, float)
     tr = np.einsum("...ji,...ji->...", Ra, Rb)
@@ -162,8 +269,38 @@ def evaluate_poses(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: list[
     ``R_w = R R_gᵀ``, ``c_w = s R_g c + t_g`` (world mm). Per view: rotation error
     ``∠(R_w, R_true)`` (deg), centre error ``|c_w - c_true|`` (mm).
 
-    Returns ``(rows, alignment)``; rows have ``view, name, registered, rot_err_deg, centre_err_mm,
-    R (aligned), t (aligned)`` (NaN / None when not registered); alignment has ``s, R, t, inliers``.
+    A second rotation error, ``rot_err_rotalign_deg``, also removes the residual global rotation ``Δ`` (the
+    chordal L2 mean of ``R_w_i R_true_iᵀ``, projected onto SO(3)): a centre-only Sim(3) can leave the recovered
+    orbit tilted as a whole when the camera distances are poorly determined (weak perspective), and this number
+    separates that tilt from per-view noise.
+
+    Parameters
+    ----------
+    poses : dict of str to (ndarray, ndarray)
+        Image name -> recovered pose ``(R (3, 3), t (3,))`` world->camera, SfM frame; missing names are
+        unregistered views.
+    names : list of str, length V
+        Image name of each view, in the order of the true poses.
+    Rs_true : ndarray, shape (V, 3, 3)
+        True world->camera rotations.
+    ts_true : ndarray, shape (V, 3)
+        True world->camera translations (mm).
+    threshold_mm : float
+        RANSAC inlier distance of the centre alignment (mm).
+    iterations : int
+        RANSAC samples.
+    seed : int
+        Seeds RANSAC.
+
+    Returns
+    -------
+    rows : list of dict, length V
+        Per view: ``view`` (row), ``name``, ``registered``, ``rot_err_deg``, ``rot_err_rotalign_deg``,
+        ``centre_err_mm``, ``R`` (3, 3) and ``t`` (3,) (aligned, world frame, mm); NaN / None when not
+        registered or with fewer than 3 registered views.
+    alignment : dict
+        ``ok`` and, when ok, ``scale``, ``R`` (3, 3), ``t`` (3,) mm, ``n_inliers``, ``n_used`` and
+        ``residual_rotation_deg`` (the angle of ``Δ``).
     """
     V = len(names)
     centres_true = np.einsum("vji,vj->vi", Rs_true, -np.asarray(ts_true, float))  # c = -Rᵀ t
@@ -188,7 +325,7 @@ def evaluate_poses(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: list[
         rows.append(row)
     assert len(rows) == V
     # residual global rotation: Δ = argmin_Δ Σ ||Δ R_true_i - R_w_i||_F (chordal mean, SVD projection onto SO(3))
-    # over the alignment inliers; "rot_err_rotalign_deg" = ∠(R_w_i, Δ R_true_i). Under weak perspective the
+    # over the aligned views; "rot_err_rotalign_deg" = ∠(R_w_i, Δ R_true_i). Under weak perspective the
     # camera distances (hence the centres) are poorly determined, so a centre-only Sim(3) can leave the whole
     # recovered orbit tilted by a few degrees; this second number separates that tilt from per-view noise.
     for r in rows:

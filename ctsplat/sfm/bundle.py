@@ -24,6 +24,12 @@ are eliminated per point (3×3 blocks, Schur complement), leaving a dense ``(nc 
 
 pycolmap's bundle adjusters refine six-DoF poses (position priors only), so this one is hand-written;
 :func:`reprojection_jacobians` is checked against finite differences in the tests.
+
+References
+----------
+Triggs, B., McLauchlan, P. F., Hartley, R. I., Fitzgibbon, A. W. (2000). Bundle adjustment — a modern synthesis.
+In Vision Algorithms: Theory and Practice, LNCS 1883, 298-372. Springer. (Levenberg-Marquardt on the normal
+equations, Schur complement of the points, robust (Cauchy) costs by iterative reweighting.)
 """
 
 from __future__ import annotations
@@ -41,23 +47,59 @@ __all__ = ["IsocentricResult", "isocentre_from_poses", "isocentric_poses", "repr
 
 @dataclass
 class IsocentricResult:
-    """Output of :func:`isocentric_bundle_adjustment` (world -> camera, OpenCV/COLMAP convention)."""
+    """Output of :func:`isocentric_bundle_adjustment` (world -> camera, OpenCV/COLMAP convention).
 
-    Rs: np.ndarray  # (V, 3, 3)
-    ts: np.ndarray  # (V, 3) mm
-    points: np.ndarray  # (N, 3) world mm
-    offsets_mm: np.ndarray  # (V, 3) isocentre offsets s (camera frame); zeros for the rigid model
+    Parameters
+    ----------
+    Rs : ndarray, shape (V, 3, 3)
+        Adjusted world->camera rotations.
+    ts : ndarray, shape (V, 3)
+        The matching translations ``-R iso + (0, 0, DSO) + s`` (mm).
+    points : ndarray, shape (N, 3)
+        Adjusted points (world mm).
+    offsets_mm : ndarray, shape (V, 3)
+        Isocentre offsets ``s`` (camera frame, mm); zeros for the rigid model.
+    iterations : int
+        Levenberg-Marquardt iterations run.
+    cost_initial, cost_final : float
+        The energy ``E`` (px², plus the prior terms) before and after.
+    reproj_err_px_median : float
+        Median reprojection error (px) over the observations in front of their camera.
+    """
+
+    Rs: np.ndarray
+    ts: np.ndarray
+    points: np.ndarray
+    offsets_mm: np.ndarray
     iterations: int
     cost_initial: float
     cost_final: float
-    reproj_err_px_median: float  # over observations in front of their camera
+    reproj_err_px_median: float
 
 
 def isocentre_from_poses(Rs: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, float]:
     """The point nearest to every principal ray (least squares) and the median camera distance to it.
 
     For a designed orbit whose cameras look at the isocentre this returns ``(iso, DSO)`` exactly.
-    ``Rs`` (V, 3, 3), ``ts`` (V, 3) world->camera; needs two non-parallel principal rays.
+
+    Parameters
+    ----------
+    Rs : ndarray, shape (V, 3, 3)
+        World->camera rotations.
+    ts : ndarray, shape (V, 3)
+        World->camera translations (mm).
+
+    Returns
+    -------
+    iso : ndarray, shape (3,)
+        Minimiser of the summed squared distances to the principal rays (world mm).
+    dso_mm : float
+        Median distance of the camera centres from ``iso`` (mm).
+
+    Raises
+    ------
+    CtsplatError
+        When the principal rays are (nearly) parallel, so no point is nearest to all of them.
     """
     Rs, ts = np.asarray(Rs, float), np.asarray(ts, float)
     centres = np.einsum("vji,vj->vi", Rs, -ts)
@@ -72,7 +114,24 @@ def isocentre_from_poses(Rs: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, fl
 
 def isocentric_poses(Rs: np.ndarray, iso: np.ndarray, dso_mm: float, offsets_mm: np.ndarray | None = None
                      ) -> np.ndarray:
-    """Translations ``t_i = -R_i iso + (0, 0, DSO) + s_i`` (V, 3) of isocentric cameras with rotations ``Rs``."""
+    """Translations ``t_i = -R_i iso + (0, 0, DSO) + s_i`` of isocentric cameras with rotations ``Rs``.
+
+    Parameters
+    ----------
+    Rs : ndarray, shape (V, 3, 3)
+        World->camera rotations.
+    iso : ndarray, shape (3,)
+        Isocentre (world mm).
+    dso_mm : float
+        Source-to-isocentre distance (mm).
+    offsets_mm : ndarray, shape (V, 3), optional
+        Isocentre offsets ``s_i`` (camera frame, mm); default none.
+
+    Returns
+    -------
+    ndarray, shape (V, 3)
+        World->camera translations (mm).
+    """
     t = -np.einsum("vij,j->vi", np.asarray(Rs, float), np.asarray(iso, float)) + np.array([0.0, 0.0, dso_mm])
     return t if offsets_mm is None else t + offsets_mm
 
@@ -90,13 +149,37 @@ def reprojection_jacobians(Rs: np.ndarray, points: np.ndarray, offsets_mm: np.nd
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Reprojection residuals of isocentric cameras and their Jacobians, per observation.
 
+    Parameters
+    ----------
+    Rs : ndarray, shape (V, 3, 3)
+        World->camera rotations.
+    points : ndarray, shape (N, 3)
+        Points (world mm).
+    offsets_mm : ndarray, shape (V, 3)
+        Isocentre offsets ``s`` (camera frame, mm).
+    obs_view, obs_point : ndarray of int, shape (M,)
+        View and point of each observation.
+    obs_xy : ndarray, shape (M, 2)
+        Observed keypoints (px).
+    intrinsics : tuple of float
+        ``(fx, fy, cx, cy)`` in px.
+    iso : ndarray, shape (3,)
+        Isocentre (world mm).
+    dso_mm : float
+        Source-to-isocentre distance (mm).
+
     Returns
     -------
-    r : (M, 2) px, ``π(x_cam) - x_obs``
-    J_rot : (M, 2, 3) w.r.t. the left rotation increment δ (``R ← exp([δ]×) R``)
-    J_off : (M, 2, 3) w.r.t. the view's isocentre offset ``s`` (mm)
-    J_pt : (M, 2, 3) w.r.t. the point (world mm)
-    depth : (M,) mm, camera-frame z of each observation
+    r : ndarray, shape (M, 2)
+        Residuals ``π(x_cam) - x_obs`` (px).
+    J_rot : ndarray, shape (M, 2, 3)
+        Jacobian w.r.t. the left rotation increment δ (``R ← exp([δ]×) R``), px per radian.
+    J_off : ndarray, shape (M, 2, 3)
+        Jacobian w.r.t. the view's isocentre offset ``s``, px per mm.
+    J_pt : ndarray, shape (M, 2, 3)
+        Jacobian w.r.t. the point, px per mm.
+    depth : ndarray, shape (M,)
+        Camera-frame ``z`` of each observation (mm); residuals use ``1e-9`` where ``|z| <= 1e-9``.
     """
     fx, fy, cx, cy = intrinsics
     Y = np.einsum("mij,mj->mi", Rs[obs_view], points[obs_point] - iso)
@@ -141,22 +224,45 @@ def isocentric_bundle_adjustment(Rs_init: np.ndarray, points_init: np.ndarray, o
 
     Parameters
     ----------
-    Rs_init : (V, 3, 3) initial rotations (world -> camera); the initial translations follow from them
-    points_init : (N, 3) world mm
-    obs_view, obs_point : (M,) int, the view and point of each observation (each point seen at least twice)
-    obs_xy : (M, 2) px, observed keypoints (COLMAP pixel convention: pixel centres at +0.5)
-    intrinsics : (fx, fy, cx, cy) px, held fixed
-    iso : (3,) world mm; dso_mm : source-isocentre distance (mm)
-    design_Rs, design_sigma_deg : optional Gaussian prior ``σ_d`` (deg, per axis) on each view's rotation
-        about its designed one; without it the solution is defined up to a rotation about ``iso`` (gauge)
-    isocentre_sigma_mm : 0 for the rigid model; > 0 frees a per-view offset with this prior std (mm)
-    loss_scale_px : Cauchy scale (px) of the reprojection loss
-    max_iterations, tolerance : LM stops after this many accepted steps or at a relative cost decrease below
-        ``tolerance``
+    Rs_init : ndarray, shape (V, 3, 3)
+        Initial rotations (world -> camera); the initial translations follow from them.
+    points_init : ndarray, shape (N, 3)
+        Initial points (world mm).
+    obs_view, obs_point : ndarray of int, shape (M,)
+        The view and point of each observation (each point seen at least twice).
+    obs_xy : ndarray, shape (M, 2)
+        Observed keypoints (px; COLMAP pixel convention: pixel centres at +0.5).
+    intrinsics : tuple of float
+        ``(fx, fy, cx, cy)`` in px, held fixed.
+    iso : ndarray, shape (3,)
+        Isocentre (world mm).
+    dso_mm : float
+        Source-to-isocentre distance (mm), positive.
+    design_Rs : ndarray, shape (V, 3, 3), optional
+        Designed rotations, the centre of the rotation prior. Without ``design_Rs`` and ``design_sigma_deg`` the
+        solution is defined up to a rotation about ``iso`` (gauge).
+    design_sigma_deg : float, optional
+        Prior standard deviation ``σ_d`` (degrees, per axis) of each view's rotation about its designed one.
+    isocentre_sigma_mm : float
+        0 for the rigid model; > 0 frees a per-view offset with this prior standard deviation (mm).
+    loss_scale_px : float
+        Cauchy scale ``c`` (px) of the reprojection loss, positive.
+    max_iterations : int
+        Most Levenberg-Marquardt iterations.
+    tolerance : float
+        Stop when an accepted step decreases the cost by less than this fraction.
 
     Returns
     -------
     IsocentricResult
+        Adjusted poses, points and offsets with the costs and the median reprojection error.
+
+    Raises
+    ------
+    CtsplatError
+        For arrays of inconsistent shapes, observations that index missing views or points (or none), a point
+        seen fewer than twice, a non-positive ``loss_scale_px`` or ``dso_mm``, a negative ``isocentre_sigma_mm``,
+        or a ``design_Rs`` of the wrong shape or non-positive ``design_sigma_deg``.
     """
     Rs = np.array(Rs_init, float)
     X = np.array(points_init, float)

@@ -5,8 +5,13 @@ pycolmap is imported here and nowhere else in ctsplat.
 
 References
 ----------
-Schönberger, J. L., Frahm, J.-M. (2016). Structure-from-motion revisited. CVPR.
+Schönberger, J. L., Frahm, J.-M. (2016). Structure-from-motion revisited. CVPR. (COLMAP's incremental mapper.)
 Pan, L., Baráth, D., Pollefeys, M., Schönberger, J. L. (2024). Global structure-from-motion revisited. ECCV.
+(The global mapper.)
+Lowe, D. G. (2004). Distinctive image features from scale-invariant keypoints. International Journal of Computer
+Vision 60(2), 91-110. (SIFT features and the ratio test.)
+Triggs, B., McLauchlan, P. F., Hartley, R. I., Fitzgibbon, A. W. (2000). Bundle adjustment — a modern synthesis.
+In Vision Algorithms: Theory and Practice, LNCS 1883, 298-372. Springer.
 """
 
 from __future__ import annotations
@@ -107,16 +112,47 @@ def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics
                        work_dir: str | Path, config: dict[str, Any], prior_centres: np.ndarray | None = None,
                        prior_poses: tuple[np.ndarray, np.ndarray] | None = None, mask_dir: str | Path | None = None
                        ) -> tuple[dict[int, Any], dict[str, Any]]:
-    """Run pycolmap on ``image_names`` (all one PINHOLE camera with fixed ``(fx, fy, cx, cy)`` in px).
+    """Run pycolmap on ``image_names``: SIFT extraction, matching, then mapping (:func:`colmap_map`).
 
-    ``prior_centres`` (V, 3) mm, in the order of ``image_names``: camera-centre priors (the designed orbit)
-    written to the database as Cartesian pose priors with covariance ``prior_sigma_mm² I``; the incremental
-    mapper then uses them (``use_prior_position``, robust loss) and returns models in the prior frame.
-    ``prior_poses`` ``(Rs (V,3,3), ts (V,3))``: designed poses; instead of a mapper, the verified matches are
-    triangulated from them and all poses and points are bundle-adjusted (:func:`_refine_from_design`).
+    All images share one PINHOLE camera with fixed intrinsics. Matching is exhaustive, or sequential with
+    ``sequential_overlap`` neighbours (plus loop-closure pairs across the ends of a 360-degree orbit). The
+    COLMAP database is (re)created as ``work_dir/database.db``, the models under ``work_dir/models``.
 
-    Returns ``(models, stats)``: pycolmap reconstructions keyed by model index and statistics
-    (features per image, verified pairs, seconds per stage).
+    Parameters
+    ----------
+    image_dir : str or Path
+        Folder holding the images.
+    image_names : list of str, length V
+        File names (COLMAP image names) to use, in orbit order.
+    intrinsics : tuple of float
+        ``(fx, fy, cx, cy)`` in px, held fixed.
+    work_dir : str or Path
+        Scratch folder (created).
+    config : dict
+        The ``sfm`` section (:data:`ctsplat.sfm.step.SFM_DEFAULTS`) plus the private ``_seed`` and ``_arc_deg``.
+    prior_centres : ndarray, shape (V, 3), optional
+        Designed camera centres (world mm), in the order of ``image_names``. With ``pose_prior: position`` they
+        are written to the database as Cartesian position priors with covariance ``prior_sigma_mm² I``; the
+        incremental mapper then uses them (``use_prior_position``, robust loss) and returns models in the prior
+        frame.
+    prior_poses : tuple of ndarray, optional
+        Designed poses ``(Rs (V, 3, 3), ts (V, 3) mm)``: instead of a mapper, the verified matches are
+        triangulated from them and all poses and points are bundle-adjusted (the ``pose_prior`` refine modes).
+    mask_dir : str or Path, optional
+        Feature masks, ``<mask_dir>/<image name>.png``; features on 0 pixels are dropped.
+
+    Returns
+    -------
+    models : dict of int to pycolmap.Reconstruction
+        Reconstructions keyed by model index (empty when mapping failed).
+    stats : dict
+        Verified and matched pairs, median features per image, seconds per stage, and for ``isocentric`` the
+        isocentric adjustment's report.
+
+    Raises
+    ------
+    CtsplatError
+        For an unknown ``matching`` or ``mapper``.
     """
     cfg = config
     work_dir = Path(work_dir)
@@ -168,7 +204,36 @@ def colmap_map(db_path: str | Path, image_dir: str | Path, work_dir: str | Path,
     """The mapping stage of :func:`colmap_reconstruct` on a database that already holds verified matches.
 
     Separate so that exact (synthetic) correspondences can be fed through the very same mapping path.
-    Returns ``(models, stats)`` (verified pairs, median features per image, mapping seconds).
+
+    Parameters
+    ----------
+    db_path : str or Path
+        COLMAP database with images, keypoints and verified matches.
+    image_dir : str or Path
+        Folder holding the images.
+    work_dir : str or Path
+        Scratch folder; ``work_dir/models`` is replaced.
+    image_names : list of str, length V
+        Image names, in the order of ``prior_centres`` / ``prior_poses``.
+    config : dict
+        The ``sfm`` section (see :func:`colmap_reconstruct`).
+    prior_centres : ndarray, shape (V, 3), optional
+        Designed camera centres (world mm) for ``pose_prior: position`` (already written to the database).
+    prior_poses : tuple of ndarray, optional
+        Designed poses ``(Rs (V, 3, 3), ts (V, 3) mm)``: triangulate and refine instead of mapping.
+
+    Returns
+    -------
+    models : dict of int to pycolmap.Reconstruction
+        Reconstructions keyed by model index.
+    stats : dict
+        ``verified_pairs``, ``matched_pairs``, ``features_median``, ``seconds_mapping`` and, for
+        ``isocentric``, the isocentric adjustment's report.
+
+    Raises
+    ------
+    CtsplatError
+        For an unknown ``mapper``.
     """
     cfg = config
     db_path, work_dir = Path(db_path), Path(work_dir)
@@ -241,9 +306,25 @@ def isocentric_adjust(rec: Any, design: dict[str, tuple[np.ndarray, np.ndarray]]
                        ) -> dict[str, Any]:
     """Isocentric bundle adjustment (:mod:`ctsplat.sfm.bundle`) of a model's registered views and points, in place.
 
-    The isocentre and DSO come from the designed poses (``design``: image name -> (R, t)); the rotations start
-    from the model's, every view keeps the prior ``N(0, design_sigma_deg²)`` on its deviation from the design.
-    Returns what was done (views, points, observations, iterations, reprojection error, offsets).
+    The isocentre and DSO come from the designed poses (:func:`ctsplat.sfm.bundle.isocentre_from_poses`); the
+    rotations start from the model's, every view keeps the prior ``N(0, design_sigma_deg²)`` on its deviation
+    from the design. Only points seen by at least two designed views take part; the model's poses and those
+    points are overwritten with the result.
+
+    Parameters
+    ----------
+    rec : pycolmap.Reconstruction
+        The model, changed in place.
+    design : dict of str to (ndarray, ndarray)
+        Image name -> designed pose ``(R (3, 3), t (3,) mm)`` world->camera.
+    cfg : dict
+        The ``sfm`` section: ``design_sigma_deg``, ``isocentre_sigma_mm``, ``isocentric_loss_px``.
+
+    Returns
+    -------
+    dict
+        ``views``, ``points`` and, when there were points, ``observations``, ``iterations``,
+        ``reproj_err_px_median`` (px), ``isocentre_mm`` (3,), ``dso_mm`` and ``offset_mm_rms`` (mm).
     """
     from ctsplat.sfm.bundle import isocentre_from_poses, isocentric_bundle_adjustment
 
@@ -345,7 +426,17 @@ def reverse_depth(rec: Any) -> Any:
     image explain the same feature positions: with the reflection ``M = diag(1, 1, -1)`` (world) and
     ``D = diag(1, 1, -1)`` (camera), ``R' = D R M`` and ``X' = M X`` give ``(R' X')_{xy} = (R X)_{xy}``.
     Each camera keeps its distance ``d`` to the points' centroid ``O``: ``c' = M O - d · z'`` (``z'`` the
-    third row of ``R'``). Returns ``rec``.
+    third row of ``R'``).
+
+    Parameters
+    ----------
+    rec : pycolmap.Reconstruction
+        The model, changed in place (poses and points).
+
+    Returns
+    -------
+    pycolmap.Reconstruction
+        ``rec``.
     """
     M = np.diag([1.0, 1.0, -1.0])
     xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
@@ -381,7 +472,27 @@ def fix_reversal(models: dict[int, Any], design: dict[str, tuple[np.ndarray, np.
     """For each model, keep it or its bundle-adjusted depth-reversed twin, whichever fits the design better.
 
     The designed orbit only arbitrates between the two discrete SfM solutions (median rotation error after
-    Sim(3) alignment); poses are not pulled towards it. Returns one report entry per model.
+    Sim(3) alignment); poses are not pulled towards it. Models with fewer than 3 registered images are skipped.
+
+    Parameters
+    ----------
+    models : dict of int to pycolmap.Reconstruction
+        The models; a reversed twin that fits better replaces its model in place in this dict.
+    design : dict of str to (ndarray, ndarray)
+        Image name -> designed pose ``(R (3, 3), t (3,) mm)`` world->camera.
+    cfg : dict
+        The ``sfm`` section (bundle adjustment and triangulation options).
+    threshold : float
+        RANSAC inlier distance (mm) of the alignment to the design.
+    work : tuple of Path, optional
+        ``(database, image folder, scratch folder)``: re-triangulate the matches in the twin's frame before
+        scoring it.
+
+    Returns
+    -------
+    list of dict
+        One entry per model checked: ``model``, ``images``, ``design_rot_err_deg``,
+        ``reversed_design_rot_err_deg`` (degrees) and ``reversed``.
     """
     report = []
     for k, rec in list(models.items()):
@@ -446,7 +557,18 @@ def _match_loop_closure(db_path: Path, image_names: list[str], overlap: int, mat
 
 
 def model_poses(rec: Any) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Image name -> (R (3,3), t (3,)) world->camera of the registered images of a pycolmap model."""
+    """The world->camera poses of the registered images of a pycolmap model.
+
+    Parameters
+    ----------
+    rec : pycolmap.Reconstruction
+        The model.
+
+    Returns
+    -------
+    dict of str to (ndarray, ndarray)
+        Image name -> ``(R (3, 3), t (3,))``, in the model's frame and units.
+    """
     out = {}
     for img in rec.images.values():
         if not img.has_pose:
@@ -461,9 +583,26 @@ def merge_models(models: dict[int, Any], min_shared: int = 3) -> tuple[Any, dict
     """Keep the largest model and merge into its frame every other model sharing ``>= min_shared`` images.
 
     The smaller model is mapped into the largest one's frame with the Sim(3) (Umeyama) aligning the centres
-    of the shared images; its extra images' poses are added (``R' = R S_R^T``, ``c' = s S_R c + S_t``).
-    Returns ``(largest pycolmap model, merged poses {name: (R, t)}, report)``; the COLMAP model itself
-    stays the largest one (points of merged models are not transferred).
+    of the shared images; its extra images' poses are added (``R' = R S_R^T``, ``c' = s S_R c + S_t``). A model
+    whose shared centres disagree after the alignment (median residual above 5 % of their mean spread) is not
+    merged. Merging repeats until no further model can be added.
+
+    Parameters
+    ----------
+    models : dict of int to pycolmap.Reconstruction
+        The models of one mapping run.
+    min_shared : int
+        Fewest images a model must share with the merged set to be merged.
+
+    Returns
+    -------
+    model : pycolmap.Reconstruction or None
+        The largest model, unchanged (points of merged models are not transferred); None without models.
+    poses : dict of str to (ndarray, ndarray)
+        Image name -> ``(R (3, 3), t (3,))`` world->camera in the largest model's frame, merged images included.
+    report : dict
+        ``models_found``, ``model_sizes`` (registered images, largest first) and ``merged`` (one entry per
+        merged model: ``model_size``, ``shared``, ``added``).
     """
     if not models:
         return None, {}, {"models_found": 0, "model_sizes": [], "merged": []}
@@ -506,7 +645,28 @@ def merge_models(models: dict[int, Any], min_shared: int = 3) -> tuple[Any, dict
 
 def set_poses_and_triangulate(rec: Any, poses: dict[str, tuple[np.ndarray, np.ndarray]], db_path: Path,
                                image_dir: Path, out: Path, cfg: dict[str, Any]) -> Any:
-    """Set the model's registered images to ``poses`` (world->camera) and re-triangulate all points from them."""
+    """Set the model's registered images to ``poses`` and re-triangulate all points from them.
+
+    Parameters
+    ----------
+    rec : pycolmap.Reconstruction
+        The model; poses of its registered images named in ``poses`` are overwritten.
+    poses : dict of str to (ndarray, ndarray)
+        Image name -> ``(R (3, 3), t (3,))`` world->camera.
+    db_path : Path
+        The COLMAP database with the verified matches.
+    image_dir : Path
+        Folder holding the images.
+    out : Path
+        Scratch folder for the triangulation (created).
+    cfg : dict
+        The ``sfm`` section (triangulation options).
+
+    Returns
+    -------
+    pycolmap.Reconstruction
+        The model with the new poses and freshly triangulated points.
+    """
     for img in rec.images.values():
         if img.has_pose and img.name in poses:
             R, t = poses[img.name]
@@ -517,7 +677,18 @@ def set_poses_and_triangulate(rec: Any, poses: dict[str, tuple[np.ndarray, np.nd
 
 
 def per_image_reproj(rec: Any) -> dict[str, float]:
-    """Mean reprojection error (px) of each registered image's observations in a pycolmap model."""
+    """Mean reprojection error of each registered image's observations in a pycolmap model.
+
+    Parameters
+    ----------
+    rec : pycolmap.Reconstruction
+        The model.
+
+    Returns
+    -------
+    dict of str to float
+        Image name -> mean error (px) over its observations that project; images without any are absent.
+    """
     errs: dict[str, list[float]] = {}
     for p in rec.points3D.values():
         for el in p.track.elements:
@@ -530,7 +701,18 @@ def per_image_reproj(rec: Any) -> dict[str, float]:
 
 
 def write_model(rec: Any, out_dir: Path) -> None:
-    """COLMAP model as binary (``out_dir``) and text (``out_dir/text``), replaced atomically."""
+    """Write a COLMAP model as binary (``out_dir``) and text (``out_dir/text``), replacing ``out_dir``.
+
+    The model is written to a temporary sibling folder, which then replaces ``out_dir``; when writing fails the
+    temporary folder is removed and ``out_dir`` is left as it was.
+
+    Parameters
+    ----------
+    rec : pycolmap.Reconstruction
+        The model.
+    out_dir : Path
+        Target folder (e.g. ``sparse/0``).
+    """
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".sparse.", dir=out_dir.parent))
     try:

@@ -27,12 +27,24 @@ def enhance_for_features(images: np.ndarray, *, clip: float = 0.01, kernel_frac:
 
     Parameters
     ----------
-    images : ndarray (V, H, W) or (H, W), float
-        Line integrals ``p`` (or any intensity); higher = more attenuation (shown bright, like bone).
+    images : ndarray, shape (V, H, W) or (H, W), float
+        Line integrals ``p`` (or any intensity), finite; higher = more attenuation (shown bright, like bone).
+    clip : float
+        CLAHE clip limit (``equalize_adapthist``'s ``clip_limit``, normalised to [0, 1]).
+    kernel_frac : float
+        CLAHE tile size as a fraction of ``max(H, W)`` (at least 8 px).
+    p_low, p_high : float
+        Percentiles (0-100) of the intensity window, over the object's pixels.
+    highpass_frac : float
+        High-pass Gaussian σ as a fraction of ``max(H, W)``; 0 disables the high-pass.
+    lowpass_px : float
+        Pre-blur Gaussian σ (px); 0 disables it.
+    background_frac : float
+        Pixels with ``p <= background_frac · max(p)`` are air; 0 treats every pixel as object.
 
     Returns
     -------
-    ndarray (V, H, W) uint8
+    ndarray, shape (V, H, W), uint8
         ``round(255 · CLAHE(clip((q - P_low(q)) / (P_high(q) - P_low(q)), 0, 1)))`` per view
         (``skimage.exposure.equalize_adapthist`` with ``kernel_size = kernel_frac · max(H, W)``), where
         ``q = p - G_σ * p`` with a Gaussian of ``σ = highpass_frac · max(H, W)`` px when ``highpass_frac > 0``
@@ -42,6 +54,11 @@ def enhance_for_features(images: np.ndarray, *, clip: float = 0.01, kernel_frac:
         Pixels with ``p <= background_frac · max(p)`` (rays through air, when ``background_frac > 0``) are set
         to 0 after the enhancement and excluded from the window: CLAHE would turn their flat noise into
         features fixed in image space, which pull every camera towards "not moving".
+
+    Raises
+    ------
+    CtsplatError
+        For images that are not (V, H, W) or (H, W), or hold non-finite values.
     """
     from scipy.ndimage import gaussian_filter
     from skimage.exposure import equalize_adapthist
@@ -68,12 +85,25 @@ def enhance_for_features(images: np.ndarray, *, clip: float = 0.01, kernel_frac:
 
 
 def feature_masks(images: np.ndarray, background_frac: float, margin_px: float) -> np.ndarray:
-    """Where SIFT features may be kept: the object's support eroded by ``margin_px`` pixels (uint8 0/255).
+    """Where SIFT features may be kept: the object's support eroded by ``margin_px`` pixels.
 
     The support of a view is ``p > background_frac · max(p)``. Its outer boundary (the silhouette) and the
     tangent rays just inside it give features that slide over the object's surface as the view turns; they
     are not projections of fixed 3D points and bias bundle adjustment, so they are masked out.
-    Returns (V, H, W) uint8 (255 = keep); all 255 when ``margin_px <= 0``.
+
+    Parameters
+    ----------
+    images : ndarray, shape (V, H, W) or (H, W)
+        Line integrals ``p``.
+    background_frac : float
+        Support threshold as a fraction of each view's maximum.
+    margin_px : float
+        Erosion distance (px): pixels closer than this to the background (or the image border) are dropped.
+
+    Returns
+    -------
+    ndarray, shape (V, H, W), uint8
+        255 where features are kept, 0 elsewhere (COLMAP mask convention); all 255 when ``margin_px <= 0``.
     """
     from scipy.ndimage import distance_transform_edt
 
@@ -92,9 +122,23 @@ def feature_masks(images: np.ndarray, background_frac: float, margin_px: float) 
 
 def write_pngs(images: np.ndarray, out_dir: str | Path, prefix: str = "view", ids: np.ndarray | None = None
                ) -> list[str]:
-    """Write uint8 images (V, H, W) as ``{prefix}_{id:04d}.png`` (ids default to 0..V-1) into a fresh ``out_dir``.
+    """Write 8-bit images as ``{prefix}_{id:04d}.png`` into a fresh ``out_dir``.
 
-    Returns the file names (COLMAP image names), in the images' order.
+    Parameters
+    ----------
+    images : ndarray, shape (V, H, W), uint8
+        The images.
+    out_dir : str or Path
+        Output folder, replaced whole (written under a temporary name, then renamed).
+    prefix : str
+        File name prefix.
+    ids : ndarray of int, shape (V,), optional
+        Number in each file name; default ``0 .. V-1``.
+
+    Returns
+    -------
+    list of str, length V
+        The file names (COLMAP image names), in the images' order.
     """
     ids = np.arange(len(images)) if ids is None else np.asarray(ids, int)
     names = [f"{prefix}_{int(i):04d}.png" for i in ids]

@@ -22,6 +22,10 @@ depth-reversed (Necker) twin. The design prior and the rigid C-arm model remove 
 
 Conventions (``docs/conventions.md``): world mm, ``x_cam = R x_world + t`` (OpenCV / COLMAP), cone-beam pinhole
 intrinsics ``fx = fy = DSD / pitch``, ``cx = W/2``, ``cy = H/2``.
+
+References
+----------
+Schönberger, J. L., Frahm, J.-M. (2016). Structure-from-motion revisited. CVPR.
 """
 
 from __future__ import annotations
@@ -85,7 +89,7 @@ SFM_DEFAULTS: dict[str, Any] = {
     "sift_first_octave": -1,  # -1: the image is upsampled once (finest DoG scales)
     "sift_num_octaves": 4,  # fewer octaves keep only small-scale (more point-like) features
     "sift_domain_size_pooling": False,  # DSP-SIFT descriptors
-    "matching": "exhaustive",  # exhaustive | sequential | spatial
+    "matching": "exhaustive",  # exhaustive | sequential
     "sequential_overlap": 12,  # neighbours matched in `sequential` (cyclic: the orbit closes)
     "max_ratio": 0.8,
     "max_distance": 0.7,
@@ -128,12 +132,34 @@ SFM_DEFAULTS: dict[str, Any] = {
     "min_registration_rate": 0.8,  # ok needs at least this fraction of views in the main model
     "max_median_rotation_error_deg": 2.0,  # ... and at most this median rotation error
     "naive_slices": False,  # also run SfM on the raw axial slices (the failure case) and report it
-    "keep_work": False,  # keep the COLMAP database and PNGs (otherwise PNGs are kept, database dropped)
+    "keep_work": False,  # keep the COLMAP work folder (database, models) as colmap/; images/ is always kept
 }
 
 
 def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str, Any]) -> dict[str, Any]:
-    """Summary numbers: registration rates, median / p90 errors, models, and the ``ok`` verdict."""
+    """Summary numbers of one SfM run: registration rates, median / p90 errors, models, and the ``ok`` verdict.
+
+    ``ok`` needs a registration rate of at least ``min_registration_rate`` and a median rotation error of at
+    most ``max_median_rotation_error_deg``; otherwise ``reason`` says which numbers fell short.
+
+    Parameters
+    ----------
+    rows : list of dict
+        Per-view rows of :func:`ctsplat.sfm.align.evaluate_poses` (optionally with ``reproj_err_px``).
+    report : dict
+        The merge report of :func:`ctsplat.sfm.colmap.merge_models` (``models_found``, ``model_sizes``,
+        ``merged``).
+    cfg : dict
+        The ``sfm`` section (the verdict thresholds).
+
+    Returns
+    -------
+    dict
+        ``n_views``, ``n_registered``, ``registration_rate`` and ``largest_model_rate`` (fractions),
+        ``models_found``, ``model_sizes``, ``merged``, ``rot_err_deg_median`` / ``_p90`` and
+        ``rot_err_rotalign_deg_median`` (degrees), ``centre_err_mm_median`` / ``_p90`` (mm),
+        ``reproj_err_px_median`` (px) (each None when no value is finite), ``ok`` and, when not ok, ``reason``.
+    """
     V = len(rows)
     reg = [r for r in rows if r["registered"] and np.isfinite(r["rot_err_deg"])]
     rot = np.array([r["rot_err_deg"] for r in reg])
@@ -177,13 +203,57 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
                       design: tuple[np.ndarray, np.ndarray] | None = None,
                       design_azimuth_deg: np.ndarray | None = None, ids: np.ndarray | None = None
                       ) -> tuple[dict[str, Any], list[dict[str, Any]], Any]:
-    """COLMAP + merging + alignment on given 8-bit images with known true poses; no files beside the work dir.
+    """COLMAP, merging and alignment on given 8-bit images with known true poses; writes only inside ``out_dir``.
 
-    With ``fuse_harmonics > 0`` (and ``design`` + ``design_azimuth_deg``), the poses are fused with the design
-    (:func:`fuse_with_design`); the summary then also holds the unfused numbers under ``"unfused"``.
+    With ``fix_reversal`` and a ``design`` (and no pose prior), each model is replaced by its depth-reversed twin
+    when that fits the design better. With ``fuse_harmonics > 0`` (and ``design`` + ``design_azimuth_deg``), the
+    poses are fused with the design (:func:`~ctsplat.sfm.align.fuse_with_design`); the summary then also holds
+    the unfused numbers under ``"unfused"``. Too few registrations do not raise: ``ok`` is False.
 
-    Returns ``(summary, rows, model_or_None)``; rows are per view (see :func:`evaluate_poses`) plus
-    ``reproj_err_px``; the summary also holds COLMAP stage statistics. Never raises on too few registrations.
+    Parameters
+    ----------
+    images_u8 : ndarray, shape (V, H, W), uint8
+        Feature images (:func:`ctsplat.sfm.features.enhance_for_features`).
+    intrinsics : tuple of float
+        ``(fx, fy, cx, cy)`` in px, held fixed.
+    Rs_true : ndarray, shape (V, 3, 3)
+        True world->camera rotations (the reference the recovered poses are scored against).
+    ts_true : ndarray, shape (V, 3)
+        True world->camera translations (mm).
+    out_dir : str or Path
+        Work folder: ``images/``, ``masks/``, ``colmap/`` are written here.
+    config : dict
+        The ``sfm`` section, merged with :data:`SFM_DEFAULTS`.
+    seed : int
+        Seeds COLMAP and the alignment.
+    prefix : str
+        Image file name prefix.
+    scale_mm : float
+        Length scale of the orbit (DSO, mm); the alignment inlier threshold is ``align_inlier_threshold_frac``
+        times this.
+    prior_centres : ndarray, shape (V, 3), optional
+        Designed camera centres (world mm) for ``pose_prior: position``.
+    prior_poses : tuple of ndarray, optional
+        Designed poses ``(Rs (V, 3, 3), ts (V, 3) mm)`` for the refine modes.
+    masks : ndarray, shape (V, H, W), uint8, optional
+        Feature masks (255 = keep).
+    design : tuple of ndarray, optional
+        Designed poses ``(Rs (V, 3, 3), ts (V, 3) mm)`` for the reversal check, the fusion and the
+        ``design_rot_err_deg_median`` baseline.
+    design_azimuth_deg : ndarray, shape (V,), optional
+        Designed azimuths (degrees) for the fusion.
+    ids : ndarray of int, shape (V,), optional
+        View ids used in the image names; default ``0 .. V-1``.
+
+    Returns
+    -------
+    summary : dict
+        :func:`summarize`'s numbers plus ``colmap`` (stage statistics), ``reversal``, ``alignment`` and, when a
+        design is given, ``design_rot_err_deg_median`` (what the design alone scores, degrees).
+    rows : list of dict, length V
+        Per view (see :func:`~ctsplat.sfm.align.evaluate_poses`) plus ``reproj_err_px`` and ``in_main_model``.
+    model_and_alignment : tuple
+        ``(main pycolmap model or None, alignment dict of evaluate_poses)``.
     """
     cfg = dict(config)
     cfg["_seed"] = seed
@@ -269,6 +339,18 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
     dict
         The summary (also written): registration rate, pose errors, COLMAP statistics, ``ok`` verdict. Too few
         registrations do not raise: ``ok`` is False.
+
+    Raises
+    ------
+    CtsplatError
+        For an unknown ``matching``, ``mapper`` or ``pose_prior``, ``pose_prior: position`` without the
+        incremental mapper, ``naive_slices`` without ``volume_path``, a parallel-beam view set, or a view set
+        without designed poses (not rendered with ``orbit: carm``).
+
+    Examples
+    --------
+    >>> summary = run_sfm("results/head/radiographs/carm", "results/head/sfm", {"pose_prior": "isocentric"})
+    >>> print(summary["ok"], summary["registration_rate"], summary["rot_err_deg_median"])
     """
     import pandas as pd
 
@@ -384,6 +466,23 @@ def naive_slices_sfm(volume_data: np.ndarray, work_dir: str | Path, config: dict
     The slices are windowed to 8 bit (same percentile + CLAHE enhancement as the radiographs) and fed to the
     same pipeline with a guessed pinhole camera (``f = 1.2 · max(W, H)``, as COLMAP would guess). There is
     no ground-truth pose, so only registration counts are reported.
+
+    Parameters
+    ----------
+    volume_data : ndarray, shape (I, J, K)
+        Volume values; slice ``k`` is ``data[:, :, k]``.
+    work_dir : str or Path
+        Scratch folder.
+    config : dict
+        The ``sfm`` section (private ``_`` keys are ignored).
+    seed : int
+        Seeds COLMAP.
+
+    Returns
+    -------
+    dict
+        ``n_images``, ``models_found``, ``model_sizes``, ``registration_rate`` (largest model / slices) and
+        ``colmap`` (stage statistics).
     """
     cfg = dict(merge_config("sfm", {k: v for k, v in config.items() if not k.startswith("_")}, SFM_DEFAULTS))
     cfg["_seed"] = seed
