@@ -9,6 +9,7 @@ import math
 import os
 import random
 import subprocess
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -28,6 +29,8 @@ __all__ = [
     "config_hash",
     "resolve_device",
     "seed_everything",
+    "run_lock",
+    "LOCK_NAME",
 ]
 
 
@@ -290,6 +293,97 @@ def seed_everything(seed: int) -> np.random.Generator:
     np.random.seed(seed % (2**32))  # noqa: NPY002  (legacy global RNG used by some libraries)
     torch.manual_seed(seed)
     return np.random.default_rng(seed)
+
+
+#: The lock file a step holds in the folder it writes (:func:`run_lock`).
+LOCK_NAME = ".ctsplat.lock"
+
+# folders this process holds a lock on -> (open lock file, nesting depth): flock locks belong to an open file, so a
+# second open() in the same process would block itself; nested run_lock calls reuse the first one instead
+_HELD_LOCKS: dict[str, list[Any]] = {}
+
+
+@contextlib.contextmanager
+def run_lock(folder: str | os.PathLike[str], what: str = "run folder") -> Iterator[Path]:
+    """Hold an exclusive lock on an output folder while a step writes it; fail fast if another process holds it.
+
+    The lock is ``fcntl.flock`` on ``folder/.ctsplat.lock``, which records the holder's pid and command. The
+    kernel releases it when the holder exits, however it ends (a killed job leaves no stale lock; the file
+    stays, unlocked). Nested calls for the same folder in one process share the outer lock.
+
+    Parameters
+    ----------
+    folder : path
+        The output folder (created if missing).
+    what : str
+        How the message names the folder (``run folder``, ``output folder``).
+
+    Yields
+    ------
+    pathlib.Path
+        The lock file.
+
+    Raises
+    ------
+    CtsplatError
+        When another process holds the lock (naming its pid), or the folder cannot be created or written.
+    """
+    import fcntl
+
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        key = str(folder.resolve())
+    except OSError as exc:
+        raise CtsplatError(f"{what} {folder} is not writable ({exc.strerror or exc}); choose another folder or fix "
+                           "its permissions") from exc
+    lock_path = folder / LOCK_NAME
+    held = _HELD_LOCKS.get(key)
+    if held is not None:
+        held[1] += 1
+        try:
+            yield lock_path
+        finally:
+            held[1] -= 1
+        return
+    try:
+        fh = open(lock_path, "a+")  # noqa: SIM115 - kept open for the lifetime of the lock
+    except OSError as exc:
+        raise CtsplatError(f"{what} {folder} is not writable ({exc.strerror or exc}); choose another folder or fix "
+                           "its permissions") from exc
+    try:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            fh.seek(0)
+            holder = fh.read().strip().splitlines()
+            pid = holder[0] if holder else "unknown"
+            cmd = f" ({holder[1]})" if len(holder) > 1 else ""
+            raise CtsplatError(f"{what} {folder} is in use by another ctsplat process (pid {pid}{cmd}); wait for it "
+                               "to finish or choose another folder") from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"{os.getpid()}\n{_command_name()}\n")
+        fh.flush()
+        _HELD_LOCKS[key] = [fh, 1]
+        try:
+            yield lock_path
+        finally:
+            del _HELD_LOCKS[key]
+            # the file is left in place: removing it would let a waiting process lock an unlinked inode while a
+            # third one creates and locks a new file
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+    finally:
+        fh.close()
+
+
+def _command_name() -> str:
+    """A short name of this process's command for lock messages (``ctsplat train``, ``train.py``), no arguments."""
+    argv = sys.argv or ["python"]
+    name = Path(argv[0]).name if argv[0] not in ("-c", "-m", "") else f"python {argv[0]}".strip()
+    if name in ("ctsplat", "__main__.py") and len(argv) > 1 and argv[1].isidentifier():
+        name = f"ctsplat {argv[1]}"
+    return name
 
 
 def merge_config(section: str, user: dict[str, Any] | None, defaults: dict[str, Any]) -> dict[str, Any]:

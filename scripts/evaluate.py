@@ -5,7 +5,10 @@ from pathlib import Path
 from _adapter import logged
 
 from ctsplat.evaluation import evaluate
+from ctsplat.utils import run_lock
 
 with logged(snakemake):  # noqa: F821
     sm = snakemake  # noqa: F821
-    evaluate(Path(sm.output.metrics).parent, device=sm.params.device, milestones=sm.params.milestones)
+    run_dir = Path(sm.output.metrics).parent
+    with run_lock(run_dir):
+        evaluate(run_dir, device=sm.params.device, milestones=sm.params.milestones)

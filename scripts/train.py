@@ -1,4 +1,8 @@
-"""Snakemake adapter: rule train -> ctsplat.training.train (grid-cell config from params, paths from input)."""
+"""Snakemake adapter: rule train -> ctsplat.training.train (grid-cell config from params, paths from input).
+
+resume="auto": a job killed at its time limit or preempted continues from its newest checkpoint when the cell's
+config is unchanged (Snakemake keeps checkpoints/, which is not a declared output); a changed config starts over.
+"""
 
 from pathlib import Path
 
@@ -13,4 +17,4 @@ with logged(snakemake):  # noqa: F821
     config["radiographs"] = str(Path(sm.input.views).parent)
     config["sfm_dir"] = str(Path(sm.input.sfm).parent) if "sfm" in sm.input.keys() else ""
     config["sfm_radiographs"] = str(Path(sm.input.sfm_views).parent) if "sfm_views" in sm.input.keys() else ""
-    train(config, Path(sm.output.model).parent)
+    train(config, Path(sm.output.model).parent, resume="auto")

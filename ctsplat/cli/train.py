@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+from pathlib import Path
 from typing import Any
 
 from ctsplat.cli._common import apply_sets, load_section
@@ -21,6 +23,9 @@ def load_train_config(path: str | None, overrides: list[str]) -> dict[str, Any]:
 def _train(args: argparse.Namespace) -> None:
     from ctsplat.evaluation import evaluate
     from ctsplat.training import train
+    from ctsplat.training.checkpoint import list_checkpoints
+    from ctsplat.training.config import resolve_config
+    from ctsplat.utils import CtsplatError, run_lock
 
     cfg = load_train_config(args.config, args.set or [])
     for key in ("volume", "radiographs", "sfm_dir", "sfm_radiographs", "init", "compositor", "poses", "device"):
@@ -33,19 +38,32 @@ def _train(args: argparse.Namespace) -> None:
             cfg[key] = int(val)
     if args.quiet:
         cfg["progress"] = False
-    trained = train(cfg, args.out, resume=args.resume)
-    if args.no_evaluate:
-        print(json.dumps(trained))
-        return
-    res = evaluate(args.out, device=cfg.get("device", "auto"))
+    resolve_config(cfg)  # bad settings fail before the run folder is created and locked
+    out = Path(args.out)
+    # one lock over training and evaluation, so no other process writes the folder in between
+    with run_lock(out):
+        earlier = [p.relative_to(out).as_posix() for p in list_checkpoints(out)[-1:]]
+        earlier += [name for name in ("model.pt", "training.json") if (out / name).exists()]
+        if earlier and not (args.resume or args.restart):
+            raise CtsplatError(f"{out} already holds a training run ({', '.join(earlier)}); pass --resume to continue "
+                               "it or --restart to discard it and start over")
+        trained = train(cfg, out, resume=args.resume)
+        if args.no_evaluate:
+            print(json.dumps(trained))
+            return
+        res = evaluate(out, device=cfg.get("device", "auto"))
     keys = ("psnr2d", "ssim2d", "psnr3d", "ssim3d", "n_gaussians", "wall_time_s", "uses_reference_volume")
     print(json.dumps({k: res[k] for k in keys}))
 
 
 def _evaluate(args: argparse.Namespace) -> None:
     from ctsplat.evaluation import evaluate
+    from ctsplat.utils import run_lock
 
-    res = evaluate(args.run_dir, split=args.split, device=args.device)
+    run_dir = Path(args.run_dir)
+    # a missing folder is reported by evaluate (not a finished run); locking would create it
+    with run_lock(run_dir) if run_dir.is_dir() else contextlib.nullcontext():
+        res = evaluate(run_dir, split=args.split, device=args.device)
     print(json.dumps(res, indent=2, default=str))
 
 
@@ -60,7 +78,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a config value (repeatable; dotted keys for nested, e.g. densify.interval=100)")
     p.add_argument("--out", required=True, help="run folder to write")
-    p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in OUT/checkpoints")
+    again = p.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="continue the run in OUT from its newest readable checkpoint (same config required)")
+    again.add_argument("--restart", action="store_true",
+                       help="discard the run already in OUT (checkpoints, model) and start over")
     p.add_argument("--volume", help="reference volume (.nii.gz)")
     p.add_argument("--radiographs", help="radiographs folder (line_integrals.tif + views.json)")
     p.add_argument("--sfm-dir", dest="sfm_dir", help="sfm step folder (poses: colmap / init: sfm)")

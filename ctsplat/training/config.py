@@ -1,20 +1,26 @@
 """Training settings: the ``train`` config section with its defaults, validation, and the renderer settings.
 
 :data:`TRAIN_DEFAULTS` is the single definition of every training key and its default (the workflow schema is
-generated from it); :func:`resolve_config` fills and checks a user's section; :func:`render_kwargs` turns a
-config into the renderer's keyword arguments, the same for training, validation and evaluation.
+generated from it) and :data:`TRAIN_BOUNDS` of every numeric key's allowed range; :func:`resolve_config` fills and
+checks a user's section; :func:`render_kwargs` turns a config into the renderer's keyword arguments, the same for
+training, validation and evaluation.
 """
 
 from __future__ import annotations
 
+import contextlib
+import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from ctsplat.baselines import FBP_FILTERS
 from ctsplat.splat.render import COMPOSITORS
 from ctsplat.utils import CtsplatError, merge_config
 
-__all__ = ["TRAIN_DEFAULTS", "INITS", "POSES", "SUPERVISIONS", "resolve_config", "render_kwargs", "mip_filter"]
+__all__ = ["TRAIN_DEFAULTS", "TRAIN_BOUNDS", "Bound", "INITS", "POSES", "SUPERVISIONS", "resolve_config",
+           "render_kwargs", "mip_filter"]
 
 INITS = ("volume", "uniform", "fbp", "sfm")
 POSES = ("gt", "colmap")
@@ -66,8 +72,20 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     "eval_views": 8,  # validation views per periodic evaluation (evenly spaced); 0 = all
     "checkpoint_every": 500,
     "keep_checkpoints": 2,
-    "nan_lr_decay": 0.5,
-    "nan_max_consecutive": 3,
+    "nan_lr_decay": 0.5,  # learning rates x this after each non-finite step, in (0, 1)
+    "nan_max_consecutive": 3,  # stop after this many non-finite steps in a row ...
+    "nan_max_events": 5,  # ... or this many within nan_window iterations (sporadic but persistent divergence)
+    "nan_window": 100,
+    # collapse: the run fails instead of writing a model (0 disables a check). At each validation: fewer than
+    # collapse_min_gaussians Gaussians with density (alpha: opacity) >= densify.prune_density, or the mean loss
+    # since the previous validation above collapse_loss_factor x the first interval's for collapse_loss_evals
+    # validations in a row. At the end: validation PSNR more than collapse_psnr_drop_db below the initial model's,
+    # or within collapse_empty_margin_db of an empty model's (all-zero images) and below the initial model's.
+    "collapse_min_gaussians": 1,
+    "collapse_loss_factor": 2.0,
+    "collapse_loss_evals": 5,
+    "collapse_psnr_drop_db": 5.0,
+    "collapse_empty_margin_db": 0.1,
     "figures": True,
     "turntable_frames": 24,
     "fps_width": 1920,
@@ -77,20 +95,182 @@ TRAIN_DEFAULTS: dict[str, Any] = {
 
 
 
+@dataclass(frozen=True)
+class Bound:
+    """The allowed values of one numeric training key.
+
+    Parameters
+    ----------
+    kind : {"integer", "number"}
+        Integers also accept integral floats (``3000.0``); booleans are never numbers.
+    low, high : float, optional
+        Limits (None: unbounded).
+    low_open, high_open : bool
+        Whether the limit itself is excluded.
+    nullable : bool
+        Whether ``null`` (None) is allowed.
+    """
+
+    kind: str
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    nullable: bool = False
+
+    def describe(self) -> str:
+        """``an integer >= 1``, ``a number in (0, 1)``, ... (the error messages' wording)."""
+        what = "an integer" if self.kind == "integer" else "a number"
+        fmt = _fmt_limit
+        if self.low is not None and self.high is not None:
+            rng = f"in {'(' if self.low_open else '['}{fmt(self.low)}, {fmt(self.high)}{')' if self.high_open else ']'}"
+        elif self.low is not None:
+            rng = f"{'>' if self.low_open else '>='} {fmt(self.low)}"
+        elif self.high is not None:
+            rng = f"{'<' if self.high_open else '<='} {fmt(self.high)}"
+        else:
+            rng = ""
+        return f"{what} {rng}".strip() + (" or null" if self.nullable else "")
+
+    def json_schema(self) -> dict[str, Any]:
+        """The same bound as a JSON-schema fragment (``type``, ``minimum`` / ``exclusiveMinimum``, ...)."""
+        out: dict[str, Any] = {"type": [self.kind, "null"] if self.nullable else self.kind}
+        if self.low is not None:
+            out["exclusiveMinimum" if self.low_open else "minimum"] = self.low
+        if self.high is not None:
+            out["exclusiveMaximum" if self.high_open else "maximum"] = self.high
+        return out
+
+    def check(self, key: str, value: Any) -> None:
+        """Raise a one-line ``CtsplatError`` naming ``train.{key}`` when ``value`` is outside the bound."""
+        if value is None and self.nullable:
+            return
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        ok = number and math.isfinite(value)
+        if ok and self.kind == "integer":
+            ok = float(value).is_integer()
+        if ok and self.low is not None:
+            ok = value > self.low if self.low_open else value >= self.low
+        if ok and self.high is not None:
+            ok = value < self.high if self.high_open else value <= self.high
+        if ok:
+            return
+        hint = ""
+        if isinstance(value, str) and "e" in value.lower():
+            mant, _, exp = value.lower().partition("e")
+            with contextlib.suppress(ValueError):
+                float(value)
+                hint = f" (text: YAML reads {value} as a string; write {mant if '.' in mant else mant + '.0'}e{exp})"
+        raise CtsplatError(f"train.{key} must be {self.describe()}, got {value!r}{hint}")
+
+
+def _fmt_limit(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() else repr(x)
+
+
+_POS_INT = Bound("integer", 1)
+_NONNEG_INT = Bound("integer", 0)
+_NONNEG = Bound("number", 0)
+_POS = Bound("number", 0, low_open=True)
+_UNIT = Bound("number", 0, 1)
+
+#: Allowed values of every numeric key of :data:`TRAIN_DEFAULTS` (dotted for nested keys); checked by
+#: :func:`resolve_config`, mirrored by the workflow schema (:meth:`Bound.json_schema`).
+TRAIN_BOUNDS: dict[str, Bound] = {
+    "min_registration_rate": _UNIT,
+    "n_init": _POS_INT,
+    "init_top_fraction": Bound("number", 0, 1, low_open=True),
+    "init_scale_voxels": Bound("number", 0, low_open=True, nullable=True),
+    "init_density": _POS,
+    "sfm_fill_fraction": _UNIT,
+    "views": _NONNEG_INT,
+    "seed": _NONNEG_INT,
+    "iterations": _POS_INT,
+    "batch_views": _POS_INT,
+    "lambda_l1": _NONNEG,
+    "lambda_ssim": _NONNEG,
+    "lambda_density": _NONNEG,
+    "lambda_scale": _NONNEG,
+    "lambda_tv": _NONNEG,
+    "tv_size": _POS_INT,
+    **{f"lr.{k}": _POS for k in TRAIN_DEFAULTS["lr"]},
+    "lr_final_factor": _UNIT,
+    "densify.interval": _NONNEG_INT,
+    "densify.start": _NONNEG_INT,
+    "densify.stop": _NONNEG_INT,
+    "densify.grad_threshold": _NONNEG,
+    "densify.clone_max_scale_voxels": _NONNEG,
+    "densify.prune_density": _NONNEG,
+    "densify.prune_max_scale_fraction": _POS,
+    "densify.max_gaussians": _POS_INT,
+    "eval_every": _POS_INT,
+    "eval_views": _NONNEG_INT,
+    "checkpoint_every": _POS_INT,
+    "keep_checkpoints": _POS_INT,
+    "nan_lr_decay": Bound("number", 0, 1, low_open=True, high_open=True),
+    "nan_max_consecutive": _POS_INT,
+    "nan_max_events": _POS_INT,
+    "nan_window": _POS_INT,
+    "collapse_min_gaussians": _NONNEG_INT,
+    "collapse_loss_factor": Bound("number", 1, low_open=True),
+    "collapse_loss_evals": _NONNEG_INT,
+    "collapse_psnr_drop_db": _NONNEG,
+    "collapse_empty_margin_db": _NONNEG,
+    "turntable_frames": _POS_INT,
+    "fps_width": _POS_INT,
+    "fps_height": _POS_INT,
+}
+
+_BOOL_KEYS = ("mip", "figures", "progress")
+
+
+def _get(cfg: dict[str, Any], dotted: str) -> Any:
+    node: Any = cfg
+    parts = dotted.split(".")
+    for i, part in enumerate(parts):
+        if not isinstance(node, dict):
+            section = ".".join(parts[:i])
+            keys = ", ".join(_get(TRAIN_DEFAULTS, section))
+            raise CtsplatError(f"train.{section} must be a mapping of its keys ({keys}), got {node!r}")
+        node = node[part]
+    return node
+
+
 def resolve_config(config: dict[str, Any] | None) -> dict[str, Any]:
-    """Fill defaults and validate choices; unknown keys and bad values raise ``CtsplatError``."""
+    """Fill defaults and validate a ``train`` section.
+
+    Parameters
+    ----------
+    config : dict or None
+        The user's ``train`` section (keys of :data:`TRAIN_DEFAULTS`; nested ``lr`` / ``densify`` partial).
+
+    Returns
+    -------
+    dict
+        The full section, defaults filled (values as given, not converted).
+
+    Raises
+    ------
+    CtsplatError
+        One line naming the key: unknown keys, unknown choices, numbers outside :data:`TRAIN_BOUNDS`, missing
+        input paths.
+    """
     cfg = merge_config("train", config, TRAIN_DEFAULTS)
     for key, allowed in (("init", INITS), ("compositor", COMPOSITORS), ("poses", POSES),
-                         ("supervision", SUPERVISIONS)):
+                         ("supervision", SUPERVISIONS), ("fbp_filter", FBP_FILTERS)):
         if cfg[key] not in allowed:
             raise CtsplatError(f"unknown train.{key} {cfg[key]!r}; allowed: {', '.join(allowed)}")
-    if cfg["device"] not in ("auto", "cpu") and not str(cfg["device"]).startswith("cuda"):
+    if not isinstance(cfg["device"], str) or (cfg["device"] not in ("auto", "cpu")
+                                              and not cfg["device"].startswith("cuda")):
         raise CtsplatError(f"unknown train.device {cfg['device']!r}; allowed: auto, cpu, cuda")
-    for key in ("iterations", "n_init", "batch_views", "eval_every", "checkpoint_every"):
-        if int(cfg[key]) <= 0:
-            raise CtsplatError(f"train.{key} must be a positive integer, got {cfg[key]!r}")
-    if int(cfg["views"]) < 0:
-        raise CtsplatError(f"train.views must be >= 0 (0 = all training views), got {cfg['views']}")
+    for dotted, bound in TRAIN_BOUNDS.items():
+        bound.check(dotted, _get(cfg, dotted))
+    for key in _BOOL_KEYS:
+        if not isinstance(cfg[key], bool):
+            raise CtsplatError(f"train.{key} must be true or false, got {cfg[key]!r}")
+    if float(cfg["lambda_l1"]) == 0 and float(cfg["lambda_ssim"]) == 0:
+        raise CtsplatError("train.lambda_l1 and train.lambda_ssim are both 0: the loss has no data term; make at "
+                           "least one of them > 0")
     if cfg["supervision"] == "transmission" and cfg["compositor"] == "alpha":
         raise CtsplatError("supervision: transmission needs a radiative compositor (alpha images are not "
                            "line integrals)")
@@ -129,8 +309,25 @@ def render_kwargs(cfg: dict[str, Any], filter_3d_var: Any = None) -> dict[str, A
 
 
 def mip_filter(cfg: dict[str, Any], gaussians: Any, camera: Any, Rs: np.ndarray, ts: np.ndarray) -> Any:
-    """The Mip-Splatting 3D filter variance (N,) mm² of ``gaussians`` over the *training* cameras, or None without
-    ``mip`` (:func:`ctsplat.splat.render.compute_3d_filter`; Rs (V, 3, 3), ts (V, 3) mm).
+    """The Mip-Splatting 3D filter variance of ``gaussians`` over the *training* cameras, or None without ``mip``
+    (:func:`ctsplat.splat.render.compute_3d_filter`).
+
+    Parameters
+    ----------
+    cfg : dict
+        Resolved ``train`` config (``mip``).
+    gaussians : ctsplat.splat.Gaussians
+        N Gaussians.
+    camera : ctsplat.geometry.cameras camera
+        The training views' camera.
+    Rs : ndarray, shape (V, 3, 3)
+    ts : ndarray, shape (V, 3)
+        World-to-camera poses of the training views (mm).
+
+    Returns
+    -------
+    Tensor (N,) or None
+        Variance in mm².
 
     References
     ----------

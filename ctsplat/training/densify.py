@@ -57,7 +57,17 @@ class GradientDensify:
         self.stop = int(settings["stop"]) or int(0.75 * self.iterations)
 
     def due(self, iteration: int) -> bool:
-        """Whether :meth:`maybe_step` densifies after ``iteration``."""
+        """Whether :meth:`maybe_step` densifies after ``iteration``.
+
+        Parameters
+        ----------
+        iteration : int
+            Completed iterations.
+
+        Returns
+        -------
+        bool
+        """
         d = self.settings
         return bool(d["interval"]) and d["start"] <= iteration <= self.stop and iteration % int(d["interval"]) == 0 \
             and iteration < self.iterations
@@ -69,6 +79,8 @@ class GradientDensify:
 
         Parameters
         ----------
+        state : TrainState
+            ``grad_accum`` / ``grad_count`` (N,) are updated in place.
         means2d_grad : (N, 2) or None
             ∂L/∂(u, v) in pixels of the projected means.
         visible : (N,) bool
@@ -82,13 +94,44 @@ class GradientDensify:
 
     def maybe_step(self, state: TrainState, iteration: int, volume: Any, gen: torch.Generator
                    ) -> dict[str, int] | None:
-        """Densify and prune when due; returns the counts (``cloned``, ``split``, ``pruned``, ``n``) or None."""
+        """Densify and prune when due (:meth:`due`).
+
+        Parameters
+        ----------
+        state : TrainState
+        iteration : int
+            Completed iterations.
+        volume : ctsplat.formats.volume.Volume
+            The reference grid (voxel size, box for pruning).
+        gen : torch.Generator
+            Source of the split samples.
+
+        Returns
+        -------
+        dict or None
+            ``cloned``, ``split``, ``pruned``, ``n`` (Gaussians after the step), or None when not due.
+        """
         if not self.due(iteration):
             return None
         return self.step(state, volume, gen)
 
     def step(self, state: TrainState, volume: Any, gen: torch.Generator) -> dict[str, int]:
-        """One densify-and-prune step on ``state`` (parameters and Adam moments follow); returns the counts."""
+        """One densify-and-prune step on ``state`` (parameters and Adam moments follow).
+
+        Parameters
+        ----------
+        state : TrainState
+            Changed in place; its gradient statistics are reset.
+        volume : ctsplat.formats.volume.Volume
+            The reference grid (voxel size, box for pruning).
+        gen : torch.Generator
+            Source of the split samples.
+
+        Returns
+        -------
+        dict
+            ``cloned``, ``split``, ``pruned`` and ``n`` (Gaussians after the step).
+        """
         d = self.settings
         p = state.params
         n = p["means"].shape[0]

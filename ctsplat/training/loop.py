@@ -15,9 +15,18 @@ colour for the alpha compositor), each with its own learning rate decayed by a c
 Adaptive density control: :mod:`ctsplat.training.densify`. Seeding (``init``): :mod:`ctsplat.training.seeding`.
 
 Robustness: a non-finite loss or parameter rolls back to the last good state, multiplies the learning rates by
-``nan_lr_decay`` and is logged; ``nan_max_consecutive`` such events in a row stop the run with a ``CtsplatError``.
+``nan_lr_decay`` and is logged; ``nan_max_consecutive`` such events in a row, or ``nan_max_events`` within
+``nan_window`` iterations (a run that diverges every other step never has many in a row), stop the run with a
+``CtsplatError``. A run that ends with a collapsed model also fails instead of writing a model (``collapse_*``
+keys, see :data:`ctsplat.training.config.TRAIN_DEFAULTS`): too few Gaussians with a visible amplitude, a loss far
+above its first interval's for several validations in a row, or a final validation PSNR far below the initial
+model's or hardly above an empty model's. Its logs and checkpoints stay for diagnosis; ``model.pt``,
+``training.json`` and the other final outputs are removed.
+
 Deterministic on CPU: every random draw comes from generators seeded by ``seed`` whose states are checkpointed,
-so ``resume`` continues bit-for-bit (:mod:`ctsplat.training.checkpoint`).
+so ``resume`` continues bit-for-bit (:mod:`ctsplat.training.checkpoint`); a truncated newest checkpoint is moved
+aside and the previous one used. The run folder is locked while training (:func:`ctsplat.utils.run_lock`): a
+second process writing the same folder fails at once, naming the first.
 
 The run folder gets ``config.json`` (resolved config, hash, code version, scene provenance), ``train_log.csv`` and
 ``per_view.csv`` (periodic validation, :mod:`ctsplat.formats.runlog`), ``checkpoints/``, the final ``model.pt``
@@ -33,13 +42,14 @@ NeurIPS.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import shutil
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -49,7 +59,13 @@ from ctsplat.formats.runlog import LOG_COLUMNS, LOG_EXTRAS, PER_VIEW_COLUMNS, Cs
 from ctsplat.scene import Scene, ViewData, even_subset, load_scene
 from ctsplat.splat.render import random_region, render, voxelize
 from ctsplat.training import losses
-from ctsplat.training.checkpoint import checkpoint_dir, latest_checkpoint, load_checkpoint, save_checkpoint
+from ctsplat.training.checkpoint import (
+    Checkpoint,
+    checkpoint_dir,
+    find_resumable,
+    load_checkpoint,
+    save_checkpoint,
+)
 from ctsplat.training.config import mip_filter, render_kwargs, resolve_config
 from ctsplat.training.densify import GradientDensify
 from ctsplat.training.seeding import make_seed
@@ -66,10 +82,12 @@ from ctsplat.training.state import (
 )
 from ctsplat.utils import (
     CtsplatError,
+    atomic_path,
     code_version,
     config_hash,
     json_safe,
     resolve_device,
+    run_lock,
     seed_everything,
     write_json_atomic,
 )
@@ -113,21 +131,107 @@ def _evaluate_periodic(state: TrainState, cfg: dict[str, Any], scene: Scene, val
     return row, per_view
 
 
+def _val_psnr(state: TrainState, cfg: dict[str, Any], val: ViewData) -> float:
+    """Mean validation 2D PSNR (dB) of the current model (as ``train_log.csv``'s ``psnr2d``, without the 3D part)."""
+    g = as_gaussians({k: v.detach() for k, v in state.params.items()})
+    preds = render_views(g, val.camera, val.Rs, val.ts, render_kwargs(cfg, state.filter_var))
+    return float(np.mean(view_metrics(preds, val.images)["psnr2d"]))
 
-def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
+
+def _empty_psnr(val: ViewData) -> float:
+    """Mean validation 2D PSNR (dB) of an empty model (all-zero images): the floor a collapsed model sits at."""
+    zeros = np.zeros_like(val.images)
+    return float(np.mean(view_metrics(zeros, val.images)["psnr2d"]))
+
+
+def _watch_loss(state: TrainState, cfg: dict[str, Any]) -> str | None:
+    """Update the loss watch at a validation; the collapse reason when the loss stayed high too long."""
+    h = state.health
+    n = int(h.get("loss_n", 0))
+    mean = float(h.get("loss_sum", 0.0)) / n if n else None
+    h["loss_sum"], h["loss_n"] = 0.0, 0
+    if mean is None:
+        return None
+    if h.get("loss_first") is None:
+        h["loss_first"] = mean
+        return None
+    first, factor, evals = float(h["loss_first"]), float(cfg["collapse_loss_factor"]), int(cfg["collapse_loss_evals"])
+    h["loss_high"] = int(h.get("loss_high", 0)) + 1 if first > 0 and mean > factor * first else 0
+    if evals and h["loss_high"] >= evals:
+        return (f"the mean loss stayed above {factor:g} x its first interval's ({first:.4g}) for {h['loss_high']} "
+                f"validations in a row (now {mean:.4g})")
+    return None
+
+
+def _collapse_reason(state: TrainState, cfg: dict[str, Any], row: dict[str, float], final: bool,
+                     psnr_empty: float) -> str | None:
+    """Why the model counts as collapsed at this validation, or None (see the ``collapse_*`` keys)."""
+    reason = _watch_loss(state, cfg)
+    if reason:
+        return reason
+    min_n = int(cfg["collapse_min_gaussians"])
+    if min_n:
+        g = as_gaussians(state.params)
+        amp = g.opacities if cfg["compositor"] == "alpha" else g.densities
+        thr = float(cfg["densify"]["prune_density"])
+        alive = int((amp.detach() >= thr).sum())
+        if alive < min_n:
+            what = "opacity" if cfg["compositor"] == "alpha" else "density"
+            return (f"only {alive} of {amp.shape[0]} Gaussians have a {what} >= densify.prune_density ({thr:g}), "
+                    f"fewer than collapse_min_gaussians ({min_n})")
+    if not final:
+        return None
+    psnr = float(row["psnr2d"])
+    drop = float(cfg["collapse_psnr_drop_db"])
+    initial = state.health.get("psnr_initial")
+    if drop and initial is not None and math.isfinite(initial) and not psnr >= initial - drop:
+        return (f"the final validation PSNR {psnr:.2f} dB is more than collapse_psnr_drop_db ({drop:g} dB) below the "
+                f"initial model's {initial:.2f} dB")
+    # a model that starts near the empty level (alpha or uniform seeds) may stay there a while and be healthy;
+    # it has collapsed when it also lost what the initial model had
+    margin = float(cfg["collapse_empty_margin_db"])
+    if margin and math.isfinite(psnr_empty) and not psnr >= psnr_empty + margin and initial is not None \
+            and psnr < initial:
+        return (f"the final validation PSNR {psnr:.2f} dB is within collapse_empty_margin_db ({margin:g} dB) of an "
+                f"empty model's {psnr_empty:.2f} dB and below the initial model's {initial:.2f} dB")
+    return None
+
+
+def _discard_outputs(out_dir: Path) -> None:
+    """Remove the final outputs of an earlier run (they must not sit beside a new or failed run's logs)."""
+    for name in RUN_OUTPUTS:
+        (out_dir / name).unlink(missing_ok=True)
+
+
+def _restore_logs(out_dir: Path, ck: Checkpoint, logs: dict[str, CsvLog]) -> None:
+    """Put the logs back as they were at the checkpoint (the files may be gone: a workflow manager removes a
+    killed job's outputs); checkpoints without stored logs truncate the files instead."""
+    stored = ck.payload.get("logs") or {}
+    for name, csv_log in logs.items():
+        if name in stored:
+            with atomic_path(out_dir / name) as tmp:
+                tmp.write_text(stored[name])
+        else:
+            csv_log.truncate_after(ck.iteration)
+
+
+def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool | Literal["auto"] = False,
           callback: Callable[[int, TrainState], None] | None = None) -> dict[str, Any]:
     """Train a Gaussian model and write the run folder (see the module docstring).
 
     Parameters
     ----------
     config : dict
-        The ``train`` section (see :data:`TRAIN_DEFAULTS`); unknown keys raise ``CtsplatError``.
+        The ``train`` section (see :data:`TRAIN_DEFAULTS`); unknown keys and out-of-range values raise
+        ``CtsplatError``.
     out_dir : path
         Run folder: ``config.json``, ``train_log.csv``, ``per_view.csv``, ``checkpoints/``, ``model.pt``,
-        ``model.ply``, ``training.json``.
-    resume : bool
-        Continue from the newest checkpoint in ``out_dir/checkpoints`` (same config required). Without a
-        checkpoint the run starts from scratch.
+        ``model.ply``, ``training.json``. Locked while training: a second process fails fast.
+    resume : bool or "auto"
+        False: start from scratch (existing checkpoints and final outputs are removed). True: continue from the
+        newest readable checkpoint in ``out_dir/checkpoints``; one written with a different config raises
+        ``CtsplatError``. ``"auto"`` (the workflow): continue when that checkpoint has this config's hash, else
+        start from scratch. Without a readable checkpoint both start from scratch.
     callback : callable(iteration, state), optional
         Called after every completed iteration (after logging and checkpointing); used by tests to inject
         faults or interrupt a run.
@@ -136,10 +240,25 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
     -------
     dict
         The training summary written to ``training.json``.
+
+    Raises
+    ------
+    CtsplatError
+        Bad config or inputs, another process writing ``out_dir``, divergence (non-finite steps) or a collapsed
+        model.
     """
+    if resume not in (True, False, "auto"):
+        raise CtsplatError(f"resume must be True, False or 'auto', got {resume!r}")
     cfg = resolve_config(config)
     out_dir = Path(out_dir)
     _check_writable(out_dir)
+    with run_lock(out_dir):
+        return _train(cfg, out_dir, resume, callback)
+
+
+def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
+           callback: Callable[[int, TrainState], None] | None) -> dict[str, Any]:
+    """:func:`train` with a resolved config, holding the run folder's lock."""
     device = resolve_device(str(cfg["device"]))
     chash = config_hash(cfg)
     rng = seed_everything(int(cfg["seed"]))
@@ -153,18 +272,21 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
 
     train_log = CsvLog(out_dir / "train_log.csv", LOG_COLUMNS + LOG_EXTRAS)
     view_log = CsvLog(out_dir / "per_view.csv", PER_VIEW_COLUMNS)
-    ckpt = latest_checkpoint(out_dir) if resume else None
+    ckpt: Checkpoint | None = None
+    if resume:
+        ckpt, _ = find_resumable(out_dir, chash)
+        if ckpt is None:
+            log.warning("no readable checkpoint in %s; starting from scratch", checkpoint_dir(out_dir))
+        elif resume == "auto" and ckpt.config_hash != chash:
+            log.info("the checkpoints in %s belong to another config; starting from scratch", checkpoint_dir(out_dir))
+            ckpt = None
     if ckpt is not None:
         state = load_checkpoint(ckpt, cfg, device, rng, gen, voxel_mm, chash)
-        train_log.truncate_after(state.iteration)
-        view_log.truncate_after(state.iteration)
-        log.info("resuming from %s (iteration %d)", ckpt, state.iteration)
+        _restore_logs(out_dir, ckpt, {"train_log.csv": train_log, "per_view.csv": view_log})
+        log.info("resuming from %s (iteration %d)", ckpt.path, state.iteration)
     else:
-        if resume:
-            log.warning("no checkpoint in %s; starting from scratch", checkpoint_dir(out_dir))
         shutil.rmtree(checkpoint_dir(out_dir), ignore_errors=True)
-        for name in RUN_OUTPUTS:
-            (out_dir / name).unlink(missing_ok=True)
+        _discard_outputs(out_dir)
         seed = make_seed(cfg, scene, rng)
         params = init_params(seed, cfg, device)
         state = TrainState(params=params, opt=make_optimizer(params, cfg, voxel_mm))
@@ -192,6 +314,11 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
     densify = GradientDensify(cfg["densify"], compositor=cfg["compositor"], iterations=total)
     tr = scene.train
     state.filter_var = mip_filter(cfg, as_gaussians(state.params), tr.camera, tr.Rs, tr.ts)
+    psnr_empty = _empty_psnr(val)
+    if "psnr_initial" not in state.health:
+        state.health["psnr_initial"] = _val_psnr(state, cfg, val)
+        log.info("initial model: validation PSNR %.2f dB (an empty model: %.2f dB)", state.health["psnr_initial"],
+                 psnr_empty)
 
     lam = {k: float(cfg[k]) for k in ("lambda_l1", "lambda_ssim", "lambda_density", "lambda_scale", "lambda_tv")}
     snap = snapshot(state)
@@ -250,9 +377,12 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
         if not ok:
             state.nan_events += 1
             state.nan_consecutive += 1
+            window = int(cfg["nan_window"])
+            state.nan_iters = [i for i in state.nan_iters if i > it - window] + [it]
             state.lr_factor *= float(cfg["nan_lr_decay"])
             log.warning("non-finite loss or parameter at iteration %d: rolled back, learning rate x%.3g "
-                        "(%d in a row)", it, state.lr_factor, state.nan_consecutive)
+                        "(%d in a row, %d in the last %d iterations)", it, state.lr_factor, state.nan_consecutive,
+                        len(state.nan_iters), window)
             restore(state, snap)
             if state.nan_consecutive >= int(cfg["nan_max_consecutive"]):
                 bar.close()
@@ -260,9 +390,17 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
                     f"training diverged: {state.nan_consecutive} non-finite steps in a row (last at iteration {it})"
                     f" even after lowering the learning rate to x{state.lr_factor:.3g}; lower train.lr or check "
                     "the inputs")
+            if len(state.nan_iters) >= int(cfg["nan_max_events"]):
+                bar.close()
+                raise CtsplatError(
+                    f"training diverged: {len(state.nan_iters)} non-finite steps within {window} iterations "
+                    f"(iterations {state.nan_iters[0]}..{it}, nan_max_events {cfg['nan_max_events']}) even after "
+                    f"lowering the learning rate to x{state.lr_factor:.3g}; lower train.lr or check the inputs")
         else:
             state.nan_consecutive = 0
             last_terms, last_loss = terms, float(loss.detach())
+            state.health["loss_sum"] = float(state.health.get("loss_sum", 0.0)) + last_loss
+            state.health["loss_n"] = int(state.health.get("loss_n", 0)) + 1
         state.iteration = it
 
         counts = densify.maybe_step(state, it, vol, gen) if ok else None
@@ -290,6 +428,12 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
             train_log.append([row])
             view_log.append(per_view)
             bar.set_postfix(loss=f"{last_loss:.4f}", psnr=f"{row['psnr2d']:.2f}", n=row["n_gaussians"])
+            reason = _collapse_reason(state, cfg, row, it == total, psnr_empty)
+            if reason:
+                bar.close()
+                _discard_outputs(out_dir)
+                raise CtsplatError(f"training collapsed at iteration {it}: {reason}; no model written (logs kept "
+                                   f"in {out_dir}); lower train.lr or check the inputs")
         if it % int(cfg["checkpoint_every"]) == 0 or it == total:
             state.elapsed_s = time.perf_counter() - t_start
             save_checkpoint(out_dir, state, rng, gen, chash, int(cfg["keep_checkpoints"]))
@@ -298,7 +442,6 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool = False,
     bar.close()
     train_time = time.perf_counter() - t_start
     return _write_model(state, cfg, scene, out_dir, device, train_time, chash)
-
 
 
 def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: Path, device: torch.device,

@@ -34,6 +34,15 @@ def gaussian_window(sigma: float = 1.5, truncate: float = 3.5, *, dtype=torch.fl
 
     ``radius = int(truncate * sigma + 0.5)`` so the default window has 11 taps (the classic SSIM window).
 
+    Parameters
+    ----------
+    sigma : float
+        Standard deviation in pixels.
+    truncate : float
+        Half-width in standard deviations.
+    dtype : torch.dtype
+    device : torch.device or str, optional
+
     Returns
     -------
     Tensor, shape (2 * radius + 1,)
@@ -79,6 +88,10 @@ def ssim(
         Images (any units; ``data_range`` R in the same units). H and W must be at least the window size.
     data_range : float or 0-d Tensor
         Dynamic range R of the images.
+    sigma : float
+        Window standard deviation (pixels).
+    k1, k2 : float
+        Stabilising constants.
 
     Returns
     -------
@@ -103,7 +116,18 @@ def ssim(
 
 
 def l1(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """Mean absolute error over all pixels."""
+    """Mean absolute error over all pixels.
+
+    Parameters
+    ----------
+    img, ref : Tensor, same shape
+        Images (any units).
+
+    Returns
+    -------
+    Tensor, 0-d
+        In the images' units.
+    """
     return (img - ref).abs().mean()
 
 
@@ -115,6 +139,11 @@ def tv3d(vol: torch.Tensor) -> torch.Tensor:
     Parameters
     ----------
     vol : Tensor, shape (I, J, K), each at least 2
+
+    Returns
+    -------
+    Tensor, 0-d
+        In the volume's units per voxel.
     """
     if vol.ndim != 3 or min(vol.shape) < 2:
         raise ValueError(f"tv3d needs a 3D volume with every side >= 2, got shape {tuple(vol.shape)}")
@@ -126,12 +155,32 @@ def tv3d(vol: torch.Tensor) -> torch.Tensor:
 
 
 def density_reg(density: torch.Tensor) -> torch.Tensor:
-    """Mean Gaussian density ρ (normalised volume units); 0 for an empty model."""
+    """Mean Gaussian density ρ (normalised volume units); 0 for an empty model.
+
+    Parameters
+    ----------
+    density : Tensor, shape (N,)
+
+    Returns
+    -------
+    Tensor, 0-d
+    """
     return density.mean() if density.numel() else density.sum()
 
 
 def scale_reg(scales: torch.Tensor) -> torch.Tensor:
-    """Mean Euclidean norm of the Gaussian scale vectors ``(N, 3)`` in mm; 0 for an empty model."""
+    """Mean Euclidean norm of the Gaussian scale vectors ``(N, 3)`` in mm; 0 for an empty model.
+
+    Parameters
+    ----------
+    scales : Tensor, shape (N, 3)
+        Activated scales (mm).
+
+    Returns
+    -------
+    Tensor, 0-d
+        mm.
+    """
     return scales.norm(dim=-1).mean() if scales.numel() else scales.sum()
 
 
@@ -159,6 +208,10 @@ def total_loss(
         Activated Gaussian densities ρ.
     scales : Tensor, shape (N, 3)
         Activated Gaussian scales (mm).
+    data_range : float
+        Dynamic range of the images (SSIM).
+    lambda_l1, lambda_ssim, lambda_density, lambda_scale, lambda_tv : float
+        Weights of the terms (>= 0; a term with weight 0 is not computed).
     tv_volume : Tensor, shape (i, j, k), optional
         Voxelised random sub-volume for the TV term; required when ``lambda_tv > 0``.
 

@@ -67,6 +67,13 @@ class Seed:
 def grid_bounds_mm(shape: tuple[int, int, int], affine: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned world box (mm) covered by the voxels of a grid (voxel edges, not centres).
 
+    Parameters
+    ----------
+    shape : (I, J, K)
+        Grid size in voxels.
+    affine : ndarray, shape (4, 4)
+        Voxel index -> world mm.
+
     Returns
     -------
     lo, hi : ndarray, shape (3,)
@@ -103,8 +110,18 @@ def seed_from_grid(
         Voxel index -> world mm.
     n : int
         Number of Gaussians (> 0).
+    rng : numpy.random.Generator
     top_fraction : float in (0, 1]
         Fraction of voxels eligible (0.3 = top 30 %).
+    scale_voxels : float
+        Isotropic scale in voxels (× mean voxel edge -> mm).
+    uses_reference_volume, strategy : bool, str
+        Provenance recorded in the seed.
+
+    Returns
+    -------
+    Seed
+        ``n`` Gaussians: means (n, 3) mm, scales (n, 3) mm, densities (n,).
     """
     data = np.clip(np.asarray(data, np.float64), 0.0, None)
     if n <= 0:
@@ -142,6 +159,21 @@ def seed_uniform(
 
     The isotropic scale is half the mean spacing ``((∏(hi - lo)) / n)^{1/3}`` so neighbours overlap
     without blurring the box; all densities equal ``density`` (small: the SfM-free baseline).
+
+    Parameters
+    ----------
+    lo, hi : ndarray, shape (3,)
+        Box corners (mm).
+    n : int
+        Number of Gaussians (> 0).
+    rng : numpy.random.Generator
+    density : float
+        ρ of every Gaussian (normalised units).
+
+    Returns
+    -------
+    Seed
+        Means (n, 3) mm, scales (n, 3) mm, densities (n,).
     """
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     if n <= 0:
@@ -173,7 +205,26 @@ def seed_from_points(
 
     Points outside ``[lo, hi]`` are dropped; at most ``n - round(fill_fraction n)`` points are kept (random
     subset) and the rest of the ``n`` Gaussians are uniform in the box. A point's scale is the mean distance to
-    its 3 nearest neighbours among the kept points (as 3DGS), clipped to [0.5, 2] × the fill spacing.
+    its 3 nearest neighbours among the kept points (as 3DGS), clipped to [0.25, 1] × the fill spacing.
+
+    Parameters
+    ----------
+    points : ndarray, shape (P, 3)
+        SfM points (mm, volume frame).
+    lo, hi : ndarray, shape (3,)
+        Field-of-view box (mm).
+    n : int
+        Number of Gaussians.
+    rng : numpy.random.Generator
+    fill_fraction : float in [0, 1]
+        Least fraction of ``n`` given to the uniform fill.
+    density : float
+        ρ of every Gaussian (normalised units).
+
+    Returns
+    -------
+    Seed
+        Means (n, 3) mm, scales (n, 3) mm, densities (n,).
     """
     from scipy.spatial import cKDTree
 
@@ -211,7 +262,21 @@ def seed_from_points(
 
 # ------------------------------------------------------------------------------------------ the init setting
 def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> Seed:
-    """The initial Gaussians for ``cfg['init']`` (only ``volume`` reads the reference voxel values)."""
+    """The initial Gaussians for ``cfg['init']`` (only ``volume`` reads the reference voxel values).
+
+    Parameters
+    ----------
+    cfg : dict
+        Resolved ``train`` config (``init``, ``n_init``, ``init_*``, ``sfm_*``, ``fbp_filter``).
+    scene : Scene
+        Training views and the reference grid.
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    Seed
+        ``n_init`` Gaussians: means (N, 3) mm, scales (N, 3) mm, densities (N,).
+    """
     vol = scene.volume
     n = int(cfg["n_init"])
     lo, hi = grid_bounds_mm(vol.shape, vol.affine)
@@ -242,6 +307,13 @@ def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> tuple[np.ndar
     geometry (cone beam, wobbling or spherical orbits, SfM poses) uses ``SIRT_SEED_ITERATIONS`` iterations of
     ``ctsplat.baselines.sirt_volume``, which works with the projector's own geometry. The training targets are
     already normalised line integrals, so the result is in normalised units.
+
+    Parameters
+    ----------
+    scene : Scene
+        Its training views and reference grid (geometry only).
+    filter_name : str
+        FBP filter (``ctsplat.baselines.FBP_FILTERS``).
 
     Returns
     -------

@@ -29,7 +29,23 @@ PARAM_GROUPS = {"means": "means", "log_scales": "scales", "quats": "quats", "den
 
 
 def init_params(seed: Seed, cfg: dict[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
-    """Leaf parameter tensors (float32, requires_grad) from a seed."""
+    """Leaf parameter tensors (float32, requires_grad) from a seed.
+
+    Parameters
+    ----------
+    seed : Seed
+        Means (N, 3) mm, scales (N, 3) mm, densities (N,) (:mod:`ctsplat.training.seeding`).
+    cfg : dict
+        Resolved ``train`` config; the alpha compositor adds ``opacity_raw`` (N,) (opacity 0.1) and ``colors``
+        (N, 1) (0.5).
+    device : torch.device
+
+    Returns
+    -------
+    dict of str to Tensor
+        ``means`` (N, 3) mm, ``log_scales`` (N, 3) log mm, ``quats`` (N, 4), ``density_raw`` (N,) and, for alpha,
+        ``opacity_raw`` (N,) and ``colors`` (N, 1); keys of :data:`PARAM_GROUPS`.
+    """
     from ctsplat.splat.gaussians import Gaussians
 
     kw: dict[str, Any] = {}
@@ -40,7 +56,18 @@ def init_params(seed: Seed, cfg: dict[str, Any], device: torch.device) -> dict[s
 
 
 def as_gaussians(params: dict[str, torch.Tensor]) -> Any:
-    """A :class:`ctsplat.splat.Gaussians` view of the parameter tensors (no copy)."""
+    """A :class:`ctsplat.splat.Gaussians` view of the parameter tensors (no copy).
+
+    Parameters
+    ----------
+    params : dict of str to Tensor
+        As :func:`init_params` returns.
+
+    Returns
+    -------
+    ctsplat.splat.Gaussians
+        Sharing the tensors (gradients flow to ``params``).
+    """
     from ctsplat.splat.gaussians import Gaussians
 
     return Gaussians(**params)
@@ -48,7 +75,22 @@ def as_gaussians(params: dict[str, torch.Tensor]) -> Any:
 
 
 def make_optimizer(params: dict[str, torch.Tensor], cfg: dict[str, Any], voxel_mm: float) -> torch.optim.Adam:
-    """Adam with one group per parameter tensor; mean learning rates are in voxels per step (× ``voxel_mm``)."""
+    """Adam with one group per parameter tensor; mean learning rates are in voxels per step (× ``voxel_mm``).
+
+    Parameters
+    ----------
+    params : dict of str to Tensor
+        Leaf tensors (:func:`init_params`).
+    cfg : dict
+        Resolved ``train`` config (``lr``: one rate per quantity of :data:`PARAM_GROUPS`).
+    voxel_mm : float
+        Mean voxel edge in mm.
+
+    Returns
+    -------
+    torch.optim.Adam
+        Groups named after the parameters, each with ``initial_lr`` (the schedule's start).
+    """
     groups = []
     for name, p in params.items():
         lr = float(cfg["lr"][PARAM_GROUPS[name]]) * (voxel_mm if name == "means" else 1.0)
@@ -57,14 +99,45 @@ def make_optimizer(params: dict[str, torch.Tensor], cfg: dict[str, Any], voxel_m
 
 
 def cosine_factor(it: int, total: int, final_factor: float) -> float:
-    """Cosine decay factor from 1 at ``it = 0`` to ``final_factor`` at ``it = total``."""
+    """Cosine decay factor from 1 at ``it = 0`` to ``final_factor`` at ``it = total``.
+
+    Parameters
+    ----------
+    it : int
+        Completed iterations (clipped to ``[0, total]``).
+    total : int
+        Iterations of the run.
+    final_factor : float
+        The factor at the end (``lr_final_factor``).
+
+    Returns
+    -------
+    float
+    """
     x = min(max(it / max(total, 1), 0.0), 1.0)
     return final_factor + (1.0 - final_factor) * 0.5 * (1.0 + math.cos(math.pi * x))
 
 
 def replace_params(opt: torch.optim.Adam, params: dict[str, torch.Tensor], keep: torch.Tensor,
                     new: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """Keep rows ``keep`` of every parameter, append ``new`` rows; Adam moments follow (zeros for new rows)."""
+    """Keep rows ``keep`` of every parameter, append ``new`` rows; Adam moments follow (zeros for new rows).
+
+    Parameters
+    ----------
+    opt : torch.optim.Adam
+        The optimiser (from :func:`make_optimizer`); its groups get the new tensors.
+    params : dict of str to Tensor
+        Current parameters, N rows each.
+    keep : Tensor (K,) int64
+        Indices of the rows kept.
+    new : dict of str to Tensor
+        Rows appended per parameter (M rows each; missing keys append nothing).
+
+    Returns
+    -------
+    dict of str to Tensor
+        New leaf tensors with K + M rows.
+    """
     out = {}
     for group in opt.param_groups:
         name = group["name"]
@@ -89,7 +162,36 @@ def replace_params(opt: torch.optim.Adam, params: dict[str, torch.Tensor], keep:
 
 @dataclass
 class TrainState:
-    """Mutable training state (checkpointed)."""
+    """Mutable training state (checkpointed).
+
+    Attributes
+    ----------
+    params : dict of str to Tensor
+        Leaf parameters (:func:`init_params`).
+    opt : torch.optim.Adam
+    iteration : int
+        Completed iterations.
+    grad_accum, grad_count : Tensor (N,)
+        Densification statistics: summed view-space positional-gradient norms (NDC) and view counts.
+    lr_factor : float
+        Product of the ``nan_lr_decay`` factors applied so far.
+    nan_events, nan_consecutive : int
+        Non-finite steps in total and in a row.
+    nan_iters : list of int
+        Iterations of the non-finite steps within the last ``nan_window`` iterations.
+    elapsed_s : float
+        Training wall time so far (s), across resumes.
+    queue : list of list of int
+        Remaining view batches of the current epoch.
+    filter_var : Tensor (N,) or None
+        Mip 3D filter variance (mm²); recomputed, not checkpointed.
+    densify_counts : dict of str to int
+        Cloned, split and pruned Gaussians so far.
+    health : dict
+        Collapse watch (:mod:`ctsplat.training.loop`): ``psnr_initial`` (dB), ``loss_first`` (mean loss of the
+        first validation interval), ``loss_sum`` / ``loss_n`` (finite losses since the last validation),
+        ``loss_high`` (validations in a row with a high loss).
+    """
 
     params: dict[str, torch.Tensor]
     opt: torch.optim.Adam
@@ -99,10 +201,12 @@ class TrainState:
     lr_factor: float = 1.0
     nan_events: int = 0
     nan_consecutive: int = 0
+    nan_iters: list[int] = field(default_factory=list)
     elapsed_s: float = 0.0
     queue: list[list[int]] = field(default_factory=list)
     filter_var: torch.Tensor | None = None
     densify_counts: dict[str, int] = field(default_factory=lambda: {"cloned": 0, "split": 0, "pruned": 0})
+    health: dict[str, Any] = field(default_factory=dict)
 
 
 class ViewSampler:
@@ -111,6 +215,13 @@ class ViewSampler:
     Training views are ordered by azimuth (then elevation) and cut into ``batch`` contiguous strata; each epoch
     permutes every stratum and each batch takes one view per stratum, so every batch spans the directions and
     every view is used once per epoch (for ``batch = 1``: a random permutation per epoch).
+
+    Parameters
+    ----------
+    azimuth_deg, elevation_deg : ndarray (V,)
+        Directions of the training views (degrees).
+    batch : int
+        Views per batch (clipped to ``[1, V]``).
     """
 
     def __init__(self, azimuth_deg: np.ndarray, elevation_deg: np.ndarray, batch: int) -> None:
@@ -119,6 +230,17 @@ class ViewSampler:
         self.strata = [s for s in np.array_split(order, batch) if s.size]
 
     def refill(self, rng: np.random.Generator) -> list[list[int]]:
+        """One epoch of batches: every training view once, one per stratum in each batch.
+
+        Parameters
+        ----------
+        rng : numpy.random.Generator
+
+        Returns
+        -------
+        list of list of int
+            Batches of view indices (``batch`` each).
+        """
         perms = [rng.permutation(s) for s in self.strata]
         m = max(p.size for p in perms)
         return [[int(p[i % p.size]) for p in perms] for i in range(m)]
@@ -126,7 +248,17 @@ class ViewSampler:
 
 
 def snapshot(state: TrainState) -> dict[str, Any]:
-    """A copy of the parameters and Adam moments to roll back to after a non-finite step."""
+    """A copy of the parameters and Adam moments to roll back to after a non-finite step.
+
+    Parameters
+    ----------
+    state : TrainState
+
+    Returns
+    -------
+    dict
+        ``params`` (cloned tensors) and ``opt`` (cloned Adam moments, keyed ``name/key``).
+    """
     return {
         "params": {k: v.detach().clone() for k, v in state.params.items()},
         "opt": {k: (v.clone() if torch.is_tensor(v) else v) for k, v in opt_tensors(state.opt).items()},
@@ -143,7 +275,15 @@ def opt_tensors(opt: torch.optim.Adam) -> dict[str, Any]:
 
 
 def restore(state: TrainState, snap: dict[str, Any]) -> None:
-    """Put a :func:`snapshot` back into ``state`` (parameters, optimiser groups and moments)."""
+    """Put a :func:`snapshot` back into ``state`` (parameters, optimiser groups and moments).
+
+    Parameters
+    ----------
+    state : TrainState
+        Changed in place; the densification statistics are reset when the number of Gaussians changed.
+    snap : dict
+        From :func:`snapshot`.
+    """
     for g in state.opt.param_groups:
         name = g["name"]
         old = g["params"][0]
@@ -164,5 +304,14 @@ def restore(state: TrainState, snap: dict[str, Any]) -> None:
 
 
 def params_finite(params: dict[str, torch.Tensor]) -> bool:
-    """Whether every parameter tensor is finite."""
+    """Whether every parameter tensor is finite.
+
+    Parameters
+    ----------
+    params : dict of str to Tensor
+
+    Returns
+    -------
+    bool
+    """
     return all(bool(torch.isfinite(v).all()) for v in params.values())

@@ -1,0 +1,365 @@
+"""Training robustness: out-of-range settings fail at once, non-finite steps are counted over a window, a collapsed
+model fails the run instead of being written, damaged checkpoints fall back to the previous one, a run folder is
+locked against a second process, and the CLI does not silently restart a folder that holds a run."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from test_train import _cfg, _metric_rows, scene_dir  # noqa: F401 - scene_dir is a fixture
+
+from ctsplat.training import checkpoint, config, loop
+from ctsplat.utils import LOCK_NAME, CtsplatError, run_lock
+
+ROOT = Path(__file__).resolve().parents[2]
+ENV = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+FINAL = ("model.pt", "model.ply", "training.json")
+
+
+def _set(cfg: dict, dotted: str, value: object) -> dict:
+    node = cfg
+    *parents, last = dotted.split(".")
+    for part in parents:
+        node = node.setdefault(part, {})
+    node[last] = value
+    return cfg
+
+
+def _outside(bound: config.Bound) -> list[object]:
+    """Values just outside a bound on each limited side, and a non-number."""
+    bad: list[object] = ["abc", True, float("nan")]
+    if bound.low is not None:
+        bad.append(bound.low if bound.low_open else bound.low - 1)
+    if bound.high is not None:
+        bad.append(bound.high if bound.high_open else bound.high + 1)
+    if bound.kind == "integer":
+        bad.append(2.5)
+    if not bound.nullable:
+        bad.append(None)
+    return bad
+
+
+# ------------------------------------------------------------------------------------------ bounds
+@pytest.mark.parametrize("key", sorted(config.TRAIN_BOUNDS))
+def test_every_numeric_key_is_bounded(key: str, scene_dir: Path, tmp_path: Path) -> None:  # noqa: F811
+    bound = config.TRAIN_BOUNDS[key]
+    base = _cfg(scene_dir)
+    default = config._get(config.TRAIN_DEFAULTS, key)
+    config.resolve_config(_set(json.loads(json.dumps(base)), key, default))  # the default is inside
+    for value in _outside(bound):
+        cfg = _set(json.loads(json.dumps(base)), key, value)
+        with pytest.raises(CtsplatError) as err:
+            loop.train(cfg, tmp_path / "run")
+        msg = str(err.value)
+        assert "\n" not in msg and f"train.{key} must be {bound.describe()}, got" in msg, (value, msg)
+    assert not (tmp_path / "run").exists()  # nothing created before the settings are checked
+
+
+def test_bounds_named_in_the_issue(scene_dir: Path, tmp_path: Path) -> None:  # noqa: F811
+    cases = {
+        ("nan_lr_decay", 0): r"train\.nan_lr_decay must be a number in \(0, 1\), got 0",
+        ("nan_lr_decay", 2): r"train\.nan_lr_decay must be a number in \(0, 1\), got 2",
+        ("lr.means", -0.01): r"train\.lr\.means must be a number > 0, got -0\.01",
+        ("lambda_ssim", -0.2): r"train\.lambda_ssim must be a number >= 0",
+        ("checkpoint_every", 0): r"train\.checkpoint_every must be an integer >= 1, got 0",
+        ("eval_every", -5): r"train\.eval_every must be an integer >= 1, got -5",
+        ("eval_every", "abc"): r"train\.eval_every must be an integer >= 1, got 'abc'",
+        ("densify.grad_threshold", -1e-4): r"train\.densify\.grad_threshold must be a number >= 0",
+        ("lambda_density", "5e-5"): r"got '5e-5' \(text: YAML reads 5e-5 as a string; write 5\.0e-5\)",
+    }
+    for (key, value), pattern in cases.items():
+        with pytest.raises(CtsplatError, match=pattern):
+            loop.train(_set(_cfg(scene_dir), key, value), tmp_path / "run")
+    with pytest.raises(CtsplatError, match="no data term"):
+        loop.train(_cfg(scene_dir, lambda_l1=0.0, lambda_ssim=0), tmp_path / "run")
+    with pytest.raises(CtsplatError, match=r"train\.lr must be a mapping"):
+        loop.train(_cfg(scene_dir, lr=0.01), tmp_path / "run")
+    with pytest.raises(CtsplatError, match=r"train\.mip must be true or false, got 'yes'"):
+        loop.train(_cfg(scene_dir, mip="yes"), tmp_path / "run")
+    with pytest.raises(CtsplatError, match="unknown train.fbp_filter 'box'"):
+        loop.train(_cfg(scene_dir, fbp_filter="box"), tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_bounds_have_a_json_schema_form() -> None:
+    assert config.TRAIN_BOUNDS["nan_lr_decay"].json_schema() == {
+        "type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1}
+    assert config.TRAIN_BOUNDS["init_scale_voxels"].json_schema() == {"type": ["number", "null"],
+                                                                     "exclusiveMinimum": 0}
+    assert config.TRAIN_BOUNDS["eval_every"].json_schema() == {"type": "integer", "minimum": 1}
+    # every numeric default has a bound, and nothing else does
+    numeric = set()
+
+    def walk(d: dict, prefix: str = "") -> None:
+        for k, v in d.items():
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}.")
+            elif (isinstance(v, int | float) and not isinstance(v, bool)) or v is None:
+                numeric.add(prefix + k)
+
+    walk(config.TRAIN_DEFAULTS)
+    assert numeric == set(config.TRAIN_BOUNDS)
+
+
+# ------------------------------------------------------------------------------------------ non-finite steps
+def test_alternating_nan_steps_stop_the_run(scene_dir: Path, tmp_path: Path) -> None:  # noqa: F811
+    def every_other(it: int, st) -> None:  # noqa: ANN001
+        if it % 2 == 0:  # the next step sees a non-finite parameter; the one after is fine again
+            with torch.no_grad():
+                st.params["means"][0, 0] = float("nan")
+
+    with pytest.raises(CtsplatError, match=r"5 non-finite steps within 100 iterations \(iterations 3\.\.11"):
+        loop.train(_cfg(scene_dir, iterations=40), tmp_path / "a", callback=every_other)
+    assert not any((tmp_path / "a" / n).exists() for n in FINAL)
+    # the window is a setting: 5 events spread over more than nan_window iterations do not stop a run
+    res = loop.train(_cfg(scene_dir, iterations=40, nan_window=8, eval_every=40, collapse_psnr_drop_db=0.0,
+                          collapse_empty_margin_db=0.0), tmp_path / "b", callback=every_other)
+    assert res["nan_events"] == 19
+
+
+# ------------------------------------------------------------------------------------------ collapse
+HUGE = {k: v * 1e4 for k, v in config.TRAIN_DEFAULTS["lr"].items()}
+
+
+@pytest.mark.parametrize(("kw", "reason"), [
+    ({"lr": {"density": 100.0}}, r"only 0 of \d+ Gaussians have a density >= densify\.prune_density"),
+    ({"lr": HUGE}, r"the final validation PSNR 11\.\d\d dB is more than collapse_psnr_drop_db \(5 dB\) below"),
+    ({"init": "uniform", "lr": {"means": 100.0, "scales": 100.0}},
+     r"the final validation PSNR .* within collapse_empty_margin_db \(0\.1 dB\) of an empty model's"),
+], ids=["no-density", "psnr-drop", "empty"])
+def test_collapsed_model_fails_the_run(scene_dir: Path, tmp_path: Path, kw: dict, reason: str) -> None:  # noqa: F811
+    out = tmp_path / "run"
+    with pytest.raises(CtsplatError, match=r"^training collapsed at iteration \d+: " + reason) as err:
+        loop.train(_cfg(scene_dir, **kw), out)
+    assert "\n" not in str(err.value)
+    assert not any((out / n).exists() for n in FINAL)
+    assert (out / "train_log.csv").stat().st_size > 0 and (out / "config.json").exists()  # kept for diagnosis
+
+
+def test_loss_stuck_high_fails_the_run(scene_dir: Path, tmp_path: Path) -> None:  # noqa: F811
+    def flood(it: int, st) -> None:  # noqa: ANN001
+        if it >= 10:  # every Gaussian far too dense from here on: the loss jumps and stays up
+            with torch.no_grad():
+                st.params["density_raw"].fill_(5.0)
+
+    with pytest.raises(CtsplatError, match=r"training collapsed at iteration 25: the mean loss stayed above 2 x its "
+                                           r"first interval's .* for 3 validations in a row"):
+        loop.train(_cfg(scene_dir, iterations=60, eval_every=5, collapse_loss_evals=3), tmp_path / "a",
+                   callback=flood)
+    # disabled checks: the same run writes its (bad) model
+    loop.train(_cfg(scene_dir, iterations=60, eval_every=5, collapse_loss_evals=0, collapse_psnr_drop_db=0.0,
+                    collapse_empty_margin_db=0.0), tmp_path / "b", callback=flood)
+    assert (tmp_path / "b" / "model.pt").exists()
+
+
+# ------------------------------------------------------------------------------------------ checkpoints
+@pytest.fixture(scope="module")
+def reference(scene_dir: Path, tmp_path_factory) -> Path:  # noqa: F811
+    out = tmp_path_factory.mktemp("ref")
+    loop.train(_cfg(scene_dir, keep_checkpoints=3), out)
+    return out
+
+
+@pytest.mark.parametrize("damage", ["empty", "truncated", "garbage"])
+def test_damaged_newest_checkpoint_falls_back(scene_dir: Path, reference: Path, tmp_path: Path,  # noqa: F811
+                                              caplog, damage: str) -> None:
+    out = tmp_path / "run"
+
+    def stop_at_20(it: int, st) -> None:  # noqa: ANN001
+        if it == 20:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        loop.train(_cfg(scene_dir, keep_checkpoints=3), out, callback=stop_at_20)
+    newest = checkpoint.latest_checkpoint(out)
+    assert newest.name == "ckpt_00000020.pt"
+    data = newest.read_bytes()
+    newest.write_bytes({"empty": b"", "truncated": data[: len(data) // 2], "garbage": b"\x00junk" * 10}[damage])
+    with caplog.at_level(logging.WARNING, logger="ctsplat.training.checkpoint"):
+        loop.train(_cfg(scene_dir, keep_checkpoints=3), out, resume=True)
+    assert "ckpt_00000020.pt" in caplog.text and "moved aside" in caplog.text
+    bad = out / "checkpoints" / "ckpt_00000020.pt.corrupt"
+    with pytest.raises(CtsplatError, match="cannot read checkpoint .*ckpt_00000020.pt.corrupt: ") as err:
+        checkpoint.read_checkpoint(bad)
+    assert "\n" not in str(err.value)
+    # resumed from iteration 10: the same result as the uninterrupted run
+    assert _metric_rows(out / "train_log.csv") == _metric_rows(reference / "train_log.csv")
+    assert _metric_rows(out / "per_view.csv") == _metric_rows(reference / "per_view.csv")
+    assert sorted(p.name for p in checkpoint.list_checkpoints(out)) == \
+        sorted(p.name for p in checkpoint.list_checkpoints(reference))
+
+
+def test_only_damaged_checkpoints_start_over(scene_dir: Path, tmp_path: Path, caplog) -> None:  # noqa: F811
+    out = tmp_path / "run"
+    (out / "checkpoints").mkdir(parents=True)
+    (out / "checkpoints" / "ckpt_00000010.pt").write_bytes(b"")
+    with caplog.at_level(logging.WARNING):
+        res = loop.train(_cfg(scene_dir, iterations=10), out, resume=True)
+    assert res["iterations"] == 10
+    assert "the file is empty" in caplog.text and "no readable checkpoint" in caplog.text
+
+
+def test_resume_restores_logs_a_workflow_manager_deleted(scene_dir: Path, reference: Path,  # noqa: F811
+                                                          tmp_path: Path) -> None:
+    out = tmp_path / "run"
+
+    def stop_at_25(it: int, st) -> None:  # noqa: ANN001
+        if it == 25:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        loop.train(_cfg(scene_dir, keep_checkpoints=3), out, callback=stop_at_25)
+    for name in ("train_log.csv", "per_view.csv", "config.json"):  # Snakemake removes a failed job's outputs
+        (out / name).unlink()
+    loop.train(_cfg(scene_dir, keep_checkpoints=3), out, resume="auto")
+    assert _metric_rows(out / "train_log.csv") == _metric_rows(reference / "train_log.csv")
+    assert _metric_rows(out / "per_view.csv") == _metric_rows(reference / "per_view.csv")
+
+
+def test_auto_resume_starts_over_for_another_config(scene_dir: Path, tmp_path: Path, caplog) -> None:  # noqa: F811
+    out = tmp_path / "run"
+    loop.train(_cfg(scene_dir, iterations=20), out)
+    with caplog.at_level(logging.INFO):
+        loop.train(_cfg(scene_dir, iterations=20, lambda_ssim=0.3), out, resume="auto")
+    assert "belong to another config" in caplog.text and "resuming" not in caplog.text
+    assert json.loads((out / "config.json").read_text())["config"]["lambda_ssim"] == 0.3
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        loop.train(_cfg(scene_dir, iterations=20, lambda_ssim=0.3), out, resume="auto")
+    assert "resuming from" in caplog.text
+    with pytest.raises(CtsplatError, match=r"different config .*ctsplat train --restart"):
+        loop.train(_cfg(scene_dir, iterations=20), out, resume=True)
+
+
+# ------------------------------------------------------------------------------------------ lock
+HOLD = """
+import sys, time
+from pathlib import Path
+from ctsplat.utils import run_lock
+with run_lock(sys.argv[1]):
+    Path(sys.argv[2]).touch()
+    while not Path(sys.argv[3]).exists():
+        time.sleep(0.02)
+"""
+
+TRAIN_AND_WAIT = """
+import json, sys, time
+from pathlib import Path
+from ctsplat.training import train
+def wait(it, state):
+    if it == 1:
+        Path(sys.argv[3]).touch()
+        while not Path(sys.argv[4]).exists():
+            time.sleep(0.02)
+train(json.loads(sys.argv[1]), sys.argv[2], callback=wait)
+"""
+
+
+def _wait_for(path: Path, proc: subprocess.Popen) -> None:
+    deadline = time.monotonic() + 120
+    while not path.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    code = "import sys; from ctsplat.cli import main; sys.exit(main(sys.argv[1:]))"
+    return subprocess.run([sys.executable, "-c", code, *args], env=ENV, capture_output=True, text=True, timeout=300)
+
+
+def test_second_training_into_a_busy_folder_fails_fast(scene_dir: Path, tmp_path: Path) -> None:  # noqa: F811
+    out = tmp_path / "run"
+    cfg = _cfg(scene_dir, iterations=10)
+    first = subprocess.Popen([sys.executable, "-c", TRAIN_AND_WAIT, json.dumps(cfg), str(out), str(tmp_path / "busy"),
+                              str(tmp_path / "go")], env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True)
+    try:
+        _wait_for(tmp_path / "busy", first)
+        (tmp_path / "c.yaml").write_text(yaml.safe_dump({"train": _cfg(scene_dir, iterations=10, seed=7)}))
+        t0 = time.monotonic()
+        second = _cli("train", "--config", str(tmp_path / "c.yaml"), "--out", str(out), "--quiet")
+        assert time.monotonic() - t0 < 60
+        assert second.returncode == 2
+        err = second.stderr.strip().splitlines()
+        assert len(err) == 1 and f"is in use by another ctsplat process (pid {first.pid}" in err[0], second.stderr
+        third = _cli("evaluate", str(out), "--device", "cpu")
+        assert third.returncode == 2 and f"(pid {first.pid}" in third.stderr
+    finally:
+        (tmp_path / "go").touch()
+        _, stderr = first.communicate(timeout=300)
+    assert first.returncode == 0, stderr
+    # the folder is the first run's alone
+    run_cfg = json.loads((out / "config.json").read_text())
+    assert run_cfg["config"]["seed"] == 0
+    assert json.loads((out / "training.json").read_text())["config_hash"] == run_cfg["config_hash"]
+    assert not (out / "metrics.json").exists()
+
+
+def test_evaluation_and_lock_release_with_real_processes(scene_dir: Path, tmp_path: Path) -> None:  # noqa: F811
+    out = tmp_path / "run"
+    loop.train(_cfg(scene_dir, iterations=10), out)
+    holder = subprocess.Popen([sys.executable, "-c", HOLD, str(out), str(tmp_path / "held"), str(tmp_path / "go")],
+                              env=ENV, text=True, stderr=subprocess.PIPE)
+    _wait_for(tmp_path / "held", holder)
+    try:
+        res = _cli("evaluate", str(out), "--device", "cpu")
+        assert res.returncode == 2 and f"(pid {holder.pid}" in res.stderr
+        assert not (out / "metrics.json").exists()
+        with pytest.raises(CtsplatError, match=f"in use by another ctsplat process \\(pid {holder.pid}"):
+            loop.train(_cfg(scene_dir, iterations=10), out, resume=True)
+    finally:
+        os.kill(holder.pid, signal.SIGKILL)  # a killed holder leaves no stale lock
+        holder.wait()
+    assert (out / LOCK_NAME).exists()
+    assert _cli("evaluate", str(out), "--device", "cpu").returncode == 0
+    assert (out / "metrics.json").exists()
+
+
+def test_lock_is_reentrant_within_a_process(tmp_path: Path) -> None:
+    with run_lock(tmp_path / "r") as a, run_lock(tmp_path / "r") as b:
+        assert a == b and a.read_text().split()[0] == str(os.getpid())
+    with run_lock(tmp_path / "r"):
+        pass
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(CtsplatError, match="not writable"):
+        with run_lock(blocker / "run"):
+            pass
+
+
+# ------------------------------------------------------------------------------------------ CLI
+def test_cli_refuses_to_silently_restart_a_run(scene_dir: Path, tmp_path: Path, capsys) -> None:  # noqa: F811
+    from ctsplat.cli import main
+
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump({"train": _cfg(scene_dir, iterations=10)}))
+    base = ["train", "--config", str(tmp_path / "c.yaml"), "--out", str(tmp_path / "run"), "--quiet", "--no-evaluate"]
+    assert main(base) == 0
+    before = (tmp_path / "run" / "model.pt").read_bytes()
+    capsys.readouterr()
+    assert main(base) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "already holds a training run (checkpoints/ckpt_00000010.pt, model.pt, training.json)" in err
+    assert "pass --resume to continue it or --restart to discard it" in err
+    assert (tmp_path / "run" / "model.pt").read_bytes() == before  # untouched
+    assert main([*base, "--resume"]) == 0
+    assert main([*base, "--set", "seed=3", "--restart"]) == 0
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["config"]["seed"] == 3
+    with pytest.raises(SystemExit):
+        main([*base, "--resume", "--restart"])
+    # bad settings fail before the run folder is touched
+    assert main(["train", "--config", str(tmp_path / "c.yaml"), "--out", str(tmp_path / "new"),
+                 "--set", "nan_lr_decay=2"]) == 2
+    assert "train.nan_lr_decay must be a number in (0, 1), got 2" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
