@@ -50,6 +50,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=2)
     args = parser.parse_args()
+    if args.repeats < 1:
+        parser.error(f"--repeats must be >= 1, got {args.repeats}")
     head, j2k = DATA / "ct0051_head", DATA / "totalseg_abdomen_j2k"
     if not head.is_dir():
         print(f"real data not found at {DATA}; nothing to benchmark", file=sys.stderr)
@@ -72,7 +74,7 @@ def main() -> int:
     df = pd.DataFrame(rows)
     out = ROOT / "benchmarks" / "out"
     out.mkdir(parents=True, exist_ok=True)
-    df.to_csv(out / "ingest.csv", index=False)
+    df.to_csv(out / "ingest.csv", index=False, lineterminator="\n")
     summary = df.groupby(["series", "target", "source_shape", "output_shape"], sort=False)[
         ["read_s", "resample_s", "ingest_from_stack_s", "total_s"]
     ].median()

@@ -64,6 +64,15 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--skip-trilinear", action="store_true", help="do not time the trilinear path on the parallel set")
     args = ap.parse_args()
+    for name in ("size", "angles", "cone_views", "threads"):
+        if getattr(args, name) < (8 if name == "size" else 1):
+            ap.error(f"--{name.replace('_', '-')} must be >= {8 if name == 'size' else 1}, got {getattr(args, name)}")
+    from ctsplat.utils import CtsplatError, resolve_device
+
+    try:
+        resolve_device(args.device)
+    except CtsplatError as exc:
+        ap.error(f"--device: {exc}")
     torch.set_num_threads(args.threads)
     from skimage.transform import radon
 
@@ -118,7 +127,7 @@ def main() -> None:
 
     df = pd.DataFrame(rows)
     OUT.mkdir(parents=True, exist_ok=True)
-    df.to_csv(OUT / "projector.csv", index=False)
+    df.to_csv(OUT / "projector.csv", index=False, lineterminator="\n")
     print(f"torch threads: {torch.get_num_threads()}, device: {args.device}, cpu count: {os.cpu_count()}, "
           f"load average: {os.getloadavg()[0]:.1f}")
     with pd.option_context("display.width", 200, "display.max_columns", 20):

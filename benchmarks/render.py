@@ -122,6 +122,17 @@ def _spawn(args: list[str]) -> dict:
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
+def _voxelize_arg(text: str) -> tuple[int, int]:
+    """``N:S`` -> (N Gaussians, S³ grid), both >= 1."""
+    try:
+        n, size = (int(x) for x in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected N:S (e.g. 500000:256), got {text!r}") from None
+    if n < 1 or size < 1:
+        raise argparse.ArgumentTypeError(f"N and S must be >= 1, got {text!r}")
+    return n, size
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--one"]:  # child process: one configuration, JSON on stdout
@@ -138,13 +149,21 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--compositor", default="radiative")
+    p.add_argument("--compositor", choices=["radiative", "radiative_unrectified", "alpha"],
+                   help="compositor of the render grid (default radiative)")
     p.add_argument("--reference", action="store_true", help="also time the pure-PyTorch reference (N <= 50k)")
     p.add_argument("--budget-s", type=float, default=4.0, help="time budget per configuration (>= 3 reps)")
-    p.add_argument("--voxelize", type=str, default=None, metavar="N:S",
+    p.add_argument("--voxelize", type=_voxelize_arg, default=None, metavar="N:S",
                    help="also time voxelize fwd+bwd of N Gaussians on an S³ grid (peak memory), e.g. 500000:256")
     p.add_argument("--only-voxelize", action="store_true", help="skip the render grid")
     a = p.parse_args(argv)
+    if a.only_voxelize and not a.voxelize:
+        p.error("--only-voxelize needs --voxelize N:S (otherwise nothing runs)")
+    if a.only_voxelize and (a.reference or a.quick or a.compositor):
+        p.error("--reference, --quick and --compositor apply to the render grid, which --only-voxelize skips")
+    if a.threads < 1 or a.budget_s < 0:
+        p.error("--threads must be >= 1 and --budget-s >= 0")
+    compositor = a.compositor or "radiative"
 
     import pandas as pd
     import torch
@@ -162,13 +181,13 @@ def main(argv: list[str] | None = None) -> int:
                 jobs.append((n, 256, 256, "fwdbwd", "reference", dev))
         jobs.append((50_000 if a.quick else 200_000, 1920, 1080, "fwd", "auto", dev))
     if a.voxelize:
-        nv, sv = (int(x) for x in a.voxelize.split(":"))
+        nv, sv = a.voxelize
         jobs.append((nv, sv, sv, "voxelize", "auto", "cpu"))
     rows = []
     print(f"load average at start: {os.getloadavg()}; {os.cpu_count()} CPUs; threads={a.threads}", flush=True)
     for n, w, h, mode, backend, dev in jobs:
         args = ["--n", str(n), "--width", str(w), "--height", str(h), "--mode", mode, "--backend", backend,
-                "--compositor", a.compositor, "--device", dev, "--threads", str(a.threads),
+                "--compositor", compositor, "--device", dev, "--threads", str(a.threads),
                 "--budget-s", str(a.budget_s)]
         try:
             row = _spawn(args)
@@ -185,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     df = pd.DataFrame(rows)
     OUT.mkdir(parents=True, exist_ok=True)
     csv = OUT / ("render_voxelize.csv" if a.only_voxelize else "render.csv")
-    df.to_csv(csv, index=False)
+    df.to_csv(csv, index=False, lineterminator="\n")
     print()
     cols = ["device", "backend", "mode", "n_gaussians", "width", "height", "ms_median", "ms_min", "cpu_ms_median",
             "fps", "peak_mem_mb", "loadavg_1min"]

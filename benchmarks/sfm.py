@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ctsplat.utils import CtsplatError
+
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "out"
 HEAD = Path(os.environ.get("CTSPLAT_SHARED_DATA", ROOT.parent / "shared" / "data")) / "ct0051_head"
@@ -155,6 +157,33 @@ def carm_view_set(volume: Path, orbit: dict, seed: int) -> Path:
     return out
 
 
+def sweep_overrides(sets: list[str]) -> dict:
+    """``--set KEY=VALUE`` overrides for every sweep row, each checked where it goes.
+
+    Orbit keys (:data:`ORBIT_KEYS`, the rendered C-arm view set: ``radiographs`` types and ranges, ``detector_px``
+    for both detector sides, ``pitch_mm`` for ``pixel_spacing_mm``) or ``sfm`` keys; anything else, and keys this
+    script sets itself (``num_threads``: use ``--threads``), is refused.
+    """
+    from ctsplat.cli._common import apply_sets
+    from ctsplat.config import check_section
+    from ctsplat.sfm.step import SFM_DEFAULTS
+
+    extra = apply_sets({}, sets)
+    for key in extra:
+        if key == "num_threads":
+            raise CtsplatError("--set num_threads: use --threads")
+        if key == "geometry":
+            raise CtsplatError("--set geometry: the sweep renders its own C-arm view set")
+        if key not in ORBIT_KEYS and key not in SFM_DEFAULTS:
+            raise CtsplatError(f"--set {key}: unknown key; orbit keys: {', '.join(sorted(ORBIT_KEYS))}; or a key of "
+                               "ctsplat.sfm.step.SFM_DEFAULTS")
+    orbit = {k: v for k, v in extra.items() if k in ORBIT_KEYS}
+    renamed = {"detector_px": "detector_width", "pitch_mm": "pixel_spacing_mm"}
+    check_section("radiographs", {renamed.get(k, k): v for k, v in orbit.items()})
+    check_section("sfm", {k: v for k, v in extra.items() if k not in ORBIT_KEYS})
+    return extra
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", help="volume name (head, phantom_beads, phantom_smooth) or label substring")
@@ -173,8 +202,16 @@ def main() -> None:
     from ctsplat.sfm.step import naive_slices_sfm, run_sfm
 
     torch.set_num_threads(args.threads)
-    extra = {k: json.loads(v) if v[:1] in "0123456789-[{tfn" else v for k, v in (s.split("=", 1) for s in args.set)}
+    try:
+        extra = sweep_overrides(args.set)
+    except CtsplatError as exc:
+        ap.error(str(exc))
+    if args.threads < 1 or args.grid < 8:
+        ap.error("--threads must be >= 1 and --grid >= 8")
     runs = [r for r in SWEEP if not args.only or args.only == r[0] or args.only in r[1]]
+    if not runs:
+        ap.error(f"--only {args.only!r} matches no configuration (volumes: "
+                 f"{', '.join(sorted({r[0] for r in SWEEP}))}; or a substring of a label)")
     if args.quick:
         runs = runs[:1]
     rows = []
@@ -226,7 +263,7 @@ def main() -> None:
         old = pd.read_csv(args.csv)
         keep = ~old.set_index(["volume", "label"]).index.isin(df.set_index(["volume", "label"]).index)
         df = pd.concat([old[keep], df], ignore_index=True)
-    df.to_csv(args.csv, index=False)
+    df.to_csv(args.csv, index=False, lineterminator="\n")
     with pd.option_context("display.width", 250, "display.max_columns", 30):
         cols = ["volume", "label", "n_views", "detector_px", "dso_mm", "orbit_jitter_deg", "registration_rate",
                 "models_found", "model_sizes", "rot_err_deg_median", "rot_err_deg_p90", "unfused_rot_err_deg_median",

@@ -536,11 +536,11 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
                     "baseline": name, "code_version": code_version()}
             save_volume(Volume(rec, volume.affine, meta), out_dir / f"{name}.nii.gz")
     with atomic_path(out_dir / "sart_iterations.csv") as tmp:
-        pd.DataFrame(sart_rows).to_csv(tmp, index=False)
+        pd.DataFrame(sart_rows).to_csv(tmp, index=False, lineterminator="\n")
     write_json_atomic(out_dir / "baselines.json", json_safe({
         "config": cfg, "code_version": code_version(), "volume_path": str(volume_path),
         "volume_id": volume.volume_id, "radiographs_dir": str(radiographs_dir), "results": rows,
     }))
     with atomic_path(out_dir / "baselines.csv") as tmp:
-        df.to_csv(tmp, index=False)
+        df.to_csv(tmp, index=False, lineterminator="\n")
     return df

@@ -5,7 +5,8 @@ every key of the workflow config with its default; :func:`validate_config` fills
 and names the key path of the first error. The library sections of the schema (``preprocessing``,
 ``radiographs.<geometry>``, ``baselines.settings``, ``sfm.settings``, ``train``) mirror the ``*_DEFAULTS`` dicts
 of the modules listed in :data:`LIBRARY_SECTIONS`; ``python -m ctsplat.config --sync-defaults`` regenerates them
-after a module changes its defaults.
+after a module changes its defaults. Every numeric key has a range (:data:`REFINE`). :func:`check_section` applies
+the same types and ranges to one section as a command-line step receives it (a config file plus ``--set``).
 """
 
 from __future__ import annotations
@@ -31,6 +32,11 @@ __all__ = [
     "schema_defaults",
     "check_library_sections",
     "check_volume_sources",
+    "check_section",
+    "check_values",
+    "check_split",
+    "check_grid_exclude",
+    "section_schema",
     "prepare_config",
     "sync_library_defaults",
 ]
@@ -68,9 +74,16 @@ def load_schema(path: str | os.PathLike[str] | None = None) -> dict[str, Any]:
     import yaml
 
     if path is None:
-        return yaml.safe_load(resources.files("ctsplat").joinpath(SCHEMA_RESOURCE).read_text(encoding="utf-8"))
+        return copy.deepcopy(_shipped_schema())
     with open(path, encoding="utf-8") as fh:
         return yaml.safe_load(fh)
+
+
+@functools.cache
+def _shipped_schema() -> dict[str, Any]:
+    import yaml  # parsing the YAML takes ~0.2 s: once per process
+
+    return yaml.safe_load(resources.files("ctsplat").joinpath(SCHEMA_RESOURCE).read_text(encoding="utf-8"))
 
 
 def _key_path(parts: Iterable[Any]) -> str:
@@ -121,19 +134,169 @@ def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any] | None 
     schema = load_schema() if schema is None else schema
     filled = copy.deepcopy(dict(config))
     cls = _validator_with_defaults()
-    errors = sorted(cls(schema).iter_errors(filled), key=lambda e: (-len(e.absolute_path), str(e.absolute_path)))
-    if errors:
-        err = errors[0]
-        # oneOf/anyOf errors: report the most specific sub-error
-        if err.context:
-            err = max(err.context, key=lambda e: len(e.absolute_path))
-        where = _key_path(err.absolute_path)
-        msg = err.message
-        if err.validator == "additionalProperties":
-            allowed = sorted((err.schema.get("properties") or {}).keys())
-            msg += f" (allowed: {', '.join(allowed)})" if allowed else ""
-        raise CtsplatError(f"invalid config at {where}: {msg}")
+    _raise_first_error(cls(schema).iter_errors(filled))
     return filled
+
+
+def _raise_first_error(errors: Iterable[Any], prefix: Iterable[Any] = ()) -> None:
+    """Raise the first (deepest-path) jsonschema error as one line naming its key path; nothing without errors."""
+    errors = sorted(errors, key=lambda e: (-len(e.absolute_path), str(e.absolute_path)))
+    if not errors:
+        return
+    err = errors[0]
+    # oneOf/anyOf errors: report the most specific sub-error (deepest path; a range or enum error over a type
+    # error of another alternative)
+    if err.context:
+        err = max(err.context, key=lambda e: (len(e.absolute_path), e.validator != "type"))
+    where = _key_path([*prefix, *err.absolute_path])
+    msg = err.message
+    if err.validator == "additionalProperties":
+        allowed = sorted((err.schema.get("properties") or {}).keys())
+        msg += f" (allowed: {', '.join(allowed)})" if allowed else ""
+    raise CtsplatError(f"invalid config at {where}: {msg}")
+
+
+def check_split(split: Mapping[str, Any], where: str) -> None:
+    """Check that train/val/test fractions sum to 1 (within 1e-6).
+
+    The orbits would normalise any sum, so a typo (``train: 0.9`` beside ``val: 0.25``) silently changes every
+    split; the fractions must say what they mean.
+
+    Parameters
+    ----------
+    split : mapping
+        ``{"train": f, "val": f, "test": f}`` with the defaults filled.
+    where : str
+        Key path shown in the error, e.g. ``radiographs.circular.split``.
+
+    Raises
+    ------
+    CtsplatError
+        When the fractions do not sum to 1.
+    """
+    values = {k: split.get(k, 0.0) for k in ("train", "val", "test")}
+    if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values.values()):
+        return  # a wrong type is the schema's error
+    total = sum(float(v) for v in values.values())
+    if abs(total - 1.0) > 1e-6:
+        shown = ", ".join(f"{k}: {v:g}" for k, v in values.items())
+        raise CtsplatError(f"invalid config at {where}: fractions must sum to 1, got {total:g} ({shown}); e.g. "
+                           "train: 0.7, val: 0.15, test: 0.15")
+
+
+def section_schema(section: str) -> dict[str, Any]:
+    """JSON schema of one library section as a step takes it, including the keys the workflow sets per run.
+
+    The same types and ranges as the workflow schema's ``$defs`` (:data:`REFINE`); the keys of
+    :data:`WORKFLOW_KEYS` are typed from the module's defaults (and refined where :data:`REFINE` names them).
+
+    Parameters
+    ----------
+    section : str
+        A key of :data:`LIBRARY_SECTIONS`.
+
+    Returns
+    -------
+    dict
+        The section's schema (imports the owning module).
+    """
+    mod_name, attr = LIBRARY_SECTIONS[section]
+    defaults = getattr(importlib.import_module(mod_name), attr)
+    return _schema_section(section, defaults, set(), "")
+
+
+def check_values(values: Mapping[str, Any], schema: Mapping[str, Any], where: str) -> None:
+    """Validate ``values`` against a (sub-)schema without filling defaults.
+
+    Parameters
+    ----------
+    values : mapping
+        The settings.
+    schema : mapping
+        A JSON schema, e.g. a section of :func:`load_schema`'s ``properties``.
+    where : str
+        Key path of ``values`` in the workflow config, prefixed to the error's key path (``a.b``).
+
+    Raises
+    ------
+    CtsplatError
+        For the first (deepest-path) error, naming its key path.
+    """
+    from jsonschema import Draft202012Validator
+
+    _raise_first_error(Draft202012Validator(schema).iter_errors(dict(values)), where.split(".") if where else ())
+
+
+def check_section(section: str, values: Mapping[str, Any], where: str | None = None) -> dict[str, Any]:
+    """Check one library section's settings (a config file plus ``--set`` overrides) before a step runs.
+
+    Unknown keys are refused as the step refuses them (:func:`ctsplat.utils.merge_config`); types and ranges come
+    from :func:`section_schema`; ``radiographs`` split fractions must also sum to 1 (:func:`check_split`). Defaults
+    are not filled: the step does that.
+
+    Parameters
+    ----------
+    section : str
+        A key of :data:`LIBRARY_SECTIONS`.
+    values : mapping
+        The user's settings for that section.
+    where : str, optional
+        Key path prefix shown in errors (default: ``section``).
+
+    Returns
+    -------
+    dict
+        ``values`` as a plain dict (unchanged).
+
+    Raises
+    ------
+    CtsplatError
+        One line naming the key path and what is expected, e.g.
+        ``invalid config at train.lr.means: 'fast' is not of type 'number'``.
+    """
+    values = dict(values)
+    where = section if where is None else where
+    mod_name, attr = LIBRARY_SECTIONS[section]
+    merge_config(where, values, getattr(importlib.import_module(mod_name), attr))  # unknown keys, as the step says
+    check_values(values, section_schema(section), where)
+    if section == "radiographs" and isinstance(values.get("split"), Mapping):
+        check_split({"train": 0.7, "val": 0.15, "test": 0.15, **values["split"]}, f"{where}.split")
+    return values
+
+
+def check_grid_exclude(cfg: Mapping[str, Any]) -> None:
+    """Check that every value named in ``grid.exclude`` is a value of its axis (or a volume name).
+
+    An entry whose value matches nothing (a typo such as ``init: fpb``) would silently exclude nothing.
+
+    Parameters
+    ----------
+    cfg : mapping
+        The filled workflow config.
+
+    Raises
+    ------
+    CtsplatError
+        Naming ``grid.exclude[i].<key>``, the value and the values it can take.
+    """
+    from ctsplat.grid import normalise_mip
+
+    axes = cfg["grid"]["axes"]
+    known: dict[str, list[Any]] = {"volume": list(cfg["volumes"])}
+    for name, vals in axes.items():
+        known[name] = [normalise_mip(v) for v in vals] if name == "mip" else list(vals)
+    for i, entry in enumerate(cfg["grid"]["exclude"]):
+        for key, vals in entry.items():
+            for v in vals if isinstance(vals, list) else [vals]:
+                try:
+                    norm = normalise_mip(v) if key == "mip" else v
+                except CtsplatError:
+                    norm = v
+                if norm not in known[key]:
+                    shown = ", ".join(map(str, known[key]))
+                    what = "a volume name" if key == "volume" else f"a value of grid.axes.{key}"
+                    raise CtsplatError(f"invalid config at grid.exclude[{i}].{key}: {v!r} is not {what} ({shown}); "
+                                       "fix or remove it (it would exclude nothing)")
 
 
 @functools.cache
@@ -243,7 +406,9 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
     is imported here), checks that volume sources exist, resolves ``grid.geometry`` and ``baselines.geometry``
     (null = the first radiographs geometry that is not a C-arm orbit / the grid's), expands the grid (zero runs is
     an error), checks that the largest ``views`` value fits the training geometry and that SfM, when a run needs
-    it, has its C-arm geometry (``sfm.settings.geometry``).
+    it, has its C-arm geometry (``sfm.settings.geometry``). The split fractions of every radiographs geometry must
+    sum to 1 (:func:`check_split`) and every ``grid.exclude`` value must name an axis value
+    (:func:`check_grid_exclude`). ``dso_mm`` against the object's size needs the volume: the projector checks it.
 
     Parameters
     ----------
@@ -288,6 +453,9 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
             f"invalid config at baselines.geometry: {cfg['baselines']['geometry']!r} is not a radiographs geometry "
             f"(defined: {', '.join(geometries)})"
         )
+    for geo, values in cfg["radiographs"].items():
+        check_split(values["split"], f"radiographs.{geo}.split")
+    check_grid_exclude(cfg)
     runs = expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
     sfm_geometry = cfg["sfm"]["settings"].get("geometry", "carm")
     needs_sfm = cfg["sfm"]["enabled"] or bool(((runs["poses"] == "colmap") | (runs["init"] == "sfm")).any())
@@ -327,47 +495,114 @@ WORKFLOW_KEYS: dict[str, tuple[set[str], str]] = {
     "baselines": ({"n_views"}, "without n_views (the grid's view counts)"),
 }
 
-# Schema refinements the defaults cannot express: enums, ranges, nullable and union types.
+# Schema refinements the defaults cannot express: enums, ranges, nullable and union types. Keys of nested sections
+# are dotted (``("train", "lr.means")``). Every numeric key has a range: counts >= 1 (>= 0 where 0 means "off" or
+# "all"), lengths and scales > 0, fractions and rates in [0, 1], loss weights >= 0, learning rates > 0; the schema
+# walk in tests/unit/test_analysis_config.py lists the few numeric keys without a meaningful bound.
+_POSITIVE = {"type": "number", "exclusiveMinimum": 0}
+_NON_NEGATIVE = {"type": "number", "minimum": 0}
+_FRACTION = {"type": "number", "minimum": 0, "maximum": 1}
+_ANGLE_DEG = {"type": "number", "minimum": 0, "maximum": 180}
+_COUNT = {"type": "integer", "minimum": 1}
+_COUNT0 = {"type": "integer", "minimum": 0}
 REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("preprocessing", "voxel_size_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
     ("preprocessing", "grid"): {"type": ["integer", "array", "null"], "minimum": 2,
                                 "items": {"type": "integer", "minimum": 2}, "minItems": 3, "maxItems": 3},
     ("preprocessing", "intensity"): {"enum": ["attenuation", "window", "mu", "hu"]},
+    ("preprocessing", "mu_water_per_mm"): _POSITIVE,
+    ("preprocessing", "hu_max"): {"type": "number", "exclusiveMinimum": -1000},  # mu(hu_max) must be > 0
+    # [level, width] in HU, or a preset name
     ("preprocessing", "window"): {"type": ["string", "array"], "items": {"type": "number"}, "minItems": 2,
-                                  "maxItems": 2},
+                                  "maxItems": 2, "prefixItems": [{"type": "number"}, _POSITIVE]},
     ("preprocessing", "denoise"): {"enum": [None, "tv", "bilateral"]},
+    ("preprocessing", "denoise_weight"): _POSITIVE,
     ("preprocessing", "mask"): {"enum": [None, "otsu", "convex_hull"]},
     ("radiographs", "camera"): {"enum": ["parallel", "cone"]},
     ("radiographs", "orbit"): {"enum": ["circular", "sphere", "carm"]},
     ("radiographs", "sphere_sampling"): {"enum": ["fibonacci", "stratified"]},
     ("radiographs", "pixel_spacing_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
+    ("radiographs", "dso_mm"): _POSITIVE,
+    ("radiographs", "dsd_mm"): _POSITIVE,
     ("radiographs", "parallel_distance_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
     ("radiographs", "arc_deg"): {"type": ["number", "null"], "exclusiveMinimum": 0, "maximum": 360},
     ("radiographs", "isocenter_mm"): {"type": ["array", "null"], "items": {"type": "number"}, "minItems": 3,
                                       "maxItems": 3},
-    ("radiographs", "n_views"): {"type": "integer", "minimum": 1},
-    ("radiographs", "detector_width"): {"type": "integer", "minimum": 1},
-    ("radiographs", "detector_height"): {"type": "integer", "minimum": 1},
-    ("sfm", "pitch_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
-    ("sfm", "matching"): {"enum": ["exhaustive", "sequential", "spatial"]},
+    ("radiographs", "n_views"): _COUNT,
+    ("radiographs", "elevation_range_deg"): {"type": "array", "minItems": 2, "maxItems": 2,
+                                             "items": {"type": "number", "exclusiveMinimum": -90,
+                                                       "exclusiveMaximum": 90}},
+    # elevation = wobble_deg * sin(...) must stay off the poles
+    ("radiographs", "wobble_deg"): {"type": "number", "exclusiveMinimum": -90, "exclusiveMaximum": 90},
+    ("radiographs", "wobble_cycles"): _NON_NEGATIVE,
+    ("radiographs", "detector_width"): _COUNT,
+    ("radiographs", "detector_height"): _COUNT,
+    ("radiographs", "orbit_jitter_mm"): _NON_NEGATIVE,
+    ("radiographs", "orbit_jitter_deg"): _NON_NEGATIVE,
+    ("radiographs", "fov_margin"): _POSITIVE,
+    ("radiographs", "split.train"): _FRACTION,  # the three fractions sum to 1 (check_split)
+    ("radiographs", "split.val"): _FRACTION,
+    ("radiographs", "split.test"): _FRACTION,
+    ("radiographs", "step_voxels"): _POSITIVE,
+    ("radiographs", "noise.i0"): _POSITIVE,
+    ("radiographs", "noise.electronic_sigma"): _NON_NEGATIVE,
+    ("radiographs", "batch_samples"): _COUNT,
     ("sfm", "geometry"): {"type": "string", "pattern": "^[A-Za-z0-9][A-Za-z0-9_.-]*$"},
+    ("sfm", "clahe_clip"): _FRACTION,  # skimage equalize_adapthist clip_limit
+    ("sfm", "clahe_kernel_frac"): {"type": "number", "exclusiveMinimum": 0, "maximum": 1},
+    ("sfm", "percentile_low"): {"type": "number", "minimum": 0, "maximum": 100},
+    ("sfm", "percentile_high"): {"type": "number", "minimum": 0, "maximum": 100},
+    ("sfm", "background_frac"): _FRACTION,
+    ("sfm", "silhouette_margin_frac"): _FRACTION,
+    ("sfm", "lowpass_px"): _NON_NEGATIVE,  # 0 = no pre-blur
+    ("sfm", "highpass_frac"): _NON_NEGATIVE,  # 0 = no high-pass
+    ("sfm", "max_num_features"): _COUNT,
+    ("sfm", "peak_threshold"): _NON_NEGATIVE,
+    ("sfm", "edge_threshold"): _POSITIVE,
+    ("sfm", "sift_num_octaves"): _COUNT,
+    ("sfm", "matching"): {"enum": ["exhaustive", "sequential", "spatial"]},
+    ("sfm", "sequential_overlap"): _COUNT,
+    ("sfm", "max_ratio"): {"type": "number", "exclusiveMinimum": 0, "maximum": 1},
+    ("sfm", "max_distance"): _POSITIVE,
+    ("sfm", "min_num_inliers"): _COUNT0,
+    ("sfm", "max_error_px"): _POSITIVE,
     ("sfm", "mapper"): {"enum": ["incremental", "global"]},
+    ("sfm", "init_min_num_inliers"): _COUNT0,
+    ("sfm", "init_min_tri_angle_deg"): _ANGLE_DEG,
+    ("sfm", "abs_pose_min_num_inliers"): _COUNT0,
+    ("sfm", "abs_pose_min_inlier_ratio"): _FRACTION,
+    ("sfm", "filter_min_tri_angle_deg"): _ANGLE_DEG,
+    ("sfm", "triangulation_min_angle_deg"): _ANGLE_DEG,
+    ("sfm", "min_model_size"): _COUNT,
     ("sfm", "pose_prior"): {"enum": ["none", "position", "refine", "refine_prior", "isocentric"]},
+    ("sfm", "refine_rounds"): _COUNT,
+    ("sfm", "prior_sigma_mm"): _POSITIVE,
     ("sfm", "design_sigma_deg"): {"type": ["number", "null"], "exclusiveMinimum": 0},
-    ("sfm", "isocentre_sigma_mm"): {"type": "number", "minimum": 0},
-    ("sfm", "isocentric_loss_px"): {"type": "number", "exclusiveMinimum": 0},
-    ("radiographs", "orbit_jitter_mm"): {"type": "number", "minimum": 0},
-    ("radiographs", "orbit_jitter_deg"): {"type": "number", "minimum": 0},
-    ("radiographs", "fov_margin"): {"type": "number", "exclusiveMinimum": 0},
-    ("sfm", "fuse_harmonics"): {"type": "integer", "minimum": 0},
+    ("sfm", "isocentre_sigma_mm"): _NON_NEGATIVE,
+    ("sfm", "isocentric_loss_px"): _POSITIVE,
+    ("sfm", "fuse_harmonics"): _COUNT0,  # 0 = off
+    ("sfm", "min_shared_images"): _COUNT,
+    ("sfm", "num_threads"): {"type": "integer", "minimum": -1},  # COLMAP: <= 0 = all cores
+    ("sfm", "align_inlier_threshold_frac"): _POSITIVE,
+    ("sfm", "align_iterations"): _COUNT,
+    ("sfm", "min_registration_rate"): _FRACTION,
+    ("sfm", "max_median_rotation_error_deg"): {"type": "number", "exclusiveMinimum": 0, "maximum": 180},
     ("train", "supervision"): {"enum": ["line_integral", "transmission"]},
-    ("train", "iterations"): {"type": "integer", "minimum": 1},
-    ("train", "n_init"): {"type": "integer", "minimum": 1},
+    ("train", "densify.split_mass"): {"enum": ["conserve", "halve"]},
+    # keys the workflow sets per run (not in the schema; checked by check_section for the command line)
+    ("train", "device"): {"type": "string", "pattern": "^(auto|cpu|cuda(:[0-9]+)?)$"},
+    ("train", "init"): {"enum": ["volume", "uniform", "fbp", "sfm"]},
+    ("train", "compositor"): {"enum": ["radiative", "radiative_unrectified", "alpha"]},
+    ("train", "poses"): {"enum": ["gt", "colmap"]},
     ("baselines", "fbp_filters"): {"type": "array",
                                    "items": {"enum": ["ramp", "shepp-logan", "cosine", "hamming", "hann"]}},
     ("baselines", "split"): {"enum": ["train", "val", "test"]},
-    ("baselines", "sart_max_iterations"): {"type": "integer", "minimum": 1},
+    ("baselines", "sart_max_iterations"): _COUNT,
+    ("baselines", "sart_relaxation"): {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 2},
+    ("baselines", "n_views"): {"type": ["integer", "array", "null"], "minimum": 0,
+                               "items": {"type": "integer", "minimum": 0}},
 }
+
 
 def _json_type(v: Any) -> dict[str, Any]:
     if v is None:
@@ -379,19 +614,33 @@ def _json_type(v: Any) -> dict[str, Any]:
     return {}
 
 
-def _schema_section(name: str, defaults: Mapping[str, Any], skip: set[str], description: str) -> dict[str, Any]:
+def _refinement(section: str, dotted: str) -> dict[str, Any]:
+    """The schema refinement of one library key: training keys take their range from
+    :data:`ctsplat.training.config.TRAIN_BOUNDS` (the one definition, also checked by the library), the others from
+    :data:`REFINE`."""
+    if section == "train":
+        from ctsplat.training.config import TRAIN_BOUNDS
+
+        if dotted in TRAIN_BOUNDS:
+            return TRAIN_BOUNDS[dotted].json_schema()
+    return copy.deepcopy(REFINE.get((section, dotted), {}))
+
+
+def _schema_section(name: str, defaults: Mapping[str, Any], skip: set[str], description: str,
+                    prefix: str = "") -> dict[str, Any]:
     props: dict[str, Any] = {}
     for key, val in defaults.items():
         if key in skip:
             continue
         if isinstance(val, dict) and val:
             props[key] = {"type": "object", "additionalProperties": False, "default": {},
-                          "properties": _schema_section(name, val, set(), "")["properties"]}
+                          "properties": _schema_section(name, val, set(), "", f"{prefix}{key}.")["properties"]}
         else:
             props[key] = {**_json_type(val), "default": val}
-            if (name, key) in REFINE:
+            refined = _refinement(name, prefix + key)
+            if refined:
                 props[key].pop("type", None)
-                props[key].update(REFINE[(name, key)])
+                props[key].update(refined)
     out = {"type": "object", "additionalProperties": False, "properties": props}
     if description:
         out["description"] = description

@@ -535,12 +535,14 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
                 raise CtsplatError(f"{name} must be a positive distance in mm, got {val}")
         if cfg["orbit"] == "carm" and dsd <= dso:
             raise CtsplatError(f"dsd_mm ({dsd}) must exceed dso_mm ({dso}): the detector lies beyond the isocentre")
+        # every orbit: a source inside the object cannot image it (the rays start behind part of it)
+        object_radius = support_radius_mm(volume.data, volume.affine, iso)
+        if object_radius >= dso:
+            raise CtsplatError(f"dso_mm ({dso}) must exceed the object's radius ({object_radius:.0f} mm about the "
+                               "isocentre): the source would sit inside the object; raise dso_mm (and dsd_mm)")
         if cfg["pixel_spacing_mm"] is not None:
             pitch = float(cfg["pixel_spacing_mm"])
         elif cfg["orbit"] == "carm":
-            object_radius = support_radius_mm(volume.data, volume.affine, iso)
-            if object_radius >= dso:
-                raise CtsplatError(f"dso_mm ({dso}) must exceed the object's radius ({object_radius:.0f} mm)")
             pitch = fitted_pitch_mm(object_radius, dso, dsd, min(W, H), float(cfg["fov_margin"]))
         else:
             pitch = voxel * dsd / dso

@@ -100,7 +100,7 @@ def gather(
         rows.append(row)
     df = pd.DataFrame(rows)
     with atomic_path(out_csv) as tmp:
-        df.to_csv(tmp, index=False)
+        df.to_csv(tmp, index=False, lineterminator="\n")
     return df
 
 

@@ -582,4 +582,4 @@ def _plot_acf_runs(logs: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: 
 
 def _write_csv(df: pd.DataFrame, out: str | os.PathLike[str]) -> None:
     with atomic_path(out) as tmp:
-        df.to_csv(tmp, index=False)
+        df.to_csv(tmp, index=False, lineterminator="\n")

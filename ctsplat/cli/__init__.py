@@ -7,6 +7,7 @@ the subparser and sets ``func`` to a callable taking the parsed ``argparse.Names
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import sys
@@ -34,7 +35,54 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# errno -> what to do about it, for file-system errors that reach the top level
+_OS_HINTS = {
+    errno.EACCES: "check the permissions or choose another path",
+    errno.EPERM: "check the permissions or choose another path",
+    errno.EROFS: "the file system is read-only; choose another path",
+    errno.ENOTDIR: "a file stands where a folder is needed; choose another path",
+    errno.EEXIST: "the path is taken, e.g. by a file where a folder is needed; choose another path",
+    errno.EISDIR: "a folder stands where a file is to be written; remove it or choose another path",
+    errno.ENOSPC: "the disk is full; free space or choose another path",
+    errno.ENOENT: "check the path",
+}
+
+
+def os_error_message(exc: OSError) -> str:
+    """One line for a file-system error: what failed, on which path, and what to do.
+
+    Parameters
+    ----------
+    exc : OSError
+        The error; for a rename its second path (the destination) is the one shown.
+
+    Returns
+    -------
+    str
+    """
+    path = exc.filename2 if exc.filename2 is not None else exc.filename
+    msg = exc.strerror or str(exc) or type(exc).__name__
+    if path is not None:
+        msg += f": {path}"
+    hint = _OS_HINTS.get(exc.errno) if exc.errno is not None else None
+    return one_line(msg + (f" ({hint})" if hint else ""))
+
+
+def one_line(text: str) -> str:
+    """``text`` with its line breaks folded into spaces (errors are printed as a single line)."""
+    return " ".join(part.strip() for part in str(text).strip().splitlines() if part.strip())
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run one subcommand; user errors print one line on stderr.
+
+    Returns
+    -------
+    int
+        0 on success, 2 for a user error (:class:`~ctsplat.utils.CtsplatError`) or a file-system error
+        (``OSError``: unreadable input, unwritable or blocked output path), 130 when interrupted (Ctrl-C). Every
+        output file is written under a temporary name first, so an error leaves no half-written file.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
@@ -44,8 +92,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args.func(args)
     except CtsplatError as exc:
-        print(f"ctsplat {args.command}: error: {exc}", file=sys.stderr)
+        print(f"ctsplat {args.command}: error: {one_line(str(exc))}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        logging.getLogger(__name__).debug("file-system error", exc_info=True)  # the traceback with -v
+        print(f"ctsplat {args.command}: error: {os_error_message(exc)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        again = "continue with `ctsplat train --resume`" if args.command == "train" else "run the command again"
+        print(f"ctsplat {args.command}: interrupted; files are written whole or not at all: {again}", file=sys.stderr)
+        return 130
     return 0
 
 

@@ -1,4 +1,5 @@
-"""Helpers shared by the subcommands: reading one config section from a file, ``--set KEY=VALUE`` overrides."""
+"""Helpers shared by the subcommands: reading one config section from a file, ``--set KEY=VALUE`` overrides, and
+checking the result against the section's types and ranges before anything runs."""
 
 from __future__ import annotations
 
@@ -56,3 +57,29 @@ def apply_sets(cfg: dict[str, Any], sets: list[str] | None) -> dict[str, Any]:
                 raise CtsplatError(f"--set {key}: {part} is not a section")
         node[parts[-1]] = value
     return cfg
+
+
+def section_config(path: str | None, sets: list[str] | None, section: str) -> dict[str, Any]:
+    """One library section from ``--config`` plus ``--set`` overrides, checked before the step runs.
+
+    Every value must have the type and range of the workflow schema (:func:`ctsplat.config.check_section`), so a
+    wrong value (``--set n_views=abc``, ``--set lr.means=-1``) is refused with its key path instead of failing
+    later or being ignored.
+
+    Parameters
+    ----------
+    path : str or None
+        YAML/JSON file (see :func:`load_section`).
+    sets : list of str or None
+        ``KEY=VALUE`` overrides (see :func:`apply_sets`).
+    section : str
+        ``preprocessing``, ``radiographs``, ``sfm``, ``train`` or ``baselines``.
+
+    Returns
+    -------
+    dict
+        The user's settings (defaults are filled by the step).
+    """
+    from ctsplat.config import check_section
+
+    return check_section(section, apply_sets(load_section(path, section), sets))

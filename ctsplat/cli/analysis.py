@@ -19,11 +19,12 @@ def _default(key: str) -> str:
 
 def _analysis_config(args: argparse.Namespace) -> dict[str, Any]:
     """The schema's ``analysis`` defaults, overridden by the options given on the command line."""
-    from ctsplat.config import schema_defaults
+    from ctsplat.config import check_values, load_schema, schema_defaults
 
     cfg = schema_defaults("analysis")
     cfg.update({k: getattr(args, k) for k in ANALYSIS_OPTIONS if getattr(args, k, None) is not None})
     cfg["milestones"] = _thresholds(cfg["milestones"], args.milestone)
+    check_values(cfg, load_schema()["properties"]["analysis"], "analysis")  # the workflow's ranges and metrics
     return cfg
 
 
@@ -72,9 +73,13 @@ def run_analyse(args: argparse.Namespace) -> None:
 
     out_dir = Path(args.out_dir)
     outputs = {name: out_dir / fname for name, (fname, _) in ANALYSIS_OUTPUTS.items()}
+    cfg = _analysis_config(args)
     if not Path(args.summary).exists():
         raise CtsplatError(f"summary {args.summary} does not exist; run `ctsplat gather` first")
-    analyse(args.summary, outputs, baselines_csvs=args.baselines or [], analysis=_analysis_config(args))
+    missing = [b for b in args.baselines or [] if not Path(b).is_file()]
+    if missing:
+        raise CtsplatError(f"baselines file {missing[0]} does not exist; run `ctsplat baseline` first")
+    analyse(args.summary, outputs, baselines_csvs=args.baselines or [], analysis=cfg)
     for path in outputs.values():
         print(path)
 

@@ -29,6 +29,8 @@ def _rescale(text: str) -> list[float]:
     parts = [float(x) for x in text.split(",")]
     if len(parts) != 2:
         raise argparse.ArgumentTypeError("rescale must be SLOPE,INTERCEPT (e.g. 1,-1024)")
+    if not parts[0] > 0:
+        raise argparse.ArgumentTypeError(f"rescale SLOPE must be > 0, got {parts[0]:g}")
     return parts
 
 
@@ -37,17 +39,70 @@ def _voxel(text: str) -> float | list[float]:
     return parts[0] if len(parts) == 1 else parts
 
 
+# bead options of `ctsplat phantom` and their defaults (None on the parser, so that a given one is recognised)
+BEAD_DEFAULTS = {"n_beads": 12, "bead_radius_mm": 3.0}
+
+
 def run_phantom(args: argparse.Namespace) -> None:
+    from ctsplat.config import check_values, load_schema
     from ctsplat.phantom import write_phantom_dicom
 
-    out = write_phantom_dicom(
-        args.out_dir, size=args.size, beads=not args.no_beads, seed=args.seed, fov_mm=args.fov_mm,
-        n_beads=args.n_beads, bead_radius_mm=args.bead_radius_mm, variant=args.variant, force=args.force,
-    )
+    given = [k for k in BEAD_DEFAULTS if getattr(args, k) is not None]
+    if args.no_beads and given:
+        raise CtsplatError(f"--{given[0].replace('_', '-')} has no effect with --no-beads; drop one of them")
+    beads = {k: BEAD_DEFAULTS[k] if getattr(args, k) is None else getattr(args, k) for k in BEAD_DEFAULTS}
+    settings = {"size": args.size, "seed": args.seed, "fov_mm": args.fov_mm, **beads}
+    # the ranges of the workflow's volumes.<name>.phantom section
+    check_values(settings, load_schema()["properties"]["volumes"]["additionalProperties"]["properties"]["phantom"],
+                 "phantom")
+    out = write_phantom_dicom(args.out_dir, beads=not args.no_beads, variant=args.variant, force=args.force,
+                              **settings)
     print(out)
 
 
+def _source_kind(source: str) -> str:
+    """``nifti``, ``tiff`` or ``dicom``: how :func:`ctsplat.formats.sources.read_source` will read ``source``."""
+    from pathlib import Path
+
+    p = Path(source)
+    name = p.name.lower()
+    if p.is_file():
+        return "nifti" if name.endswith((".nii", ".nii.gz")) else "tiff" if name.endswith((".tif", ".tiff")) else "?"
+    if p.is_dir():
+        entries = [e for e in p.iterdir() if not e.name.startswith(".")]
+        if entries and all(e.is_file() and e.suffix.lower() in (".tif", ".tiff") for e in entries):
+            return "tiff"
+    return "dicom"
+
+
+def _check_ingest_options(args: argparse.Namespace, cfg: dict) -> None:
+    """Refuse options that would have no effect (combinations, or options of another input kind)."""
+    from ctsplat.config import schema_defaults
+
+    if args.native and (args.voxel_size_mm is not None or args.grid is not None):
+        raise CtsplatError("--native keeps the scan's spacing: drop --voxel-size / --grid, or drop --native")
+    if args.voxel_size_mm is not None and args.grid is not None:
+        raise CtsplatError("give either --voxel-size (isotropic voxels of that size) or --grid (that many voxels), "
+                           "not both")
+    intensity = cfg.get("intensity", schema_defaults("preprocessing")["intensity"])
+    for option, key, used_by in (("--window", "window", ("window",)), ("--hu-max", "hu_max", ("attenuation",)),
+                                 ("--mu-water", "mu_water_per_mm", ("attenuation", "mu"))):
+        if getattr(args, key) is not None and intensity not in used_by:
+            raise CtsplatError(f"{option} only applies to intensity {' / '.join(used_by)}, not {intensity}; add "
+                               f"--intensity {used_by[0]} or drop {option}")
+    kind = _source_kind(args.source)
+    dicom_only = {"--series-uid": args.series_uid, "--allow-modality": args.allow_modality,
+                  "--skip-corrupt": args.skip_corrupt or None, "--rescale": args.rescale}
+    for option, value in dicom_only.items():
+        if value is not None and kind in ("nifti", "tiff"):
+            raise CtsplatError(f"{option} applies to DICOM input only, not the {kind.upper()} input {args.source}; "
+                               "drop it")
+    if args.tiff_voxel_size is not None and kind != "tiff":
+        raise CtsplatError(f"--tiff-voxel-size applies to TIFF input only, not {args.source}; drop it")
+
+
 def run_ingest(args: argparse.Namespace) -> None:
+    from ctsplat.config import check_section
     from ctsplat.formats.sources import find_dicom_series
     from ctsplat.volume import ingest
 
@@ -68,6 +123,8 @@ def run_ingest(args: argparse.Namespace) -> None:
         cfg["voxel_size_mm"], cfg["grid"] = None, None
     if args.voxel_size_mm is not None:
         cfg["grid"] = None
+    _check_ingest_options(args, cfg)
+    check_section("preprocessing", cfg)
     if args.out is None:
         raise CtsplatError("give the output path OUT (e.g. results/head/volume.nii.gz)")
     vol = ingest(
@@ -91,8 +148,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--size", type=int, default=128, help="voxels per axis (slices and rows/columns; default 128)")
     p.add_argument("--fov-mm", type=float, default=240.0, help="field of view edge in mm (default 240)")
     p.add_argument("--no-beads", action="store_true", help="leave out the bead markers")
-    p.add_argument("--n-beads", type=int, default=12, help="number of beads (default 12)")
-    p.add_argument("--bead-radius-mm", type=float, default=3.0, help="bead radius in mm (default 3)")
+    p.add_argument("--n-beads", type=int, help=f"number of beads (default {BEAD_DEFAULTS['n_beads']})")
+    p.add_argument("--bead-radius-mm", type=float,
+                   help=f"bead radius in mm (default {BEAD_DEFAULTS['bead_radius_mm']:g})")
     p.add_argument("--seed", type=int, default=0, help="seed of the bead positions (default 0)")
     p.add_argument("--variant", choices=["kak_slaney", "high_contrast"], default="kak_slaney",
                    help="ellipsoid values: physical Kak-Slaney (default) or high-contrast")

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import argparse
 
-from ctsplat.cli._common import apply_sets, load_section
+from ctsplat.cli._common import section_config
 
 
 def run_project(args: argparse.Namespace) -> None:
     from ctsplat.projector import render_radiographs
 
-    cfg = apply_sets(load_section(args.config, "radiographs"), args.set)
+    cfg = section_config(args.config, args.set, "radiographs")
     vs = render_radiographs(args.volume, args.out, cfg, seed=args.seed)
     counts = {s: len(vs.indices(s)) for s in ("train", "val", "test")}
     print(f"{len(vs)} {vs.camera.model}-beam radiographs ({counts}) -> {args.out}")
@@ -19,7 +19,7 @@ def run_project(args: argparse.Namespace) -> None:
 def run_baseline(args: argparse.Namespace) -> None:
     from ctsplat.baselines import run_baselines
 
-    cfg = apply_sets(load_section(args.config, "baselines"), args.set)
+    cfg = section_config(args.config, args.set, "baselines")
     df = run_baselines(args.volume, args.radiographs, args.out, cfg)
     print(df.to_string(index=False, float_format=lambda x: f"{x:.4f}"))
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ctsplat.utils import CtsplatError
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
@@ -27,6 +29,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> None:
     from ctsplat.splat.render import render_to_folder
 
+    if args.mu_scale is not None and not args.mu_scale > 0:
+        raise CtsplatError(f"--mu-scale must be > 0 (densities are multiplied by it), got {args.mu_scale:g}")
     info = render_to_folder(args.model, args.views, args.out, compositor=args.compositor, split=args.split,
                             mip=args.mip, mu_scale=args.mu_scale, device=args.device)
     print(f"rendered {info['n_views']} views of {info['n_gaussians']} Gaussians in {info['seconds']:.2f} s "

@@ -6,17 +6,23 @@ import argparse
 import json
 from pathlib import Path
 
-from ctsplat.cli._common import apply_sets, load_section
+from ctsplat.cli._common import section_config
 from ctsplat.utils import CtsplatError
 
 
 def run(args: argparse.Namespace) -> None:
     from ctsplat.sfm import run_sfm
 
-    cfg = apply_sets(load_section(args.config, "sfm"), args.set)
+    cfg = section_config(args.config, args.set, "sfm")
     if not Path(args.radiographs).is_dir():
         raise CtsplatError(f"radiographs folder {args.radiographs} does not exist; run `ctsplat project --set "
                            "camera=cone --set orbit=carm` first")
+    if "geometry" in cfg:  # names the workflow's view set; here the view set is the RADIOGRAPHS argument
+        raise CtsplatError("sfm.geometry only names the workflow's C-arm view set; `ctsplat sfm` registers the "
+                           "RADIOGRAPHS folder it is given: drop geometry")
+    if args.volume is not None and not cfg.get("naive_slices"):
+        raise CtsplatError("--volume is only read with naive_slices: true (SfM on the axial slices); add --set "
+                           "naive_slices=true or drop --volume")
     if args.volume is not None and not Path(args.volume).exists():
         raise CtsplatError(f"volume {args.volume} does not exist; run `ctsplat ingest` first")
     summary = run_sfm(args.radiographs, args.out_dir, cfg, seed=args.seed, volume_path=args.volume)

@@ -8,16 +8,17 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ctsplat.cli._common import apply_sets, load_section
+from ctsplat.cli._common import section_config
 
 
 def load_train_config(path: str | None, overrides: list[str]) -> dict[str, Any]:
     """The ``train`` section from a YAML/JSON file (top level or under ``train:``) plus ``key=value`` overrides.
 
     Dotted keys set nested values (``densify.interval=100``); values parse as JSON, else YAML (numbers,
-    booleans, lists).
+    booleans, lists); each value is checked against the schema's type and range (a wrong one is refused naming
+    its key).
     """
-    return apply_sets(load_section(path, "train"), overrides)
+    return section_config(path, overrides, "train")
 
 
 def _train(args: argparse.Namespace) -> None:

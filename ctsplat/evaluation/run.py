@@ -429,6 +429,9 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
             figures.save_slices(run_dir / "slices.png", vol_model, scene.volume.data)
             Rs, ts = orbit_poses(views.Rs[0], views.ts[0], scene.volume.center_mm(), int(cfg["turntable_frames"]))
             figures.save_turntable(run_dir / "turntable.gif", render_views(g, views.camera, Rs, ts, rk))
+        else:  # figures of an earlier evaluation would sit beside metrics they do not show
+            for name in ("gallery.png", "slices.png", "turntable.gif"):
+                (run_dir / name).unlink(missing_ok=True)
     write_json_atomic(run_dir / ("metrics.json" if split == "test" else f"metrics_{split}.json"), json_safe(result))
     return result
 

@@ -66,7 +66,7 @@ class CsvLog:
         with open(self.path, newline="") as fh:
             rows = list(csv.DictReader(fh))
         with atomic_path(self.path) as tmp, open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=self.columns)
+            w = csv.DictWriter(fh, fieldnames=self.columns, lineterminator="\n")
             w.writeheader()
             for r in rows:
                 if int(r["iteration"]) <= iteration:
@@ -75,7 +75,7 @@ class CsvLog:
     def append(self, rows: list[dict[str, Any]]) -> None:
         """Append rows (dicts keyed by column) and flush them to disk."""
         with open(self.path, "a", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=self.columns)
+            w = csv.DictWriter(fh, fieldnames=self.columns, lineterminator="\n")
             for r in rows:
                 w.writerow({k: _fmt(r.get(k, "")) for k in self.columns})
             fh.flush()

@@ -1019,7 +1019,8 @@ def read_tiff_stack(
     except CtsplatError:
         raise
     except Exception as exc:  # noqa: BLE001
-        raise CtsplatError(f"cannot read TIFF stack {path} ({type(exc).__name__}: {exc})") from None
+        raise CtsplatError(f"TIFF stack {path} is not a readable TIFF file (truncated, corrupt or not a TIFF: "
+                           f"{type(exc).__name__}: {exc}); re-export it") from None
     if arr.ndim != 3 or arr.shape[0] < 2:
         raise CtsplatError(f"TIFF stack {path} has shape {arr.shape}; need >= 2 greyscale slices (Z, Y, X)")
     data = np.ascontiguousarray(arr.transpose(2, 1, 0), dtype=np.float32)  # (X, Y, Z)

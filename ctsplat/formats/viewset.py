@@ -300,7 +300,11 @@ def load_radiographs(out_dir: str | Path) -> tuple[np.ndarray, ViewSet]:
     if not tif.exists():
         raise CtsplatError(f"{tif} does not exist; run `ctsplat project` for this geometry first")
     view_set = ViewSet.load(out_dir / "views.json")
-    p = np.asarray(tifffile.imread(tif), dtype=np.float32)
+    try:
+        p = np.asarray(tifffile.imread(tif), dtype=np.float32)
+    except (OSError, ValueError) as exc:  # truncated, corrupt, or not a TIFF at all (TiffFileError)
+        raise CtsplatError(f"{tif} is not a readable TIFF file ({type(exc).__name__}: {exc}); re-render the "
+                           "radiographs with `ctsplat project`") from None
     if p.ndim == 2:
         p = p[None]
     expected = (len(view_set), view_set.camera.height, view_set.camera.width)

@@ -151,9 +151,23 @@ def save_volume(volume: Volume, path: str | Path) -> None:
     )
     # Both files go to temp names first; the JSON is renamed into place just before the NIfTI, so a
     # crash leaves either nothing new or a JSON without its volume - never a volume without its JSON.
-    with atomic_path(path) as tmp:
-        nib.save(img, str(tmp))
-        write_json_atomic(json_path_for(path), meta)
+    # When the NIfTI cannot be put in place (an error or an interrupt), the JSON is put back as it was.
+    json_path = json_path_for(path)
+    previous = json_path.read_bytes() if json_path.is_file() else None
+    json_written = False
+    try:
+        with atomic_path(path) as tmp:
+            nib.save(img, str(tmp))
+            write_json_atomic(json_path, meta)
+            json_written = True
+    except BaseException:
+        if json_written:
+            if previous is None:
+                json_path.unlink(missing_ok=True)
+            else:
+                with atomic_path(json_path) as tmp:
+                    tmp.write_bytes(previous)
+        raise
 
 
 def load_volume(path: str | Path) -> Volume:

@@ -431,7 +431,7 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
         "centre_err_mm": r["centre_err_mm"], "reproj_err_px": r["reproj_err_px"], "plausible": r["plausible"],
     } for r in rows])
     with atomic_path(out_dir / "poses.csv") as tmp:
-        table.to_csv(tmp, index=False)
+        table.to_csv(tmp, index=False, lineterminator="\n")
     views = [View(int(ids[r["view"]]), r["R"], r["t"], by_row[r["view"]].azimuth_deg,
                   by_row[r["view"]].elevation_deg, "train", by_row[r["view"]].design)
              for r in rows if r["R"] is not None and r["plausible"]]

@@ -14,6 +14,7 @@ import yaml
 from ctsplat.config import (
     LIBRARY_SECTIONS,
     check_library_sections,
+    check_section,
     load_schema,
     prepare_config,
     schema_defaults,
@@ -54,6 +55,15 @@ def test_defaults_filled_from_empty_config():
         ({"volumes": {"v": {"source": "x", "preprocessing": {"gird": 64}}}}, "volumes.v.preprocessing"),
         ({"device": "tpu"}, "device"),
         ({"analysis": {"window": 0}}, "analysis.window"),
+        ({"train": {"checkpoint_every": 0}}, "train.checkpoint_every"),
+        ({"train": {"eval_every": -5}}, "train.eval_every"),
+        ({"train": {"nan_lr_decay": 2.0}}, "train.nan_lr_decay"),
+        ({"train": {"lr": {"means": -0.01}}}, "train.lr.means"),
+        ({"train": {"lambda_ssim": -1}}, "train.lambda_ssim"),
+        ({"radiographs": {"c": {"noise": {"i0": 0}}}}, "radiographs.c.noise.i0"),
+        ({"volumes": {"v": {"source": "x", "tiff_voxel_size_mm": -1}}}, "volumes.v.tiff_voxel_size_mm"),
+        ({"volumes": {"v": {"source": "x", "phantom": {"variant": "kak"}}}}, "volumes.v.phantom.variant"),
+        ({"analysis": {"milestones": {"psnr9d": 3}}}, "analysis.milestones"),
     ],
 )
 def test_bad_values_name_the_key_path(config, where):
@@ -210,6 +220,64 @@ def test_views_axis_must_fit_the_training_geometry():
                            "grid": {"axes": {"views": [80]}}})
 
 
+def test_split_fractions_must_sum_to_one():
+    with pytest.raises(CtsplatError, match=r"at radiographs\.c\.split: fractions must sum to 1, got 1\.4 \(train"):
+        prepare_config({"radiographs": {"c": {"split": {"train": 0.9, "val": 0.25, "test": 0.25}}}})
+    with pytest.raises(CtsplatError, match=r"radiographs\.c\.split: fractions must sum to 1, got 0\.85"):
+        prepare_config({"radiographs": {"c": {"split": {"train": 0.7, "val": 0.15, "test": 0.0}}}})
+    # within 1e-6 of 1 (thirds) is accepted
+    prepare_config({"radiographs": {"c": {"split": {"train": 0.333333, "val": 0.333333, "test": 0.333334}}}})
+    with pytest.raises(CtsplatError, match=r"invalid config at radiographs\.split: fractions must sum to 1"):
+        check_section("radiographs", {"split": {"train": 0.9}})
+
+
+@pytest.mark.parametrize(
+    ("entry", "where", "value"),
+    [
+        ({"init": "fpb"}, "grid.exclude[0].init", "'fpb'"),
+        ({"init": ["fbp", "volum"]}, "grid.exclude[0].init", "'volum'"),
+        ({"views": 7}, "grid.exclude[0].views", "7"),
+        ({"mip": "off"}, "grid.exclude[0].mip", "'off'"),
+        ({"volume": "haed"}, "grid.exclude[0].volume", "'haed'"),
+    ],
+)
+def test_grid_exclude_values_must_match_an_axis_value(entry, where, value):
+    axes = {"init": ["fbp", "volume"], "views": [5, 10], "mip": ["on"]}
+    with pytest.raises(CtsplatError) as err:
+        prepare_config({"volumes": {"head": {"source": "phantom"}}, "radiographs": {"c": {"n_views": 20}},
+                        "grid": {"axes": axes, "exclude": [entry]}})
+    assert str(err.value).startswith(f"invalid config at {where}: {value} is not a")
+    cfg = prepare_config({"volumes": {"head": {"source": "phantom"}}, "radiographs": {"c": {"n_views": 20}},
+                          "grid": {"axes": {**axes, "mip": ["on", False]},
+                                   "exclude": [{"init": "volume", "views": [10], "mip": "off", "volume": "head"}]}})
+    assert len(cfg["grid"]["exclude"]) == 1
+
+
+@pytest.mark.parametrize(
+    ("section", "values", "message"),
+    [
+        ("radiographs", {"n_views": "abc"}, "radiographs.n_views: 'abc' is not of type 'integer'"),
+        ("train", {"eval_every": "abc"}, "train.eval_every: 'abc' is not of type 'integer'"),
+        ("train", {"lr": {"means": "fast"}}, "train.lr.means: 'fast' is not of type 'number'"),
+        ("train", {"views": -1}, "train.views: -1 is less than the minimum of 0"),  # a key the workflow sets
+        ("train", {"compositor": "radiative_rectified"}, "train.compositor: 'radiative_rectified' is not one of"),
+        ("baselines", {"n_views": [10, "x"]}, "baselines.n_views[1]: 'x' is not of type 'integer'"),
+        ("sfm", {"max_ratio": 1.5}, "sfm.max_ratio: 1.5 is greater than the maximum of 1"),
+        ("preprocessing", {"grid": 1}, "preprocessing.grid: 1 is less than the minimum of 2"),
+    ],
+)
+def test_check_section_refuses_wrong_types_naming_key_and_type(section, values, message):
+    with pytest.raises(CtsplatError) as err:
+        check_section(section, values)
+    assert str(err.value).startswith(f"invalid config at {message}")
+
+
+def test_check_section_accepts_the_library_defaults():
+    for section, (module, attr) in LIBRARY_SECTIONS.items():
+        defaults = getattr(pytest.importorskip(module), attr)
+        assert check_section(section, defaults) == defaults
+
+
 def test_sfm_needs_its_carm_geometry_and_carm_is_never_the_training_geometry():
     carm = {"camera": "cone", "orbit": "carm", "n_views": 30}
     colmap_axes = {"init": ["fbp"], "compositor": ["radiative"], "mip": ["on"], "poses": ["colmap"],
@@ -226,3 +294,118 @@ def test_sfm_needs_its_carm_geometry_and_carm_is_never_the_training_geometry():
     with pytest.raises(CtsplatError, match="every geometry is a C-arm orbit"):
         prepare_config({"radiographs": {"carm": carm}})
     assert prepare_config({"radiographs": {"circ": {}}})["sfm"]["enabled"] is False  # no SfM, no C-arm needed
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Every numeric key of the schema has a range: the README's promise that bad values fail before any job runs
+# ---------------------------------------------------------------------------------------------------------------
+
+#: Numeric keys without a meaningful bound, with the reason (key paths as errors show them, placeholders for names).
+UNBOUNDED = {
+    "preprocessing.window[0]": "window level: any HU value",
+    "radiographs.g.start_deg": "start angle of the orbit: any angle (periodic)",
+    "radiographs.g.isocenter_mm[0]": "a point in world mm",
+    "sfm.settings.sift_first_octave": "SIFT octave index: negative upsamples, any integer is valid",
+    "volumes.v.rescale[1]": "rescale intercept: any HU offset",
+    "grid.exclude[0].views": "checked against the views axis by check_grid_exclude",
+    "grid.exclude[0].seed": "checked against the seed axis by check_grid_exclude",
+}
+# names used for the free-form parts of the config (volume and geometry names)
+PLACEHOLDERS = {"volumes": "v", "radiographs": "g"}
+
+
+def _numeric_leaves(schema, node, path):
+    """(key path parts, sub-schema, array lengths along the path) of every numeric value the schema allows."""
+    if "$ref" in node:
+        ref = node["$ref"].split("/")[-1]
+        node = {**schema["$defs"][ref], **{k: v for k, v in node.items() if k != "$ref"}}
+    for sub in node.get("allOf", []) + node.get("oneOf", []) + node.get("anyOf", []):
+        yield from _numeric_leaves(schema, sub, path)
+    for key, sub in (node.get("properties") or {}).items():
+        yield from _numeric_leaves(schema, sub, [*path, key])
+    extra = node.get("additionalProperties")
+    if isinstance(extra, dict) and path and path[-1] in PLACEHOLDERS:
+        yield from _numeric_leaves(schema, extra, [*path, PLACEHOLDERS[path[-1]]])
+    prefix = node.get("prefixItems", [])
+    for i, sub in enumerate(prefix):
+        yield from _numeric_leaves(schema, sub, [*path, (i, node.get("minItems", 1))])
+    if isinstance(node.get("items"), dict) and not prefix:
+        yield from _numeric_leaves(schema, node["items"], [*path, (0, node.get("minItems", 1))])
+    types = node.get("type", [])
+    types = [types] if isinstance(types, str) else types
+    if {"number", "integer"} & set(types):
+        yield path, node
+
+
+def _where(path):
+    return "".join(f"[{p[0]}]" if isinstance(p, tuple) else (f".{p}" if i else p) for i, p in enumerate(path))
+
+
+def _out_of_range(node):
+    """Values just outside the sub-schema's range (below the lower bound, above the upper bound)."""
+    integer = node.get("type") == "integer" or node.get("type") == ["integer"]
+    out = []
+    if "minimum" in node:
+        out.append(node["minimum"] - 1 if integer else node["minimum"] - 0.5)
+    if "exclusiveMinimum" in node:
+        out.append(node["exclusiveMinimum"])
+    if "maximum" in node:
+        out.append(node["maximum"] + 1 if integer else node["maximum"] + 0.5)
+    if "exclusiveMaximum" in node:
+        out.append(node["exclusiveMaximum"])
+    return out
+
+
+def _config_with(path, value):
+    """A config that is valid except for ``value`` at ``path`` (arrays filled with in-range values)."""
+    config: dict = {}
+    node = config
+    for i, part in enumerate(path):
+        last = i == len(path) - 1
+        nxt = None if last else path[i + 1]
+        if isinstance(part, tuple):
+            raise AssertionError("arrays are built by their parent")
+        if isinstance(nxt, tuple):  # an array of numbers: fill it with values that are in range everywhere
+            index, length = nxt
+            arr = [1.0] * max(length, index + 1)
+            arr[index] = value
+            node[part] = arr
+            assert i + 1 == len(path) - 1, "numbers only at the end of arrays"
+            break
+        if last:
+            node[part] = value
+        else:
+            node = node.setdefault(part, {"source": "phantom"} if path[i - 1:i] == ["volumes"] else {})
+    return config
+
+
+def _schema_leaves():
+    schema = load_schema()
+    return list(_numeric_leaves(schema, schema, []))
+
+
+def test_schema_walk_finds_the_nested_numeric_keys():
+    where = {_where(p) for p, _ in _schema_leaves()}
+    for key in ("train.lr.means", "train.densify.grad_threshold", "radiographs.g.noise.i0", "radiographs.g.split.val",
+                "volumes.v.phantom.size", "sfm.settings.max_ratio", "baselines.settings.sart_relaxation",
+                "analysis.milestones.ssim2d", "resources.train.threads", "grid.axes.views[0]",
+                "preprocessing.window[1]", "train.nan_lr_decay", "train.checkpoint_every", "train.eval_every"):
+        assert key in where
+    assert set(UNBOUNDED) <= where  # the exceptions name real keys
+
+
+@pytest.mark.parametrize(("path", "node"), _schema_leaves(), ids=[_where(p) for p, _ in _schema_leaves()])
+def test_every_numeric_key_refuses_an_out_of_range_value(path, node):
+    where = _where(path)
+    bad = _out_of_range(node)
+    if where in UNBOUNDED:
+        assert not bad, f"{where} has a bound now: remove it from UNBOUNDED"
+        return
+    assert bad, f"{where} has no range in the schema (add one in ctsplat.config.REFINE or list it in UNBOUNDED)"
+    for value in bad:
+        config = _config_with(path, value)
+        with pytest.raises(CtsplatError) as err:
+            validate_config(config)
+        msg = str(err.value)
+        assert msg.startswith(f"invalid config at {where}:"), (value, msg)
+        assert "\n" not in msg

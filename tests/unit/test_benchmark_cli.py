@@ -1,0 +1,106 @@
+"""The benchmark scripts' options take effect or are refused with one line (real processes)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from ctsplat.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def bench(script: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *map(str, args)], capture_output=True,
+                          text=True, env=env, cwd=cwd, timeout=600)
+
+
+def last_line(res: subprocess.CompletedProcess) -> str:
+    assert "Traceback" not in res.stderr, res.stderr
+    return res.stderr.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--set", "init=volume"], "--set init is set by this benchmark per run; use --inits"),
+        (["--set", "iterations=5"], "use --iterations"),
+        (["--set", "compositor=radiative_rectified"], "train.compositor: 'radiative_rectified' is not one of"),
+        (["--set", "lr.means=fast"], "train.lr.means: 'fast' is not of type 'number'"),
+        (["--n-init", "0"], "train.n_init: 0 is less than the minimum of 1"),
+    ],
+)
+def test_quality_refuses_overrides_it_would_ignore(tmp_path, args, needle):
+    res = bench("quality.py", "--data", tmp_path / "no_data", "--out", tmp_path / "q", *args, cwd=tmp_path)
+    assert res.returncode == 2
+    assert needle in last_line(res)
+    assert not (tmp_path / "q").exists()
+
+
+@pytest.fixture(scope="module")
+def phantom_dicom(tmp_path_factory):
+    out = tmp_path_factory.mktemp("data") / "ph"
+    assert main(["phantom", str(out), "--size", "16", "--no-beads"]) == 0
+    return out
+
+
+@pytest.mark.slow
+def test_quality_compositor_override_takes_effect(tmp_path, phantom_dicom):
+    out = tmp_path / "q"
+    res = bench("quality.py", "--data", phantom_dicom, "--out", out, "--views", "6", "--inits", "fbp",
+                "--iterations", "2", "--n-init", "100", "--detector", "16", "--threads", "1",
+                "--set", "compositor=radiative_unrectified", "--set", "figures=false", "--set", "eval_every=2",
+                cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    run_cfg = json.loads((out / "run_fbp_n006" / "config.json").read_text())["config"]
+    assert run_cfg["compositor"] == "radiative_unrectified"
+    table = pd.read_csv(out / "quality.csv")
+    assert table.loc[table["method"] == "gs:fbp", "compositor"].tolist() == ["radiative_unrectified"]
+
+
+def test_baselines_arc_takes_effect_and_bad_options_are_refused(tmp_path, phantom_dicom):
+    res = bench("baselines.py", "--source", phantom_dicom, "--grid", "16", "--views", "4", "--sart-iterations", "1",
+                "--arc", "360", "--work", tmp_path / "work", "--out", tmp_path / "b.csv", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    table = pd.read_csv(tmp_path / "b.csv")
+    assert (table["arc_deg"] == 360).all()
+    rad = next((tmp_path / "work").glob("*/circular_parallel_4_arc360"))
+    assert json.loads((rad / "views.json").read_text())["meta"]["arc_deg"] == 360
+    for args, needle in ((["--arc", "400"], "--arc must be in (0, 360]"),
+                         (["--source", tmp_path / "missing"], "does not exist"),
+                         (["--views", "0"], "--views and --sart-iterations >= 1")):
+        res = bench("baselines.py", "--work", tmp_path / "w2", *args, cwd=tmp_path)
+        assert res.returncode == 2 and needle in last_line(res)
+    assert not (tmp_path / "w2").exists()
+
+
+@pytest.mark.parametrize(
+    ("script", "args", "needle"),
+    [
+        ("sfm.py", ["--set", "num_threads=4"], "--set num_threads: use --threads"),
+        ("sfm.py", ["--set", "n_views=abc"], "radiographs.n_views: 'abc' is not of type 'integer'"),
+        ("sfm.py", ["--set", "max_ratio=2"], "sfm.max_ratio: 2 is greater than the maximum of 1"),
+        ("sfm.py", ["--set", "nviews=90"], "--set nviews: unknown key"),
+        ("sfm.py", ["--only", "nothing"], "--only 'nothing' matches no configuration"),
+        ("render.py", ["--only-voxelize"], "--only-voxelize needs --voxelize"),
+        ("render.py", ["--voxelize", "500000:256", "--only-voxelize", "--reference"], "--only-voxelize skips"),
+        ("render.py", ["--voxelize", "lots"], "expected N:S"),
+        ("render.py", ["--compositor", "rectified"], "invalid choice: 'rectified'"),
+        ("projector.py", ["--size", "4"], "--size must be >= 8"),
+        ("projector.py", ["--device", "tpu"], "unknown device 'tpu'"),
+        ("ingest.py", ["--repeats", "0"], "--repeats must be >= 1"),
+    ],
+)
+def test_benchmark_options_are_checked(tmp_path, script, args, needle):
+    extra = ["--csv", tmp_path / "sfm.csv"] if script == "sfm.py" else []
+    res = bench(script, *args, *extra, cwd=tmp_path)
+    assert res.returncode == 2, res.stderr
+    assert needle in last_line(res)
+    assert list(tmp_path.iterdir()) == []

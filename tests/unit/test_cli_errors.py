@@ -1,0 +1,252 @@
+"""Bad input, blocked paths and interrupts through the real ``ctsplat`` entry point: one line on stderr, exit status
+2 (130 for Ctrl-C), and no half-written output."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ctsplat.cli import main
+from ctsplat.formats.volume import Volume, save_volume
+
+ROOT = Path(__file__).resolve().parents[2]
+CTSPLAT = [sys.executable, "-c", "import sys; from ctsplat.cli import main; sys.exit(main())"]  # the console script
+
+
+def _env() -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+
+
+def ctsplat(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    """``ctsplat ARGS`` in a fresh Python process."""
+    return subprocess.run([*CTSPLAT, *map(str, args)], capture_output=True, text=True, env=_env(), cwd=cwd,
+                          timeout=300)
+
+
+def assert_one_line_error(stderr: str, command: str, *needles: str) -> None:
+    """The last stderr line is the error (INFO logs may precede it); no traceback."""
+    assert "Traceback" not in stderr, stderr
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith(f"ctsplat {command}: error: "), stderr
+    for needle in needles:
+        assert needle in last, last
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A 16³ sphere volume and 8 + 2 + 2 parallel-beam radiographs of it."""
+    root = tmp_path_factory.mktemp("scene")
+    n = 16
+    g = (np.arange(n) - (n - 1) / 2) / (n / 2)
+    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
+    data = (0.5 * (X**2 + Y**2 + Z**2 < 0.6)).astype(np.float32)
+    vol = root / "volume.nii.gz"
+    meta = {"volume_id": "cli", "intensity": {"mu_scale_per_mm": 0.02}}
+    save_volume(Volume(data, np.diag([2.0, 2.0, 2.0, 1.0]), meta), vol)
+    rad = root / "rad"
+    assert main(["project", "--volume", str(vol), "--out", str(rad), "--set", "n_views=8", "--set", "detector_width=16",
+                 "--set", "detector_height=16", "--set", "device=cpu"]) == 0
+    return vol, rad
+
+
+TINY_TRAIN = ["--set", "n_init=100", "--set", "eval_every=2", "--set", "checkpoint_every=2", "--set", "eval_views=2",
+              "--set", "turntable_frames=2", "--set", "fps_width=32", "--set", "fps_height=32", "--device", "cpu",
+              "--quiet"]
+
+
+# ------------------------------------------------------------------------------------------------ file-system errors
+def test_blocked_output_path_is_one_line_and_leaves_no_json(scene, tmp_path):
+    vol, _ = scene
+    blocked = tmp_path / "blocked"
+    (blocked / "vol.nii.gz").mkdir(parents=True)  # a folder where the volume file is to go
+    res = ctsplat("ingest", vol, blocked / "vol.nii.gz", "--grid", "8")
+    assert res.returncode == 2
+    assert_one_line_error(res.stderr, "ingest", "Is a directory", "vol.nii.gz")
+    assert sorted(p.name for p in blocked.iterdir()) == ["vol.nii.gz"]  # no vol.json beside it, no temp files
+
+
+def test_file_where_a_folder_is_needed(scene, tmp_path, capsys):
+    vol, _ = scene
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    assert main(["ingest", str(vol), str(afile / "vol.nii.gz"), "--grid", "8"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("ctsplat ingest: error: ") and str(afile) in err
+    assert main(["project", "--volume", str(vol), "--out", str(afile / "rad")]) == 2
+    assert str(afile) in capsys.readouterr().err
+    assert afile.read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
+@pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0, reason="root writes into read-only folders")
+def test_read_only_output_folder(scene, tmp_path, capsys):
+    vol, _ = scene
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        assert main(["ingest", str(vol), str(ro / "vol.nii.gz"), "--grid", "8"]) == 2
+        assert "Permission denied" in capsys.readouterr().err
+        assert list(ro.iterdir()) == []
+    finally:
+        ro.chmod(0o755)
+
+
+# ------------------------------------------------------------------------------------------------ wrong-typed --set
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["project", "--set", "n_views=abc"], "radiographs.n_views: 'abc' is not of type 'integer'"),
+        (["train", "--set", "eval_every=abc"], "train.eval_every: 'abc' is not of type 'integer'"),
+        (["train", "--set", "lr.means=fast"], "train.lr.means: 'fast' is not of type 'number'"),
+        (["train", "--set", "nan_lr_decay=2"], "train.nan_lr_decay: 2 is greater than or equal to the maximum of 1"),
+        (["baseline", "--set", "sart_relaxation=-1"], "baselines.sart_relaxation: -1 is less than or equal"),
+        (["project", "--set", "split={train: 0.9, val: 0.25, test: 0.25}"], "fractions must sum to 1, got 1.4"),
+    ],
+)
+def test_wrong_set_values_are_refused_before_running(scene, tmp_path, capsys, args, needle):
+    vol, rad = scene
+    out = tmp_path / "out"
+    paths = {"project": ["--volume", vol, "--out", out],
+             "train": ["--volume", vol, "--radiographs", rad, "--out", out, "--iterations", "2", "--quiet"],
+             "baseline": ["--volume", vol, "--radiographs", rad, "--out", out]}[args[0]]
+    assert main([args[0], *map(str, paths), *args[1:]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"ctsplat {args[0]}: error: invalid config at ") and needle in err and "\n" not in err
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------------------ unreadable TIFFs
+def test_truncated_radiographs_tiff(scene, tmp_path, capsys):
+    vol, rad = scene
+    bad = tmp_path / "rad"
+    bad.mkdir()
+    for name in ("views.json", "radiographs.json"):
+        (bad / name).write_bytes((rad / name).read_bytes())
+    data = (rad / "line_integrals.tif").read_bytes()
+    (bad / "line_integrals.tif").write_bytes(data[: len(data) // 2])
+    assert main(["train", "--volume", str(vol), "--radiographs", str(bad), "--out", str(tmp_path / "run"),
+                 "--iterations", "2", *TINY_TRAIN]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "line_integrals.tif is not a readable TIFF file" in err and "re-render" in err
+    assert main(["baseline", "--volume", str(vol), "--radiographs", str(bad), "--out", str(tmp_path / "b")]) == 2
+    assert "is not a readable TIFF file" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()
+
+
+def test_random_bytes_named_tif(tmp_path, capsys):
+    tif = tmp_path / "scan.tif"
+    tif.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    assert main(["ingest", str(tif), str(tmp_path / "v.nii.gz"), "--tiff-voxel-size", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "is not a readable TIFF file" in err
+    assert not (tmp_path / "v.nii.gz").exists()
+
+
+# ------------------------------------------------------------------------------------------------ Ctrl-C
+def test_ctrl_c_exits_130_with_one_line(scene, tmp_path):
+    vol, rad = scene
+    run = tmp_path / "run"
+    cmd = [*CTSPLAT, "train", "--volume", str(vol), "--radiographs", str(rad), "--out",
+           str(run), "--iterations", "1000000", "--no-evaluate", *TINY_TRAIN]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            if (run / "checkpoints").is_dir() and any((run / "checkpoints").iterdir()):
+                break
+            time.sleep(0.2)
+        assert proc.poll() is None, proc.communicate()[1]
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1].startswith("ctsplat train: interrupted;")
+    assert not [p for p in run.rglob("*") if ".tmp" in p.name]  # no temp files of interrupted writes
+
+
+# ------------------------------------------------------------------------------------------------ checks of values
+def test_more_views_than_available(scene, tmp_path, capsys):
+    vol, rad = scene
+    assert main(["train", "--volume", str(vol), "--radiographs", str(rad), "--out", str(tmp_path / "run"),
+                 "--views", "50", "--iterations", "2", *TINY_TRAIN]) == 2
+    assert "asks for 50 training views" in capsys.readouterr().err
+
+
+def test_cone_source_inside_the_object(scene, tmp_path, capsys):
+    vol, _ = scene
+    out = tmp_path / "cone"
+    assert main(["project", "--volume", str(vol), "--out", str(out), "--set", "camera=cone", "--set", "dso_mm=5",
+                 "--set", "dsd_mm=10", "--set", "n_views=4"]) == 2
+    assert "dso_mm (5.0) must exceed the object's radius" in capsys.readouterr().err
+    assert not out.exists()
+    assert main(["project", "--volume", str(vol), "--out", str(out), "--set", "camera=cone", "--set", "orbit=sphere",
+                 "--set", "dso_mm=5", "--set", "dsd_mm=10", "--set", "n_views=12"]) == 2
+    assert "must exceed the object's radius" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------------ ignored options
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["ingest", "{vol}", "{tmp}/v.nii.gz", "--native", "--grid", "8"], "--native keeps the scan's spacing"),
+        (["ingest", "{vol}", "{tmp}/v.nii.gz", "--voxel-size", "2", "--grid", "8"], "not both"),
+        (["ingest", "{vol}", "{tmp}/v.nii.gz", "--window", "40,80"], "--window only applies to intensity window"),
+        (["ingest", "{vol}", "{tmp}/v.nii.gz", "--series-uid", "3"], "--series-uid applies to DICOM input only"),
+        (["ingest", "{vol}", "{tmp}/v.nii.gz", "--tiff-voxel-size", "1"], "--tiff-voxel-size applies to TIFF"),
+        (["ingest", "{vol}", "{tmp}/v.nii.gz", "--voxel-size", "-1"], "preprocessing.voxel_size_mm: -1.0 is less"),
+        (["phantom", "{tmp}/ph", "--no-beads", "--n-beads", "3"], "--n-beads has no effect with --no-beads"),
+        (["phantom", "{tmp}/ph", "--n-beads", "-1"], "phantom.n_beads: -1 is less than the minimum of 0"),
+        (["sfm", "{rad}", "{tmp}/sfm", "--volume", "{vol}"], "--volume is only read with naive_slices"),
+        (["sfm", "{rad}", "{tmp}/sfm", "--set", "geometry=carm"], "drop geometry"),
+        (["render", "{tmp}/m.pt", "{rad}/views.json", "{tmp}/r", "--mu-scale", "0"], "--mu-scale must be > 0"),
+        (["gather", "{rad}", "--out", "{tmp}/s.csv", "--milestone", "psnr9d=3"], "'psnr9d' was unexpected"),
+        (["gather", "{rad}", "--out", "{tmp}/s.csv", "--max-gap-iters", "-1"], "analysis.max_gap_iters: -1"),
+        (["analyse", "{tmp}/s.csv", "--kde-windows", "0"], "analysis.kde_windows: 0 is less than the minimum"),
+        (["analyse", "{summary}", "--out-dir", "{tmp}/f", "--baselines", "{tmp}/b.csv"], "b.csv does not exist"),
+    ],
+)
+def test_options_that_would_be_ignored_or_are_out_of_range_are_refused(scene, tmp_path, capsys, args, needle):
+    vol, rad = scene
+    summary = tmp_path.parent / f"{tmp_path.name}_summary.csv"  # outside tmp_path, which must stay empty
+    summary.write_text("volume,init\nphantom,fbp\n")
+    argv = [a.format(vol=vol, rad=rad, tmp=tmp_path, summary=summary) for a in args]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"ctsplat {args[0]}: error: ") and needle in err and "\n" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------------------------------ run outputs
+def test_csvs_use_lf_and_figures_off_removes_stale_figures(scene, tmp_path, capsys):
+    vol, rad = scene
+    run = tmp_path / "run"
+    assert main(["train", "--volume", str(vol), "--radiographs", str(rad), "--out", str(run), "--iterations", "4",
+                 *TINY_TRAIN]) == 0
+    figures = ("gallery.png", "slices.png", "turntable.gif")
+    assert all((run / f).exists() for f in figures)
+    assert main(["baseline", "--volume", str(vol), "--radiographs", str(rad), "--out", str(tmp_path / "base"),
+                 "--set", "sart_max_iterations=1", "--set", "save_volumes=false"]) == 0
+    csvs = sorted(tmp_path.rglob("*.csv"))
+    assert {"train_log.csv", "per_view.csv", "per_view_test.csv", "baselines.csv"} <= {p.name for p in csvs}
+    for path in csvs:
+        text = path.read_bytes()
+        assert b"\r" not in text and text.endswith(b"\n"), path.name  # one line ending: LF
+    # the same run evaluated again with figures: false keeps no figures of the earlier evaluation
+    cfg_path = run / "config.json"
+    run_cfg = json.loads(cfg_path.read_text())
+    run_cfg["config"]["figures"] = False
+    cfg_path.write_text(json.dumps(run_cfg))
+    assert main(["evaluate", str(run), "--device", "cpu"]) == 0
+    assert (run / "metrics.json").exists()
+    assert not any((run / f).exists() for f in figures)
