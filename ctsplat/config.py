@@ -560,7 +560,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("sfm", "peak_threshold"): _NON_NEGATIVE,
     ("sfm", "edge_threshold"): _POSITIVE,
     ("sfm", "sift_num_octaves"): _COUNT,
-    ("sfm", "matching"): {"enum": ["exhaustive", "sequential", "spatial"]},
+    ("sfm", "matching"): {"enum": ["exhaustive", "sequential"]},
     ("sfm", "sequential_overlap"): _COUNT,
     ("sfm", "max_ratio"): {"type": "number", "exclusiveMinimum": 0, "maximum": 1},
     ("sfm", "max_distance"): _POSITIVE,
