@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from ctsplat.geometry.cameras import Camera, camera_center, camera_from_dict, rotmat_to_qvec
-from ctsplat.utils import CtsplatError, atomic_path, code_version, write_json_atomic
+from ctsplat.utils import CtsplatError, code_version, write_json_atomic
 
 __all__ = [
     "VIEWSET_FORMAT",
@@ -249,7 +249,10 @@ def write_png_stack(images: np.ndarray, out_dir: str | Path, names: list[str]) -
 
 
 def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, provenance: dict[str, Any]) -> None:
-    """Write a radiograph folder (see the module docstring); each file appears complete or not at all.
+    """Write a radiograph folder (see the module docstring): all of its files, or none of them.
+
+    Every file is first written into a staging folder beside ``out_dir``; only when all are complete are they moved
+    into place (renames on one file system), so a failure leaves ``out_dir`` as it was.
 
     Parameters
     ----------
@@ -268,18 +271,32 @@ def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, pro
         raise CtsplatError(f"images of shape {p.shape} do not match the view set "
                            f"({len(view_set)}, {cam.height}, {cam.width})")
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out_dir / "line_integrals.tif") as tmp:
-        tifffile.imwrite(tmp, p, photometric="minisblack", metadata={"axes": "QYX"})
-    write_png_stack(transmission_png16(p), out_dir / "png", [f"view_{v.id:04d}.png" for v in view_set.views])
-    view_set.save(out_dir / "views.json")
-    write_json_atomic(out_dir / "radiographs.json", {
-        "code_version": code_version(), **provenance,
-        "n_views": len(view_set), "splits": {s: int(len(view_set.indices(s))) for s in SPLITS},
-        "camera": cam.to_dict(),
-        "line_integral_stats": {"min": float(p.min()), "max": float(p.max()), "mean": float(p.mean())},
-        "units": "line integrals of mu in 1/mm (dimensionless); png = 16-bit transmission exp(-p)",
-    })
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        tifffile.imwrite(stage / "line_integrals.tif", p, photometric="minisblack", metadata={"axes": "QYX"})
+        write_png_stack(transmission_png16(p), stage / "png", [f"view_{v.id:04d}.png" for v in view_set.views])
+        view_set.save(stage / "views.json")
+        write_json_atomic(stage / "radiographs.json", {
+            "code_version": code_version(), **provenance,
+            "n_views": len(view_set), "splits": {s: int(len(view_set.indices(s))) for s in SPLITS},
+            "camera": cam.to_dict(),
+            "line_integral_stats": {"min": float(p.min()), "max": float(p.max()), "mean": float(p.mean())},
+            "units": "line integrals of mu in 1/mm (dimensionless); png = 16-bit transmission exp(-p)",
+        })
+        out_dir.mkdir(exist_ok=True)
+        names = ("line_integrals.tif", "png", "views.json", "radiographs.json")
+        for name in names:  # check every target before the first move, so the moves cannot fail halfway
+            target = out_dir / name
+            if target.exists() and target.is_dir() != (name == "png"):
+                raise CtsplatError(f"cannot write {target}: a {'folder' if target.is_dir() else 'file'} of that "
+                                   "name is in the way; remove it or choose another output folder")
+        for name in names:
+            if name == "png" and (out_dir / name).exists():
+                shutil.rmtree(out_dir / name)
+            os.replace(stage / name, out_dir / name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 def load_radiographs(out_dir: str | Path) -> tuple[np.ndarray, ViewSet]:

@@ -81,6 +81,7 @@ from ctsplat.training.state import (
     snapshot,
 )
 from ctsplat.utils import (
+    LOCK_NAME,
     CtsplatError,
     atomic_path,
     code_version,
@@ -251,9 +252,16 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool | Literal
         raise CtsplatError(f"resume must be True, False or 'auto', got {resume!r}")
     cfg = resolve_config(config)
     out_dir = Path(out_dir)
+    created = not out_dir.exists()
     _check_writable(out_dir)
-    with run_lock(out_dir):
-        return _train(cfg, out_dir, resume, callback)
+    try:
+        with run_lock(out_dir):
+            return _train(cfg, out_dir, resume, callback)
+    except BaseException:
+        # a run that failed before writing anything (bad inputs) leaves no empty folder behind
+        if created and {p.name for p in out_dir.iterdir()} <= {LOCK_NAME}:
+            shutil.rmtree(out_dir, ignore_errors=True)
+        raise
 
 
 def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,

@@ -12,7 +12,7 @@ import pytest
 import torch
 from skimage.transform import radon
 
-from ctsplat.formats.viewset import load_radiographs
+from ctsplat.formats.viewset import ViewSet, load_radiographs
 from ctsplat.formats.volume import Volume, load_volume, save_volume
 from ctsplat.geometry import ConeCamera, ParallelCamera, camera_rays, pose_from_angles
 from ctsplat.phantom import Ellipsoid, rasterize, shepp_logan_ellipsoids
@@ -391,3 +391,28 @@ def test_project_refuses_a_non_finite_volume(tmp_path) -> None:
         render_radiographs(tmp_path / "v.nii.gz", tmp_path / "out", {"n_views": 4, "detector_width": 8,
                                                                       "detector_height": 8})
     assert not (tmp_path / "out").exists()
+
+
+def test_radiograph_folder_is_written_whole_or_not_at_all(tmp_path) -> None:
+    """A file that cannot be written (here views.json blocked by a folder of that name) leaves nothing new behind,
+    and a previous complete folder stays as it was."""
+    from ctsplat.formats.viewset import write_radiographs
+    from ctsplat.geometry import circular_orbit
+
+    vs = ViewSet(ParallelCamera(8, 8, 1.0), circular_orbit(4, np.zeros(3), 20.0, split_fractions={"train": 1.0}),
+                 "v1", np.zeros(3), {})
+    out = tmp_path / "rad"
+    (out / "views.json").mkdir(parents=True)
+    with pytest.raises(CtsplatError, match="a folder of that name is in the way"):
+        write_radiographs(out, np.zeros((4, 8, 8), np.float32), vs, {})
+    assert sorted(p.name for p in out.iterdir()) == ["views.json"] and not list(tmp_path.glob(".rad.*"))
+    (out / "views.json").rmdir()
+    write_radiographs(out, np.ones((4, 8, 8), np.float32), vs, {})
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    (out / "radiographs.json").chmod(0o444)
+    bad = ViewSet(ParallelCamera(8, 8, 1.0), vs.views[:2], "v1", np.zeros(3), {})
+    with pytest.raises(CtsplatError, match="do not match"):
+        write_radiographs(out, np.zeros((4, 8, 8), np.float32), bad, {})
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
+    p, back = load_radiographs(out)
+    assert np.all(p == 1.0) and len(back) == 4

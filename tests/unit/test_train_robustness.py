@@ -363,3 +363,15 @@ def test_cli_refuses_to_silently_restart_a_run(scene_dir: Path, tmp_path: Path, 
                  "--set", "nan_lr_decay=2"]) == 2
     assert "train.nan_lr_decay must be a number in (0, 1), got 2" in capsys.readouterr().err
     assert not (tmp_path / "new").exists()
+
+
+def test_bad_inputs_leave_no_run_folder(tmp_path) -> None:
+    """A run that fails on its inputs, before anything is trained, does not leave an empty folder behind."""
+    from ctsplat.training import train
+    from ctsplat.utils import CtsplatError
+
+    out = tmp_path / "run"
+    with pytest.raises(CtsplatError, match="does not exist"):
+        train({"volume": str(tmp_path / "nope.nii.gz"), "radiographs": str(tmp_path / "rad"), "device": "cpu",
+               "progress": False}, out)
+    assert not out.exists()
