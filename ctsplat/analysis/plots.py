@@ -377,18 +377,23 @@ def plot_correlations(logs: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fi
 
 def _final_long(summary: pd.DataFrame) -> pd.DataFrame:
     """Summary in long form: one row per (run, axis, metric) for the ablation plot."""
-    metric_cols = [c for c in ("psnr3d", "ssim3d", "psnr2d", "ssim2d") if c in summary]
+    metric_cols = [f"test_{m}" for m in ("psnr3d", "ssim3d", "psnr2d", "ssim2d") if f"test_{m}" in summary]
     if not metric_cols:
-        metric_cols = [f"final_{m}" for m in METRICS_2D3D if f"final_{m}" in summary]
+        metric_cols = [f"val_{m}_last" for m in METRICS_2D3D if f"val_{m}_last" in summary]
     rows = []
     for _, r in summary.iterrows():
         for axis in GRID_AXES:
             for m in metric_cols:
                 v = pd.to_numeric(r[m], errors="coerce")
                 if pd.notna(v):
-                    rows.append({"axis": axis, "value": str(r[axis]), "metric": m.removeprefix("final_"),
+                    rows.append({"axis": axis, "value": str(r[axis]), "metric": _bare_metric(m),
                                  "score": float(v)})
     return pd.DataFrame(rows, columns=["axis", "value", "metric", "score"])
+
+
+def _bare_metric(col: str) -> str:
+    """``test_psnr3d`` / ``val_psnr3d_last`` -> ``psnr3d``."""
+    return col.removeprefix("test_").removeprefix("val_").removesuffix("_last")
 
 
 def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
@@ -399,7 +404,7 @@ def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fig
     Parameters
     ----------
     summary : pandas.DataFrame
-        The table of :func:`ctsplat.analysis.gather.gather` (test metrics of ``metrics.json``, else ``final_*``).
+        The table of :func:`ctsplat.analysis.gather.gather` (``test_*`` metrics of ``metrics.json``, else the last logged ``val_*_last``).
     out : path-like
         PNG file to write.
 
@@ -461,7 +466,7 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
         The figure written to ``out`` (closed).
     """
     fig, ax = plt.subplots(figsize=(8, 5))
-    col = metric if metric in summary else f"final_{metric}"
+    col = f"test_{metric}" if f"test_{metric}" in summary else f"val_{metric}_last"
     drawn = False
     if not baselines.empty and metric in baselines:
         b = baselines.copy()

@@ -277,15 +277,58 @@ def test_gather_one_row_per_run_with_axes_and_metrics(tmp_path):
     assert len(back) == 4 and out.exists()
     assert set(back["init"]) == {"fbp", "uniform"} and set(back["seed"]) == {0, 1}
     assert (back["volume"] == "phantom").all() and (back["views"] == 8).all() and (back["mip"] == "on").all()
-    assert list(back["psnr3d"]) == [25.0, 26.0, 25.0, 26.0]
+    assert list(back["test_psnr3d"]) == [25.0, 26.0, 25.0, 26.0]
     assert back["nested.a"].tolist() == [1] * 4
     row = df[(df["init"] == "fbp") & (df["seed"] == 1)].iloc[0]
-    assert row["velocity_psnr2d"] == pytest.approx(2.0)  # 0.002 dB/it -> 2 dB per 1000
-    assert row["final_psnr2d"] == pytest.approx(20 + 0.002 * 2000)
+    assert row["velocity_psnr2d_per_1000it"] == pytest.approx(2.0)  # 0.002 dB/it -> 2 dB per 1000
+    assert row["val_psnr2d_last"] == pytest.approx(20 + 0.002 * 2000)
     # psnr2d = 20 + 0.002 it >= 30 first at it = 5000: never within 2000 iterations
     assert pd.isna(row["iter_to_psnr2d_30"])
     row0 = df[(df["init"] == "uniform") & (df["seed"] == 0)].iloc[0]
-    assert row0["final_iteration"] == 2000
+    assert row0["val_iteration_last"] == 2000
+
+
+def test_gather_names_test_and_validation_columns_apart(tmp_path):
+    rd = _fake_run(tmp_path)
+    (rd / "metrics.json").write_text(json.dumps({
+        "psnr2d": 31.0, "ssim2d": 0.91, "psnr3d": 24.0, "ssim3d": 0.7, "lpips": 0.12, "lpips_reason": None,
+        "iter_to_psnr2d_30": 5, "time_to_psnr2d_30_s": 0.5, "sfm_registration_rate": None, "wall_time_s": 3.0}))
+    gather([rd], tmp_path / "summary.csv", thresholds={"psnr2d": 25.0, "ssim2d": 0.9, "psnr3d": 20.0,
+                                                         "ssim3d": 0.75}, per_iters=500)
+    cols = set(pd.read_csv(tmp_path / "summary.csv").columns)
+    row = pd.read_csv(tmp_path / "summary.csv").iloc[0]
+    assert {"test_psnr2d", "test_ssim2d", "test_psnr3d", "test_ssim3d", "test_lpips"} <= cols
+    assert {"val_psnr2d_last", "val_ssim2d_last", "val_psnr3d_last", "val_ssim3d_last", "val_iteration_last"} <= cols
+    # no bare metric names and no final_* columns that could be read as either split
+    assert not cols & {"psnr2d", "ssim2d", "psnr3d", "ssim3d", "lpips"}
+    assert not [c for c in cols if c.startswith("final_")]
+    assert (row["test_psnr2d"], row["test_lpips"], row["wall_time_s"]) == (31.0, 0.12, 3.0)
+    # milestone keys follow the configured thresholds, 3D ones included; the stale one of metrics.json is gone
+    assert {"iter_to_psnr2d_25", "iter_to_ssim2d_090", "iter_to_psnr3d_20", "iter_to_ssim3d_075",
+            "time_to_psnr3d_20_s"} <= cols
+    assert "iter_to_psnr2d_30" not in cols
+    # _log: psnr3d = linspace(15, 25, 21) over it 0..2000 -> >= 20 first at index 10 (it 1000)
+    assert row["iter_to_psnr3d_20"] == 1000
+    assert "velocity_psnr2d_per_500it" in cols
+    assert not [c for c in cols if c.startswith("sfm_")]  # no colmap run: no pose-error columns
+
+
+def test_gather_adds_sfm_pose_errors_to_colmap_runs(tmp_path):
+    gt = _fake_run(tmp_path, poses="gt")
+    colmap = _fake_run(tmp_path, poses="colmap")
+    other = _fake_run(tmp_path, volume="head", poses="colmap")  # its volume has no sfm/summary.json
+    (tmp_path / "phantom" / "sfm").mkdir()
+    (tmp_path / "phantom" / "sfm" / "summary.json").write_text(json.dumps({
+        "ok": False, "registration_rate": 0.5, "rot_err_deg_median": 91.6, "rot_err_deg_p90": 170.0,
+        "centre_err_mm_median": 885.0, "reason": "too few registrations"}))
+    df = gather([gt, colmap, other], tmp_path / "summary.csv").set_index("run_dir")
+    back = pd.read_csv(tmp_path / "summary.csv").set_index("run_dir")
+    r = back.loc[str(colmap)]
+    assert (r["sfm_rot_err_deg_median"], r["sfm_rot_err_deg_p90"], r["sfm_centre_err_mm_median"],
+            r["sfm_registration_rate"]) == (91.6, 170.0, 885.0, 0.5)
+    assert bool(df.loc[str(colmap), "sfm_ok"]) is False
+    assert not back.loc[str(other), "sfm_ok"] and pd.isna(back.loc[str(other), "sfm_rot_err_deg_median"])
+    assert back.loc[str(gt), ["sfm_ok", "sfm_rot_err_deg_median"]].isna().all()  # not an SfM run
 
 
 def test_gather_errors(tmp_path):

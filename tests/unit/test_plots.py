@@ -128,7 +128,7 @@ def test_velocity_plot_matches_velocity_curve(tmp_path):
 def test_baselines_plot_has_gs_and_classical_lines(tmp_path):
     summary = pd.DataFrame({"volume": ["p"] * 4, "init": ["fbp"] * 4, "compositor": ["radiative"] * 4,
                             "mip": ["on"] * 4, "poses": ["gt"] * 4, "views": [8, 8, 16, 16], "seed": [0, 1, 0, 1],
-                            "psnr3d": [20.0, 22.0, 25.0, 27.0]})
+                            "test_psnr3d": [20.0, 22.0, 25.0, 27.0]})
     base = pd.DataFrame({"method": ["fbp", "fbp", "sart", "sart"], "filter": ["ramp", "ramp", None, None],
                          "iterations": [0, 0, 3, 3], "n_views": [8, 16, 8, 16], "psnr3d": [15.0, 18.0, 17.0, 19.0],
                          "ssim3d": [0.1] * 4})
