@@ -11,11 +11,12 @@ from typing import Any
 import pandas as pd
 
 from ctsplat.analysis.stats import convergence_velocity, mean_iters_per_s, milestones
-from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, read_train_log
+from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, PER_VIEW_COLUMNS, read_per_view, read_train_log
 from ctsplat.grid import GRID_AXES, parse_run_dir
 from ctsplat.utils import CtsplatError, atomic_path
 
-__all__ = ["TEST_METRICS", "SFM_COLUMNS", "velocity_column", "sfm_summary_path", "gather", "load_runs"]
+__all__ = ["TEST_METRICS", "SFM_COLUMNS", "velocity_column", "sfm_summary_path", "gather", "load_runs",
+           "load_per_view"]
 
 
 def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -207,4 +208,36 @@ def load_runs(summary: pd.DataFrame, *, max_gap_iters: int = 10) -> pd.DataFrame
         frames.append(log)
     if not frames:
         return pd.DataFrame(columns=[*LOG_COLUMNS, "volume", *GRID_AXES, "run_dir"])
+    return pd.concat(frames, ignore_index=True)
+
+
+def load_per_view(summary: pd.DataFrame, *, split: str | None = "val") -> pd.DataFrame:
+    """All runs' per-view evaluations during training (``per_view.csv``) in one long table.
+
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        The table of :func:`gather` (needs ``run_dir``, ``volume`` and the grid axes).
+    split : str, optional
+        Keep only this split's views (None: all).
+
+    Returns
+    -------
+    pandas.DataFrame
+        :data:`ctsplat.formats.runlog.PER_VIEW_COLUMNS` of every run that has a ``per_view.csv``, each row tagged
+        with its run's ``volume``, axis values and ``run_dir``.
+    """
+    frames = []
+    for _, r in summary.iterrows():
+        path = Path(r["run_dir"]) / "per_view.csv"
+        if not path.exists():
+            continue
+        pv = read_per_view(path)
+        if split is not None:
+            pv = pv[pv["split"] == split]
+        for col in ("volume", *GRID_AXES, "run_dir"):
+            pv[col] = r[col]
+        frames.append(pv)
+    if not frames:
+        return pd.DataFrame(columns=[*PER_VIEW_COLUMNS, "volume", *GRID_AXES, "run_dir"])
     return pd.concat(frames, ignore_index=True)

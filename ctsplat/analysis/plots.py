@@ -25,14 +25,18 @@ import pandas as pd  # noqa: E402
 import seaborn as sns  # noqa: E402
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS  # noqa: E402
-from ctsplat.analysis.gather import load_runs  # noqa: E402
+from ctsplat.analysis.gather import load_per_view, load_runs  # noqa: E402
 from ctsplat.analysis.stats import (  # noqa: E402
+    METRIC_RANGES,
     acf,
+    bounded_kde,
+    condition_labels,
     correlations,
     mean_iters_per_s,
     milestones,
     porkchop_table,
     rolling_centered,
+    varying_axes,
     velocity_curve,
     window_labels,
 )
@@ -46,6 +50,8 @@ __all__ = [
     "plot_porkchop",
     "plot_acf",
     "plot_kde_windows",
+    "plot_kde_conditions",
+    "condition_styles",
     "plot_convergence_by_axis",
     "plot_velocity",
     "plot_ablation",
@@ -56,6 +62,54 @@ __all__ = [
 ]
 
 METRIC_LABELS = {"psnr2d": "PSNR 2D (dB)", "ssim2d": "SSIM 2D", "psnr3d": "PSNR 3D (dB)", "ssim3d": "SSIM 3D"}
+
+
+# Columns that name a run's condition, in naming order (the seed is a replicate, not a condition).
+CONDITION_AXES: tuple[str, ...] = ("volume", *GRID_AXES)
+LINESTYLES: tuple[str, ...] = ("-", "--", ":", "-.")
+MARKERS: tuple[str, ...] = ("o", "s", "^", "D", "v", "P", "X", "*")
+
+
+def condition_styles(table: pd.DataFrame, label_col: str = "condition",
+                     exclude: Sequence[str] = ("seed",)) -> dict[str, dict[str, Any]]:
+    """Line style of each condition so every one can be told apart without relying on colour alone.
+
+    The first axis that varies (:func:`ctsplat.analysis.stats.varying_axes`) picks the colour, the second the
+    line style, the remaining ones together the marker.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        Rows with the axis columns and ``label_col`` (:func:`ctsplat.analysis.stats.condition_labels`).
+    label_col : str
+        Column holding each row's condition name.
+    exclude : sequence of str
+        Axes not used for styling (as for the labels).
+
+    Returns
+    -------
+    dict
+        Condition name -> ``{"color", "linestyle", "marker"}`` (matplotlib keywords), in sorted name order.
+    """
+    used = varying_axes(table, CONDITION_AXES, exclude)
+    first = table.drop_duplicates(label_col).sort_values(label_col, key=lambda c: c.map(_natural_key))
+    levels = [sorted(table[a].astype(str).unique(), key=_natural) for a in used]
+    palette = sns.color_palette(n_colors=max(len(levels[0]), 1) if levels else 1)
+    rest = sorted({tuple(str(r[a]) for a in used[2:]) for _, r in first.iterrows()}, key=str)
+    out: dict[str, dict[str, Any]] = {}
+    for _, r in first.iterrows():
+        colour = palette[levels[0].index(str(r[used[0]]))] if used else palette[0]
+        ls = LINESTYLES[levels[1].index(str(r[used[1]])) % len(LINESTYLES)] if len(used) > 1 else "-"
+        marker = MARKERS[rest.index(tuple(str(r[a]) for a in used[2:])) % len(MARKERS)] if len(used) > 2 else "o"
+        out[str(r[label_col])] = {"color": colour, "linestyle": ls, "marker": marker, "markevery": 0.1}
+    return out
+
+
+def _natural_key(label: str) -> tuple:
+    """Sort key of a condition name with numbers compared as numbers (views=8 before views=16)."""
+    import re
+
+    return tuple(_natural(p) for p in re.split(r"(\d+(?:\.\d+)?)", str(label)))
 
 
 def _save(fig: plt.Figure, out: str | os.PathLike[str]) -> plt.Figure:
@@ -187,18 +241,34 @@ def plot_acf(log: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 4
     return _save(fig, out)
 
 
-def plot_kde_windows(log: pd.DataFrame, out: str | os.PathLike[str], *, n_windows: int = 4,
-                     title: str = "") -> plt.Figure:
-    """KDEs of PSNR2D and SSIM2D over successive training windows (equal iteration ranges).
+def _draw_kde(ax: plt.Axes, values: np.ndarray, metric: str, **style: Any) -> bool:
+    """Draw the bounded KDE of ``values`` (False when it has no density: fewer than two distinct values)."""
+    lower, upper = METRIC_RANGES.get(metric, (None, None))
+    x, dens = bounded_kde(values, lower, upper)
+    if not x.size:
+        return False
+    ax.plot(x, dens, **style)
+    return True
+
+
+def plot_kde_windows(per_view: pd.DataFrame, out: str | os.PathLike[str], *, n_windows: int = 4,
+                     split: str | None = "val", title: str = "") -> plt.Figure:
+    """KDEs of the per-view PSNR2D and SSIM2D of one run over successive training windows.
+
+    Each window (equal iteration ranges, :func:`ctsplat.analysis.stats.window_labels`) pools the per-view values
+    of the evaluations that fall in it; densities are confined to the metric's range
+    (:func:`ctsplat.analysis.stats.bounded_kde`, SSIM ≤ 1) and the legend gives each window in iterations.
 
     Parameters
     ----------
-    log : pandas.DataFrame
-        A training log (or several pooled).
+    per_view : pandas.DataFrame
+        A per-view log (:func:`ctsplat.formats.runlog.read_per_view`) of one run.
     out : path-like
         PNG file to write.
     n_windows : int
-        Number of windows (:func:`ctsplat.analysis.stats.window_labels`).
+        Number of windows.
+    split : str, optional
+        Use only this split's views (None: all; falls back to all when the split is absent).
     title : str
         Figure title (default: a generic one).
 
@@ -207,20 +277,79 @@ def plot_kde_windows(log: pd.DataFrame, out: str | os.PathLike[str], *, n_window
     matplotlib.figure.Figure
         The figure written to ``out`` (closed).
     """
+    if split is not None and "split" in per_view and (per_view["split"] == split).any():
+        per_view = per_view[per_view["split"] == split]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for ax, m in zip(axes, ("psnr2d", "ssim2d"), strict=True):
-        sub = log[["iteration", m]].dropna()
+        sub = per_view[["iteration", m]].dropna() if m in per_view else pd.DataFrame()
         if len(sub) < 2:
-            _empty(ax, f"too few {m} values")
+            _empty(ax, f"too few per-view {m} values")
             continue
         sub = sub.assign(window=window_labels(sub["iteration"], n_windows))
-        # windows with a single distinct value have no density: draw them as rugs only
-        ok = sub.groupby("window")[m].transform("nunique") > 1
-        if ok.any():
-            sns.kdeplot(data=sub[ok], x=m, hue="window", ax=ax, common_norm=False, warn_singular=False)
-        sns.rugplot(data=sub, x=m, hue="window", ax=ax, legend=False)
-        ax.set_xlabel(METRIC_LABELS[m])
-    fig.suptitle(title or "Metric distributions over training windows")
+        order = list(dict.fromkeys(sub.sort_values("iteration")["window"]))
+        colours = sns.color_palette("viridis", n_colors=len(order))
+        for w, c in zip(order, colours, strict=True):
+            vals = sub.loc[sub["window"] == w, m].to_numpy()
+            label = f"iterations {w} (n={vals.size})"
+            if not _draw_kde(ax, vals, m, color=c, lw=1.8, label=label):
+                ax.plot([], [], color=c, label=label + ", no spread")
+            ax.plot(vals, np.zeros_like(vals), "|", color=c, ms=8, alpha=0.5)
+        ax.set_xlabel(f"per-view {METRIC_LABELS[m]}")
+        ax.set_ylabel("density")
+        ax.legend(fontsize=7, title="training window", title_fontsize=7)
+    fig.suptitle(title or "Per-view metric distributions over training windows")
+    return _save(fig, out)
+
+
+def plot_kde_conditions(per_views: pd.DataFrame, out: str | os.PathLike[str], *, n_windows: int = 4) -> plt.Figure:
+    """KDEs of the per-view PSNR2D and SSIM2D at the end of training, one curve per condition.
+
+    A condition is a cell of the grid without its seed (:func:`ctsplat.analysis.stats.condition_labels`): the
+    per-view values of its seeds are pooled, never those of runs that differ in another axis. Each run contributes
+    the evaluations in the last of ``n_windows`` equal iteration ranges of its training; that window (in
+    iterations) is named in the title, or per curve when runs differ in length. Densities are confined to the
+    metric's range (SSIM ≤ 1).
+
+    Parameters
+    ----------
+    per_views : pandas.DataFrame
+        All runs' per-view logs (:func:`ctsplat.analysis.gather.load_per_view`).
+    out : path-like
+        PNG file to write.
+    n_windows : int
+        Training is split into this many windows; the last one is shown.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
+    """
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    if per_views.empty:
+        for ax in axes:
+            _empty(ax, "no per-view evaluations (per_view.csv)")
+        return _save(fig, out)
+    last = []
+    for _, g in per_views.groupby("run_dir", sort=True):
+        w = window_labels(g["iteration"], n_windows)
+        final = w[int(np.argmax(g["iteration"].to_numpy()))]
+        last.append(g[w == final].assign(window=final))
+    pv = pd.concat(last, ignore_index=True)
+    pv["condition"] = condition_labels(pv, CONDITION_AXES)
+    styles = condition_styles(pv)
+    windows = pv.groupby("condition")["window"].agg(lambda w: ", ".join(sorted(set(w))))
+    same_window = pv["window"].nunique() == 1
+    for ax, m in zip(axes, ("psnr2d", "ssim2d"), strict=True):
+        for cond, st in styles.items():
+            vals = pv.loc[pv["condition"] == cond, m].dropna().to_numpy()
+            label = cond if same_window else f"{cond} (it {windows[cond]})"
+            if not _draw_kde(ax, vals, m, lw=1.6, label=label, **st):
+                ax.plot([], [], label=label + ", no spread", **st)
+        ax.set_xlabel(f"per-view {METRIC_LABELS[m]}")
+        ax.set_ylabel("density")
+    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    when = f"iterations {pv['window'].iloc[0]}" if same_window else f"the last 1/{n_windows} of each run"
+    fig.suptitle(f"Per-view validation metrics by condition, {when} (seeds pooled)")
     return _save(fig, out)
 
 
@@ -250,7 +379,8 @@ def run_figures(run_dir: str | os.PathLike[str], outputs: Mapping[str, str | os.
     if "acf" in outputs:
         plot_acf(log, outputs["acf"], max_lag=cfg["acf_max_lag"], title=title)
     if "kde" in outputs:
-        plot_kde_windows(log, outputs["kde"], n_windows=cfg["kde_windows"], title=title)
+        plot_kde_windows(read_per_view(run_dir / "per_view.csv"), outputs["kde"], n_windows=cfg["kde_windows"],
+                         title=title)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -404,7 +534,8 @@ def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fig
     Parameters
     ----------
     summary : pandas.DataFrame
-        The table of :func:`ctsplat.analysis.gather.gather` (``test_*`` metrics of ``metrics.json``, else the last logged ``val_*_last``).
+        The table of :func:`ctsplat.analysis.gather.gather` (``test_*`` metrics of ``metrics.json``, else the
+        last logged ``val_*_last``).
     out : path-like
         PNG file to write.
 
@@ -532,7 +663,7 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
     if "acf" in outputs:
         _plot_acf_runs(logs, outputs["acf"], max_lag=cfg["acf_max_lag"])
     if "kde" in outputs:
-        plot_kde_windows(logs, outputs["kde"], n_windows=cfg["kde_windows"], title="All runs pooled")
+        plot_kde_conditions(load_per_view(summary), outputs["kde"], n_windows=cfg["kde_windows"])
     if "correlations_plot" in outputs:
         plot_correlations(logs, outputs["correlations_plot"])
     if "correlations" in outputs:

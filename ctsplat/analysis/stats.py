@@ -24,7 +24,15 @@ __all__ = [
     "correlations",
     "window_labels",
     "porkchop_table",
+    "METRIC_RANGES",
+    "bounded_kde",
+    "varying_axes",
+    "condition_labels",
 ]
+
+# Range of each metric: PSNR is non-negative and unbounded above; SSIM lies in [-1, 1]. Densities are confined to it.
+METRIC_RANGES: dict[str, tuple[float | None, float | None]] = {
+    "psnr2d": (0.0, None), "psnr3d": (0.0, None), "ssim2d": (-1.0, 1.0), "ssim3d": (-1.0, 1.0)}
 
 
 def rolling_centered(values: Sequence[float] | pd.Series, window: int) -> np.ndarray:
@@ -298,3 +306,97 @@ def porkchop_table(per_view: pd.DataFrame, metric: str = "psnr2d", split: str | 
              .tolist())
     table = df.pivot_table(index="view_id", columns="iteration", values=metric, aggfunc="mean")
     return table.reindex(index=order).sort_index(axis=1)
+
+
+def bounded_kde(values: Sequence[float], lower: float | None = None, upper: float | None = None, *,
+                n_grid: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    r"""Gaussian kernel density estimate confined to ``[lower, upper]`` by reflection at the bounds.
+
+    With :math:`\hat f` the ordinary Gaussian KDE (Scott's bandwidth :math:`h`), the estimate is
+    :math:`\hat f(x) + \hat f(2l - x) + \hat f(2u - x)` on :math:`[l, u]` and zero outside, so no mass is placed
+    beyond a bound (e.g. SSIM > 1) and the density still integrates to 1 over the metric's range.
+
+    Parameters
+    ----------
+    values : sequence of float, shape (n,)
+        Samples (NaNs dropped); every sample must lie within the bounds.
+    lower, upper : float, optional
+        The metric's range (:data:`METRIC_RANGES`); None = unbounded on that side.
+    n_grid : int
+        Number of evaluation points.
+
+    Returns
+    -------
+    x : numpy.ndarray, shape (n_grid,)
+        Evaluation points spanning the samples ± 3 h, clipped to the bounds.
+    density : numpy.ndarray, shape (n_grid,)
+        The estimate at ``x``; empty arrays when fewer than two distinct finite samples.
+
+    Raises
+    ------
+    CtsplatError
+        When a sample lies outside ``[lower, upper]``.
+    """
+    from scipy import stats
+
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if np.unique(v).size < 2:
+        return np.array([]), np.array([])
+    if (lower is not None and v.min() < lower) or (upper is not None and v.max() > upper):
+        raise CtsplatError(f"KDE sample outside the metric's range [{lower}, {upper}]: {v.min():g}..{v.max():g}")
+    kde = stats.gaussian_kde(v)
+    h = float(np.sqrt(kde.covariance[0, 0]))
+    lo, hi = v.min() - 3 * h, v.max() + 3 * h
+    lo = lo if lower is None else max(lo, lower)
+    hi = hi if upper is None else min(hi, upper)
+    x = np.linspace(lo, hi, n_grid)
+    dens = kde(x)
+    if lower is not None:
+        dens = dens + kde(2 * lower - x)
+    if upper is not None:
+        dens = dens + kde(2 * upper - x)
+    return x, dens
+
+
+def varying_axes(table: pd.DataFrame, axes: Sequence[str], exclude: Sequence[str] = ("seed",)) -> list[str]:
+    """The columns of ``axes`` that take more than one value in ``table`` (in the order given).
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        One row per run (or per log row), with the axis columns.
+    axes : sequence of str
+        Candidate columns, e.g. ``("volume", *GRID_AXES)``.
+    exclude : sequence of str
+        Columns never returned (the seed: replicates of one condition).
+
+    Returns
+    -------
+    list of str
+    """
+    return [a for a in axes if a in table and a not in exclude and table[a].astype(str).nunique() > 1]
+
+
+def condition_labels(table: pd.DataFrame, axes: Sequence[str], exclude: Sequence[str] = ("seed",)) -> pd.Series:
+    """Name each row's condition by the axes that differ across the table: ``"init=fbp, views=24"``.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        One row per run (or per log row), with the axis columns.
+    axes : sequence of str
+        Candidate columns in naming order, e.g. ``("volume", *GRID_AXES)``.
+    exclude : sequence of str
+        Columns left out of the name (by default the seed, so replicates share a condition); pass ``()`` to
+        name single runs.
+
+    Returns
+    -------
+    pandas.Series of str
+        Indexed like ``table``; ``"all runs"`` when no axis varies.
+    """
+    used = varying_axes(table, axes, exclude)
+    if not used:
+        return pd.Series("all runs", index=table.index, dtype=object)
+    return table[used].astype(str).apply(lambda r: ", ".join(f"{a}={r[a]}" for a in used), axis=1).astype(object)

@@ -10,9 +10,12 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from ctsplat.analysis.gather import gather, load_runs
+from ctsplat.analysis.gather import gather, load_per_view, load_runs
 from ctsplat.analysis.stats import (
+    METRIC_RANGES,
     acf,
+    bounded_kde,
+    condition_labels,
     convergence_velocity,
     correlations,
     mean_iters_per_s,
@@ -158,6 +161,36 @@ def test_correlations_agree_with_scipy_and_detect_monotone_nonlinear():
     short = correlations(pd.DataFrame({"psnr2d": [1.0, 2.0], "psnr3d": [1.0, 3.0],
                                           "ssim2d": [1.0, 1.0], "ssim3d": [2.0, 3.0]}))
     assert short["pearson"].isna().all()
+
+
+def test_bounded_kde_of_ssim_stays_within_one_and_keeps_its_mass():
+    rng = np.random.default_rng(3)
+    ssim = np.clip(1 - rng.exponential(0.01, 200), 0, 1)  # piled up against the bound, as late in training
+    lo, hi = METRIC_RANGES["ssim2d"]
+    x, dens = bounded_kde(ssim, lo, hi)
+    assert x.max() == 1.0 and x.min() < ssim.min()
+    assert np.all(dens >= 0)
+    # the reflected density integrates to 1 over [.., 1]; the plain KDE puts a tenth of its mass above SSIM 1
+    assert np.trapezoid(dens, x) == pytest.approx(1.0, abs=0.01)
+    plain = stats.gaussian_kde(ssim)
+    assert np.trapezoid(plain(x), x) < 0.95
+    # an unbounded side is left alone: the PSNR support reaches below the smallest sample
+    xp, _ = bounded_kde(rng.normal(30, 1, 100), *METRIC_RANGES["psnr2d"])
+    assert xp.min() < 27
+    assert bounded_kde([0.5, 0.5], lo, hi)[0].size == 0  # no spread, no density
+    with pytest.raises(CtsplatError, match="outside the metric's range"):
+        bounded_kde([0.5, 1.2], lo, hi)
+
+
+def test_condition_labels_name_the_axes_that_differ():
+    runs = pd.DataFrame({"volume": ["p"] * 4, "init": ["fbp", "fbp", "uniform", "uniform"],
+                         "compositor": ["radiative"] * 4, "views": [24, 24, 12, 24], "seed": [0, 1, 0, 0]})
+    labels = condition_labels(runs, ("volume", "init", "compositor", "views", "seed"))
+    assert list(labels) == ["init=fbp, views=24", "init=fbp, views=24", "init=uniform, views=12",
+                            "init=uniform, views=24"]  # seeds share a condition; constant axes are not named
+    runs_named = condition_labels(runs, ("init", "views", "seed"), exclude=())
+    assert runs_named[1] == "init=fbp, views=24, seed=1"
+    assert set(condition_labels(runs.iloc[:1], ("init",))) == {"all runs"}
 
 
 def test_window_labels_equal_iteration_ranges():
@@ -357,3 +390,13 @@ def test_load_runs_tags_rows(tmp_path):
     logs = load_runs(summary)
     assert len(logs) == 2 * 21
     assert set(logs["compositor"]) == {"radiative", "alpha"}
+
+
+def test_load_per_view_tags_rows_and_keeps_the_split(tmp_path):
+    runs = [_fake_run(tmp_path, init=i) for i in ("fbp", "uniform")]
+    for rd in runs:
+        pd.DataFrame({"iteration": [100, 100, 200], "view_id": [1, 2, 1], "azimuth_deg": [0.0, 90.0, 0.0],
+                      "elevation_deg": 0.0, "split": ["val", "val", "train"], "psnr2d": [20.0, 21.0, 22.0],
+                      "ssim2d": [0.5, 0.6, 0.7]}).to_csv(rd / "per_view.csv", index=False)
+    pv = load_per_view(gather(runs, tmp_path / "s.csv"))
+    assert len(pv) == 4 and set(pv["split"]) == {"val"} and set(pv["init"]) == {"fbp", "uniform"}

@@ -98,10 +98,51 @@ def test_acf_plot_values(tmp_path):
     np.testing.assert_allclose(pts.get_ydata(), acf(log["psnr2d"], 10))
 
 
-def test_kde_windows_one_curve_per_window(tmp_path):
-    fig = plots.plot_kde_windows(_log(), tmp_path / "k.png", n_windows=3)
-    assert len(fig.axes[0].get_lines()) == 3
+def _per_view_ssim(iterations=range(0, 1001, 100), views=12, seed=0, init_gap=0.0):
+    rng = np.random.default_rng(seed)
+    rows = []
+    for it in iterations:
+        for v in range(views):
+            q = 1 - (0.3 + init_gap) * np.exp(-it / 300) - rng.exponential(0.004)
+            rows.append({"iteration": it, "view_id": v, "azimuth_deg": 30.0 * v, "elevation_deg": 0.0,
+                         "split": "val", "psnr2d": 20 + it / 100 + rng.normal(0, 0.5), "ssim2d": min(q, 1.0)})
+    return pd.DataFrame(rows)
+
+
+def test_kde_windows_from_per_view_values_bounded_and_labelled_in_iterations(tmp_path):
+    pv = _per_view_ssim()
+    fig = plots.plot_kde_windows(pv, tmp_path / "k.png", n_windows=3)
+    ssim_ax = fig.axes[1]
+    curves = [ln for ln in ssim_ax.get_lines() if ln.get_linestyle() == "-"]
+    assert len(curves) == 3  # one density per window
+    assert max(ln.get_xdata().max() for ln in curves) <= 1.0  # SSIM density never runs past 1
+    legend = [t.get_text() for t in ssim_ax.get_legend().get_texts()]
+    # windows named by their iteration range; each built from the per-view values (12 views per evaluation)
+    assert legend[0].startswith("iterations 0–333") and "(n=48)" in legend[0]
     assert _is_png(tmp_path / "k.png")
+
+
+def test_kde_conditions_one_curve_per_condition_not_pooled_over_init(tmp_path):
+    frames = []
+    for init, gap in (("fbp", 0.0), ("uniform", 0.2)):
+        for seed in (0, 1):
+            cell = {"volume": "phantom", "init": init, "compositor": "radiative", "mip": "on", "poses": "gt",
+                    "views": 8, "seed": seed, "run_dir": f"r/{init}/{seed}"}
+            frames.append(_per_view_ssim(seed=seed, init_gap=gap).assign(**cell))
+    pv = pd.concat(frames, ignore_index=True)
+    fig = plots.plot_kde_conditions(pv, tmp_path / "kc.png", n_windows=4)
+    ax = fig.axes[1]
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels == ["init=fbp", "init=uniform"]  # seeds pooled within a condition, inits kept apart
+    curves = {ln.get_label(): ln for ln in ax.get_lines()}
+    assert max(curves[lb].get_xdata().max() for lb in labels) <= 1.0
+    # the uniform curve is the density of its own last-window values only
+    last = pv[(pv["init"] == "uniform") & (pv["iteration"] >= 750)]["ssim2d"]
+    from ctsplat.analysis.stats import bounded_kde
+
+    x, d = bounded_kde(last, -1.0, 1.0)
+    np.testing.assert_allclose(curves["init=uniform"].get_ydata(), d)
+    assert "iterations 750–1000" in fig.texts[0].get_text()
 
 
 def test_convergence_by_axis_colours_runs_by_axis_value(tmp_path):
