@@ -29,9 +29,11 @@ from ctsplat.analysis.gather import load_per_view, load_runs  # noqa: E402
 from ctsplat.analysis.stats import (  # noqa: E402
     METRIC_RANGES,
     acf,
+    acf_band,
     bounded_kde,
     condition_labels,
     correlations,
+    detrend,
     mean_iters_per_s,
     milestones,
     porkchop_table,
@@ -49,6 +51,7 @@ __all__ = [
     "plot_convergence",
     "plot_porkchop",
     "plot_acf",
+    "plot_acf_runs",
     "plot_kde_windows",
     "plot_kde_conditions",
     "condition_styles",
@@ -203,8 +206,12 @@ def plot_porkchop(per_view: pd.DataFrame, out: str | os.PathLike[str], *, split:
 
 
 def plot_acf(log: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 40, metric: str = "psnr2d",
-             title: str = "") -> plt.Figure:
-    """Autocorrelation of a metric by lag (in evaluations) with the ±1.96/√n band.
+             window: int = 25, title: str = "") -> plt.Figure:
+    """Autocorrelation of a metric's detrended series by lag (in evaluations), with the 95 % white-noise band.
+
+    The curve is detrended first (:func:`ctsplat.analysis.stats.detrend`: residual from the centred rolling mean
+    over ``window`` evaluations), since the ACF of a still-converging curve only shows its trend; the raw ACF is
+    drawn faintly for comparison. The band is ±1.96/√n with n the number of detrended samples.
 
     Parameters
     ----------
@@ -216,6 +223,8 @@ def plot_acf(log: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 4
         Largest lag (evaluations).
     metric : str
         Log column.
+    window : int
+        Rolling-mean window of the detrending (evaluations).
     title : str
         Figure title (default: a generic one).
 
@@ -226,17 +235,22 @@ def plot_acf(log: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 4
     """
     fig, ax = plt.subplots(figsize=(7, 4))
     vals = log[metric].dropna().to_numpy() if metric in log else np.array([])
-    r = acf(vals, max_lag)
-    if r.size < 2:
-        _empty(ax, "fewer than two evaluations")
+    resid = detrend(vals, "rolling", window)
+    r = acf(resid, max_lag)
+    if r.size < 2 or not np.isfinite(r[1:]).any():
+        _empty(ax, f"too few evaluations to detrend (need more than {2 * (window // 2)})")
     else:
-        ax.vlines(np.arange(r.size), 0, r, color="C0")
-        ax.plot(np.arange(r.size), r, "o", color="C0", ms=3)
-        band = 1.96 / np.sqrt(vals.size)
-        ax.axhspan(-band, band, color="0.85", zorder=0)
+        lags = np.arange(r.size)
+        ax.vlines(lags, 0, r, color="C0")
+        ax.plot(lags, r, "o", color="C0", ms=3, label=f"detrended (residual from centred mean, W={window})")
+        raw = acf(vals, max_lag)
+        ax.plot(np.arange(raw.size), raw, "x", color="0.6", ms=3, label="raw curve (trend)")
+        band = acf_band(resid.size)
+        ax.axhspan(-band, band, color="0.85", zorder=0, label=f"95 % band ±1.96/√n, n={resid.size}")
         ax.axhline(0, color="k", lw=0.8)
         ax.set_xlabel("lag (evaluations)")
         ax.set_ylabel(f"ACF of {METRIC_LABELS.get(metric, metric)}")
+        ax.legend(fontsize=7)
     ax.set_title(title or "Autocorrelation")
     return _save(fig, out)
 
@@ -377,7 +391,7 @@ def run_figures(run_dir: str | os.PathLike[str], outputs: Mapping[str, str | os.
         split = "val" if (per_view["split"] == "val").any() else None
         plot_porkchop(per_view, outputs["porkchop"], split=split, title=title)
     if "acf" in outputs:
-        plot_acf(log, outputs["acf"], max_lag=cfg["acf_max_lag"], title=title)
+        plot_acf(log, outputs["acf"], max_lag=cfg["acf_max_lag"], window=cfg["window"], title=title)
     if "kde" in outputs:
         plot_kde_windows(read_per_view(run_dir / "per_view.csv"), outputs["kde"], n_windows=cfg["kde_windows"],
                          title=title)
@@ -661,7 +675,7 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
     if "velocity" in outputs:
         plot_velocity(logs, outputs["velocity"], per_iters=cfg["velocity_per_iters"])
     if "acf" in outputs:
-        _plot_acf_runs(logs, outputs["acf"], max_lag=cfg["acf_max_lag"])
+        plot_acf_runs(logs, outputs["acf"], max_lag=cfg["acf_max_lag"], window=cfg["window"])
     if "kde" in outputs:
         plot_kde_conditions(load_per_view(summary), outputs["kde"], n_windows=cfg["kde_windows"])
     if "correlations_plot" in outputs:
@@ -693,26 +707,51 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
         plot_baselines(summary, base, outputs["baselines"])
 
 
-def _plot_acf_runs(logs: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int) -> plt.Figure:
-    """PSNR2D ACF by lag, one line per run."""
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    drawn = 0
+def plot_acf_runs(logs: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 40,
+                  window: int = 25) -> plt.Figure:
+    """ACF of each run's detrended PSNR2D by lag, one line per run, with the 95 % white-noise band.
+
+    Detrending as in :func:`plot_acf`; the band is drawn for the run with the fewest detrended samples (the
+    widest). Runs are named by the axes that differ (:func:`ctsplat.analysis.stats.condition_labels`).
+
+    Parameters
+    ----------
+    logs : pandas.DataFrame
+        All runs' logs (:func:`ctsplat.analysis.gather.load_runs`).
+    out : path-like
+        PNG file to write.
+    max_lag : int
+        Largest lag (evaluations).
+    window : int
+        Rolling-mean window of the detrending (evaluations).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
+    """
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    drawn, n_min = 0, None
     if not logs.empty:
-        logs = logs.assign(run=_run_label(logs))
-        for run, g in logs.groupby("run", sort=True):
-            r = acf(g["psnr2d"].to_numpy(), max_lag)
-            if r.size >= 2:
-                ax.plot(np.arange(r.size), r, marker="o", ms=2, label=run)
+        logs = logs.assign(run=condition_labels(logs, CONDITION_AXES, exclude=()))
+        styles = condition_styles(logs, "run", exclude=())
+        for run, st in styles.items():
+            resid = detrend(logs.loc[logs["run"] == run, "psnr2d"].to_numpy(), "rolling", window)
+            r = acf(resid, max_lag)
+            if r.size >= 2 and np.isfinite(r[1:]).any():
+                ax.plot(np.arange(r.size), r, ms=3, label=run, **{**st, "markevery": 1})
                 drawn += 1
+                n_min = resid.size if n_min is None else min(n_min, resid.size)
     if drawn:
+        band = acf_band(n_min)
+        ax.axhspan(-band, band, color="0.85", zorder=0, label=f"95 % band ±1.96/√n, n={n_min}")
         ax.axhline(0, color="k", lw=0.8)
         ax.set_xlabel("lag (evaluations)")
-        ax.set_ylabel("ACF of PSNR2D")
-        if drawn <= 12:
-            ax.legend(fontsize=7)
+        ax.set_ylabel("ACF of detrended PSNR2D")
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     else:
-        _empty(ax, "fewer than two evaluations")
-    ax.set_title("Autocorrelation of PSNR2D by run")
+        _empty(ax, f"too few evaluations to detrend (need more than {2 * (window // 2)})")
+    ax.set_title(f"Autocorrelation of PSNR2D after removing the trend (centred mean, W={window})")
     return _save(fig, out)
 
 

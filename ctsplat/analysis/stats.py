@@ -16,6 +16,8 @@ from ctsplat.utils import CtsplatError
 __all__ = [
     "rolling_centered",
     "acf",
+    "detrend",
+    "acf_band",
     "convergence_velocity",
     "velocity_curve",
     "threshold_tag",
@@ -87,6 +89,63 @@ def acf(values: Sequence[float], max_lag: int) -> np.ndarray:
     if denom == 0.0:
         return np.concatenate([[1.0], np.full(lags, np.nan)])
     return np.array([1.0] + [float(np.dot(x[: n - k], x[k:])) / denom for k in range(1, lags + 1)])
+
+
+def detrend(values: Sequence[float], method: str = "rolling", window: int = 25) -> np.ndarray:
+    """Remove the trend of a training curve so its autocorrelation measures the evaluation noise, not convergence.
+
+    Parameters
+    ----------
+    values : sequence of float, shape (n,)
+        A metric per evaluation (NaNs dropped first).
+    method : {"rolling", "diff"}
+        ``"rolling"``: residual from the centred rolling mean over ``2 * (window // 2) + 1`` samples (made odd
+        so it is centred), kept only where the whole
+        window exists (the first and last ``window // 2`` samples are dropped, where a shrinking window would
+        leave part of the trend in); ``"diff"``: first differences ``x[t+1] - x[t]``.
+    window : int
+        Rolling-mean window (samples), >= 1.
+
+    Returns
+    -------
+    numpy.ndarray
+        The detrended series: ``n - 2 * (window // 2)`` samples for ``"rolling"``, ``n - 1`` for ``"diff"``
+        (never fewer than 0). A linear trend leaves exactly zero (``"rolling"``) or a constant (``"diff"``).
+
+    Raises
+    ------
+    CtsplatError
+        For an unknown method or a window < 1.
+    """
+    x = np.asarray(values, dtype=float)
+    x = x[~np.isnan(x)]
+    if method == "diff":
+        return np.diff(x)
+    if method != "rolling":
+        raise CtsplatError(f"unknown detrending method {method!r}; allowed: rolling, diff")
+    if window < 1:
+        raise CtsplatError(f"rolling window must be >= 1, got {window}")
+    half = window // 2
+    if x.size <= 2 * half:
+        return np.array([])
+    resid = x - rolling_centered(x, 2 * half + 1)
+    return resid[half: x.size - half]
+
+
+def acf_band(n: int) -> float:
+    """Half-width of the 95 % band of the sample ACF of ``n`` samples of white noise: ``1.96 / sqrt(n)``.
+
+    Parameters
+    ----------
+    n : int
+        Number of samples the ACF was computed from.
+
+    Returns
+    -------
+    float
+        NaN for ``n < 1``.
+    """
+    return 1.96 / np.sqrt(n) if n >= 1 else float("nan")
 
 
 def convergence_velocity(iterations: Sequence[float], values: Sequence[float], per_iters: int = 1000) -> float:

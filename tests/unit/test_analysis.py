@@ -14,10 +14,12 @@ from ctsplat.analysis.gather import gather, load_per_view, load_runs
 from ctsplat.analysis.stats import (
     METRIC_RANGES,
     acf,
+    acf_band,
     bounded_kde,
     condition_labels,
     convergence_velocity,
     correlations,
+    detrend,
     mean_iters_per_s,
     milestones,
     porkchop_table,
@@ -78,6 +80,28 @@ def test_acf_matches_direct_formula_and_handles_nan_and_constant():
     assert r.size == 5  # lags capped at n - 1
     c = acf(np.ones(5), 3)
     assert c[0] == 1.0 and np.isnan(c[1:]).all()
+
+
+def test_acf_of_a_trend_after_detrending_stays_inside_the_band():
+    rng = np.random.default_rng(7)
+    it = np.arange(400)
+    trend = 18 + 12 * (1 - np.exp(-it / 80))  # a converging PSNR curve
+    x = trend + rng.normal(0, 0.3, it.size)
+    raw = acf(x, 20)
+    assert raw[1] > 0.9  # the raw ACF only shows the trend
+    resid = detrend(x, "rolling", 25)
+    assert resid.size == 400 - 24
+    r = acf(resid, 20)
+    band = acf_band(resid.size)
+    assert band == pytest.approx(1.96 / np.sqrt(376))
+    inside = np.abs(r[1:]) <= band
+    assert inside.mean() >= 0.9  # white noise: ~95 % of the lags inside the band
+    # a pure linear trend is removed exactly; first differences leave its slope
+    np.testing.assert_allclose(detrend(0.5 * it + 3, "rolling", 9), 0, atol=1e-9)
+    np.testing.assert_allclose(detrend(0.5 * it + 3, "diff"), 0.5)
+    assert detrend(np.arange(5.0), "rolling", 25).size == 0
+    with pytest.raises(CtsplatError, match="unknown detrending method"):
+        detrend(x, "loess")
 
 
 def test_velocity_of_linear_ramp_is_slope_times_per():

@@ -12,7 +12,7 @@ import pytest
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS, RUN_FIGURES, plots
 from ctsplat.analysis.gather import gather, load_runs
-from ctsplat.analysis.stats import acf, porkchop_table, rolling_centered, velocity_curve
+from ctsplat.analysis.stats import acf, acf_band, detrend, porkchop_table, rolling_centered, velocity_curve
 from ctsplat.formats.runlog import METRICS_2D3D, read_per_view
 from ctsplat.grid import run_relpath
 from ctsplat.utils import CtsplatError
@@ -91,11 +91,30 @@ def _write(path, df):
     return path
 
 
-def test_acf_plot_values(tmp_path):
-    log = _log()
-    fig = plots.plot_acf(log, tmp_path / "a.png", max_lag=10)
+def test_acf_plot_is_of_the_detrended_curve_with_its_band(tmp_path):
+    log = _log(n=120)
+    fig = plots.plot_acf(log, tmp_path / "a.png", max_lag=10, window=7)
     pts = fig.axes[0].get_lines()[0]
-    np.testing.assert_allclose(pts.get_ydata(), acf(log["psnr2d"], 10))
+    resid = detrend(log["psnr2d"], "rolling", 7)
+    np.testing.assert_allclose(pts.get_ydata(), acf(resid, 10))
+    band = fig.axes[0].patches[0]  # the axhspan of the 95 % band
+    assert band.get_y() == pytest.approx(-acf_band(resid.size))
+    assert band.get_y() + band.get_height() == pytest.approx(acf_band(resid.size))
+
+
+def test_acf_runs_one_named_line_per_run_and_a_band(tmp_path):
+    runs = [_make_run(tmp_path, init=i, seed=s) for i in ("fbp", "uniform") for s in (0, 1)]
+    logs = load_runs(gather(runs, tmp_path / "s.csv"))
+    fig = plots.plot_acf_runs(logs, tmp_path / "acf.png", max_lag=8, window=5)
+    ax = fig.axes[0]
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels[:4] == ["init=fbp, seed=0", "init=fbp, seed=1", "init=uniform, seed=0", "init=uniform, seed=1"]
+    assert labels[4].startswith("95 % band")
+    lines = {ln.get_label(): ln for ln in ax.get_lines()}
+    g = logs[(logs["init"] == "uniform") & (logs["seed"] == 1)]
+    np.testing.assert_allclose(lines["init=uniform, seed=1"].get_ydata(), acf(detrend(g["psnr2d"], "rolling", 5), 8))
+    styles = {(ln.get_color(), ln.get_linestyle()) for ln in lines.values() if ln.get_label() in labels}
+    assert len(styles) == 4  # every run distinguishable
 
 
 def _per_view_ssim(iterations=range(0, 1001, 100), views=12, seed=0, init_gap=0.0):
