@@ -32,7 +32,6 @@ from ctsplat.analysis.stats import (  # noqa: E402
     acf_band,
     bounded_kde,
     condition_labels,
-    correlations,
     detrend,
     mean_iters_per_s,
     milestones,
@@ -41,9 +40,10 @@ from ctsplat.analysis.stats import (  # noqa: E402
     varying_axes,
     velocity_curve,
     window_labels,
+    windowed_correlations,
 )
 from ctsplat.config import schema_defaults  # noqa: E402
-from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, read_per_view, read_train_log  # noqa: E402
+from ctsplat.formats.runlog import METRICS_2D3D, read_per_view, read_train_log  # noqa: E402
 from ctsplat.grid import GRID_AXES  # noqa: E402
 from ctsplat.utils import CtsplatError, atomic_path  # noqa: E402
 
@@ -60,6 +60,7 @@ __all__ = [
     "plot_ablation",
     "plot_baselines",
     "plot_correlations",
+    "correlation_table",
     "run_figures",
     "analyse",
 ]
@@ -489,8 +490,37 @@ def plot_velocity(logs: pd.DataFrame, out: str | os.PathLike[str], *, per_iters:
     return _save(fig, out)
 
 
-def plot_correlations(logs: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
-    """Scatter of 2D vs 3D metrics over training (all runs), with pooled Pearson/Spearman in the titles.
+def correlation_table(logs: pd.DataFrame, n_windows: int) -> pd.DataFrame:
+    """Per-run 2D-3D correlations, over the whole run and per training window, of all runs.
+
+    Parameters
+    ----------
+    logs : pandas.DataFrame
+        All runs' logs (:func:`ctsplat.analysis.gather.load_runs`).
+    n_windows : int
+        Training windows per run (:func:`ctsplat.analysis.stats.windowed_correlations`).
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``run_dir``, ``run`` (named by the axes that differ), then the columns of
+        :func:`ctsplat.analysis.stats.windowed_correlations`. No pooled row: runs are not exchangeable samples.
+    """
+    cols = ["run_dir", "run", "window", "it_start", "it_end", "it_centre", "x", "y", "n", "pearson", "spearman"]
+    if logs.empty:
+        return pd.DataFrame(columns=cols)
+    logs = logs.assign(run=condition_labels(logs, CONDITION_AXES, exclude=()))
+    frames = [windowed_correlations(g, n_windows).assign(run_dir=rd, run=g["run"].iloc[0])
+              for rd, g in logs.groupby("run_dir", sort=True)]
+    return pd.concat(frames, ignore_index=True)[cols]
+
+
+def plot_correlations(logs: pd.DataFrame, out: str | os.PathLike[str], *, n_windows: int = 4) -> plt.Figure:
+    """How well the 2D metric tracks the 3D one over training: per-run Spearman correlation per training window.
+
+    One line per run (named by the axes that differ), x = the window's centre iteration, y = the Spearman
+    correlation of the run's 2D and 3D metric within that window; the legend gives each run's correlation over its
+    whole training. Nothing is pooled across runs.
 
     Parameters
     ----------
@@ -498,24 +528,41 @@ def plot_correlations(logs: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fi
         All runs' logs (:func:`ctsplat.analysis.gather.load_runs`).
     out : path-like
         PNG file to write.
+    n_windows : int
+        Training windows per run.
 
     Returns
     -------
     matplotlib.figure.Figure
         The figure written to ``out`` (closed).
     """
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
-    pooled = correlations(logs) if not logs.empty else None
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), sharey=True)
+    table = correlation_table(logs, n_windows)
+    styles = condition_styles(table, "run", exclude=()) if not table.empty else {}
     for ax, (x, y) in zip(axes, (("psnr2d", "psnr3d"), ("ssim2d", "ssim3d")), strict=True):
-        sub = logs[[x, y]].dropna() if not logs.empty else pd.DataFrame()
-        if sub.empty:
-            _empty(ax, "no paired 2D/3D evaluations")
+        sub = table[(table["x"] == x) & (table["y"] == y)]
+        drawn = 0
+        for run, st in styles.items():
+            g = sub[sub["run"] == run]
+            whole = g[g["window"] == "all"]["spearman"]
+            win = g[g["window"] != "all"]
+            if not np.isfinite(win["spearman"].to_numpy(dtype=float)).any():
+                continue
+            rho = float(whole.iloc[0]) if len(whole) else float("nan")
+            ax.plot(win["it_centre"], win["spearman"], label=f"{run} (whole run ρ={rho:.2f})",
+                    **{**st, "markevery": 1})
+            drawn += 1
+        if not drawn:
+            _empty(ax, "too few paired 2D/3D evaluations per window")
             continue
-        ax.scatter(sub[x], sub[y], s=8, alpha=0.6)
-        row = pooled[(pooled["x"] == x) & (pooled["y"] == y)].iloc[0]
-        ax.set_title(f"Pearson {row['pearson']:.3f}, Spearman {row['spearman']:.3f} (n={row['n']})")
-        ax.set_xlabel(METRIC_LABELS[x])
-        ax.set_ylabel(METRIC_LABELS[y])
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_ylim(-1.05, 1.05)
+        ax.set_xlabel("iteration (centre of the training window)")
+        ax.set_title(f"{METRIC_LABELS[x]} vs {METRIC_LABELS[y]}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    axes[0].set_ylabel("Spearman ρ within the window")
+    fig.suptitle(f"2D-3D correlation per run over training ({n_windows} equal windows per run)")
     return _save(fig, out)
 
 
@@ -679,14 +726,9 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
     if "kde" in outputs:
         plot_kde_conditions(load_per_view(summary), outputs["kde"], n_windows=cfg["kde_windows"])
     if "correlations_plot" in outputs:
-        plot_correlations(logs, outputs["correlations_plot"])
+        plot_correlations(logs, outputs["correlations_plot"], n_windows=cfg["kde_windows"])
     if "correlations" in outputs:
-        tables = []
-        for run, g in logs.groupby("run_dir", sort=True) if not logs.empty else []:
-            tables.append(correlations(g).assign(run_dir=run))
-        tables.append(correlations(logs if not logs.empty else pd.DataFrame(columns=list(LOG_COLUMNS)))
-                      .assign(run_dir="all"))
-        _write_csv(pd.concat(tables, ignore_index=True), outputs["correlations"])
+        _write_csv(correlation_table(logs, cfg["kde_windows"]), outputs["correlations"])
     if "milestones" in outputs:
         rows = []
         for run, g in logs.groupby("run_dir", sort=True) if not logs.empty else []:

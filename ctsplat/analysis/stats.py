@@ -25,6 +25,7 @@ __all__ = [
     "mean_iters_per_s",
     "correlations",
     "window_labels",
+    "windowed_correlations",
     "porkchop_table",
     "METRIC_RANGES",
     "bounded_kde",
@@ -338,6 +339,51 @@ def window_labels(iterations: Sequence[float], n_windows: int) -> np.ndarray:
     idx = np.clip(np.searchsorted(edges, it, side="right") - 1, 0, n_windows - 1)
     names = [f"{int(edges[i])}–{int(edges[i + 1])}" for i in range(n_windows)]
     return np.array([names[i] for i in idx], dtype=object)
+
+
+def windowed_correlations(
+    log: pd.DataFrame, n_windows: int,
+    pairs: Sequence[tuple[str, str]] = (("psnr2d", "psnr3d"), ("ssim2d", "ssim3d")),
+) -> pd.DataFrame:
+    """2D-3D correlations of one run over its whole training and within successive training windows.
+
+    Evaluations of one run over time are not independent samples, and runs differ in level: the correlation is
+    computed per run, and per window (equal iteration ranges, :func:`window_labels`) to show how far the 2D metric
+    tracks the 3D one early and late in training.
+
+    Parameters
+    ----------
+    log : pandas.DataFrame
+        The training log of ONE run.
+    n_windows : int
+        Number of windows.
+    pairs : sequence of (str, str)
+        Column pairs (x, y).
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns ``window`` (``"all"`` or ``"a–b"``), ``it_start``, ``it_end``, ``it_centre`` (iterations),
+        ``x, y, n, pearson, spearman`` (as :func:`correlations`): first the whole run, then each window in order.
+    """
+    cols = ["window", "it_start", "it_end", "it_centre", "x", "y", "n", "pearson", "spearman"]
+    if log.empty:
+        return pd.DataFrame(columns=cols)
+    it = log["iteration"].to_numpy(dtype=float)
+    frames = [correlations(log, pairs).assign(window="all", it_start=it.min(), it_end=it.max(),
+                                              it_centre=(it.min() + it.max()) / 2)]
+    labels = window_labels(it, n_windows)
+    edges = np.linspace(it.min(), it.max(), n_windows + 1)
+    seen: set[str] = set()
+    for i in range(n_windows):
+        name = f"{int(edges[i])}–{int(edges[i + 1])}"
+        if name in seen:  # a span shorter than n_windows iterations repeats names; count each sample once
+            continue
+        seen.add(name)
+        sub = log[labels == name]
+        frames.append(correlations(sub, pairs).assign(window=name, it_start=edges[i], it_end=edges[i + 1],
+                                                      it_centre=(edges[i] + edges[i + 1]) / 2))
+    return pd.concat(frames, ignore_index=True)[cols]
 
 
 def porkchop_table(per_view: pd.DataFrame, metric: str = "psnr2d", split: str | None = None) -> pd.DataFrame:

@@ -26,6 +26,7 @@ from ctsplat.analysis.stats import (
     rolling_centered,
     velocity_curve,
     window_labels,
+    windowed_correlations,
 )
 from ctsplat.formats.runlog import LOG_COLUMNS, PER_VIEW_COLUMNS, CsvLog, read_per_view, read_train_log
 from ctsplat.grid import parse_run_dir, run_relpath
@@ -215,6 +216,23 @@ def test_condition_labels_name_the_axes_that_differ():
     runs_named = condition_labels(runs, ("init", "views", "seed"), exclude=())
     assert runs_named[1] == "init=fbp, views=24, seed=1"
     assert set(condition_labels(runs.iloc[:1], ("init",))) == {"all runs"}
+
+
+def test_windowed_correlations_follow_the_change_over_training():
+    rng = np.random.default_rng(2)
+    it = np.arange(0, 2000, 10)
+    p2 = 20 + rng.normal(0, 1, it.size)
+    # 3D tracks 2D in the first half of training and is unrelated noise in the second half
+    p3 = np.where(it < 1000, p2 + rng.normal(0, 0.1, it.size), 25 + rng.normal(0, 1, it.size))
+    log = pd.DataFrame({"iteration": it, "psnr2d": p2, "psnr3d": p3, "ssim2d": p2 / 40, "ssim3d": p3 / 40})
+    t = windowed_correlations(log, 2)
+    ps = t[t["x"] == "psnr2d"].set_index("window")
+    assert list(ps.index) == ["all", "0–995", "995–1990"]
+    assert ps.loc["0–995", "spearman"] > 0.95 and abs(ps.loc["995–1990", "spearman"]) < 0.3
+    assert ps.loc["0–995", "n"] + ps.loc["995–1990", "n"] == ps.loc["all", "n"] == it.size
+    assert ps.loc["0–995", "it_centre"] == pytest.approx(497.5)
+    w = log[(it >= 995)]
+    assert ps.loc["995–1990", "pearson"] == pytest.approx(np.corrcoef(w["psnr2d"], w["psnr3d"])[0, 1])
 
 
 def test_window_labels_equal_iteration_ranges():

@@ -185,6 +185,26 @@ def test_velocity_plot_matches_velocity_curve(tmp_path):
     np.testing.assert_allclose(line.get_ydata(), vc["velocity"])
 
 
+def test_correlations_per_run_over_windows_never_pooled(tmp_path):
+    runs = [_make_run(tmp_path, init=i) for i in ("fbp", "uniform")]
+    logs = load_runs(gather(runs, tmp_path / "s.csv"))
+    # the second run's 3D metric falls while its 2D metric rises: pooled, the two runs would hide that
+    sel = logs["init"] == "uniform"
+    logs.loc[sel, "psnr3d"] = 40 - logs.loc[sel, "psnr3d"]
+    table = plots.correlation_table(logs, 3)
+    assert set(table["run_dir"]) == {str(r) for r in runs}  # no pooled "all runs" row
+    assert set(table["window"]) == {"all", "0–666", "666–1333", "1333–2000"}
+    fig = plots.plot_correlations(logs, tmp_path / "c.png", n_windows=3)
+    lines = {ln.get_label(): ln for ln in fig.axes[0].get_lines() if not ln.get_label().startswith("_")}
+    fbp = next(ln for lb, ln in lines.items() if lb.startswith("init=fbp"))
+    uni = next(ln for lb, ln in lines.items() if lb.startswith("init=uniform"))
+    np.testing.assert_allclose(fbp.get_xdata(), [333.0, 1000.0, 1666.5], atol=0.5)
+    assert np.all(np.asarray(fbp.get_ydata()) > 0.5) and np.all(np.asarray(uni.get_ydata()) < -0.5)
+    expect = table[(table["run_dir"] == str(runs[1])) & (table["x"] == "psnr2d") & (table["window"] != "all")]
+    np.testing.assert_allclose(uni.get_ydata(), expect["spearman"])
+    assert "whole run ρ=" in uni.get_label()
+
+
 def test_baselines_plot_has_gs_and_classical_lines(tmp_path):
     summary = pd.DataFrame({"volume": ["p"] * 4, "init": ["fbp"] * 4, "compositor": ["radiative"] * 4,
                             "mip": ["on"] * 4, "poses": ["gt"] * 4, "views": [8, 8, 16, 16], "seed": [0, 1, 0, 1],
@@ -222,7 +242,8 @@ def test_analyse_and_run_figures_write_every_output(tmp_path):
     ms = pd.read_csv(outputs["milestones"])
     assert len(ms) == 4 and {"iter_to_psnr2d_30", "iters_per_s"} <= set(ms.columns)
     corr = pd.read_csv(outputs["correlations"])
-    assert len(corr) == 2 * 5 and set(corr["run_dir"]) >= {"all"}
+    # per run: the whole run + analysis.kde_windows (4) windows, for the PSNR and SSIM pairs; nothing pooled
+    assert len(corr) == 4 * (1 + 4) * 2 and set(corr["run_dir"]) == {str(r) for r in runs}
     run_out = {name: runs[0] / "figures" / f"{name}.png" for name in RUN_FIGURES}
     plots.run_figures(runs[0], run_out, {"window": 3})
     assert all(_is_png(p) for p in run_out.values())
