@@ -74,8 +74,8 @@ LINESTYLES: tuple[str, ...] = ("-", "--", ":", "-.")
 MARKERS: tuple[str, ...] = ("o", "s", "^", "D", "v", "P", "X", "*")
 
 
-def condition_styles(table: pd.DataFrame, label_col: str = "condition",
-                     exclude: Sequence[str] = ("seed",)) -> dict[str, dict[str, Any]]:
+def condition_styles(table: pd.DataFrame, label_col: str = "condition", exclude: Sequence[str] = ("seed",),
+                     axes: Sequence[str] = CONDITION_AXES) -> dict[str, dict[str, Any]]:
     """Line style of each condition so every one can be told apart without relying on colour alone.
 
     The first axis that varies (:func:`ctsplat.analysis.stats.varying_axes`) picks the colour, the second the
@@ -89,13 +89,15 @@ def condition_styles(table: pd.DataFrame, label_col: str = "condition",
         Column holding each row's condition name.
     exclude : sequence of str
         Axes not used for styling (as for the labels).
+    axes : sequence of str
+        Candidate axes in order of precedence (the first varying one picks the colour).
 
     Returns
     -------
     dict
         Condition name -> ``{"color", "linestyle", "marker"}`` (matplotlib keywords), in sorted name order.
     """
-    used = varying_axes(table, CONDITION_AXES, exclude)
+    used = varying_axes(table, axes, exclude)
     first = table.drop_duplicates(label_col).sort_values(label_col, key=lambda c: c.map(_natural_key))
     levels = [sorted(table[a].astype(str).unique(), key=_natural) for a in used]
     palette = sns.color_palette(n_colors=max(len(levels[0]), 1) if levels else 1)
@@ -411,6 +413,9 @@ def plot_convergence_by_axis(logs: pd.DataFrame, axis: str, out: str | os.PathLi
                              window: int = 25) -> plt.Figure:
     """All runs' PSNR2D/SSIM2D/PSNR3D/SSIM3D centred rolling means overlaid, coloured by one ablation axis.
 
+    The colour is the value of ``axis``; runs that share it differ in line style and marker by the other axes
+    that vary (:func:`condition_styles`), and the legend names every run by those axes ("init=fbp, views=24").
+
     Parameters
     ----------
     logs : pandas.DataFrame
@@ -427,33 +432,37 @@ def plot_convergence_by_axis(logs: pd.DataFrame, axis: str, out: str | os.PathLi
     matplotlib.figure.Figure
         The figure written to ``out`` (closed).
     """
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
+    fig, axes = plt.subplots(2, 2, figsize=(13, 7), sharex=True)
     if logs.empty:
         for ax in axes.ravel():
             _empty(ax, "no training logs")
         return _save(fig, out)
-    logs = logs.assign(run=_run_label(logs))
-    levels = sorted(logs[axis].astype(str).unique())
-    palette = dict(zip(levels, sns.color_palette(n_colors=len(levels)), strict=True))
+    # the colour axis first, so it is the one that picks the colour
+    order = (axis, *[a for a in CONDITION_AXES if a != axis])
+    used = varying_axes(logs, order, exclude=())
+    logs = logs.assign(run=condition_labels(logs, order, exclude=()))
+    styles = condition_styles(logs, "run", exclude=(), axes=order)
     for ax, m in zip(axes.ravel(), METRICS_2D3D, strict=True):
-        for _run, g in logs.groupby("run", sort=True):
-            sub = g[["iteration", m]].dropna()
+        for run, st in styles.items():
+            sub = logs.loc[logs["run"] == run, ["iteration", m]].dropna()
             if sub.empty:
                 continue
-            ax.plot(sub["iteration"], rolling_centered(sub[m], window), lw=1.6,
-                    color=palette[str(g[axis].iloc[0])], alpha=0.85)
+            ax.plot(sub["iteration"], rolling_centered(sub[m], window), lw=1.6, alpha=0.9, label=run, ms=4, **st)
         ax.set_ylabel(METRIC_LABELS[m])
         ax.grid(alpha=0.3)
-    handles = [plt.Line2D([], [], color=c, lw=2, label=f"{axis}={lv}") for lv, c in palette.items()]
-    axes[0, 0].legend(handles=handles, fontsize=8)
+    axes[0, 1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     for ax in axes[1]:
         ax.set_xlabel("iteration")
-    fig.suptitle(f"Convergence by {axis} (centred mean, W={window})")
+    note = "" if axis in used else f" ({axis} has one value here)"
+    fig.suptitle(f"Convergence coloured by {axis}{note} (centred mean, W={window} evaluations)")
     return _save(fig, out)
 
 
 def plot_velocity(logs: pd.DataFrame, out: str | os.PathLike[str], *, per_iters: int = 1000) -> plt.Figure:
     """Convergence velocity (median PSNR2D gain per ``per_iters`` iterations) over training, one line per run.
+
+    Runs are named by the axes that differ across them ("init=fbp, views=24") and styled so each can be told
+    apart (:func:`condition_styles`).
 
     Parameters
     ----------
@@ -469,21 +478,22 @@ def plot_velocity(logs: pd.DataFrame, out: str | os.PathLike[str], *, per_iters:
     matplotlib.figure.Figure
         The figure written to ``out`` (closed).
     """
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    fig, ax = plt.subplots(figsize=(9, 4.5))
     drawn = 0
     if not logs.empty:
-        logs = logs.assign(run=_run_label(logs))
-        for run, g in logs.groupby("run", sort=True):
+        logs = logs.assign(run=condition_labels(logs, CONDITION_AXES, exclude=()))
+        for run, st in condition_styles(logs, "run", exclude=()).items():
+            g = logs[logs["run"] == run]
             vc = velocity_curve(g["iteration"], g["psnr2d"], per_iters)
             if len(vc):
-                ax.plot(vc["iteration"], vc["velocity"], marker="o", ms=3, label=run)
+                ax.plot(vc["iteration"], vc["velocity"], ms=4, label=run, **{**st, "markevery": 1})
                 drawn += 1
     if drawn:
         ax.axhline(0, color="k", lw=0.8)
-        ax.set_xlabel("iteration")
-        ax.set_ylabel(f"PSNR2D gain per {per_iters} it (dB)")
-        if drawn <= 12:
-            ax.legend(fontsize=7)
+        ax.set_xlabel(f"iteration (centre of each {per_iters}-iteration block)")
+        ax.set_ylabel(f"median PSNR2D gain (dB per {per_iters} it)")
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+        ax.grid(alpha=0.3)
     else:
         _empty(ax, "not enough evaluations")
     ax.set_title("Convergence velocity")

@@ -164,25 +164,36 @@ def test_kde_conditions_one_curve_per_condition_not_pooled_over_init(tmp_path):
     assert "iterations 750–1000" in fig.texts[0].get_text()
 
 
-def test_convergence_by_axis_colours_runs_by_axis_value(tmp_path):
-    runs = [_make_run(tmp_path, init=i, seed=s) for i in ("fbp", "uniform") for s in (0, 1)]
-    summary = gather(runs, tmp_path / "summary.csv")
-    logs = load_runs(summary)
-    fig = plots.plot_convergence_by_axis(logs, "init", tmp_path / "ci.png", window=3)
+def test_convergence_by_axis_colours_by_axis_and_tells_every_run_apart(tmp_path):
+    runs = [_make_run(tmp_path, init=i, views=v) for i in ("fbp", "uniform") for v in (8, 16)]
+    logs = load_runs(gather(runs, tmp_path / "summary.csv"))
+    fig = plots.plot_convergence_by_axis(logs, "views", tmp_path / "cv.png", window=3)
     lines = fig.axes[0].get_lines()
     assert len(lines) == 4
-    colours = {tuple(line.get_color()) for line in lines}
-    assert len(colours) == 2  # one colour per init value
-    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == ["init=fbp", "init=uniform"]
+    by_label = {ln.get_label(): ln for ln in lines}
+    # legend names each run by the axes that differ, the colour axis first
+    assert sorted(by_label) == ["views=16, init=fbp", "views=16, init=uniform", "views=8, init=fbp",
+                                "views=8, init=uniform"]
+    assert len({ln.get_color() for ln in lines}) == 2  # one colour per views value ...
+    assert by_label["views=8, init=fbp"].get_color() == by_label["views=8, init=uniform"].get_color()
+    # ... and the runs that share a colour differ in line style
+    assert by_label["views=8, init=fbp"].get_linestyle() != by_label["views=8, init=uniform"].get_linestyle()
+    assert len({(ln.get_color(), ln.get_linestyle(), ln.get_marker()) for ln in lines}) == 4
+    legend = [t.get_text() for t in fig.axes[1].get_legend().get_texts()]
+    assert set(legend) == set(by_label)
 
 
-def test_velocity_plot_matches_velocity_curve(tmp_path):
-    runs = [_make_run(tmp_path)]
+def test_velocity_plot_matches_velocity_curve_and_names_conditions(tmp_path):
+    runs = [_make_run(tmp_path, init=i) for i in ("fbp", "uniform")]
     logs = load_runs(gather(runs, tmp_path / "s.csv"))
     fig = plots.plot_velocity(logs, tmp_path / "v.png", per_iters=500)
-    line = fig.axes[0].get_lines()[0]
-    vc = velocity_curve(logs["iteration"], logs["psnr2d"], 500)
-    np.testing.assert_allclose(line.get_ydata(), vc["velocity"])
+    lines = {ln.get_label(): ln for ln in fig.axes[0].get_lines() if not ln.get_label().startswith("_")}
+    assert set(lines) == {"init=fbp", "init=uniform"}  # not the raw wildcard path
+    g = logs[logs["init"] == "uniform"]
+    vc = velocity_curve(g["iteration"], g["psnr2d"], 500)
+    np.testing.assert_allclose(lines["init=uniform"].get_ydata(), vc["velocity"])
+    assert fig.axes[0].get_ylabel() == "median PSNR2D gain (dB per 500 it)"
+    assert lines["init=fbp"].get_color() != lines["init=uniform"].get_color()
 
 
 def test_correlations_per_run_over_windows_never_pooled(tmp_path):
