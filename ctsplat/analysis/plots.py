@@ -10,7 +10,6 @@ figures: :func:`plot_convergence_by_axis`, :func:`plot_velocity`, :func:`plot_ab
 from __future__ import annotations
 
 import os
-import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -66,6 +65,9 @@ __all__ = [
 ]
 
 METRIC_LABELS = {"psnr2d": "PSNR 2D (dB)", "ssim2d": "SSIM 2D", "psnr3d": "PSNR 3D (dB)", "ssim3d": "SSIM 3D"}
+# Colour-bar labels with units (SSIM is a dimensionless index, 1 = identical).
+CBAR_LABELS = {"psnr2d": "PSNR 2D (dB)", "ssim2d": "SSIM 2D (unitless, 1 = identical)",
+               "psnr3d": "PSNR 3D (dB)", "ssim3d": "SSIM 3D (unitless, 1 = identical)"}
 
 
 # Columns that name a run's condition, in naming order (the seed is a replicate, not a condition).
@@ -178,6 +180,8 @@ def plot_porkchop(per_view: pd.DataFrame, out: str | os.PathLike[str], *, split:
                   title: str = "") -> plt.Figure:
     """Heatmaps of PSNR2D and SSIM2D per view (rows, ordered by azimuth) over iterations (columns).
 
+    Rows are labelled with the view's azimuth in degrees and its id; the colour bars carry the metric's unit.
+
     Parameters
     ----------
     per_view : pandas.DataFrame
@@ -200,9 +204,12 @@ def plot_porkchop(per_view: pd.DataFrame, out: str | os.PathLike[str], *, split:
         if table.empty:
             _empty(ax, "no per-view evaluations")
             continue
-        sns.heatmap(table, ax=ax, cmap="viridis", cbar_kws={"label": METRIC_LABELS[m]})
+        sns.heatmap(table, ax=ax, cmap="viridis", cbar_kws={"label": CBAR_LABELS[m]}, yticklabels=True)
+        az = per_view.drop_duplicates("view_id").set_index("view_id")["azimuth_deg"]
+        ax.set_yticks(np.arange(len(table)) + 0.5)
+        ax.set_yticklabels([f"{az[v]:.0f}° (#{v})" for v in table.index], fontsize=max(4, min(8, 400 // len(table))))
         ax.set_xlabel("iteration")
-        ax.set_ylabel("view (by azimuth)")
+        ax.set_ylabel("view: azimuth (°) and (#view id)")
         ax.set_title(METRIC_LABELS[m])
     fig.suptitle(title or f"Per-view metrics{f' ({split} split)' if split else ''}")
     return _save(fig, out)
@@ -576,20 +583,11 @@ def plot_correlations(logs: pd.DataFrame, out: str | os.PathLike[str], *, n_wind
     return _save(fig, out)
 
 
-def _final_long(summary: pd.DataFrame) -> pd.DataFrame:
-    """Summary in long form: one row per (run, axis, metric) for the ablation plot."""
-    metric_cols = [f"test_{m}" for m in ("psnr3d", "ssim3d", "psnr2d", "ssim2d") if f"test_{m}" in summary]
-    if not metric_cols:
-        metric_cols = [f"val_{m}_last" for m in METRICS_2D3D if f"val_{m}_last" in summary]
-    rows = []
-    for _, r in summary.iterrows():
-        for axis in GRID_AXES:
-            for m in metric_cols:
-                v = pd.to_numeric(r[m], errors="coerce")
-                if pd.notna(v):
-                    rows.append({"axis": axis, "value": str(r[axis]), "metric": _bare_metric(m),
-                                 "score": float(v)})
-    return pd.DataFrame(rows, columns=["axis", "value", "metric", "score"])
+def _metric_columns(summary: pd.DataFrame) -> list[str]:
+    """The summary's test metrics (``test_*``), else the last logged validation ones (``val_*_last``)."""
+    cols = [f"test_{m}" for m in ("psnr3d", "ssim3d", "psnr2d", "ssim2d")
+            if f"test_{m}" in summary and pd.to_numeric(summary[f"test_{m}"], errors="coerce").notna().any()]
+    return cols or [f"val_{m}_last" for m in METRICS_2D3D if f"val_{m}_last" in summary]
 
 
 def _bare_metric(col: str) -> str:
@@ -597,10 +595,38 @@ def _bare_metric(col: str) -> str:
     return col.removeprefix("test_").removeprefix("val_").removesuffix("_last")
 
 
-def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
-    """Final metrics by ablation axis: box plots with every run as a point (strip), metrics × axes grid.
+def paired_table(summary: pd.DataFrame, axis: str, metric_col: str) -> pd.DataFrame:
+    """Runs that differ only in ``axis``: one row per pair group, one column per value of ``axis``.
 
-    Only the axes with more than one value get a column of panels.
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        The table of :func:`ctsplat.analysis.gather.gather`.
+    axis : str
+        The ablation axis that changes within a group.
+    metric_col : str
+        The summary column compared.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Index: the values of every other axis (volume and seed included, so each group is one cell of the grid
+        with only ``axis`` changed); columns: the values of ``axis`` in natural order; groups with fewer than two
+        finite values are dropped.
+    """
+    others = [a for a in CONDITION_AXES if a != axis and a in summary]
+    df = summary.assign(_score=pd.to_numeric(summary[metric_col], errors="coerce"), _level=summary[axis].astype(str))
+    wide = df.pivot_table(index=others, columns="_level", values="_score", aggfunc="mean")
+    wide = wide[sorted(wide.columns, key=_natural)]
+    return wide[wide.notna().sum(axis=1) >= 2]
+
+
+def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
+    """Paired comparisons: each line is one cell of the grid with one axis changed (metrics × axes panels).
+
+    For each axis that varies (the seed excepted) the runs identical in every other axis are joined by a line
+    across the axis's values, so the effect of the axis is read from the slopes, not from box plots of a few
+    points; the panel title gives the number of pairs and the median change between the first and last value.
 
     Parameters
     ----------
@@ -615,26 +641,35 @@ def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fig
     matplotlib.figure.Figure
         The figure written to ``out`` (closed).
     """
-    long = _final_long(summary)
-    axes_used = [a for a in GRID_AXES if summary[a].nunique() > 1] or list(GRID_AXES[:1])
-    metrics = list(dict.fromkeys(long["metric"])) or ["psnr3d"]
-    fig, axs = plt.subplots(len(metrics), len(axes_used), figsize=(3.2 * len(axes_used), 2.8 * len(metrics)),
-                            squeeze=False)
-    for i, m in enumerate(metrics):
+    metric_cols = _metric_columns(summary)
+    axes_used = varying_axes(summary, GRID_AXES) or list(GRID_AXES[:1])
+    metric_cols = metric_cols or ["test_psnr3d"]
+    fig, axs = plt.subplots(len(metric_cols), len(axes_used), figsize=(3.4 * len(axes_used) + 1,
+                                                                       2.9 * len(metric_cols)), squeeze=False)
+    for i, col in enumerate(metric_cols):
+        m = _bare_metric(col)
         for j, axis in enumerate(axes_used):
             ax = axs[i, j]
-            sub = long[(long["metric"] == m) & (long["axis"] == axis)]
-            if sub.empty:
-                _empty(ax, "no runs")
+            wide = paired_table(summary, axis, col) if col in summary else pd.DataFrame()
+            if wide.empty:
+                _empty(ax, f"no runs differing only in {axis}")
                 continue
-            order = sorted(sub["value"].unique(), key=_natural)
-            with warnings.catch_warnings():  # seaborn 0.13 passes matplotlib's deprecated `vert`
-                warnings.simplefilter("ignore", DeprecationWarning)
-                sns.boxplot(data=sub, x="value", y="score", order=order, ax=ax, color="0.85", fliersize=0)
-            sns.stripplot(data=sub, x="value", y="score", order=order, ax=ax, color="C0", size=4, jitter=0.15)
-            ax.set_xlabel(axis if i == len(metrics) - 1 else "")
-            ax.set_ylabel(METRIC_LABELS.get(m, m) if j == 0 else "")
-    fig.suptitle("Final metrics by ablation axis")
+            x = np.arange(len(wide.columns))
+            for _, row in wide.iterrows():
+                ok = row.notna().to_numpy()
+                ax.plot(x[ok], row.to_numpy(dtype=float)[ok], "-o", color="0.45", lw=1, ms=4, alpha=0.8)
+            med = wide.median(axis=0)
+            ax.plot(x, med.to_numpy(dtype=float), "-D", color="C3", lw=2.2, ms=6, label="median", zorder=5)
+            ax.set_xticks(x, [str(c) for c in wide.columns])
+            first, last = wide.columns[0], wide.columns[-1]
+            delta = (wide[last] - wide[first]).median()
+            unit = " dB" if m.startswith("psnr") else ""
+            ax.set_title(f"{len(wide)} pairs; median {last}−{first}: {delta:+.3g}{unit}", fontsize=8)
+            ax.set_xlabel(axis if i == len(metric_cols) - 1 else "")
+            ax.set_ylabel(f"test {METRIC_LABELS.get(m, m)}" if col.startswith("test_") else
+                          f"last validation {METRIC_LABELS.get(m, m)}")
+            ax.grid(alpha=0.3)
+    fig.suptitle("Paired ablation: each grey line is one grid cell with only that axis changed")
     fig.tight_layout()
     return _save(fig, out)
 
@@ -675,22 +710,30 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
         b["label"] = b["method"].astype(str) + np.where(
             b.get("filter", pd.Series([""] * len(b))).fillna("").astype(str) != "",
             " (" + b.get("filter", pd.Series([""] * len(b))).fillna("").astype(str) + ")", "")
-        for label, g in b.groupby("label", sort=True):
-            g = g.groupby("n_views", as_index=False)[metric].max()
-            ax.plot(g["n_views"], g[metric], "s--", label=label, lw=1.2)
+        # classical methods in greys with their own markers, so they never share a colour with a Gaussian run
+        labels = sorted(b["label"].unique())
+        greys = np.linspace(0.0, 0.6, max(len(labels), 1))
+        for k, label in enumerate(labels):
+            g = b[b["label"] == label].groupby("n_views", as_index=False)[metric].max()
+            ax.plot(g["n_views"], g[metric], linestyle=LINESTYLES[1 + k % 3], marker=MARKERS[1 + k % 7],
+                    color=str(greys[k]), label=label, lw=1.2)
             drawn = True
     if col in summary and len(summary):
         s = summary.assign(score=pd.to_numeric(summary[col], errors="coerce")).dropna(subset=["score"])
-        for key, g in s.groupby(["init", "compositor", "mip", "poses"], sort=True):
-            label = "GS " + "/".join(str(k) for k in key)
+        cond_axes = [a for a in ("volume", *GRID_AXES) if a not in ("views", "seed") and a in s]
+        named = varying_axes(s, cond_axes) or [a for a in cond_axes if a != "volume"]
+        s = s.assign(condition="Gaussian, " + s[named].astype(str).apply(
+            lambda r: ", ".join(f"{a}={r[a]}" for a in named), axis=1))
+        for cond, st in condition_styles(s, "condition", axes=cond_axes).items():
+            g = s[s["condition"] == cond]
             mean = g.groupby("views", as_index=False)["score"].mean()
-            line = ax.plot(mean["views"], mean["score"], "o-", lw=2, label=label)[0]
-            ax.scatter(g["views"], g["score"], color=line.get_color(), s=12, alpha=0.6)
+            ax.plot(mean["views"], mean["score"], lw=2, ms=6, label=cond, **{**st, "markevery": 1})
+            ax.scatter(g["views"], g["score"], color=st["color"], s=12, alpha=0.6)
             drawn = True
     if drawn:
         ax.set_xlabel("number of training views")
         ax.set_ylabel(METRIC_LABELS.get(metric, metric))
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
         ax.grid(alpha=0.3)
     else:
         _empty(ax, "no Gaussian runs or baselines")

@@ -77,12 +77,19 @@ def test_convergence_with_missing_3d_metrics(tmp_path):
     assert _is_png(tmp_path / "c.png")
 
 
-def test_porkchop_heatmap_holds_the_pivot_table(tmp_path):
+def test_porkchop_heatmap_holds_the_pivot_table_with_azimuth_ticks_and_units(tmp_path):
     pv = read_per_view(_write(tmp_path / "pv.csv", _per_view()))
     fig = plots.plot_porkchop(pv, tmp_path / "p.png", split="val")
     mesh = fig.axes[0].collections[0]
     table = porkchop_table(pv, "psnr2d", split="val")
     np.testing.assert_allclose(np.asarray(mesh.get_array()).reshape(table.shape), table.to_numpy())
+    # rows are labelled with what they are: azimuth in degrees (view ids 0..4 at (v * 77) % 360)
+    ticks = [t.get_text() for t in fig.axes[0].get_yticklabels()]
+    az = {v: (v * 77) % 360 for v in range(5)}
+    assert ticks == [f"{az[v]}° (#{v})" for v in table.index]
+    assert "azimuth (°)" in fig.axes[0].get_ylabel()
+    cbar_labels = [a.get_ylabel() for a in fig.axes if a.get_ylabel() and a not in fig.axes[:1]]
+    assert "PSNR 2D (dB)" in cbar_labels and any("SSIM 2D (unitless" in lb for lb in cbar_labels)
     assert _is_png(tmp_path / "p.png")
 
 
@@ -225,17 +232,37 @@ def test_baselines_plot_has_gs_and_classical_lines(tmp_path):
                          "ssim3d": [0.1] * 4})
     fig = plots.plot_baselines(summary, base, tmp_path / "b.png")
     labels = {line.get_label(): line for line in fig.axes[0].get_lines()}
-    assert set(labels) == {"fbp (ramp)", "sart", "GS fbp/radiative/on/gt"}
-    np.testing.assert_allclose(labels["GS fbp/radiative/on/gt"].get_ydata(), [21.0, 26.0])  # mean over seeds
+    gs = "Gaussian, init=fbp, compositor=radiative, mip=on, poses=gt"  # one condition: named in full
+    assert set(labels) == {"fbp (ramp)", "sart", gs}
+    np.testing.assert_allclose(labels[gs].get_ydata(), [21.0, 26.0])  # mean over seeds
     np.testing.assert_allclose(labels["sart"].get_ydata(), [17.0, 19.0])
+    two = pd.concat([summary, summary.assign(init="uniform", test_psnr3d=summary["test_psnr3d"] - 3)])
+    fig = plots.plot_baselines(two, base, tmp_path / "b2.png")
+    lines = {ln.get_label(): ln for ln in fig.axes[0].get_lines()}
+    assert {"Gaussian, init=fbp", "Gaussian, init=uniform"} <= set(lines)  # named by what differs
+    colours = [ln.get_color() for ln in lines.values()]
+    assert len(set(map(str, colours))) == len(colours)  # no two lines share a colour
 
 
-def test_ablation_plot_panels_for_varying_axes(tmp_path):
-    runs = [_make_run(tmp_path, init=i, views=v) for i in ("fbp", "uniform") for v in (8, 16)]
+def test_ablation_is_paired_lines_not_boxes(tmp_path):
+    runs = [_make_run(tmp_path, init=i, views=v, seed=s) for i in ("fbp", "uniform") for v in (8, 16)
+            for s in (0, 1)]
     summary = gather(runs, tmp_path / "s.csv")
     fig = plots.plot_ablation(summary, tmp_path / "ab.png")
-    titles = {ax.get_xlabel() for ax in fig.axes}
-    assert {"init", "views"} <= titles  # only the two axes that vary
+    xlabels = [ax.get_xlabel() for ax in fig.axes]
+    assert {"init", "views"} <= set(xlabels) and "seed" not in xlabels  # only the axes that vary, seed excepted
+    assert not any(ax.patches for ax in fig.axes)  # no box plots
+    assert fig.axes[0].get_ylabel() == "test PSNR 3D (dB)"  # first row: test PSNR3D; columns: init, views
+    views_ax = fig.axes[1]
+    grey = [ln for ln in views_ax.get_lines() if ln.get_label() != "median"]
+    # one line per (init, seed) cell with only views changed: 2 inits x 2 seeds
+    assert len(grey) == 4
+    # _make_run: test psnr3d = 24 + views / 10 + seed -> every pair rises by 0.8 dB from 8 to 16 views
+    for ln in grey:
+        np.testing.assert_allclose(np.diff(ln.get_ydata()), 0.8)
+    assert "4 pairs" in views_ax.get_title() and "+0.8 dB" in views_ax.get_title()
+    table = plots.paired_table(summary, "views", "test_psnr3d")
+    assert list(table.columns) == ["8", "16"] and len(table) == 4
     assert _is_png(tmp_path / "ab.png")
 
 
