@@ -207,9 +207,10 @@ def plot_porkchop(per_view: pd.DataFrame, out: str | os.PathLike[str], *, split:
         sns.heatmap(table, ax=ax, cmap="viridis", cbar_kws={"label": CBAR_LABELS[m]}, yticklabels=True)
         az = per_view.drop_duplicates("view_id").set_index("view_id")["azimuth_deg"]
         ax.set_yticks(np.arange(len(table)) + 0.5)
-        ax.set_yticklabels([f"{az[v]:.0f}° (#{v})" for v in table.index], fontsize=max(4, min(8, 400 // len(table))))
+        ax.set_yticklabels([f"{az[v]:.0f}° (#{v})" for v in table.index], rotation=0,
+                           fontsize=max(4, min(8, 400 // len(table))))
         ax.set_xlabel("iteration")
-        ax.set_ylabel("view: azimuth (°) and (#view id)")
+        ax.set_ylabel("view: azimuth (°) and (#view id)" if ax is axes[0] else "")
         ax.set_title(METRIC_LABELS[m])
     fig.suptitle(title or f"Per-view metrics{f' ({split} split)' if split else ''}")
     return _save(fig, out)
@@ -371,7 +372,7 @@ def plot_kde_conditions(per_views: pd.DataFrame, out: str | os.PathLike[str], *,
                 ax.plot([], [], label=label + ", no spread", **st)
         ax.set_xlabel(f"per-view {METRIC_LABELS[m]}")
         ax.set_ylabel("density")
-    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), handlelength=3.5)
     when = f"iterations {pv['window'].iloc[0]}" if same_window else f"the last 1/{n_windows} of each run"
     fig.suptitle(f"Per-view validation metrics by condition, {when} (seeds pooled)")
     return _save(fig, out)
@@ -457,7 +458,7 @@ def plot_convergence_by_axis(logs: pd.DataFrame, axis: str, out: str | os.PathLi
             ax.plot(sub["iteration"], rolling_centered(sub[m], window), lw=1.6, alpha=0.9, label=run, ms=4, **st)
         ax.set_ylabel(METRIC_LABELS[m])
         ax.grid(alpha=0.3)
-    axes[0, 1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    axes[0, 1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), handlelength=3.5)
     for ax in axes[1]:
         ax.set_xlabel("iteration")
     note = "" if axis in used else f" ({axis} has one value here)"
@@ -499,7 +500,7 @@ def plot_velocity(logs: pd.DataFrame, out: str | os.PathLike[str], *, per_iters:
         ax.axhline(0, color="k", lw=0.8)
         ax.set_xlabel(f"iteration (centre of each {per_iters}-iteration block)")
         ax.set_ylabel(f"median PSNR2D gain (dB per {per_iters} it)")
-        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), handlelength=3.5)
         ax.grid(alpha=0.3)
     else:
         _empty(ax, "not enough evaluations")
@@ -733,7 +734,7 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
     if drawn:
         ax.set_xlabel("number of training views")
         ax.set_ylabel(METRIC_LABELS.get(metric, metric))
-        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), handlelength=3.5)
         ax.grid(alpha=0.3)
     else:
         _empty(ax, "no Gaussian runs or baselines")
@@ -843,7 +844,7 @@ def plot_acf_runs(logs: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: i
         ax.axhline(0, color="k", lw=0.8)
         ax.set_xlabel("lag (evaluations)")
         ax.set_ylabel("ACF of detrended PSNR2D")
-        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), handlelength=3.5)
     else:
         _empty(ax, f"too few evaluations to detrend (need more than {2 * (window // 2)})")
     ax.set_title(f"Autocorrelation of PSNR2D after removing the trend (centred mean, W={window})")
