@@ -521,14 +521,17 @@ def correlation_table(logs: pd.DataFrame, n_windows: int) -> pd.DataFrame:
     Returns
     -------
     pandas.DataFrame
-        ``run_dir``, ``run`` (named by the axes that differ), then the columns of
+        ``run_dir``, ``run`` (named by the axes that differ), ``volume`` and the grid axes, then the columns of
         :func:`ctsplat.analysis.stats.windowed_correlations`. No pooled row: runs are not exchangeable samples.
     """
-    cols = ["run_dir", "run", "window", "it_start", "it_end", "it_centre", "x", "y", "n", "pearson", "spearman"]
+    axes = [a for a in CONDITION_AXES if a in logs]
+    cols = ["run_dir", "run", *axes, "window", "it_start", "it_end", "it_centre", "x", "y", "n", "pearson",
+            "spearman"]
     if logs.empty:
         return pd.DataFrame(columns=cols)
     logs = logs.assign(run=condition_labels(logs, CONDITION_AXES, exclude=()))
-    frames = [windowed_correlations(g, n_windows).assign(run_dir=rd, run=g["run"].iloc[0])
+    frames = [windowed_correlations(g, n_windows).assign(run_dir=rd, run=g["run"].iloc[0],
+                                                         **{a: g[a].iloc[0] for a in axes})
               for rd, g in logs.groupby("run_dir", sort=True)]
     return pd.concat(frames, ignore_index=True)[cols]
 

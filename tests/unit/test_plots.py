@@ -221,6 +221,8 @@ def test_correlations_per_run_over_windows_never_pooled(tmp_path):
     expect = table[(table["run_dir"] == str(runs[1])) & (table["x"] == "psnr2d") & (table["window"] != "all")]
     np.testing.assert_allclose(uni.get_ydata(), expect["spearman"])
     assert "whole run ρ=" in uni.get_label()
+    assert fbp.get_color() != uni.get_color()  # runs told apart
+    assert set(table["init"]) == {"fbp", "uniform"}
 
 
 def test_baselines_plot_has_gs_and_classical_lines(tmp_path):
