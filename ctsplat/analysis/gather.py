@@ -11,11 +11,12 @@ from typing import Any
 import pandas as pd
 
 from ctsplat.analysis.stats import convergence_velocity, mean_iters_per_s, milestones
-from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, read_train_log
+from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, PER_VIEW_COLUMNS, read_per_view, read_train_log
 from ctsplat.grid import GRID_AXES, parse_run_dir
 from ctsplat.utils import CtsplatError, atomic_path
 
-__all__ = ["gather", "load_runs"]
+__all__ = ["TEST_METRICS", "SFM_COLUMNS", "velocity_column", "sfm_summary_path", "gather", "load_runs",
+           "load_per_view"]
 
 
 def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -29,6 +30,66 @@ def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
             out[key] = json.dumps(v)
         else:
             out[key] = v
+    return out
+
+
+# Test-split metrics of metrics.json, renamed so they cannot be mistaken for the validation values of the log.
+TEST_METRICS: tuple[str, ...] = ("psnr2d", "ssim2d", "psnr3d", "ssim3d", "lpips", "lpips_reason")
+# Pose-error columns of a poses: colmap run: summary.csv column -> key of the volume's sfm/summary.json.
+SFM_COLUMNS: dict[str, str] = {
+    "sfm_rot_err_deg_median": "rot_err_deg_median",
+    "sfm_rot_err_deg_p90": "rot_err_deg_p90",
+    "sfm_centre_err_mm_median": "centre_err_mm_median",
+    "sfm_registration_rate": "registration_rate",
+    "sfm_ok": "ok",
+}
+
+
+def velocity_column(per_iters: int) -> str:
+    """Name of the summary column of the PSNR2D convergence velocity, which carries its unit.
+
+    Parameters
+    ----------
+    per_iters : int
+        The velocity's unit (gain per this many iterations).
+
+    Returns
+    -------
+    str
+        ``velocity_psnr2d_per_{per_iters}it``.
+    """
+    return f"velocity_psnr2d_per_{per_iters}it"
+
+
+def sfm_summary_path(run_dir: str | os.PathLike[str]) -> Path | None:
+    """The ``sfm/summary.json`` of the volume a run folder belongs to (``{volume}/runs/...`` -> ``{volume}/sfm``).
+
+    Parameters
+    ----------
+    run_dir : path-like
+        A run folder.
+
+    Returns
+    -------
+    pathlib.Path or None
+        The path (which may not exist); None when the folder has no ``runs`` component.
+    """
+    parts = Path(run_dir).parts
+    if "runs" not in parts:
+        return None
+    i = len(parts) - 1 - parts[::-1].index("runs")
+    return Path(*parts[:i], "sfm", "summary.json") if i else Path("sfm", "summary.json")
+
+
+def _sfm_columns(run_dir: Path) -> dict[str, Any]:
+    """Pose errors of the SfM result a ``poses: colmap`` run trained on; ``sfm_ok`` False when there is none."""
+    path = sfm_summary_path(run_dir)
+    if path is None or not path.exists():
+        return {**dict.fromkeys(SFM_COLUMNS), "sfm_ok": False}
+    with open(path) as fh:
+        summary = json.load(fh)
+    out = {col: summary.get(key) for col, key in SFM_COLUMNS.items()}
+    out["sfm_ok"] = bool(summary.get("ok", False))
     return out
 
 
@@ -58,10 +119,18 @@ def gather(
     Returns
     -------
     pandas.DataFrame
-        The table written: ``volume`` + :data:`ctsplat.grid.GRID_AXES` (from the folder names), ``run_dir``, the
-        flattened ``metrics.json`` (nested keys joined with ``.``), and from ``train_log.csv`` the last logged
-        metrics (``final_*``, ``final_iteration``), the milestones (:func:`ctsplat.analysis.stats.milestones`),
-        ``iters_per_s`` and the PSNR2D convergence velocity ``velocity_psnr2d``.
+        The table written, one row per run:
+
+        - ``volume`` + :data:`ctsplat.grid.GRID_AXES` (from the folder names) and ``run_dir``;
+        - the held-out test metrics of ``metrics.json`` as ``test_psnr2d``, ``test_ssim2d``, ``test_psnr3d``,
+          ``test_ssim3d``, ``test_lpips`` (``test_lpips_reason``), and its other keys flattened (nested keys
+          joined with ``.``);
+        - from ``train_log.csv`` the last logged validation values ``val_{metric}_last`` and the iteration of the
+          last row ``val_iteration_last``, the milestones ``iter_to_{metric}_{tag}`` / ``time_to_{metric}_{tag}_s``
+          (:func:`ctsplat.analysis.stats.milestones`, tags from the thresholds), ``iters_per_s`` and the median
+          PSNR2D gain per ``per_iters`` iterations (:func:`velocity_column`);
+        - for ``poses: colmap`` runs the pose errors of the volume's ``sfm/summary.json`` (:data:`SFM_COLUMNS`;
+          ``sfm_ok`` False when that file is missing), empty for the other runs.
 
     Raises
     ------
@@ -79,26 +148,34 @@ def gather(
         rd = Path(rd)
         row: dict[str, Any] = {"volume": None, **parse_run_dir(rd), "run_dir": str(rd)}
         metrics_path = rd / "metrics.json"
+        log_path = rd / "train_log.csv"
+        if not metrics_path.exists() and not log_path.exists():
+            raise CtsplatError(f"gather: {rd} has neither metrics.json nor train_log.csv; did training finish?")
         if metrics_path.exists():
             with open(metrics_path) as fh:
                 metrics = json.load(fh)
+            for m in TEST_METRICS:
+                row[f"test_{m}"] = metrics.pop(m, None)
             for k, v in _flatten(metrics).items():
-                if k not in row:
+                # milestones come from the log with this gather's thresholds; pose errors from sfm/summary.json
+                if k not in row and k not in SFM_COLUMNS and not k.startswith(("iter_to_", "time_to_")):
                     row[k] = v
-        log_path = rd / "train_log.csv"
         if log_path.exists():
             log = read_train_log(log_path, max_gap_iters=max_gap_iters)
             for m in METRICS_2D3D:
                 finite = log[m].dropna()
-                row[f"final_{m}"] = float(finite.iloc[-1]) if len(finite) else None
-            row["final_iteration"] = int(log["iteration"].iloc[-1]) if len(log) else None
+                row[f"val_{m}_last"] = float(finite.iloc[-1]) if len(finite) else None
+            row["val_iteration_last"] = int(log["iteration"].iloc[-1]) if len(log) else None
             row.update(milestones(log, thresholds))
             row["iters_per_s"] = mean_iters_per_s(log)
-            row["velocity_psnr2d"] = convergence_velocity(log["iteration"], log["psnr2d"], per_iters)
-        if not metrics_path.exists() and not log_path.exists():
-            raise CtsplatError(f"gather: {rd} has neither metrics.json nor train_log.csv; did training finish?")
+            row[velocity_column(per_iters)] = convergence_velocity(log["iteration"], log["psnr2d"], per_iters)
         rows.append(row)
     df = pd.DataFrame(rows)
+    colmap = df["poses"].astype(str) == "colmap"
+    if colmap.any():
+        sfm = pd.DataFrame([_sfm_columns(Path(r)) if c else dict.fromkeys(SFM_COLUMNS)
+                            for r, c in zip(df["run_dir"], colmap, strict=True)], index=df.index)
+        df = df.drop(columns=[c for c in SFM_COLUMNS if c in df]).join(sfm)
     with atomic_path(out_csv) as tmp:
         df.to_csv(tmp, index=False, lineterminator="\n")
     return df
@@ -131,4 +208,36 @@ def load_runs(summary: pd.DataFrame, *, max_gap_iters: int = 10) -> pd.DataFrame
         frames.append(log)
     if not frames:
         return pd.DataFrame(columns=[*LOG_COLUMNS, "volume", *GRID_AXES, "run_dir"])
+    return pd.concat(frames, ignore_index=True)
+
+
+def load_per_view(summary: pd.DataFrame, *, split: str | None = "val") -> pd.DataFrame:
+    """All runs' per-view evaluations during training (``per_view.csv``) in one long table.
+
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        The table of :func:`gather` (needs ``run_dir``, ``volume`` and the grid axes).
+    split : str, optional
+        Keep only this split's views (None: all).
+
+    Returns
+    -------
+    pandas.DataFrame
+        :data:`ctsplat.formats.runlog.PER_VIEW_COLUMNS` of every run that has a ``per_view.csv``, each row tagged
+        with its run's ``volume``, axis values and ``run_dir``.
+    """
+    frames = []
+    for _, r in summary.iterrows():
+        path = Path(r["run_dir"]) / "per_view.csv"
+        if not path.exists():
+            continue
+        pv = read_per_view(path)
+        if split is not None:
+            pv = pv[pv["split"] == split]
+        for col in ("volume", *GRID_AXES, "run_dir"):
+            pv[col] = r[col]
+        frames.append(pv)
+    if not frames:
+        return pd.DataFrame(columns=[*PER_VIEW_COLUMNS, "volume", *GRID_AXES, "run_dir"])
     return pd.concat(frames, ignore_index=True)

@@ -10,7 +10,6 @@ figures: :func:`plot_convergence_by_axis`, :func:`plot_velocity`, :func:`plot_ab
 from __future__ import annotations
 
 import os
-import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -25,19 +24,25 @@ import pandas as pd  # noqa: E402
 import seaborn as sns  # noqa: E402
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS  # noqa: E402
-from ctsplat.analysis.gather import load_runs  # noqa: E402
+from ctsplat.analysis.gather import load_per_view, load_runs  # noqa: E402
 from ctsplat.analysis.stats import (  # noqa: E402
+    METRIC_RANGES,
     acf,
-    correlations,
+    acf_band,
+    bounded_kde,
+    condition_labels,
+    detrend,
     mean_iters_per_s,
     milestones,
     porkchop_table,
     rolling_centered,
+    varying_axes,
     velocity_curve,
     window_labels,
+    windowed_correlations,
 )
 from ctsplat.config import schema_defaults  # noqa: E402
-from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, read_per_view, read_train_log  # noqa: E402
+from ctsplat.formats.runlog import METRICS_2D3D, read_per_view, read_train_log  # noqa: E402
 from ctsplat.grid import GRID_AXES  # noqa: E402
 from ctsplat.utils import CtsplatError, atomic_path  # noqa: E402
 
@@ -45,17 +50,74 @@ __all__ = [
     "plot_convergence",
     "plot_porkchop",
     "plot_acf",
+    "plot_acf_runs",
     "plot_kde_windows",
+    "plot_kde_conditions",
+    "condition_styles",
     "plot_convergence_by_axis",
     "plot_velocity",
     "plot_ablation",
     "plot_baselines",
     "plot_correlations",
+    "correlation_table",
     "run_figures",
     "analyse",
 ]
 
 METRIC_LABELS = {"psnr2d": "PSNR 2D (dB)", "ssim2d": "SSIM 2D", "psnr3d": "PSNR 3D (dB)", "ssim3d": "SSIM 3D"}
+# Colour-bar labels with units (SSIM is a dimensionless index, 1 = identical).
+CBAR_LABELS = {"psnr2d": "PSNR 2D (dB)", "ssim2d": "SSIM 2D (unitless, 1 = identical)",
+               "psnr3d": "PSNR 3D (dB)", "ssim3d": "SSIM 3D (unitless, 1 = identical)"}
+
+
+# Columns that name a run's condition, in naming order (the seed is a replicate, not a condition).
+CONDITION_AXES: tuple[str, ...] = ("volume", *GRID_AXES)
+LINESTYLES: tuple[str, ...] = ("-", "--", ":", "-.")
+MARKERS: tuple[str, ...] = ("o", "s", "^", "D", "v", "P", "X", "*")
+
+
+def condition_styles(table: pd.DataFrame, label_col: str = "condition", exclude: Sequence[str] = ("seed",),
+                     axes: Sequence[str] = CONDITION_AXES) -> dict[str, dict[str, Any]]:
+    """Line style of each condition so every one can be told apart without relying on colour alone.
+
+    The first axis that varies (:func:`ctsplat.analysis.stats.varying_axes`) picks the colour, the second the
+    line style, the remaining ones together the marker.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        Rows with the axis columns and ``label_col`` (:func:`ctsplat.analysis.stats.condition_labels`).
+    label_col : str
+        Column holding each row's condition name.
+    exclude : sequence of str
+        Axes not used for styling (as for the labels).
+    axes : sequence of str
+        Candidate axes in order of precedence (the first varying one picks the colour).
+
+    Returns
+    -------
+    dict
+        Condition name -> ``{"color", "linestyle", "marker"}`` (matplotlib keywords), in sorted name order.
+    """
+    used = varying_axes(table, axes, exclude)
+    first = table.drop_duplicates(label_col).sort_values(label_col, key=lambda c: c.map(_natural_key))
+    levels = [sorted(table[a].astype(str).unique(), key=_natural) for a in used]
+    palette = sns.color_palette(n_colors=max(len(levels[0]), 1) if levels else 1)
+    rest = sorted({tuple(str(r[a]) for a in used[2:]) for _, r in first.iterrows()}, key=str)
+    out: dict[str, dict[str, Any]] = {}
+    for _, r in first.iterrows():
+        colour = palette[levels[0].index(str(r[used[0]]))] if used else palette[0]
+        ls = LINESTYLES[levels[1].index(str(r[used[1]])) % len(LINESTYLES)] if len(used) > 1 else "-"
+        marker = MARKERS[rest.index(tuple(str(r[a]) for a in used[2:])) % len(MARKERS)] if len(used) > 2 else "o"
+        out[str(r[label_col])] = {"color": colour, "linestyle": ls, "marker": marker, "markevery": 0.1}
+    return out
+
+
+def _natural_key(label: str) -> tuple:
+    """Sort key of a condition name with numbers compared as numbers (views=8 before views=16)."""
+    import re
+
+    return tuple(_natural(p) for p in re.split(r"(\d+(?:\.\d+)?)", str(label)))
 
 
 def _save(fig: plt.Figure, out: str | os.PathLike[str]) -> plt.Figure:
@@ -118,6 +180,8 @@ def plot_porkchop(per_view: pd.DataFrame, out: str | os.PathLike[str], *, split:
                   title: str = "") -> plt.Figure:
     """Heatmaps of PSNR2D and SSIM2D per view (rows, ordered by azimuth) over iterations (columns).
 
+    Rows are labelled with the view's azimuth in degrees and its id; the colour bars carry the metric's unit.
+
     Parameters
     ----------
     per_view : pandas.DataFrame
@@ -140,17 +204,25 @@ def plot_porkchop(per_view: pd.DataFrame, out: str | os.PathLike[str], *, split:
         if table.empty:
             _empty(ax, "no per-view evaluations")
             continue
-        sns.heatmap(table, ax=ax, cmap="viridis", cbar_kws={"label": METRIC_LABELS[m]})
+        sns.heatmap(table, ax=ax, cmap="viridis", cbar_kws={"label": CBAR_LABELS[m]}, yticklabels=True)
+        az = per_view.drop_duplicates("view_id").set_index("view_id")["azimuth_deg"]
+        ax.set_yticks(np.arange(len(table)) + 0.5)
+        ax.set_yticklabels([f"{az[v]:.0f}° (#{v})" for v in table.index], rotation=0,
+                           fontsize=max(4, min(8, 400 // len(table))))
         ax.set_xlabel("iteration")
-        ax.set_ylabel("view (by azimuth)")
+        ax.set_ylabel("view: azimuth (°) and (#view id)" if ax is axes[0] else "")
         ax.set_title(METRIC_LABELS[m])
     fig.suptitle(title or f"Per-view metrics{f' ({split} split)' if split else ''}")
     return _save(fig, out)
 
 
 def plot_acf(log: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 40, metric: str = "psnr2d",
-             title: str = "") -> plt.Figure:
-    """Autocorrelation of a metric by lag (in evaluations) with the ±1.96/√n band.
+             window: int = 25, title: str = "") -> plt.Figure:
+    """Autocorrelation of a metric's detrended series by lag (in evaluations), with the 95 % white-noise band.
+
+    The curve is detrended first (:func:`ctsplat.analysis.stats.detrend`: residual from the centred rolling mean
+    over ``window`` evaluations), since the ACF of a still-converging curve only shows its trend; the raw ACF is
+    drawn faintly for comparison. The band is ±1.96/√n with n the number of detrended samples.
 
     Parameters
     ----------
@@ -162,6 +234,8 @@ def plot_acf(log: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 4
         Largest lag (evaluations).
     metric : str
         Log column.
+    window : int
+        Rolling-mean window of the detrending (evaluations).
     title : str
         Figure title (default: a generic one).
 
@@ -172,33 +246,54 @@ def plot_acf(log: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 4
     """
     fig, ax = plt.subplots(figsize=(7, 4))
     vals = log[metric].dropna().to_numpy() if metric in log else np.array([])
-    r = acf(vals, max_lag)
-    if r.size < 2:
-        _empty(ax, "fewer than two evaluations")
+    resid = detrend(vals, "rolling", window)
+    r = acf(resid, max_lag)
+    if r.size < 2 or not np.isfinite(r[1:]).any():
+        _empty(ax, f"too few evaluations to detrend (need more than {2 * (window // 2)})")
     else:
-        ax.vlines(np.arange(r.size), 0, r, color="C0")
-        ax.plot(np.arange(r.size), r, "o", color="C0", ms=3)
-        band = 1.96 / np.sqrt(vals.size)
-        ax.axhspan(-band, band, color="0.85", zorder=0)
+        lags = np.arange(r.size)
+        ax.vlines(lags, 0, r, color="C0")
+        ax.plot(lags, r, "o", color="C0", ms=3, label=f"detrended (residual from centred mean, W={window})")
+        raw = acf(vals, max_lag)
+        ax.plot(np.arange(raw.size), raw, "x", color="0.6", ms=3, label="raw curve (trend)")
+        band = acf_band(resid.size)
+        ax.axhspan(-band, band, color="0.85", zorder=0, label=f"95 % band ±1.96/√n, n={resid.size}")
         ax.axhline(0, color="k", lw=0.8)
         ax.set_xlabel("lag (evaluations)")
         ax.set_ylabel(f"ACF of {METRIC_LABELS.get(metric, metric)}")
+        ax.legend(fontsize=7)
     ax.set_title(title or "Autocorrelation")
     return _save(fig, out)
 
 
-def plot_kde_windows(log: pd.DataFrame, out: str | os.PathLike[str], *, n_windows: int = 4,
-                     title: str = "") -> plt.Figure:
-    """KDEs of PSNR2D and SSIM2D over successive training windows (equal iteration ranges).
+def _draw_kde(ax: plt.Axes, values: np.ndarray, metric: str, **style: Any) -> bool:
+    """Draw the bounded KDE of ``values`` (False when it has no density: fewer than two distinct values)."""
+    lower, upper = METRIC_RANGES.get(metric, (None, None))
+    x, dens = bounded_kde(values, lower, upper)
+    if not x.size:
+        return False
+    ax.plot(x, dens, **style)
+    return True
+
+
+def plot_kde_windows(per_view: pd.DataFrame, out: str | os.PathLike[str], *, n_windows: int = 4,
+                     split: str | None = "val", title: str = "") -> plt.Figure:
+    """KDEs of the per-view PSNR2D and SSIM2D of one run over successive training windows.
+
+    Each window (equal iteration ranges, :func:`ctsplat.analysis.stats.window_labels`) pools the per-view values
+    of the evaluations that fall in it; densities are confined to the metric's range
+    (:func:`ctsplat.analysis.stats.bounded_kde`, SSIM ≤ 1) and the legend gives each window in iterations.
 
     Parameters
     ----------
-    log : pandas.DataFrame
-        A training log (or several pooled).
+    per_view : pandas.DataFrame
+        A per-view log (:func:`ctsplat.formats.runlog.read_per_view`) of one run.
     out : path-like
         PNG file to write.
     n_windows : int
-        Number of windows (:func:`ctsplat.analysis.stats.window_labels`).
+        Number of windows.
+    split : str, optional
+        Use only this split's views (None: all; falls back to all when the split is absent).
     title : str
         Figure title (default: a generic one).
 
@@ -207,20 +302,79 @@ def plot_kde_windows(log: pd.DataFrame, out: str | os.PathLike[str], *, n_window
     matplotlib.figure.Figure
         The figure written to ``out`` (closed).
     """
+    if split is not None and "split" in per_view and (per_view["split"] == split).any():
+        per_view = per_view[per_view["split"] == split]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for ax, m in zip(axes, ("psnr2d", "ssim2d"), strict=True):
-        sub = log[["iteration", m]].dropna()
+        sub = per_view[["iteration", m]].dropna() if m in per_view else pd.DataFrame()
         if len(sub) < 2:
-            _empty(ax, f"too few {m} values")
+            _empty(ax, f"too few per-view {m} values")
             continue
         sub = sub.assign(window=window_labels(sub["iteration"], n_windows))
-        # windows with a single distinct value have no density: draw them as rugs only
-        ok = sub.groupby("window")[m].transform("nunique") > 1
-        if ok.any():
-            sns.kdeplot(data=sub[ok], x=m, hue="window", ax=ax, common_norm=False, warn_singular=False)
-        sns.rugplot(data=sub, x=m, hue="window", ax=ax, legend=False)
-        ax.set_xlabel(METRIC_LABELS[m])
-    fig.suptitle(title or "Metric distributions over training windows")
+        order = list(dict.fromkeys(sub.sort_values("iteration")["window"]))
+        colours = sns.color_palette("viridis", n_colors=len(order))
+        for w, c in zip(order, colours, strict=True):
+            vals = sub.loc[sub["window"] == w, m].to_numpy()
+            label = f"iterations {w} (n={vals.size})"
+            if not _draw_kde(ax, vals, m, color=c, lw=1.8, label=label):
+                ax.plot([], [], color=c, label=label + ", no spread")
+            ax.plot(vals, np.zeros_like(vals), "|", color=c, ms=8, alpha=0.5)
+        ax.set_xlabel(f"per-view {METRIC_LABELS[m]}")
+        ax.set_ylabel("density")
+        ax.legend(fontsize=7, title="training window", title_fontsize=7)
+    fig.suptitle(title or "Per-view metric distributions over training windows")
+    return _save(fig, out)
+
+
+def plot_kde_conditions(per_views: pd.DataFrame, out: str | os.PathLike[str], *, n_windows: int = 4) -> plt.Figure:
+    """KDEs of the per-view PSNR2D and SSIM2D at the end of training, one curve per condition.
+
+    A condition is a cell of the grid without its seed (:func:`ctsplat.analysis.stats.condition_labels`): the
+    per-view values of its seeds are pooled, never those of runs that differ in another axis. Each run contributes
+    the evaluations in the last of ``n_windows`` equal iteration ranges of its training; that window (in
+    iterations) is named in the title, or per curve when runs differ in length. Densities are confined to the
+    metric's range (SSIM ≤ 1).
+
+    Parameters
+    ----------
+    per_views : pandas.DataFrame
+        All runs' per-view logs (:func:`ctsplat.analysis.gather.load_per_view`).
+    out : path-like
+        PNG file to write.
+    n_windows : int
+        Training is split into this many windows; the last one is shown.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
+    """
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    if per_views.empty:
+        for ax in axes:
+            _empty(ax, "no per-view evaluations (per_view.csv)")
+        return _save(fig, out)
+    last = []
+    for _, g in per_views.groupby("run_dir", sort=True):
+        w = window_labels(g["iteration"], n_windows)
+        final = w[int(np.argmax(g["iteration"].to_numpy()))]
+        last.append(g[w == final].assign(window=final))
+    pv = pd.concat(last, ignore_index=True)
+    pv["condition"] = condition_labels(pv, CONDITION_AXES)
+    styles = condition_styles(pv)
+    windows = pv.groupby("condition")["window"].agg(lambda w: ", ".join(sorted(set(w))))
+    same_window = pv["window"].nunique() == 1
+    for ax, m in zip(axes, ("psnr2d", "ssim2d"), strict=True):
+        for cond, st in styles.items():
+            vals = pv.loc[pv["condition"] == cond, m].dropna().to_numpy()
+            label = cond if same_window else f"{cond} (it {windows[cond]})"
+            if not _draw_kde(ax, vals, m, lw=1.6, label=label, **st):
+                ax.plot([], [], label=label + ", no spread", **st)
+        ax.set_xlabel(f"per-view {METRIC_LABELS[m]}")
+        ax.set_ylabel("density")
+    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), handlelength=3.5)
+    when = f"iterations {pv['window'].iloc[0]}" if same_window else f"the last 1/{n_windows} of each run"
+    fig.suptitle(f"Per-view validation metrics by condition, {when} (seeds pooled)")
     return _save(fig, out)
 
 
@@ -248,9 +402,10 @@ def run_figures(run_dir: str | os.PathLike[str], outputs: Mapping[str, str | os.
         split = "val" if (per_view["split"] == "val").any() else None
         plot_porkchop(per_view, outputs["porkchop"], split=split, title=title)
     if "acf" in outputs:
-        plot_acf(log, outputs["acf"], max_lag=cfg["acf_max_lag"], title=title)
+        plot_acf(log, outputs["acf"], max_lag=cfg["acf_max_lag"], window=cfg["window"], title=title)
     if "kde" in outputs:
-        plot_kde_windows(log, outputs["kde"], n_windows=cfg["kde_windows"], title=title)
+        plot_kde_windows(read_per_view(run_dir / "per_view.csv"), outputs["kde"], n_windows=cfg["kde_windows"],
+                         title=title)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -265,6 +420,9 @@ def _run_label(df: pd.DataFrame) -> pd.Series:
 def plot_convergence_by_axis(logs: pd.DataFrame, axis: str, out: str | os.PathLike[str], *,
                              window: int = 25) -> plt.Figure:
     """All runs' PSNR2D/SSIM2D/PSNR3D/SSIM3D centred rolling means overlaid, coloured by one ablation axis.
+
+    The colour is the value of ``axis``; runs that share it differ in line style and marker by the other axes
+    that vary (:func:`condition_styles`), and the legend names every run by those axes ("init=fbp, views=24").
 
     Parameters
     ----------
@@ -282,33 +440,37 @@ def plot_convergence_by_axis(logs: pd.DataFrame, axis: str, out: str | os.PathLi
     matplotlib.figure.Figure
         The figure written to ``out`` (closed).
     """
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
+    fig, axes = plt.subplots(2, 2, figsize=(13, 7), sharex=True)
     if logs.empty:
         for ax in axes.ravel():
             _empty(ax, "no training logs")
         return _save(fig, out)
-    logs = logs.assign(run=_run_label(logs))
-    levels = sorted(logs[axis].astype(str).unique())
-    palette = dict(zip(levels, sns.color_palette(n_colors=len(levels)), strict=True))
+    # the colour axis first, so it is the one that picks the colour
+    order = (axis, *[a for a in CONDITION_AXES if a != axis])
+    used = varying_axes(logs, order, exclude=())
+    logs = logs.assign(run=condition_labels(logs, order, exclude=()))
+    styles = condition_styles(logs, "run", exclude=(), axes=order)
     for ax, m in zip(axes.ravel(), METRICS_2D3D, strict=True):
-        for _run, g in logs.groupby("run", sort=True):
-            sub = g[["iteration", m]].dropna()
+        for run, st in styles.items():
+            sub = logs.loc[logs["run"] == run, ["iteration", m]].dropna()
             if sub.empty:
                 continue
-            ax.plot(sub["iteration"], rolling_centered(sub[m], window), lw=1.6,
-                    color=palette[str(g[axis].iloc[0])], alpha=0.85)
+            ax.plot(sub["iteration"], rolling_centered(sub[m], window), lw=1.6, alpha=0.9, label=run, ms=4, **st)
         ax.set_ylabel(METRIC_LABELS[m])
         ax.grid(alpha=0.3)
-    handles = [plt.Line2D([], [], color=c, lw=2, label=f"{axis}={lv}") for lv, c in palette.items()]
-    axes[0, 0].legend(handles=handles, fontsize=8)
+    axes[0, 1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), handlelength=3.5)
     for ax in axes[1]:
         ax.set_xlabel("iteration")
-    fig.suptitle(f"Convergence by {axis} (centred mean, W={window})")
+    note = "" if axis in used else f" ({axis} has one value here)"
+    fig.suptitle(f"Convergence coloured by {axis}{note} (centred mean, W={window} evaluations)")
     return _save(fig, out)
 
 
 def plot_velocity(logs: pd.DataFrame, out: str | os.PathLike[str], *, per_iters: int = 1000) -> plt.Figure:
     """Convergence velocity (median PSNR2D gain per ``per_iters`` iterations) over training, one line per run.
+
+    Runs are named by the axes that differ across them ("init=fbp, views=24") and styled so each can be told
+    apart (:func:`condition_styles`).
 
     Parameters
     ----------
@@ -324,29 +486,62 @@ def plot_velocity(logs: pd.DataFrame, out: str | os.PathLike[str], *, per_iters:
     matplotlib.figure.Figure
         The figure written to ``out`` (closed).
     """
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    fig, ax = plt.subplots(figsize=(9, 4.5))
     drawn = 0
     if not logs.empty:
-        logs = logs.assign(run=_run_label(logs))
-        for run, g in logs.groupby("run", sort=True):
+        logs = logs.assign(run=condition_labels(logs, CONDITION_AXES, exclude=()))
+        for run, st in condition_styles(logs, "run", exclude=()).items():
+            g = logs[logs["run"] == run]
             vc = velocity_curve(g["iteration"], g["psnr2d"], per_iters)
             if len(vc):
-                ax.plot(vc["iteration"], vc["velocity"], marker="o", ms=3, label=run)
+                ax.plot(vc["iteration"], vc["velocity"], ms=4, label=run, **{**st, "markevery": 1})
                 drawn += 1
     if drawn:
         ax.axhline(0, color="k", lw=0.8)
-        ax.set_xlabel("iteration")
-        ax.set_ylabel(f"PSNR2D gain per {per_iters} it (dB)")
-        if drawn <= 12:
-            ax.legend(fontsize=7)
+        ax.set_xlabel(f"iteration (centre of each {per_iters}-iteration block)")
+        ax.set_ylabel(f"median PSNR2D gain (dB per {per_iters} it)")
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), handlelength=3.5)
+        ax.grid(alpha=0.3)
     else:
         _empty(ax, "not enough evaluations")
     ax.set_title("Convergence velocity")
     return _save(fig, out)
 
 
-def plot_correlations(logs: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
-    """Scatter of 2D vs 3D metrics over training (all runs), with pooled Pearson/Spearman in the titles.
+def correlation_table(logs: pd.DataFrame, n_windows: int) -> pd.DataFrame:
+    """Per-run 2D-3D correlations, over the whole run and per training window, of all runs.
+
+    Parameters
+    ----------
+    logs : pandas.DataFrame
+        All runs' logs (:func:`ctsplat.analysis.gather.load_runs`).
+    n_windows : int
+        Training windows per run (:func:`ctsplat.analysis.stats.windowed_correlations`).
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``run_dir``, ``run`` (named by the axes that differ), ``volume`` and the grid axes, then the columns of
+        :func:`ctsplat.analysis.stats.windowed_correlations`. No pooled row: runs are not exchangeable samples.
+    """
+    axes = [a for a in CONDITION_AXES if a in logs]
+    cols = ["run_dir", "run", *axes, "window", "it_start", "it_end", "it_centre", "x", "y", "n", "pearson",
+            "spearman"]
+    if logs.empty:
+        return pd.DataFrame(columns=cols)
+    logs = logs.assign(run=condition_labels(logs, CONDITION_AXES, exclude=()))
+    frames = [windowed_correlations(g, n_windows).assign(run_dir=rd, run=g["run"].iloc[0],
+                                                         **{a: g[a].iloc[0] for a in axes})
+              for rd, g in logs.groupby("run_dir", sort=True)]
+    return pd.concat(frames, ignore_index=True)[cols]
+
+
+def plot_correlations(logs: pd.DataFrame, out: str | os.PathLike[str], *, n_windows: int = 4) -> plt.Figure:
+    """How well the 2D metric tracks the 3D one over training: per-run Spearman correlation per training window.
+
+    One line per run (named by the axes that differ), x = the window's centre iteration, y = the Spearman
+    correlation of the run's 2D and 3D metric within that window; the legend gives each run's correlation over its
+    whole training. Nothing is pooled across runs.
 
     Parameters
     ----------
@@ -354,52 +549,94 @@ def plot_correlations(logs: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fi
         All runs' logs (:func:`ctsplat.analysis.gather.load_runs`).
     out : path-like
         PNG file to write.
+    n_windows : int
+        Training windows per run.
 
     Returns
     -------
     matplotlib.figure.Figure
         The figure written to ``out`` (closed).
     """
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
-    pooled = correlations(logs) if not logs.empty else None
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), sharey=True)
+    table = correlation_table(logs, n_windows)
+    styles = condition_styles(table, "run", exclude=()) if not table.empty else {}
     for ax, (x, y) in zip(axes, (("psnr2d", "psnr3d"), ("ssim2d", "ssim3d")), strict=True):
-        sub = logs[[x, y]].dropna() if not logs.empty else pd.DataFrame()
-        if sub.empty:
-            _empty(ax, "no paired 2D/3D evaluations")
+        sub = table[(table["x"] == x) & (table["y"] == y)]
+        drawn = 0
+        for run, st in styles.items():
+            g = sub[sub["run"] == run]
+            whole = g[g["window"] == "all"]["spearman"]
+            win = g[g["window"] != "all"]
+            if not np.isfinite(win["spearman"].to_numpy(dtype=float)).any():
+                continue
+            rho = float(whole.iloc[0]) if len(whole) else float("nan")
+            ax.plot(win["it_centre"], win["spearman"], label=f"{run} (whole run ρ={rho:.2f})",
+                    **{**st, "markevery": 1})
+            drawn += 1
+        if not drawn:
+            _empty(ax, "too few paired 2D/3D evaluations per window")
             continue
-        ax.scatter(sub[x], sub[y], s=8, alpha=0.6)
-        row = pooled[(pooled["x"] == x) & (pooled["y"] == y)].iloc[0]
-        ax.set_title(f"Pearson {row['pearson']:.3f}, Spearman {row['spearman']:.3f} (n={row['n']})")
-        ax.set_xlabel(METRIC_LABELS[x])
-        ax.set_ylabel(METRIC_LABELS[y])
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_ylim(-1.05, 1.05)
+        ax.set_xlabel("iteration (centre of the training window)")
+        ax.set_title(f"{METRIC_LABELS[x]} vs {METRIC_LABELS[y]}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    axes[0].set_ylabel("Spearman ρ within the window")
+    fig.suptitle(f"2D-3D correlation per run over training ({n_windows} equal windows per run)")
     return _save(fig, out)
 
 
-def _final_long(summary: pd.DataFrame) -> pd.DataFrame:
-    """Summary in long form: one row per (run, axis, metric) for the ablation plot."""
-    metric_cols = [c for c in ("psnr3d", "ssim3d", "psnr2d", "ssim2d") if c in summary]
-    if not metric_cols:
-        metric_cols = [f"final_{m}" for m in METRICS_2D3D if f"final_{m}" in summary]
-    rows = []
-    for _, r in summary.iterrows():
-        for axis in GRID_AXES:
-            for m in metric_cols:
-                v = pd.to_numeric(r[m], errors="coerce")
-                if pd.notna(v):
-                    rows.append({"axis": axis, "value": str(r[axis]), "metric": m.removeprefix("final_"),
-                                 "score": float(v)})
-    return pd.DataFrame(rows, columns=["axis", "value", "metric", "score"])
+def _metric_columns(summary: pd.DataFrame) -> list[str]:
+    """The summary's test metrics (``test_*``), else the last logged validation ones (``val_*_last``)."""
+    cols = [f"test_{m}" for m in ("psnr3d", "ssim3d", "psnr2d", "ssim2d")
+            if f"test_{m}" in summary and pd.to_numeric(summary[f"test_{m}"], errors="coerce").notna().any()]
+    return cols or [f"val_{m}_last" for m in METRICS_2D3D if f"val_{m}_last" in summary]
 
 
-def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
-    """Final metrics by ablation axis: box plots with every run as a point (strip), metrics × axes grid.
+def _bare_metric(col: str) -> str:
+    """``test_psnr3d`` / ``val_psnr3d_last`` -> ``psnr3d``."""
+    return col.removeprefix("test_").removeprefix("val_").removesuffix("_last")
 
-    Only the axes with more than one value get a column of panels.
+
+def paired_table(summary: pd.DataFrame, axis: str, metric_col: str) -> pd.DataFrame:
+    """Runs that differ only in ``axis``: one row per pair group, one column per value of ``axis``.
 
     Parameters
     ----------
     summary : pandas.DataFrame
-        The table of :func:`ctsplat.analysis.gather.gather` (test metrics of ``metrics.json``, else ``final_*``).
+        The table of :func:`ctsplat.analysis.gather.gather`.
+    axis : str
+        The ablation axis that changes within a group.
+    metric_col : str
+        The summary column compared.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Index: the values of every other axis (volume and seed included, so each group is one cell of the grid
+        with only ``axis`` changed); columns: the values of ``axis`` in natural order; groups with fewer than two
+        finite values are dropped.
+    """
+    others = [a for a in CONDITION_AXES if a != axis and a in summary]
+    df = summary.assign(_score=pd.to_numeric(summary[metric_col], errors="coerce"), _level=summary[axis].astype(str))
+    wide = df.pivot_table(index=others, columns="_level", values="_score", aggfunc="mean")
+    wide = wide[sorted(wide.columns, key=_natural)]
+    return wide[wide.notna().sum(axis=1) >= 2]
+
+
+def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
+    """Paired comparisons: each line is one cell of the grid with one axis changed (metrics × axes panels).
+
+    For each axis that varies (the seed excepted) the runs identical in every other axis are joined by a line
+    across the axis's values, so the effect of the axis is read from the slopes, not from box plots of a few
+    points; the panel title gives the number of pairs and the median change between the first and last value.
+
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        The table of :func:`ctsplat.analysis.gather.gather` (``test_*`` metrics of ``metrics.json``, else the
+        last logged ``val_*_last``).
     out : path-like
         PNG file to write.
 
@@ -408,26 +645,35 @@ def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fig
     matplotlib.figure.Figure
         The figure written to ``out`` (closed).
     """
-    long = _final_long(summary)
-    axes_used = [a for a in GRID_AXES if summary[a].nunique() > 1] or list(GRID_AXES[:1])
-    metrics = list(dict.fromkeys(long["metric"])) or ["psnr3d"]
-    fig, axs = plt.subplots(len(metrics), len(axes_used), figsize=(3.2 * len(axes_used), 2.8 * len(metrics)),
-                            squeeze=False)
-    for i, m in enumerate(metrics):
+    metric_cols = _metric_columns(summary)
+    axes_used = varying_axes(summary, GRID_AXES) or list(GRID_AXES[:1])
+    metric_cols = metric_cols or ["test_psnr3d"]
+    fig, axs = plt.subplots(len(metric_cols), len(axes_used), figsize=(3.4 * len(axes_used) + 1,
+                                                                       2.9 * len(metric_cols)), squeeze=False)
+    for i, col in enumerate(metric_cols):
+        m = _bare_metric(col)
         for j, axis in enumerate(axes_used):
             ax = axs[i, j]
-            sub = long[(long["metric"] == m) & (long["axis"] == axis)]
-            if sub.empty:
-                _empty(ax, "no runs")
+            wide = paired_table(summary, axis, col) if col in summary else pd.DataFrame()
+            if wide.empty:
+                _empty(ax, f"no runs differing only in {axis}")
                 continue
-            order = sorted(sub["value"].unique(), key=_natural)
-            with warnings.catch_warnings():  # seaborn 0.13 passes matplotlib's deprecated `vert`
-                warnings.simplefilter("ignore", DeprecationWarning)
-                sns.boxplot(data=sub, x="value", y="score", order=order, ax=ax, color="0.85", fliersize=0)
-            sns.stripplot(data=sub, x="value", y="score", order=order, ax=ax, color="C0", size=4, jitter=0.15)
-            ax.set_xlabel(axis if i == len(metrics) - 1 else "")
-            ax.set_ylabel(METRIC_LABELS.get(m, m) if j == 0 else "")
-    fig.suptitle("Final metrics by ablation axis")
+            x = np.arange(len(wide.columns))
+            for _, row in wide.iterrows():
+                ok = row.notna().to_numpy()
+                ax.plot(x[ok], row.to_numpy(dtype=float)[ok], "-o", color="0.45", lw=1, ms=4, alpha=0.8)
+            med = wide.median(axis=0)
+            ax.plot(x, med.to_numpy(dtype=float), "-D", color="C3", lw=2.2, ms=6, label="median", zorder=5)
+            ax.set_xticks(x, [str(c) for c in wide.columns])
+            first, last = wide.columns[0], wide.columns[-1]
+            delta = (wide[last] - wide[first]).median()
+            unit = " dB" if m.startswith("psnr") else ""
+            ax.set_title(f"{len(wide)} pairs; median {last}−{first}: {delta:+.3g}{unit}", fontsize=8)
+            ax.set_xlabel(axis if i == len(metric_cols) - 1 else "")
+            ax.set_ylabel(f"test {METRIC_LABELS.get(m, m)}" if col.startswith("test_") else
+                          f"last validation {METRIC_LABELS.get(m, m)}")
+            ax.grid(alpha=0.3)
+    fig.suptitle("Paired ablation: each grey line is one grid cell with only that axis changed")
     fig.tight_layout()
     return _save(fig, out)
 
@@ -461,29 +707,37 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
         The figure written to ``out`` (closed).
     """
     fig, ax = plt.subplots(figsize=(8, 5))
-    col = metric if metric in summary else f"final_{metric}"
+    col = f"test_{metric}" if f"test_{metric}" in summary else f"val_{metric}_last"
     drawn = False
     if not baselines.empty and metric in baselines:
         b = baselines.copy()
         b["label"] = b["method"].astype(str) + np.where(
             b.get("filter", pd.Series([""] * len(b))).fillna("").astype(str) != "",
             " (" + b.get("filter", pd.Series([""] * len(b))).fillna("").astype(str) + ")", "")
-        for label, g in b.groupby("label", sort=True):
-            g = g.groupby("n_views", as_index=False)[metric].max()
-            ax.plot(g["n_views"], g[metric], "s--", label=label, lw=1.2)
+        # classical methods in greys with their own markers, so they never share a colour with a Gaussian run
+        labels = sorted(b["label"].unique())
+        greys = np.linspace(0.0, 0.6, max(len(labels), 1))
+        for k, label in enumerate(labels):
+            g = b[b["label"] == label].groupby("n_views", as_index=False)[metric].max()
+            ax.plot(g["n_views"], g[metric], linestyle=LINESTYLES[1 + k % 3], marker=MARKERS[1 + k % 7],
+                    color=str(greys[k]), label=label, lw=1.2)
             drawn = True
     if col in summary and len(summary):
         s = summary.assign(score=pd.to_numeric(summary[col], errors="coerce")).dropna(subset=["score"])
-        for key, g in s.groupby(["init", "compositor", "mip", "poses"], sort=True):
-            label = "GS " + "/".join(str(k) for k in key)
+        cond_axes = [a for a in ("volume", *GRID_AXES) if a not in ("views", "seed") and a in s]
+        named = varying_axes(s, cond_axes) or [a for a in cond_axes if a != "volume"]
+        s = s.assign(condition="Gaussian, " + s[named].astype(str).apply(
+            lambda r: ", ".join(f"{a}={r[a]}" for a in named), axis=1))
+        for cond, st in condition_styles(s, "condition", axes=cond_axes).items():
+            g = s[s["condition"] == cond]
             mean = g.groupby("views", as_index=False)["score"].mean()
-            line = ax.plot(mean["views"], mean["score"], "o-", lw=2, label=label)[0]
-            ax.scatter(g["views"], g["score"], color=line.get_color(), s=12, alpha=0.6)
+            ax.plot(mean["views"], mean["score"], lw=2, ms=6, label=cond, **{**st, "markevery": 1})
+            ax.scatter(g["views"], g["score"], color=st["color"], s=12, alpha=0.6)
             drawn = True
     if drawn:
         ax.set_xlabel("number of training views")
         ax.set_ylabel(METRIC_LABELS.get(metric, metric))
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), handlelength=3.5)
         ax.grid(alpha=0.3)
     else:
         _empty(ax, "no Gaussian runs or baselines")
@@ -525,18 +779,13 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
     if "velocity" in outputs:
         plot_velocity(logs, outputs["velocity"], per_iters=cfg["velocity_per_iters"])
     if "acf" in outputs:
-        _plot_acf_runs(logs, outputs["acf"], max_lag=cfg["acf_max_lag"])
+        plot_acf_runs(logs, outputs["acf"], max_lag=cfg["acf_max_lag"], window=cfg["window"])
     if "kde" in outputs:
-        plot_kde_windows(logs, outputs["kde"], n_windows=cfg["kde_windows"], title="All runs pooled")
+        plot_kde_conditions(load_per_view(summary), outputs["kde"], n_windows=cfg["kde_windows"])
     if "correlations_plot" in outputs:
-        plot_correlations(logs, outputs["correlations_plot"])
+        plot_correlations(logs, outputs["correlations_plot"], n_windows=cfg["kde_windows"])
     if "correlations" in outputs:
-        tables = []
-        for run, g in logs.groupby("run_dir", sort=True) if not logs.empty else []:
-            tables.append(correlations(g).assign(run_dir=run))
-        tables.append(correlations(logs if not logs.empty else pd.DataFrame(columns=list(LOG_COLUMNS)))
-                      .assign(run_dir="all"))
-        _write_csv(pd.concat(tables, ignore_index=True), outputs["correlations"])
+        _write_csv(correlation_table(logs, cfg["kde_windows"]), outputs["correlations"])
     if "milestones" in outputs:
         rows = []
         for run, g in logs.groupby("run_dir", sort=True) if not logs.empty else []:
@@ -557,26 +806,51 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
         plot_baselines(summary, base, outputs["baselines"])
 
 
-def _plot_acf_runs(logs: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int) -> plt.Figure:
-    """PSNR2D ACF by lag, one line per run."""
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    drawn = 0
+def plot_acf_runs(logs: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 40,
+                  window: int = 25) -> plt.Figure:
+    """ACF of each run's detrended PSNR2D by lag, one line per run, with the 95 % white-noise band.
+
+    Detrending as in :func:`plot_acf`; the band is drawn for the run with the fewest detrended samples (the
+    widest). Runs are named by the axes that differ (:func:`ctsplat.analysis.stats.condition_labels`).
+
+    Parameters
+    ----------
+    logs : pandas.DataFrame
+        All runs' logs (:func:`ctsplat.analysis.gather.load_runs`).
+    out : path-like
+        PNG file to write.
+    max_lag : int
+        Largest lag (evaluations).
+    window : int
+        Rolling-mean window of the detrending (evaluations).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure written to ``out`` (closed).
+    """
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    drawn, n_min = 0, None
     if not logs.empty:
-        logs = logs.assign(run=_run_label(logs))
-        for run, g in logs.groupby("run", sort=True):
-            r = acf(g["psnr2d"].to_numpy(), max_lag)
-            if r.size >= 2:
-                ax.plot(np.arange(r.size), r, marker="o", ms=2, label=run)
+        logs = logs.assign(run=condition_labels(logs, CONDITION_AXES, exclude=()))
+        styles = condition_styles(logs, "run", exclude=())
+        for run, st in styles.items():
+            resid = detrend(logs.loc[logs["run"] == run, "psnr2d"].to_numpy(), "rolling", window)
+            r = acf(resid, max_lag)
+            if r.size >= 2 and np.isfinite(r[1:]).any():
+                ax.plot(np.arange(r.size), r, ms=3, label=run, **{**st, "markevery": 1})
                 drawn += 1
+                n_min = resid.size if n_min is None else min(n_min, resid.size)
     if drawn:
+        band = acf_band(n_min)
+        ax.axhspan(-band, band, color="0.85", zorder=0, label=f"95 % band ±1.96/√n, n={n_min}")
         ax.axhline(0, color="k", lw=0.8)
         ax.set_xlabel("lag (evaluations)")
-        ax.set_ylabel("ACF of PSNR2D")
-        if drawn <= 12:
-            ax.legend(fontsize=7)
+        ax.set_ylabel("ACF of detrended PSNR2D")
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), handlelength=3.5)
     else:
-        _empty(ax, "fewer than two evaluations")
-    ax.set_title("Autocorrelation of PSNR2D by run")
+        _empty(ax, f"too few evaluations to detrend (need more than {2 * (window // 2)})")
+    ax.set_title(f"Autocorrelation of PSNR2D after removing the trend (centred mean, W={window})")
     return _save(fig, out)
 
 

@@ -16,6 +16,8 @@ from ctsplat.utils import CtsplatError
 __all__ = [
     "rolling_centered",
     "acf",
+    "detrend",
+    "acf_band",
     "convergence_velocity",
     "velocity_curve",
     "threshold_tag",
@@ -23,8 +25,17 @@ __all__ = [
     "mean_iters_per_s",
     "correlations",
     "window_labels",
+    "windowed_correlations",
     "porkchop_table",
+    "METRIC_RANGES",
+    "bounded_kde",
+    "varying_axes",
+    "condition_labels",
 ]
+
+# Range of each metric: PSNR is non-negative and unbounded above; SSIM lies in [-1, 1]. Densities are confined to it.
+METRIC_RANGES: dict[str, tuple[float | None, float | None]] = {
+    "psnr2d": (0.0, None), "psnr3d": (0.0, None), "ssim2d": (-1.0, 1.0), "ssim3d": (-1.0, 1.0)}
 
 
 def rolling_centered(values: Sequence[float] | pd.Series, window: int) -> np.ndarray:
@@ -79,6 +90,63 @@ def acf(values: Sequence[float], max_lag: int) -> np.ndarray:
     if denom == 0.0:
         return np.concatenate([[1.0], np.full(lags, np.nan)])
     return np.array([1.0] + [float(np.dot(x[: n - k], x[k:])) / denom for k in range(1, lags + 1)])
+
+
+def detrend(values: Sequence[float], method: str = "rolling", window: int = 25) -> np.ndarray:
+    """Remove the trend of a training curve so its autocorrelation measures the evaluation noise, not convergence.
+
+    Parameters
+    ----------
+    values : sequence of float, shape (n,)
+        A metric per evaluation (NaNs dropped first).
+    method : {"rolling", "diff"}
+        ``"rolling"``: residual from the centred rolling mean over ``2 * (window // 2) + 1`` samples (made odd
+        so it is centred), kept only where the whole
+        window exists (the first and last ``window // 2`` samples are dropped, where a shrinking window would
+        leave part of the trend in); ``"diff"``: first differences ``x[t+1] - x[t]``.
+    window : int
+        Rolling-mean window (samples), >= 1.
+
+    Returns
+    -------
+    numpy.ndarray
+        The detrended series: ``n - 2 * (window // 2)`` samples for ``"rolling"``, ``n - 1`` for ``"diff"``
+        (never fewer than 0). A linear trend leaves exactly zero (``"rolling"``) or a constant (``"diff"``).
+
+    Raises
+    ------
+    CtsplatError
+        For an unknown method or a window < 1.
+    """
+    x = np.asarray(values, dtype=float)
+    x = x[~np.isnan(x)]
+    if method == "diff":
+        return np.diff(x)
+    if method != "rolling":
+        raise CtsplatError(f"unknown detrending method {method!r}; allowed: rolling, diff")
+    if window < 1:
+        raise CtsplatError(f"rolling window must be >= 1, got {window}")
+    half = window // 2
+    if x.size <= 2 * half:
+        return np.array([])
+    resid = x - rolling_centered(x, 2 * half + 1)
+    return resid[half: x.size - half]
+
+
+def acf_band(n: int) -> float:
+    """Half-width of the 95 % band of the sample ACF of ``n`` samples of white noise: ``1.96 / sqrt(n)``.
+
+    Parameters
+    ----------
+    n : int
+        Number of samples the ACF was computed from.
+
+    Returns
+    -------
+    float
+        NaN for ``n < 1``.
+    """
+    return 1.96 / np.sqrt(n) if n >= 1 else float("nan")
 
 
 def convergence_velocity(iterations: Sequence[float], values: Sequence[float], per_iters: int = 1000) -> float:
@@ -273,6 +341,51 @@ def window_labels(iterations: Sequence[float], n_windows: int) -> np.ndarray:
     return np.array([names[i] for i in idx], dtype=object)
 
 
+def windowed_correlations(
+    log: pd.DataFrame, n_windows: int,
+    pairs: Sequence[tuple[str, str]] = (("psnr2d", "psnr3d"), ("ssim2d", "ssim3d")),
+) -> pd.DataFrame:
+    """2D-3D correlations of one run over its whole training and within successive training windows.
+
+    Evaluations of one run over time are not independent samples, and runs differ in level: the correlation is
+    computed per run, and per window (equal iteration ranges, :func:`window_labels`) to show how far the 2D metric
+    tracks the 3D one early and late in training.
+
+    Parameters
+    ----------
+    log : pandas.DataFrame
+        The training log of ONE run.
+    n_windows : int
+        Number of windows.
+    pairs : sequence of (str, str)
+        Column pairs (x, y).
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns ``window`` (``"all"`` or ``"a–b"``), ``it_start``, ``it_end``, ``it_centre`` (iterations),
+        ``x, y, n, pearson, spearman`` (as :func:`correlations`): first the whole run, then each window in order.
+    """
+    cols = ["window", "it_start", "it_end", "it_centre", "x", "y", "n", "pearson", "spearman"]
+    if log.empty:
+        return pd.DataFrame(columns=cols)
+    it = log["iteration"].to_numpy(dtype=float)
+    frames = [correlations(log, pairs).assign(window="all", it_start=it.min(), it_end=it.max(),
+                                              it_centre=(it.min() + it.max()) / 2)]
+    labels = window_labels(it, n_windows)
+    edges = np.linspace(it.min(), it.max(), n_windows + 1)
+    seen: set[str] = set()
+    for i in range(n_windows):
+        name = f"{int(edges[i])}–{int(edges[i + 1])}"
+        if name in seen:  # a span shorter than n_windows iterations repeats names; count each sample once
+            continue
+        seen.add(name)
+        sub = log[labels == name]
+        frames.append(correlations(sub, pairs).assign(window=name, it_start=edges[i], it_end=edges[i + 1],
+                                                      it_centre=(edges[i] + edges[i + 1]) / 2))
+    return pd.concat(frames, ignore_index=True)[cols]
+
+
 def porkchop_table(per_view: pd.DataFrame, metric: str = "psnr2d", split: str | None = None) -> pd.DataFrame:
     """Pivot per-view metrics into a (view × iteration) table for a heatmap.
 
@@ -298,3 +411,97 @@ def porkchop_table(per_view: pd.DataFrame, metric: str = "psnr2d", split: str | 
              .tolist())
     table = df.pivot_table(index="view_id", columns="iteration", values=metric, aggfunc="mean")
     return table.reindex(index=order).sort_index(axis=1)
+
+
+def bounded_kde(values: Sequence[float], lower: float | None = None, upper: float | None = None, *,
+                n_grid: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    r"""Gaussian kernel density estimate confined to ``[lower, upper]`` by reflection at the bounds.
+
+    With :math:`\hat f` the ordinary Gaussian KDE (Scott's bandwidth :math:`h`), the estimate is
+    :math:`\hat f(x) + \hat f(2l - x) + \hat f(2u - x)` on :math:`[l, u]` and zero outside, so no mass is placed
+    beyond a bound (e.g. SSIM > 1) and the density still integrates to 1 over the metric's range.
+
+    Parameters
+    ----------
+    values : sequence of float, shape (n,)
+        Samples (NaNs dropped); every sample must lie within the bounds.
+    lower, upper : float, optional
+        The metric's range (:data:`METRIC_RANGES`); None = unbounded on that side.
+    n_grid : int
+        Number of evaluation points.
+
+    Returns
+    -------
+    x : numpy.ndarray, shape (n_grid,)
+        Evaluation points spanning the samples ± 3 h, clipped to the bounds.
+    density : numpy.ndarray, shape (n_grid,)
+        The estimate at ``x``; empty arrays when fewer than two distinct finite samples.
+
+    Raises
+    ------
+    CtsplatError
+        When a sample lies outside ``[lower, upper]``.
+    """
+    from scipy import stats
+
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if np.unique(v).size < 2:
+        return np.array([]), np.array([])
+    if (lower is not None and v.min() < lower) or (upper is not None and v.max() > upper):
+        raise CtsplatError(f"KDE sample outside the metric's range [{lower}, {upper}]: {v.min():g}..{v.max():g}")
+    kde = stats.gaussian_kde(v)
+    h = float(np.sqrt(kde.covariance[0, 0]))
+    lo, hi = v.min() - 3 * h, v.max() + 3 * h
+    lo = lo if lower is None else max(lo, lower)
+    hi = hi if upper is None else min(hi, upper)
+    x = np.linspace(lo, hi, n_grid)
+    dens = kde(x)
+    if lower is not None:
+        dens = dens + kde(2 * lower - x)
+    if upper is not None:
+        dens = dens + kde(2 * upper - x)
+    return x, dens
+
+
+def varying_axes(table: pd.DataFrame, axes: Sequence[str], exclude: Sequence[str] = ("seed",)) -> list[str]:
+    """The columns of ``axes`` that take more than one value in ``table`` (in the order given).
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        One row per run (or per log row), with the axis columns.
+    axes : sequence of str
+        Candidate columns, e.g. ``("volume", *GRID_AXES)``.
+    exclude : sequence of str
+        Columns never returned (the seed: replicates of one condition).
+
+    Returns
+    -------
+    list of str
+    """
+    return [a for a in axes if a in table and a not in exclude and table[a].astype(str).nunique() > 1]
+
+
+def condition_labels(table: pd.DataFrame, axes: Sequence[str], exclude: Sequence[str] = ("seed",)) -> pd.Series:
+    """Name each row's condition by the axes that differ across the table: ``"init=fbp, views=24"``.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        One row per run (or per log row), with the axis columns.
+    axes : sequence of str
+        Candidate columns in naming order, e.g. ``("volume", *GRID_AXES)``.
+    exclude : sequence of str
+        Columns left out of the name (by default the seed, so replicates share a condition); pass ``()`` to
+        name single runs.
+
+    Returns
+    -------
+    pandas.Series of str
+        Indexed like ``table``; ``"all runs"`` when no axis varies.
+    """
+    used = varying_axes(table, axes, exclude)
+    if not used:
+        return pd.Series("all runs", index=table.index, dtype=object)
+    return table[used].astype(str).apply(lambda r: ", ".join(f"{a}={r[a]}" for a in used), axis=1).astype(object)

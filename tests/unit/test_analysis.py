@@ -10,17 +10,23 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from ctsplat.analysis.gather import gather, load_runs
+from ctsplat.analysis.gather import gather, load_per_view, load_runs
 from ctsplat.analysis.stats import (
+    METRIC_RANGES,
     acf,
+    acf_band,
+    bounded_kde,
+    condition_labels,
     convergence_velocity,
     correlations,
+    detrend,
     mean_iters_per_s,
     milestones,
     porkchop_table,
     rolling_centered,
     velocity_curve,
     window_labels,
+    windowed_correlations,
 )
 from ctsplat.formats.runlog import LOG_COLUMNS, PER_VIEW_COLUMNS, CsvLog, read_per_view, read_train_log
 from ctsplat.grid import parse_run_dir, run_relpath
@@ -75,6 +81,28 @@ def test_acf_matches_direct_formula_and_handles_nan_and_constant():
     assert r.size == 5  # lags capped at n - 1
     c = acf(np.ones(5), 3)
     assert c[0] == 1.0 and np.isnan(c[1:]).all()
+
+
+def test_acf_of_a_trend_after_detrending_stays_inside_the_band():
+    rng = np.random.default_rng(7)
+    it = np.arange(400)
+    trend = 18 + 12 * (1 - np.exp(-it / 80))  # a converging PSNR curve
+    x = trend + rng.normal(0, 0.3, it.size)
+    raw = acf(x, 20)
+    assert raw[1] > 0.9  # the raw ACF only shows the trend
+    resid = detrend(x, "rolling", 25)
+    assert resid.size == 400 - 24
+    r = acf(resid, 20)
+    band = acf_band(resid.size)
+    assert band == pytest.approx(1.96 / np.sqrt(376))
+    inside = np.abs(r[1:]) <= band
+    assert inside.mean() >= 0.9  # white noise: ~95 % of the lags inside the band
+    # a pure linear trend is removed exactly; first differences leave its slope
+    np.testing.assert_allclose(detrend(0.5 * it + 3, "rolling", 9), 0, atol=1e-9)
+    np.testing.assert_allclose(detrend(0.5 * it + 3, "diff"), 0.5)
+    assert detrend(np.arange(5.0), "rolling", 25).size == 0
+    with pytest.raises(CtsplatError, match="unknown detrending method"):
+        detrend(x, "loess")
 
 
 def test_velocity_of_linear_ramp_is_slope_times_per():
@@ -158,6 +186,53 @@ def test_correlations_agree_with_scipy_and_detect_monotone_nonlinear():
     short = correlations(pd.DataFrame({"psnr2d": [1.0, 2.0], "psnr3d": [1.0, 3.0],
                                           "ssim2d": [1.0, 1.0], "ssim3d": [2.0, 3.0]}))
     assert short["pearson"].isna().all()
+
+
+def test_bounded_kde_of_ssim_stays_within_one_and_keeps_its_mass():
+    rng = np.random.default_rng(3)
+    ssim = np.clip(1 - rng.exponential(0.01, 200), 0, 1)  # piled up against the bound, as late in training
+    lo, hi = METRIC_RANGES["ssim2d"]
+    x, dens = bounded_kde(ssim, lo, hi)
+    assert x.max() == 1.0 and x.min() < ssim.min()
+    assert np.all(dens >= 0)
+    # the reflected density integrates to 1 over [.., 1]; the plain KDE puts a tenth of its mass above SSIM 1
+    assert np.trapezoid(dens, x) == pytest.approx(1.0, abs=0.01)
+    plain = stats.gaussian_kde(ssim)
+    assert np.trapezoid(plain(x), x) < 0.95
+    # an unbounded side is left alone: the PSNR support reaches below the smallest sample
+    xp, _ = bounded_kde(rng.normal(30, 1, 100), *METRIC_RANGES["psnr2d"])
+    assert xp.min() < 27
+    assert bounded_kde([0.5, 0.5], lo, hi)[0].size == 0  # no spread, no density
+    with pytest.raises(CtsplatError, match="outside the metric's range"):
+        bounded_kde([0.5, 1.2], lo, hi)
+
+
+def test_condition_labels_name_the_axes_that_differ():
+    runs = pd.DataFrame({"volume": ["p"] * 4, "init": ["fbp", "fbp", "uniform", "uniform"],
+                         "compositor": ["radiative"] * 4, "views": [24, 24, 12, 24], "seed": [0, 1, 0, 0]})
+    labels = condition_labels(runs, ("volume", "init", "compositor", "views", "seed"))
+    assert list(labels) == ["init=fbp, views=24", "init=fbp, views=24", "init=uniform, views=12",
+                            "init=uniform, views=24"]  # seeds share a condition; constant axes are not named
+    runs_named = condition_labels(runs, ("init", "views", "seed"), exclude=())
+    assert runs_named[1] == "init=fbp, views=24, seed=1"
+    assert set(condition_labels(runs.iloc[:1], ("init",))) == {"all runs"}
+
+
+def test_windowed_correlations_follow_the_change_over_training():
+    rng = np.random.default_rng(2)
+    it = np.arange(0, 2000, 10)
+    p2 = 20 + rng.normal(0, 1, it.size)
+    # 3D tracks 2D in the first half of training and is unrelated noise in the second half
+    p3 = np.where(it < 1000, p2 + rng.normal(0, 0.1, it.size), 25 + rng.normal(0, 1, it.size))
+    log = pd.DataFrame({"iteration": it, "psnr2d": p2, "psnr3d": p3, "ssim2d": p2 / 40, "ssim3d": p3 / 40})
+    t = windowed_correlations(log, 2)
+    ps = t[t["x"] == "psnr2d"].set_index("window")
+    assert list(ps.index) == ["all", "0–995", "995–1990"]
+    assert ps.loc["0–995", "spearman"] > 0.95 and abs(ps.loc["995–1990", "spearman"]) < 0.3
+    assert ps.loc["0–995", "n"] + ps.loc["995–1990", "n"] == ps.loc["all", "n"] == it.size
+    assert ps.loc["0–995", "it_centre"] == pytest.approx(497.5)
+    w = log[(it >= 995)]
+    assert ps.loc["995–1990", "pearson"] == pytest.approx(np.corrcoef(w["psnr2d"], w["psnr3d"])[0, 1])
 
 
 def test_window_labels_equal_iteration_ranges():
@@ -277,15 +352,58 @@ def test_gather_one_row_per_run_with_axes_and_metrics(tmp_path):
     assert len(back) == 4 and out.exists()
     assert set(back["init"]) == {"fbp", "uniform"} and set(back["seed"]) == {0, 1}
     assert (back["volume"] == "phantom").all() and (back["views"] == 8).all() and (back["mip"] == "on").all()
-    assert list(back["psnr3d"]) == [25.0, 26.0, 25.0, 26.0]
+    assert list(back["test_psnr3d"]) == [25.0, 26.0, 25.0, 26.0]
     assert back["nested.a"].tolist() == [1] * 4
     row = df[(df["init"] == "fbp") & (df["seed"] == 1)].iloc[0]
-    assert row["velocity_psnr2d"] == pytest.approx(2.0)  # 0.002 dB/it -> 2 dB per 1000
-    assert row["final_psnr2d"] == pytest.approx(20 + 0.002 * 2000)
+    assert row["velocity_psnr2d_per_1000it"] == pytest.approx(2.0)  # 0.002 dB/it -> 2 dB per 1000
+    assert row["val_psnr2d_last"] == pytest.approx(20 + 0.002 * 2000)
     # psnr2d = 20 + 0.002 it >= 30 first at it = 5000: never within 2000 iterations
     assert pd.isna(row["iter_to_psnr2d_30"])
     row0 = df[(df["init"] == "uniform") & (df["seed"] == 0)].iloc[0]
-    assert row0["final_iteration"] == 2000
+    assert row0["val_iteration_last"] == 2000
+
+
+def test_gather_names_test_and_validation_columns_apart(tmp_path):
+    rd = _fake_run(tmp_path)
+    (rd / "metrics.json").write_text(json.dumps({
+        "psnr2d": 31.0, "ssim2d": 0.91, "psnr3d": 24.0, "ssim3d": 0.7, "lpips": 0.12, "lpips_reason": None,
+        "iter_to_psnr2d_30": 5, "time_to_psnr2d_30_s": 0.5, "sfm_registration_rate": None, "wall_time_s": 3.0}))
+    gather([rd], tmp_path / "summary.csv", thresholds={"psnr2d": 25.0, "ssim2d": 0.9, "psnr3d": 20.0,
+                                                         "ssim3d": 0.75}, per_iters=500)
+    cols = set(pd.read_csv(tmp_path / "summary.csv").columns)
+    row = pd.read_csv(tmp_path / "summary.csv").iloc[0]
+    assert {"test_psnr2d", "test_ssim2d", "test_psnr3d", "test_ssim3d", "test_lpips"} <= cols
+    assert {"val_psnr2d_last", "val_ssim2d_last", "val_psnr3d_last", "val_ssim3d_last", "val_iteration_last"} <= cols
+    # no bare metric names and no final_* columns that could be read as either split
+    assert not cols & {"psnr2d", "ssim2d", "psnr3d", "ssim3d", "lpips"}
+    assert not [c for c in cols if c.startswith("final_")]
+    assert (row["test_psnr2d"], row["test_lpips"], row["wall_time_s"]) == (31.0, 0.12, 3.0)
+    # milestone keys follow the configured thresholds, 3D ones included; the stale one of metrics.json is gone
+    assert {"iter_to_psnr2d_25", "iter_to_ssim2d_090", "iter_to_psnr3d_20", "iter_to_ssim3d_075",
+            "time_to_psnr3d_20_s"} <= cols
+    assert "iter_to_psnr2d_30" not in cols
+    # _log: psnr3d = linspace(15, 25, 21) over it 0..2000 -> >= 20 first at index 10 (it 1000)
+    assert row["iter_to_psnr3d_20"] == 1000
+    assert "velocity_psnr2d_per_500it" in cols
+    assert not [c for c in cols if c.startswith("sfm_")]  # no colmap run: no pose-error columns
+
+
+def test_gather_adds_sfm_pose_errors_to_colmap_runs(tmp_path):
+    gt = _fake_run(tmp_path, poses="gt")
+    colmap = _fake_run(tmp_path, poses="colmap")
+    other = _fake_run(tmp_path, volume="head", poses="colmap")  # its volume has no sfm/summary.json
+    (tmp_path / "phantom" / "sfm").mkdir()
+    (tmp_path / "phantom" / "sfm" / "summary.json").write_text(json.dumps({
+        "ok": False, "registration_rate": 0.5, "rot_err_deg_median": 91.6, "rot_err_deg_p90": 170.0,
+        "centre_err_mm_median": 885.0, "reason": "too few registrations"}))
+    df = gather([gt, colmap, other], tmp_path / "summary.csv").set_index("run_dir")
+    back = pd.read_csv(tmp_path / "summary.csv").set_index("run_dir")
+    r = back.loc[str(colmap)]
+    assert (r["sfm_rot_err_deg_median"], r["sfm_rot_err_deg_p90"], r["sfm_centre_err_mm_median"],
+            r["sfm_registration_rate"]) == (91.6, 170.0, 885.0, 0.5)
+    assert bool(df.loc[str(colmap), "sfm_ok"]) is False
+    assert not back.loc[str(other), "sfm_ok"] and pd.isna(back.loc[str(other), "sfm_rot_err_deg_median"])
+    assert back.loc[str(gt), ["sfm_ok", "sfm_rot_err_deg_median"]].isna().all()  # not an SfM run
 
 
 def test_gather_errors(tmp_path):
@@ -314,3 +432,13 @@ def test_load_runs_tags_rows(tmp_path):
     logs = load_runs(summary)
     assert len(logs) == 2 * 21
     assert set(logs["compositor"]) == {"radiative", "alpha"}
+
+
+def test_load_per_view_tags_rows_and_keeps_the_split(tmp_path):
+    runs = [_fake_run(tmp_path, init=i) for i in ("fbp", "uniform")]
+    for rd in runs:
+        pd.DataFrame({"iteration": [100, 100, 200], "view_id": [1, 2, 1], "azimuth_deg": [0.0, 90.0, 0.0],
+                      "elevation_deg": 0.0, "split": ["val", "val", "train"], "psnr2d": [20.0, 21.0, 22.0],
+                      "ssim2d": [0.5, 0.6, 0.7]}).to_csv(rd / "per_view.csv", index=False)
+    pv = load_per_view(gather(runs, tmp_path / "s.csv"))
+    assert len(pv) == 4 and set(pv["split"]) == {"val"} and set(pv["init"]) == {"fbp", "uniform"}

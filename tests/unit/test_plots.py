@@ -12,7 +12,7 @@ import pytest
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS, RUN_FIGURES, plots
 from ctsplat.analysis.gather import gather, load_runs
-from ctsplat.analysis.stats import acf, porkchop_table, rolling_centered, velocity_curve
+from ctsplat.analysis.stats import acf, acf_band, detrend, porkchop_table, rolling_centered, velocity_curve
 from ctsplat.formats.runlog import METRICS_2D3D, read_per_view
 from ctsplat.grid import run_relpath
 from ctsplat.utils import CtsplatError
@@ -77,12 +77,19 @@ def test_convergence_with_missing_3d_metrics(tmp_path):
     assert _is_png(tmp_path / "c.png")
 
 
-def test_porkchop_heatmap_holds_the_pivot_table(tmp_path):
+def test_porkchop_heatmap_holds_the_pivot_table_with_azimuth_ticks_and_units(tmp_path):
     pv = read_per_view(_write(tmp_path / "pv.csv", _per_view()))
     fig = plots.plot_porkchop(pv, tmp_path / "p.png", split="val")
     mesh = fig.axes[0].collections[0]
     table = porkchop_table(pv, "psnr2d", split="val")
     np.testing.assert_allclose(np.asarray(mesh.get_array()).reshape(table.shape), table.to_numpy())
+    # rows are labelled with what they are: azimuth in degrees (view ids 0..4 at (v * 77) % 360)
+    ticks = [t.get_text() for t in fig.axes[0].get_yticklabels()]
+    az = {v: (v * 77) % 360 for v in range(5)}
+    assert ticks == [f"{az[v]}° (#{v})" for v in table.index]
+    assert "azimuth (°)" in fig.axes[0].get_ylabel()
+    cbar_labels = [a.get_ylabel() for a in fig.axes if a.get_ylabel() and a not in fig.axes[:1]]
+    assert "PSNR 2D (dB)" in cbar_labels and any("SSIM 2D (unitless" in lb for lb in cbar_labels)
     assert _is_png(tmp_path / "p.png")
 
 
@@ -91,60 +98,173 @@ def _write(path, df):
     return path
 
 
-def test_acf_plot_values(tmp_path):
-    log = _log()
-    fig = plots.plot_acf(log, tmp_path / "a.png", max_lag=10)
+def test_acf_plot_is_of_the_detrended_curve_with_its_band(tmp_path):
+    log = _log(n=120)
+    fig = plots.plot_acf(log, tmp_path / "a.png", max_lag=10, window=7)
     pts = fig.axes[0].get_lines()[0]
-    np.testing.assert_allclose(pts.get_ydata(), acf(log["psnr2d"], 10))
+    resid = detrend(log["psnr2d"], "rolling", 7)
+    np.testing.assert_allclose(pts.get_ydata(), acf(resid, 10))
+    band = fig.axes[0].patches[0]  # the axhspan of the 95 % band
+    assert band.get_y() == pytest.approx(-acf_band(resid.size))
+    assert band.get_y() + band.get_height() == pytest.approx(acf_band(resid.size))
 
 
-def test_kde_windows_one_curve_per_window(tmp_path):
-    fig = plots.plot_kde_windows(_log(), tmp_path / "k.png", n_windows=3)
-    assert len(fig.axes[0].get_lines()) == 3
+def test_acf_runs_one_named_line_per_run_and_a_band(tmp_path):
+    runs = [_make_run(tmp_path, init=i, seed=s) for i in ("fbp", "uniform") for s in (0, 1)]
+    logs = load_runs(gather(runs, tmp_path / "s.csv"))
+    fig = plots.plot_acf_runs(logs, tmp_path / "acf.png", max_lag=8, window=5)
+    ax = fig.axes[0]
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels[:4] == ["init=fbp, seed=0", "init=fbp, seed=1", "init=uniform, seed=0", "init=uniform, seed=1"]
+    assert labels[4].startswith("95 % band")
+    lines = {ln.get_label(): ln for ln in ax.get_lines()}
+    g = logs[(logs["init"] == "uniform") & (logs["seed"] == 1)]
+    np.testing.assert_allclose(lines["init=uniform, seed=1"].get_ydata(), acf(detrend(g["psnr2d"], "rolling", 5), 8))
+    styles = {(ln.get_color(), ln.get_linestyle()) for ln in lines.values() if ln.get_label() in labels}
+    assert len(styles) == 4  # every run distinguishable
+
+
+def _per_view_ssim(iterations=range(0, 1001, 100), views=12, seed=0, init_gap=0.0):
+    rng = np.random.default_rng(seed)
+    rows = []
+    for it in iterations:
+        for v in range(views):
+            q = 1 - (0.3 + init_gap) * np.exp(-it / 300) - rng.exponential(0.004)
+            rows.append({"iteration": it, "view_id": v, "azimuth_deg": 30.0 * v, "elevation_deg": 0.0,
+                         "split": "val", "psnr2d": 20 + it / 100 + rng.normal(0, 0.5), "ssim2d": min(q, 1.0)})
+    return pd.DataFrame(rows)
+
+
+def test_kde_windows_from_per_view_values_bounded_and_labelled_in_iterations(tmp_path):
+    pv = _per_view_ssim()
+    fig = plots.plot_kde_windows(pv, tmp_path / "k.png", n_windows=3)
+    ssim_ax = fig.axes[1]
+    curves = [ln for ln in ssim_ax.get_lines() if ln.get_linestyle() == "-"]
+    assert len(curves) == 3  # one density per window
+    assert max(ln.get_xdata().max() for ln in curves) <= 1.0  # SSIM density never runs past 1
+    legend = [t.get_text() for t in ssim_ax.get_legend().get_texts()]
+    # windows named by their iteration range; each built from the per-view values (12 views per evaluation)
+    assert legend[0].startswith("iterations 0–333") and "(n=48)" in legend[0]
     assert _is_png(tmp_path / "k.png")
 
 
-def test_convergence_by_axis_colours_runs_by_axis_value(tmp_path):
-    runs = [_make_run(tmp_path, init=i, seed=s) for i in ("fbp", "uniform") for s in (0, 1)]
-    summary = gather(runs, tmp_path / "summary.csv")
-    logs = load_runs(summary)
-    fig = plots.plot_convergence_by_axis(logs, "init", tmp_path / "ci.png", window=3)
+def test_kde_conditions_one_curve_per_condition_not_pooled_over_init(tmp_path):
+    frames = []
+    for init, gap in (("fbp", 0.0), ("uniform", 0.2)):
+        for seed in (0, 1):
+            cell = {"volume": "phantom", "init": init, "compositor": "radiative", "mip": "on", "poses": "gt",
+                    "views": 8, "seed": seed, "run_dir": f"r/{init}/{seed}"}
+            frames.append(_per_view_ssim(seed=seed, init_gap=gap).assign(**cell))
+    pv = pd.concat(frames, ignore_index=True)
+    fig = plots.plot_kde_conditions(pv, tmp_path / "kc.png", n_windows=4)
+    ax = fig.axes[1]
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels == ["init=fbp", "init=uniform"]  # seeds pooled within a condition, inits kept apart
+    curves = {ln.get_label(): ln for ln in ax.get_lines()}
+    assert max(curves[lb].get_xdata().max() for lb in labels) <= 1.0
+    # the uniform curve is the density of its own last-window values only
+    last = pv[(pv["init"] == "uniform") & (pv["iteration"] >= 750)]["ssim2d"]
+    from ctsplat.analysis.stats import bounded_kde
+
+    x, d = bounded_kde(last, -1.0, 1.0)
+    np.testing.assert_allclose(curves["init=uniform"].get_ydata(), d)
+    assert "iterations 750–1000" in fig.texts[0].get_text()
+
+
+def test_convergence_by_axis_colours_by_axis_and_tells_every_run_apart(tmp_path):
+    runs = [_make_run(tmp_path, init=i, views=v) for i in ("fbp", "uniform") for v in (8, 16)]
+    logs = load_runs(gather(runs, tmp_path / "summary.csv"))
+    fig = plots.plot_convergence_by_axis(logs, "views", tmp_path / "cv.png", window=3)
     lines = fig.axes[0].get_lines()
     assert len(lines) == 4
-    colours = {tuple(line.get_color()) for line in lines}
-    assert len(colours) == 2  # one colour per init value
-    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == ["init=fbp", "init=uniform"]
+    by_label = {ln.get_label(): ln for ln in lines}
+    # legend names each run by the axes that differ, the colour axis first
+    assert sorted(by_label) == ["views=16, init=fbp", "views=16, init=uniform", "views=8, init=fbp",
+                                "views=8, init=uniform"]
+    assert len({ln.get_color() for ln in lines}) == 2  # one colour per views value ...
+    assert by_label["views=8, init=fbp"].get_color() == by_label["views=8, init=uniform"].get_color()
+    # ... and the runs that share a colour differ in line style
+    assert by_label["views=8, init=fbp"].get_linestyle() != by_label["views=8, init=uniform"].get_linestyle()
+    assert len({(ln.get_color(), ln.get_linestyle(), ln.get_marker()) for ln in lines}) == 4
+    legend = [t.get_text() for t in fig.axes[1].get_legend().get_texts()]
+    assert set(legend) == set(by_label)
 
 
-def test_velocity_plot_matches_velocity_curve(tmp_path):
-    runs = [_make_run(tmp_path)]
+def test_velocity_plot_matches_velocity_curve_and_names_conditions(tmp_path):
+    runs = [_make_run(tmp_path, init=i) for i in ("fbp", "uniform")]
     logs = load_runs(gather(runs, tmp_path / "s.csv"))
     fig = plots.plot_velocity(logs, tmp_path / "v.png", per_iters=500)
-    line = fig.axes[0].get_lines()[0]
-    vc = velocity_curve(logs["iteration"], logs["psnr2d"], 500)
-    np.testing.assert_allclose(line.get_ydata(), vc["velocity"])
+    lines = {ln.get_label(): ln for ln in fig.axes[0].get_lines() if not ln.get_label().startswith("_")}
+    assert set(lines) == {"init=fbp", "init=uniform"}  # not the raw wildcard path
+    g = logs[logs["init"] == "uniform"]
+    vc = velocity_curve(g["iteration"], g["psnr2d"], 500)
+    np.testing.assert_allclose(lines["init=uniform"].get_ydata(), vc["velocity"])
+    assert fig.axes[0].get_ylabel() == "median PSNR2D gain (dB per 500 it)"
+    assert lines["init=fbp"].get_color() != lines["init=uniform"].get_color()
+
+
+def test_correlations_per_run_over_windows_never_pooled(tmp_path):
+    runs = [_make_run(tmp_path, init=i) for i in ("fbp", "uniform")]
+    logs = load_runs(gather(runs, tmp_path / "s.csv"))
+    # the second run's 3D metric falls while its 2D metric rises: pooled, the two runs would hide that
+    sel = logs["init"] == "uniform"
+    logs.loc[sel, "psnr3d"] = 40 - logs.loc[sel, "psnr3d"]
+    table = plots.correlation_table(logs, 3)
+    assert set(table["run_dir"]) == {str(r) for r in runs}  # no pooled "all runs" row
+    assert set(table["window"]) == {"all", "0–666", "666–1333", "1333–2000"}
+    fig = plots.plot_correlations(logs, tmp_path / "c.png", n_windows=3)
+    lines = {ln.get_label(): ln for ln in fig.axes[0].get_lines() if not ln.get_label().startswith("_")}
+    fbp = next(ln for lb, ln in lines.items() if lb.startswith("init=fbp"))
+    uni = next(ln for lb, ln in lines.items() if lb.startswith("init=uniform"))
+    np.testing.assert_allclose(fbp.get_xdata(), [333.0, 1000.0, 1666.5], atol=0.5)
+    assert np.all(np.asarray(fbp.get_ydata()) > 0.5) and np.all(np.asarray(uni.get_ydata()) < -0.5)
+    expect = table[(table["run_dir"] == str(runs[1])) & (table["x"] == "psnr2d") & (table["window"] != "all")]
+    np.testing.assert_allclose(uni.get_ydata(), expect["spearman"])
+    assert "whole run ρ=" in uni.get_label()
+    assert fbp.get_color() != uni.get_color()  # runs told apart
+    assert set(table["init"]) == {"fbp", "uniform"}
 
 
 def test_baselines_plot_has_gs_and_classical_lines(tmp_path):
     summary = pd.DataFrame({"volume": ["p"] * 4, "init": ["fbp"] * 4, "compositor": ["radiative"] * 4,
                             "mip": ["on"] * 4, "poses": ["gt"] * 4, "views": [8, 8, 16, 16], "seed": [0, 1, 0, 1],
-                            "psnr3d": [20.0, 22.0, 25.0, 27.0]})
+                            "test_psnr3d": [20.0, 22.0, 25.0, 27.0]})
     base = pd.DataFrame({"method": ["fbp", "fbp", "sart", "sart"], "filter": ["ramp", "ramp", None, None],
                          "iterations": [0, 0, 3, 3], "n_views": [8, 16, 8, 16], "psnr3d": [15.0, 18.0, 17.0, 19.0],
                          "ssim3d": [0.1] * 4})
     fig = plots.plot_baselines(summary, base, tmp_path / "b.png")
     labels = {line.get_label(): line for line in fig.axes[0].get_lines()}
-    assert set(labels) == {"fbp (ramp)", "sart", "GS fbp/radiative/on/gt"}
-    np.testing.assert_allclose(labels["GS fbp/radiative/on/gt"].get_ydata(), [21.0, 26.0])  # mean over seeds
+    gs = "Gaussian, init=fbp, compositor=radiative, mip=on, poses=gt"  # one condition: named in full
+    assert set(labels) == {"fbp (ramp)", "sart", gs}
+    np.testing.assert_allclose(labels[gs].get_ydata(), [21.0, 26.0])  # mean over seeds
     np.testing.assert_allclose(labels["sart"].get_ydata(), [17.0, 19.0])
+    two = pd.concat([summary, summary.assign(init="uniform", test_psnr3d=summary["test_psnr3d"] - 3)])
+    fig = plots.plot_baselines(two, base, tmp_path / "b2.png")
+    lines = {ln.get_label(): ln for ln in fig.axes[0].get_lines()}
+    assert {"Gaussian, init=fbp", "Gaussian, init=uniform"} <= set(lines)  # named by what differs
+    colours = [ln.get_color() for ln in lines.values()]
+    assert len(set(map(str, colours))) == len(colours)  # no two lines share a colour
 
 
-def test_ablation_plot_panels_for_varying_axes(tmp_path):
-    runs = [_make_run(tmp_path, init=i, views=v) for i in ("fbp", "uniform") for v in (8, 16)]
+def test_ablation_is_paired_lines_not_boxes(tmp_path):
+    runs = [_make_run(tmp_path, init=i, views=v, seed=s) for i in ("fbp", "uniform") for v in (8, 16)
+            for s in (0, 1)]
     summary = gather(runs, tmp_path / "s.csv")
     fig = plots.plot_ablation(summary, tmp_path / "ab.png")
-    titles = {ax.get_xlabel() for ax in fig.axes}
-    assert {"init", "views"} <= titles  # only the two axes that vary
+    xlabels = [ax.get_xlabel() for ax in fig.axes]
+    assert {"init", "views"} <= set(xlabels) and "seed" not in xlabels  # only the axes that vary, seed excepted
+    assert not any(ax.patches for ax in fig.axes)  # no box plots
+    assert fig.axes[0].get_ylabel() == "test PSNR 3D (dB)"  # first row: test PSNR3D; columns: init, views
+    views_ax = fig.axes[1]
+    grey = [ln for ln in views_ax.get_lines() if ln.get_label() != "median"]
+    # one line per (init, seed) cell with only views changed: 2 inits x 2 seeds
+    assert len(grey) == 4
+    # _make_run: test psnr3d = 24 + views / 10 + seed -> every pair rises by 0.8 dB from 8 to 16 views
+    for ln in grey:
+        np.testing.assert_allclose(np.diff(ln.get_ydata()), 0.8)
+    assert "4 pairs" in views_ax.get_title() and "+0.8 dB" in views_ax.get_title()
+    table = plots.paired_table(summary, "views", "test_psnr3d")
+    assert list(table.columns) == ["8", "16"] and len(table) == 4
     assert _is_png(tmp_path / "ab.png")
 
 
@@ -162,7 +282,8 @@ def test_analyse_and_run_figures_write_every_output(tmp_path):
     ms = pd.read_csv(outputs["milestones"])
     assert len(ms) == 4 and {"iter_to_psnr2d_30", "iters_per_s"} <= set(ms.columns)
     corr = pd.read_csv(outputs["correlations"])
-    assert len(corr) == 2 * 5 and set(corr["run_dir"]) >= {"all"}
+    # per run: the whole run + analysis.kde_windows (4) windows, for the PSNR and SSIM pairs; nothing pooled
+    assert len(corr) == 4 * (1 + 4) * 2 and set(corr["run_dir"]) == {str(r) for r in runs}
     run_out = {name: runs[0] / "figures" / f"{name}.png" for name in RUN_FIGURES}
     plots.run_figures(runs[0], run_out, {"window": 3})
     assert all(_is_png(p) for p in run_out.values())

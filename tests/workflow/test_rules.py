@@ -180,7 +180,7 @@ def test_rules_gather_analyse_and_report(wd):
     assert len(summary) == 1
     row = summary.iloc[0]
     assert (row["volume"], row["init"], row["views"], row["mip"]) == ("tiny", "fbp", VIEWS, "on")
-    assert np.isfinite(row["psnr3d"]) and np.isfinite(row["final_psnr2d"])
+    assert np.isfinite(row["test_psnr3d"]) and np.isfinite(row["val_psnr2d_last"])
     run_rule(wd, "analyse", "results/figures/ablation.png", "results/figures/baselines.png")
     from ctsplat.analysis import ANALYSIS_OUTPUTS
 

@@ -50,10 +50,20 @@ rule run_figures:
         "../../scripts/run_figures.py"
 
 
+def sfm_summaries():
+    """SfM summaries of the volumes with poses: colmap runs: their pose errors are columns of summary.csv."""
+    return [
+        f"{RESULTS}/{v}/sfm/summary.json"
+        for v in VOLUMES
+        if (RUNS[RUNS["volume"] == v]["poses"] == "colmap").any()
+    ]
+
+
 rule gather:
     input:
         metrics=all_metrics(),
         logs=all_logs(),
+        sfm=sfm_summaries(),
     output:
         summary=report(
             f"{RESULTS}/summary.csv",
