@@ -50,15 +50,6 @@ rule run_figures:
         "../../scripts/run_figures.py"
 
 
-def sfm_summaries():
-    """SfM summaries of the volumes with poses: colmap runs: their pose errors are columns of summary.csv."""
-    return [
-        f"{RESULTS}/{v}/sfm/summary.json"
-        for v in VOLUMES
-        if (RUNS[RUNS["volume"] == v]["poses"] == "colmap").any()
-    ]
-
-
 rule gather:
     input:
         metrics=all_metrics(),

@@ -228,3 +228,12 @@ def analysis_outputs():
         )
         for name, (fname, category) in ANALYSIS_OUTPUTS.items()
     }
+
+
+def sfm_summaries():
+    """SfM summaries of the volumes with poses: colmap runs: their pose errors are columns of summary.csv."""
+    return [
+        f"{RESULTS}/{v}/sfm/summary.json"
+        for v in VOLUMES
+        if (RUNS[RUNS["volume"] == v]["poses"] == "colmap").any()
+    ]
