@@ -223,8 +223,9 @@ def _colmap_train(cfg: dict[str, Any], volume: Any, mu_scale: float) -> tuple[Vi
     n_total = int(summary.get("n_views", 0))
     if rate < float(cfg["min_registration_rate"]) or not (sfm_dir / "aligned_views.json").exists():
         raise CtsplatError(
-            f"SfM registered only {rate:.0%} of {n_total} views (need >= {cfg['min_registration_rate']:.0%} for "
-            f"poses: colmap; {summary.get('reason', 'no aligned poses')}); use poses: gt or improve the sfm step")
+            f"the SfM run failed ({summary_path}): it registered only {rate:.0%} of {n_total} views (need >= "
+            f"{cfg['min_registration_rate']:.0%} for poses: colmap; {summary.get('reason', 'no aligned poses')}); "
+            "use poses: gt or improve the sfm step")
     if not summary.get("ok", False):
         log.warning("sfm summary is not ok (%s); training with its poses anyway", summary.get("reason", ""))
     aligned = ViewSet.load(sfm_dir / "aligned_views.json")

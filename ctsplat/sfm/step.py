@@ -456,6 +456,9 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
                    camera={"model": "PINHOLE", "width": W, "height": H, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                            "cy": cam.cy, "pitch_mm": cam.pitch_mm, "dso_mm": cam.dso_mm, "dsd_mm": cam.dsd_mm})
     write_json_atomic(out_dir / "summary.json", json_safe(summary))
+    if not summary["ok"]:  # the step itself succeeds (the report shows the failure), so say it loudly here
+        log.warning("SfM failed: %s; poses: colmap runs will refuse to train on these poses (%s)",
+                    summary.get("reason", "no reason recorded"), out_dir / "summary.json")
     return summary
 
 

@@ -57,6 +57,7 @@ def all_targets():
     for v in VOLUMES:
         if needs_sfm(v):
             targets.append(f"{RESULTS}/{v}/sfm/summary.json")
+            targets.append(f"{RESULTS}/{v}/sfm/pose_errors.png")
         if baselines_enabled():
             targets.append(f"{RESULTS}/{v}/baselines/{BASELINE_GEOMETRY}/baselines.csv")
     return targets
@@ -237,3 +238,4 @@ def sfm_summaries():
         for v in VOLUMES
         if (RUNS[RUNS["volume"] == v]["poses"] == "colmap").any()
     ]
+

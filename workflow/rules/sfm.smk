@@ -22,3 +22,28 @@ rule sfm:
         seed=0,
     script:
         "../../scripts/sfm.py"
+
+
+rule sfm_figure:
+    input:
+        summary=f"{RESULTS}/{{volume}}/sfm/summary.json",
+        poses=f"{RESULTS}/{{volume}}/sfm/poses.csv",
+    output:
+        figure=report(
+            f"{RESULTS}/{{volume}}/sfm/pose_errors.png",
+            caption="../report/sfm.rst",
+            category="SfM",
+            labels={"volume": "{volume}", "figure": "pose error vs azimuth"},
+        ),
+    log:
+        f"{RESULTS}/logs/sfm_figure/{{volume}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/sfm_figure/{{volume}}.tsv"
+    conda:
+        "../../envs/ctsplat.yaml"
+    threads: rule_resources("run_figures")["threads"]
+    resources:
+        mem_mb=rule_resources("run_figures")["mem_mb"],
+        runtime=rule_resources("run_figures")["runtime"],
+    script:
+        "../../scripts/overview.py"

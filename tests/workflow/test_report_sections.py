@@ -1,0 +1,61 @@
+"""The report's data, radiographs, SfM and run-figure sections, on a tiny grid where SfM is made to fail.
+
+Real Snakemake jobs in a temp folder: the SfM failure must be visible in the rule log, in the SfM figure and in
+the error of the ``poses: colmap`` cell (which must not train on the failed poses); the overview figures and the
+evaluate rule's figures must exist and be registered in the HTML report.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import pandas as pd
+import pytest
+from smk_helpers import snakemake, write_config
+from test_rules import CONFIG, VIEWS
+
+pytestmark = pytest.mark.workflow
+
+VOL = "results/tiny"
+CELL = "mip~on/poses~{poses}/views~" + str(VIEWS) + "/seed~0"
+GT_RUN = f"{VOL}/runs/init~fbp/compositor~radiative/" + CELL.format(poses="gt")
+COLMAP_RUN = f"{VOL}/runs/init~fbp/compositor~radiative/" + CELL.format(poses="colmap")
+
+
+@pytest.fixture(scope="module")
+def wd(tmp_path_factory):
+    d = tmp_path_factory.mktemp("wf_report")
+    cfg = copy.deepcopy(CONFIG)
+    # two-view geometry needs more inliers than any pair of these tiny radiographs has: nothing registers
+    cfg["sfm"]["settings"].update(min_num_inliers=100000, init_min_num_inliers=100000)
+    cfg["grid"]["axes"]["poses"] = ["gt", "colmap"]
+    cfg["train"]["figures"] = True
+    cfg["baselines"]["enabled"] = False
+    write_config(d / "config.yaml", cfg)
+    return d
+
+
+def test_failed_sfm_is_visible_in_log_figure_and_colmap_cell(wd):
+    snakemake(wd, f"{VOL}/sfm/pose_errors.png", configfile=wd / "config.yaml")
+    summary = json.loads((wd / VOL / "sfm/summary.json").read_text())
+    assert summary["ok"] is False and summary["reason"]
+    log = (wd / "results/logs/sfm/tiny.log").read_text()
+    warnings = [ln for ln in log.splitlines() if " WARNING " in ln and "SfM failed" in ln]
+    assert warnings and summary["reason"] in warnings[0]
+    assert (wd / VOL / "sfm/pose_errors.png").stat().st_size > 1000
+
+    from ctsplat.analysis.overview import FAILED_COLOUR, plot_sfm
+
+    fig = plot_sfm(pd.read_csv(wd / VOL / "sfm/poses.csv"), summary, wd / "again.png")
+    title = fig._suptitle
+    assert title.get_text().startswith("SfM FAILED: ") and summary["reason"] in title.get_text()
+    assert title.get_color() == FAILED_COLOUR
+
+    # the colmap cell refuses to train on the failed poses, with a message naming the SfM run and its summary
+    proc = snakemake(wd, f"{COLMAP_RUN}/training.json", configfile=wd / "config.yaml", check=False)
+    assert proc.returncode != 0
+    train_log = (wd / COLMAP_RUN / "logs/train.log").read_text()
+    assert "the SfM run failed" in train_log and "sfm/summary.json" in train_log
+    assert not (wd / COLMAP_RUN / "model.pt").exists()
+
