@@ -31,6 +31,7 @@ include: "workflow/rules/radiographs.smk"
 include: "workflow/rules/sfm.smk"
 include: "workflow/rules/train.smk"
 include: "workflow/rules/analysis.smk"
+include: "workflow/rules/overview.smk"
 
 
 report: "workflow/report/workflow.rst"

@@ -38,8 +38,10 @@ def test_large_grid_schedules_shared_work_once_and_training_per_cell(tmp_path):
     n = len(cells)
     assert n == 80 + 40
     # project: the training geometry and the C-arm view set SfM registers, per volume; "unused" is never rendered
+    # report figures: central slices per volume, a contact sheet per rendered view set, the SfM pose errors
     assert counts == {"phantom": 1, "ingest": 2, "project": 4, "baseline": 2, "sfm": 2, "train": n, "evaluate": n,
-                      "run_figures": n, "gather": 1, "analyse": 1, "all": 1, "total": 14 + 3 * n}
+                      "run_figures": n, "gather": 1, "analyse": 1, "overview_data": 2, "overview_radiographs": 4,
+                      "sfm_figure": 2, "all": 1, "total": 22 + 3 * n}
     assert not (tmp_path / "results").exists()
 
 
@@ -53,7 +55,7 @@ def test_optional_steps_switch_off(tmp_path):
     }
     counts = job_counts(snakemake(tmp_path, "-n", configfile=write_config(tmp_path / "c.yaml", config)).stdout)
     assert counts == {"ingest": 1, "project": 1, "train": 6, "evaluate": 6, "run_figures": 6, "gather": 1,
-                      "analyse": 1, "all": 1, "total": 23}
+                      "analyse": 1, "overview_data": 1, "overview_radiographs": 1, "all": 1, "total": 25}
 
 
 def test_default_config_grid(tmp_path):
@@ -62,6 +64,7 @@ def test_default_config_grid(tmp_path):
     assert counts["project"] == 2  # the training geometry and the C-arm view set of SfM
     assert counts["train"] == counts["evaluate"] == counts["run_figures"] >= 2
     assert counts.get("sfm", 0) == 1 and counts.get("baseline", 0) == 1
+    assert counts["overview_data"] == counts["sfm_figure"] == 1 and counts["overview_radiographs"] == 2
 
 
 def test_real_data_example_dry_run(shared_data):

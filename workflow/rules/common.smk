@@ -55,9 +55,12 @@ def all_targets():
     for rd in run_dirs():
         targets += [f"{rd}/metrics.json", f"{rd}/figures/convergence.png"]
     for v in VOLUMES:
+        targets.append(f"{RESULTS}/{v}/figures/volume_slices.png")
+        targets.append(f"{RESULTS}/{v}/figures/radiographs_{GEOMETRY}.png")
         if needs_sfm(v):
             targets.append(f"{RESULTS}/{v}/sfm/summary.json")
             targets.append(f"{RESULTS}/{v}/sfm/pose_errors.png")
+            targets.append(f"{RESULTS}/{v}/figures/radiographs_{SFM_GEOMETRY}.png")
         if baselines_enabled():
             targets.append(f"{RESULTS}/{v}/baselines/{BASELINE_GEOMETRY}/baselines.csv")
     return targets
@@ -238,4 +241,9 @@ def sfm_summaries():
         for v in VOLUMES
         if (RUNS[RUNS["volume"] == v]["poses"] == "colmap").any()
     ]
+
+
+def contact_sheet_split(wildcards):
+    """Views of a contact sheet: the training split of the training geometry, every view of the C-arm set."""
+    return "train" if wildcards.geometry == GEOMETRY else None
 
