@@ -59,3 +59,17 @@ def test_failed_sfm_is_visible_in_log_figure_and_colmap_cell(wd):
     assert "the SfM run failed" in train_log and "sfm/summary.json" in train_log
     assert not (wd / COLMAP_RUN / "model.pt").exists()
 
+
+def test_overview_and_run_figures_are_in_the_report(wd):
+    targets = [f"{VOL}/figures/volume_slices.png", f"{VOL}/figures/radiographs_circular.png",
+               f"{VOL}/figures/radiographs_carm.png", f"{VOL}/sfm/pose_errors.png", f"{GT_RUN}/metrics.json"]
+    snakemake(wd, *targets, configfile=wd / "config.yaml")
+    for t in targets[:4]:
+        assert (wd / t).stat().st_size > 1000, t
+    for name in ("gallery.png", "slices.png", "turntable.gif"):  # train.figures is on: evaluate declares them
+        assert (wd / GT_RUN / name).stat().st_size > 100, name
+    snakemake(wd, *targets, "--report", "report.html", configfile=wd / "config.yaml")
+    html = (wd / "report.html").read_text(errors="ignore")
+    for word in ("Data", "Radiographs", "SfM", "Runs", "volume_slices.png", "radiographs_carm.png",
+                 "pose_errors.png", "gallery.png", "slices.png"):
+        assert word in html, word

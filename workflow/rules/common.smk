@@ -247,3 +247,25 @@ def contact_sheet_split(wildcards):
     """Views of a contact sheet: the training split of the training geometry, every view of the C-arm set."""
     return "train" if wildcards.geometry == GEOMETRY else None
 
+
+def evaluate_figure_outputs():
+    """Figures `evaluate` writes into the run folder when train.figures is on (none when off)."""
+    if not CFG["train"]["figures"]:
+        return {}
+    return {
+        "gallery": report(
+            f"{RUN_PATTERN}/gallery.png",
+            caption="../report/run_gallery.rst",
+            category="Runs",
+            subcategory="{volume}",
+            labels=RUN_LABELS | {"figure": "test gallery"},
+        ),
+        "slices": report(
+            f"{RUN_PATTERN}/slices.png",
+            caption="../report/run_slices.rst",
+            category="Runs",
+            subcategory="{volume}",
+            labels=RUN_LABELS | {"figure": "volume slices"},
+        ),
+        "turntable": f"{RUN_PATTERN}/turntable.gif",
+    }

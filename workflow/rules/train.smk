@@ -33,6 +33,7 @@ rule evaluate:
     input:
         unpack(evaluate_inputs),
     output:
+        **evaluate_figure_outputs(),
         metrics=f"{RUN_PATTERN}/metrics.json",
         per_view=f"{RUN_PATTERN}/per_view_test.csv",
         volume=f"{RUN_PATTERN}/model_volume.nii.gz",
