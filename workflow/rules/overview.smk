@@ -17,10 +17,10 @@ rule overview_data:
         f"{RESULTS}/benchmarks/overview_data/{{volume}}.tsv"
     conda:
         "../../envs/ctsplat.yaml"
-    threads: rule_resources("run_figures")["threads"]
+    threads: rule_resources("overview_data")["threads"]
     resources:
-        mem_mb=rule_resources("run_figures")["mem_mb"],
-        runtime=rule_resources("run_figures")["runtime"],
+        mem_mb=rule_resources("overview_data")["mem_mb"],
+        runtime=rule_resources("overview_data")["runtime"],
     script:
         "../../scripts/overview.py"
 
@@ -42,10 +42,10 @@ rule overview_radiographs:
         f"{RESULTS}/benchmarks/overview_radiographs/{{volume}}_{{geometry}}.tsv"
     conda:
         "../../envs/ctsplat.yaml"
-    threads: rule_resources("run_figures")["threads"]
+    threads: rule_resources("overview_radiographs")["threads"]
     resources:
-        mem_mb=rule_resources("run_figures")["mem_mb"],
-        runtime=rule_resources("run_figures")["runtime"],
+        mem_mb=rule_resources("overview_radiographs")["mem_mb"],
+        runtime=rule_resources("overview_radiographs")["runtime"],
     params:
         split=contact_sheet_split,
         max_images=16,

@@ -41,9 +41,9 @@ rule sfm_figure:
         f"{RESULTS}/benchmarks/sfm_figure/{{volume}}.tsv"
     conda:
         "../../envs/ctsplat.yaml"
-    threads: rule_resources("run_figures")["threads"]
+    threads: rule_resources("sfm_figure")["threads"]
     resources:
-        mem_mb=rule_resources("run_figures")["mem_mb"],
-        runtime=rule_resources("run_figures")["runtime"],
+        mem_mb=rule_resources("sfm_figure")["mem_mb"],
+        runtime=rule_resources("sfm_figure")["runtime"],
     script:
         "../../scripts/overview.py"
