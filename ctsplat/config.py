@@ -22,7 +22,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from ctsplat.grid import expand_grid
+from ctsplat.grid import expand_grid, needs_sfm
 from ctsplat.utils import CtsplatError, merge_config
 
 __all__ = [
@@ -457,9 +457,8 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
         check_split(values["split"], f"radiographs.{geo}.split")
     check_grid_exclude(cfg)
     runs = expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
-    sfm_geometry = cfg["sfm"]["settings"].get("geometry", "carm")
-    needs_sfm = cfg["sfm"]["enabled"] or bool(((runs["poses"] == "colmap") | (runs["init"] == "sfm")).any())
-    if needs_sfm:
+    sfm_geometry = cfg["sfm"]["settings"]["geometry"]
+    if needs_sfm(runs, enabled=cfg["sfm"]["enabled"]):
         carm = cfg["radiographs"].get(sfm_geometry)
         if carm is None or carm["orbit"] != "carm" or carm["camera"] != "cone":
             what = "is not a radiographs geometry" if carm is None else "is not a C-arm orbit"

@@ -18,7 +18,7 @@ from ctsplat.utils import CtsplatError
 if TYPE_CHECKING:
     import pandas as pd
 
-__all__ = ["GRID_AXES", "expand_grid", "normalise_mip", "run_relpath", "parse_run_dir"]
+__all__ = ["GRID_AXES", "expand_grid", "normalise_mip", "run_relpath", "parse_run_dir", "needs_sfm"]
 
 #: The ablation axes, in the folder nesting order of a run directory.
 GRID_AXES: tuple[str, ...] = ("init", "compositor", "mip", "poses", "views", "seed")
@@ -121,6 +121,23 @@ def expand_grid(
         )
     df = pd.DataFrame(kept, columns=["volume", *GRID_AXES])
     return df.astype(dict.fromkeys(INT_AXES, int)).reset_index(drop=True)
+
+
+def needs_sfm(runs: Any, *, enabled: bool = False) -> bool:
+    """Whether SfM must run for these grid cells: when ``enabled`` or when a cell uses COLMAP poses or SfM points.
+
+    Parameters
+    ----------
+    runs : pandas.DataFrame
+        Grid cells (:func:`expand_grid`), e.g. those of one volume.
+    enabled : bool
+        The ``sfm.enabled`` setting.
+
+    Returns
+    -------
+    bool
+    """
+    return bool(enabled) or bool(((runs["poses"] == "colmap") | (runs["init"] == "sfm")).any())
 
 
 def run_relpath(row: Mapping[str, Any]) -> str:

@@ -409,3 +409,13 @@ def test_every_numeric_key_refuses_an_out_of_range_value(path, node):
         msg = str(err.value)
         assert msg.startswith(f"invalid config at {where}:"), (value, msg)
         assert "\n" not in msg
+
+
+def test_needs_sfm_follows_enabled_and_the_cells():
+    from ctsplat.grid import expand_grid, needs_sfm
+
+    axes = {"init": ["fbp"], "compositor": ["radiative"], "mip": ["on"], "poses": ["gt"], "views": [4], "seed": [0]}
+    assert not needs_sfm(expand_grid(axes, ["v"], []))
+    assert needs_sfm(expand_grid(axes, ["v"], []), enabled=True)
+    assert needs_sfm(expand_grid({**axes, "poses": ["gt", "colmap"]}, ["v"], []))
+    assert needs_sfm(expand_grid({**axes, "init": ["sfm"]}, ["v"], []))

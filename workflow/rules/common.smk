@@ -8,7 +8,7 @@ from snakemake.utils import Paramspace
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS
 from ctsplat.config import prepare_config
-from ctsplat.grid import GRID_AXES, expand_grid
+from ctsplat.grid import GRID_AXES, expand_grid, needs_sfm
 from ctsplat.utils import CtsplatError, config_hash
 
 try:
@@ -18,7 +18,7 @@ except CtsplatError as exc:
 
 RESULTS = "results"
 GEOMETRY = CFG["grid"]["geometry"]
-SFM_GEOMETRY = CFG["sfm"]["settings"].get("geometry", "carm")
+SFM_GEOMETRY = CFG["sfm"]["settings"]["geometry"]
 BASELINE_GEOMETRY = CFG["baselines"]["geometry"]
 VOLUMES = list(CFG["volumes"])
 RUNS = expand_grid(CFG["grid"]["axes"], VOLUMES, CFG["grid"]["exclude"])
@@ -36,12 +36,9 @@ def run_dirs(volume=None):
     return out
 
 
-def needs_sfm(volume):
-    """SfM runs for a volume when enabled or when a grid cell uses COLMAP poses / SfM points."""
-    rows = RUNS[RUNS["volume"] == volume]
-    return CFG["sfm"]["enabled"] or bool(
-        ((rows["poses"] == "colmap") | (rows["init"] == "sfm")).any()
-    )
+def sfm_runs_for(volume):
+    """Whether SfM runs for a volume (ctsplat.grid.needs_sfm on its grid cells)."""
+    return needs_sfm(RUNS[RUNS["volume"] == volume], enabled=CFG["sfm"]["enabled"])
 
 
 def baselines_enabled():
@@ -57,7 +54,7 @@ def all_targets():
     for v in VOLUMES:
         targets.append(f"{RESULTS}/{v}/figures/volume_slices.png")
         targets.append(f"{RESULTS}/{v}/figures/radiographs_{GEOMETRY}.png")
-        if needs_sfm(v):
+        if sfm_runs_for(v):
             targets.append(f"{RESULTS}/{v}/sfm/summary.json")
             targets.append(f"{RESULTS}/{v}/sfm/pose_errors.png")
             targets.append(f"{RESULTS}/{v}/figures/radiographs_{SFM_GEOMETRY}.png")
