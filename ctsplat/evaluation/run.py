@@ -31,6 +31,7 @@ from ctsplat.utils import CtsplatError, code_version, json_safe, resolve_device,
 __all__ = [
     "render_views",
     "view_metrics",
+    "per_view_rows",
     "voxelize_model",
     "volume_metrics",
     "peak_memory_mb",
@@ -150,6 +151,31 @@ def voxelize_model(gaussians: Any, shape: tuple[int, int, int], affine: np.ndarr
                                                                device=gaussians.means.device),
                        filter_3d_var=filter_3d_var)
     return vol.float().cpu().numpy()
+
+
+def per_view_rows(iteration: int, views: Any, vm: dict[str, Any]) -> list[dict[str, Any]]:
+    """``per_view*.csv`` rows (:data:`ctsplat.formats.runlog.PER_VIEW_COLUMNS`) of one evaluation.
+
+    Parameters
+    ----------
+    iteration : int
+        The model's training iteration.
+    views : ctsplat.scene.ViewData
+        The evaluated views (ids, angles in degrees, split).
+    vm : dict
+        :func:`view_metrics` of those views (``psnr2d`` dB, ``ssim2d``, one value per view).
+
+    Returns
+    -------
+    list of dict
+        One row per view.
+    """
+    return [
+        {"iteration": int(iteration), "view_id": int(i), "azimuth_deg": float(a), "elevation_deg": float(e),
+         "split": views.split, "psnr2d": float(p), "ssim2d": float(q)}
+        for i, a, e, p, q in zip(views.ids, views.azimuth_deg, views.elevation_deg, vm["psnr2d"], vm["ssim2d"],
+                                 strict=True)
+    ]
 
 
 def volume_metrics(model_vol: np.ndarray, reference: np.ndarray) -> dict[str, float]:
@@ -365,7 +391,6 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     log_path = run_dir / "train_log.csv"
     targets = dict(milestones) if milestones else schema_defaults("analysis")["milestones"]
     times = milestone_times(read_train_log(log_path), targets) if log_path.exists() else {}
-
     fps = forward_fps(g, views.camera, views.Rs[0], views.ts[0], rk, width=int(cfg["fps_width"]),
                       height=int(cfg["fps_height"]))
     uses_ref = cfg["init"] == "volume"
@@ -410,12 +435,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         return result
     per_view = CsvLog(run_dir / f"per_view_{split}.csv", PER_VIEW_COLUMNS)
     per_view.reset()
-    per_view.append([
-        {"iteration": trained["iterations"], "view_id": int(i), "azimuth_deg": float(a), "elevation_deg": float(e),
-         "split": split, "psnr2d": float(p), "ssim2d": float(q)}
-        for i, a, e, p, q in zip(views.ids, views.azimuth_deg, views.elevation_deg, vm["psnr2d"], vm["ssim2d"],
-                                 strict=True)
-    ])
+    per_view.append(per_view_rows(trained["iterations"], views, vm))
     if split == "test":
         meta = {"source": "ctsplat voxelised Gaussian model",
                 "intensity": {"unit": "normalised", "mu_scale_per_mm": scene.mu_scale},

@@ -54,7 +54,14 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from ctsplat.evaluation.run import peak_memory_mb, render_views, view_metrics, volume_metrics, voxelize_model
+from ctsplat.evaluation.run import (
+    peak_memory_mb,
+    per_view_rows,
+    render_views,
+    view_metrics,
+    volume_metrics,
+    voxelize_model,
+)
 from ctsplat.formats.runlog import LOG_COLUMNS, LOG_EXTRAS, PER_VIEW_COLUMNS, CsvLog
 from ctsplat.scene import Scene, ViewData, even_subset, load_scene
 from ctsplat.splat.render import random_region, render, voxelize
@@ -123,13 +130,7 @@ def _evaluate_periodic(state: TrainState, cfg: dict[str, Any], scene: Scene, val
     vol = voxelize_model(g, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
     m3 = volume_metrics(vol, scene.volume.data)
     row = {"psnr2d": float(np.mean(vm["psnr2d"])), "ssim2d": float(np.mean(vm["ssim2d"])), **m3}
-    per_view = [
-        {"iteration": state.iteration, "view_id": int(i), "azimuth_deg": float(a), "elevation_deg": float(e),
-         "split": val.split, "psnr2d": float(p), "ssim2d": float(s)}
-        for i, a, e, p, s in zip(val.ids, val.azimuth_deg, val.elevation_deg, vm["psnr2d"], vm["ssim2d"],
-                                 strict=True)
-    ]
-    return row, per_view
+    return row, per_view_rows(state.iteration, val, vm)
 
 
 def _val_psnr(state: TrainState, cfg: dict[str, Any], val: ViewData) -> float:
