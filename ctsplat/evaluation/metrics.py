@@ -1,8 +1,16 @@
 """Image and volume quality metrics: PSNR, SSIM (2D and 3D), LPIPS (optional).
 
-3D conventions (shared by baselines and Gaussian models): volumes are normalised to [0, 1] and compared
-with data range 1; 3D PSNR is over the whole volume; 3D SSIM is the mean of the 2D SSIMs over all axial,
-coronal and sagittal slices (the mean of the three per-axis means).
+Two 3D conventions, both on volumes normalised to [0, 1] and compared with data range 1:
+
+- the project's own (:func:`psnr3d`, :func:`ssim3d`; ``psnr3d``/``ssim3d`` in every output): PSNR over the whole
+  volume; SSIM the mean of skimage's 2D SSIM (uniform 7x7 window, borders cropped) over *all* axial, coronal and
+  sagittal slices, averaged over the three axes;
+- R²-Gaussian's ``metric_vol`` (:func:`psnr3d_r2`, :func:`ssim3d_r2`; ``psnr3d_r2``/``ssim3d_r2``), the field's
+  sparse-view CT protocol: the same PSNR; SSIM per slice with an 11x11 Gaussian window (σ = 1.5, weights
+  normalised), zero padding and the map averaged over the whole slice (C1 = 0.01², C2 = 0.03², population
+  variances), only over slices whose reference has a positive maximum, averaged per axis and then over the
+  three axes. A reference outside [0, 1] is min-max normalised first (R²-Gaussian's volumes are), with the same
+  affine map applied to the test volume.
 
 References
 ----------
@@ -10,6 +18,10 @@ Wang, Z., Bovik, A. C., Sheikh, H. R., Simoncelli, E. P. (2004). Image quality a
 structural similarity. IEEE Transactions on Image Processing 13(4), 600-612. (SSIM.)
 Zhang, R., Isola, P., Efros, A. A., Shechtman, E., Wang, O. (2018). The unreasonable effectiveness of deep
 features as a perceptual metric. CVPR. (LPIPS.)
+Zha, R., Lin, T. J., Cai, Y., Cao, J., Zhang, Y., Li, H. (2024). R²-Gaussian: rectifying radiative Gaussian
+splatting for tomographic reconstruction. NeurIPS. Code: github.com/Ruyi-Zha/r2_gaussian,
+``r2_gaussian/utils/image_utils.py`` (``metric_vol``) and ``r2_gaussian/utils/loss_utils.py`` (``ssim``).
+(:func:`psnr3d_r2`, :func:`ssim3d_r2`.)
 """
 
 from __future__ import annotations
@@ -18,9 +30,11 @@ import functools
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 from skimage.metrics import structural_similarity
 
-__all__ = ["psnr", "ssim2d", "psnr3d", "ssim3d", "lpips_distance", "lpips_status"]
+__all__ = ["psnr", "ssim2d", "psnr3d", "ssim3d", "psnr3d_r2", "ssim3d_r2", "ssim_map_r2", "normalise_r2",
+           "lpips_distance", "lpips_status"]
 
 
 def psnr(test: np.ndarray, reference: np.ndarray, data_range: float | None = None) -> float:
@@ -83,7 +97,7 @@ def ssim2d(test: np.ndarray, reference: np.ndarray, data_range: float | None = N
 
 
 def psnr3d(test: np.ndarray, reference: np.ndarray) -> float:
-    """3D PSNR of normalised volumes (data range 1) over the whole volume.
+    """3D PSNR of normalised volumes (data range 1) over the whole volume (the project's own convention).
 
     Parameters
     ----------
@@ -99,7 +113,8 @@ def psnr3d(test: np.ndarray, reference: np.ndarray) -> float:
 
 
 def ssim3d(test: np.ndarray, reference: np.ndarray) -> float:
-    """3D SSIM: the mean 2D SSIM (data range 1) over all slices along each axis, averaged over the three axes.
+    """3D SSIM (the project's own): the mean 2D SSIM (data range 1) over all slices along each axis, averaged over
+    the three axes; skimage's uniform 7x7 window, empty slices included. See :func:`ssim3d_r2` for R²-Gaussian's.
 
     Parameters
     ----------
@@ -125,6 +140,142 @@ def ssim3d(test: np.ndarray, reference: np.ndarray) -> float:
         t = np.moveaxis(test, axis, 0)
         r = np.moveaxis(reference, axis, 0)
         per_axis.append(np.mean([structural_similarity(a, b, data_range=1.0) for a, b in zip(t, r, strict=True)]))
+    return float(np.mean(per_axis))
+
+
+#: R²-Gaussian's SSIM window: 11 taps of a Gaussian with σ = 1.5, normalised to sum 1 (``loss_utils.gaussian``).
+R2_SSIM_WINDOW = 11
+R2_SSIM_SIGMA = 1.5
+
+
+def _r2_window() -> np.ndarray:
+    x = np.arange(R2_SSIM_WINDOW, dtype=np.float64) - R2_SSIM_WINDOW // 2
+    g = np.exp(-(x**2) / (2.0 * R2_SSIM_SIGMA**2))
+    return g / g.sum()
+
+
+def normalise_r2(test: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Both volumes on R²-Gaussian's [0, 1] scale: unchanged when the reference lies in [0, 1], else min-max.
+
+    Parameters
+    ----------
+    test, reference : ndarray
+        Volumes of one shape.
+
+    Returns
+    -------
+    test, reference : ndarray, float64
+        The reference in [0, 1]; the test volume under the same affine map (not clipped).
+
+    Raises
+    ------
+    ValueError
+        When the shapes differ or the volumes are not finite.
+    """
+    test = np.asarray(test, np.float64)
+    reference = np.asarray(reference, np.float64)
+    if test.shape != reference.shape:
+        raise ValueError(f"shape mismatch: {test.shape} vs {reference.shape}")
+    if not (np.isfinite(test).all() and np.isfinite(reference).all()):
+        raise ValueError("volumes must be finite for 3D metrics")
+    lo, hi = float(reference.min()), float(reference.max())
+    if lo >= 0.0 and hi <= 1.0:
+        return test, reference
+    span = (hi - lo) or 1.0
+    return (test - lo) / span, (reference - lo) / span
+
+
+def psnr3d_r2(test: np.ndarray, reference: np.ndarray) -> float:
+    """3D PSNR as R²-Gaussian's ``metric_vol(..., "psnr")``: ``10 log10(1 / MSE)`` over the whole volume.
+
+    Parameters
+    ----------
+    test, reference : ndarray, shape (I, J, K)
+        Reconstruction and reference (see :func:`normalise_r2`).
+
+    Returns
+    -------
+    float
+        PSNR in dB (data range 1); ``inf`` for identical volumes.
+
+    Examples
+    --------
+    >>> psnr3d_r2(np.full((4, 4, 4), 0.1), np.zeros((4, 4, 4)))
+    20.0
+    """
+    test, reference = normalise_r2(test, reference)
+    return psnr(test, reference, data_range=1.0)
+
+
+def ssim_map_r2(test: np.ndarray, reference: np.ndarray, axis: int) -> np.ndarray:
+    """Per-pixel SSIM of every slice along ``axis``, as R²-Gaussian's ``ssim`` computes it for one slice.
+
+    Local means, variances and covariance come from correlating each slice with the 11x11 Gaussian window
+    (σ = 1.5) with zero padding (``conv2d(padding=5)``); ``C1 = 0.01²``, ``C2 = 0.03²`` (data range 1).
+
+    Parameters
+    ----------
+    test, reference : ndarray, shape (I, J, K)
+        Volumes on the [0, 1] scale.
+    axis : int
+        Slicing axis (0, 1 or 2); the other two are filtered.
+
+    Returns
+    -------
+    ndarray, shape (I, J, K), float64
+        The SSIM map (slice ``n`` along ``axis`` is that slice's map).
+    """
+    w = _r2_window()
+    x = np.asarray(test, np.float64)
+    y = np.asarray(reference, np.float64)
+
+    def blur(v: np.ndarray) -> np.ndarray:
+        for a in range(3):
+            if a != axis:
+                v = ndimage.correlate1d(v, w, axis=a, mode="constant", cval=0.0)
+        return v
+
+    mu_x, mu_y = blur(x), blur(y)
+    sxx = blur(x * x) - mu_x**2
+    syy = blur(y * y) - mu_y**2
+    sxy = blur(x * y) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    return ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
+
+
+def ssim3d_r2(test: np.ndarray, reference: np.ndarray) -> float:
+    """3D SSIM as R²-Gaussian's ``metric_vol(..., "ssim")``.
+
+    For each axis, the mean over the slices whose *reference* has a positive maximum of the slice's mean SSIM
+    (:func:`ssim_map_r2`); the result is the mean of the three per-axis values. Slices whose reference is empty
+    (all values <= 0) are skipped, so empty margins neither help nor hurt.
+
+    Parameters
+    ----------
+    test, reference : ndarray, shape (I, J, K)
+        Reconstruction and reference (see :func:`normalise_r2`).
+
+    Returns
+    -------
+    float
+        Mean SSIM, at most 1; ``nan`` when the reference is empty (no slice counts).
+
+    Raises
+    ------
+    ValueError
+        When the volumes are not 3D or their shapes differ.
+    """
+    test, reference = normalise_r2(test, reference)
+    if test.ndim != 3:
+        raise ValueError(f"need two 3D volumes of one shape, got {test.shape} and {reference.shape}")
+    per_axis = []
+    for axis in range(3):
+        other = tuple(a for a in range(3) if a != axis)
+        keep = reference.max(axis=other) > 0
+        if not keep.any():
+            return float("nan")
+        per_slice = ssim_map_r2(test, reference, axis).mean(axis=other)
+        per_axis.append(float(per_slice[keep].mean()))
     return float(np.mean(per_axis))
 
 

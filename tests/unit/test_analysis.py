@@ -366,16 +366,18 @@ def test_gather_one_row_per_run_with_axes_and_metrics(tmp_path):
 def test_gather_names_test_and_validation_columns_apart(tmp_path):
     rd = _fake_run(tmp_path)
     (rd / "metrics.json").write_text(json.dumps({
-        "psnr2d": 31.0, "ssim2d": 0.91, "psnr3d": 24.0, "ssim3d": 0.7, "lpips": 0.12, "lpips_reason": None,
-        "iter_to_psnr2d_30": 5, "time_to_psnr2d_30_s": 0.5, "sfm_registration_rate": None, "wall_time_s": 3.0}))
+        "psnr2d": 31.0, "ssim2d": 0.91, "psnr3d": 24.0, "ssim3d": 0.7, "psnr3d_r2": 24.5, "ssim3d_r2": 0.8,
+        "lpips": 0.12, "lpips_reason": None, "iter_to_psnr2d_30": 5, "time_to_psnr2d_30_s": 0.5,
+        "sfm_registration_rate": None, "wall_time_s": 3.0}))
     gather([rd], tmp_path / "summary.csv", thresholds={"psnr2d": 25.0, "ssim2d": 0.9, "psnr3d": 20.0,
                                                          "ssim3d": 0.75}, per_iters=500)
     cols = set(pd.read_csv(tmp_path / "summary.csv").columns)
     row = pd.read_csv(tmp_path / "summary.csv").iloc[0]
     assert {"test_psnr2d", "test_ssim2d", "test_psnr3d", "test_ssim3d", "test_lpips"} <= cols
+    assert (row["test_psnr3d_r2"], row["test_ssim3d_r2"]) == (24.5, 0.8)
     assert {"val_psnr2d_last", "val_ssim2d_last", "val_psnr3d_last", "val_ssim3d_last", "val_iteration_last"} <= cols
     # no bare metric names and no final_* columns that could be read as either split
-    assert not cols & {"psnr2d", "ssim2d", "psnr3d", "ssim3d", "lpips"}
+    assert not cols & {"psnr2d", "ssim2d", "psnr3d", "ssim3d", "psnr3d_r2", "ssim3d_r2", "lpips"}
     assert not [c for c in cols if c.startswith("final_")]
     assert (row["test_psnr2d"], row["test_lpips"], row["wall_time_s"]) == (31.0, 0.12, 3.0)
     # milestone keys follow the configured thresholds, 3D ones included; the stale one of metrics.json is gone

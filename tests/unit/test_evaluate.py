@@ -124,3 +124,88 @@ def test_speed_and_memory() -> None:
 def test_evaluate_rejects_unfinished_run(tmp_path) -> None:
     with pytest.raises(CtsplatError, match="not a finished training run"):
         ev.evaluate(tmp_path)
+
+
+# ------------------------------------------------------------------------------- R²-Gaussian's 3D metrics
+def _r2_ssim_slice_torch(a: np.ndarray, b: np.ndarray) -> float:
+    """R²-Gaussian's ``ssim`` for one slice, written out with torch's conv2d (11x11 Gaussian, σ 1.5, zero pad)."""
+    x = torch.arange(11, dtype=torch.float64) - 5
+    g = torch.exp(-(x**2) / (2 * 1.5**2))
+    g = g / g.sum()
+    win = (g[:, None] @ g[None, :])[None, None]
+    i1 = torch.as_tensor(a, dtype=torch.float64)[None, None]
+    i2 = torch.as_tensor(b, dtype=torch.float64)[None, None]
+    conv = lambda v: torch.nn.functional.conv2d(v, win, padding=5)  # noqa: E731
+    m1, m2 = conv(i1), conv(i2)
+    s11, s22, s12 = conv(i1 * i1) - m1**2, conv(i2 * i2) - m2**2, conv(i1 * i2) - m1 * m2
+    c1, c2 = 0.01**2, 0.03**2
+    smap = ((2 * m1 * m2 + c1) * (2 * s12 + c2)) / ((m1**2 + m2**2 + c1) * (s11 + s22 + c2))
+    return float(smap.mean())
+
+
+def _r2_metric_vol_ssim(test: np.ndarray, ref: np.ndarray) -> float:
+    """R²-Gaussian's ``metric_vol(ref, test, "ssim")`` as a slice loop: skip slices whose reference max <= 0."""
+    per_axis = []
+    for axis in range(3):
+        vals = [_r2_ssim_slice_torch(np.take(test, i, axis), np.take(ref, i, axis))
+                for i in range(ref.shape[axis]) if np.take(ref, i, axis).max() > 0]
+        per_axis.append(sum(vals) / len(vals))
+    return float(np.mean(per_axis))
+
+
+def _volumes_with_empty_margins() -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(3)
+    ref = np.zeros((14, 17, 12))
+    ref[3:11, 2:15, 4:9] = rng.random((8, 13, 5))  # empty slices on every axis
+    test = np.clip(ref + rng.normal(0, 0.05, ref.shape), 0, None)  # noise in the empty margins too
+    return test, ref
+
+
+def test_ssim3d_r2_matches_a_slice_loop_of_r2_gaussians_ssim() -> None:
+    test, ref = _volumes_with_empty_margins()
+    assert metrics.ssim3d_r2(test, ref) == pytest.approx(_r2_metric_vol_ssim(test, ref), abs=1e-10)
+    # the empty slices are skipped: counting them would change the value
+    assert metrics.ssim3d_r2(test, ref) != pytest.approx(metrics.ssim3d(test, ref), abs=1e-3)
+
+
+def test_ssim_map_r2_interior_matches_skimage_gaussian_ssim() -> None:
+    """Away from the zero-padded border R²'s SSIM is skimage's Gaussian-window SSIM with population variances."""
+    from skimage.metrics import structural_similarity
+
+    rng = np.random.default_rng(1)
+    ref = rng.random((3, 30, 28))
+    test = np.clip(ref + rng.normal(0, 0.1, ref.shape), 0, 1)
+    smap = metrics.ssim_map_r2(test, ref, axis=0)
+    for k in range(3):
+        _, sk = structural_similarity(test[k], ref[k], data_range=1.0, gaussian_weights=True, sigma=1.5,
+                                      use_sample_covariance=False, full=True)
+        np.testing.assert_allclose(smap[k, 5:-5, 5:-5], sk[5:-5, 5:-5], atol=1e-10)
+
+
+def test_psnr3d_r2_is_whole_volume_psnr_with_range_one() -> None:
+    test, ref = _volumes_with_empty_margins()
+    mse = np.mean((test - ref) ** 2)
+    assert metrics.psnr3d_r2(test, ref) == pytest.approx(10 * np.log10(1 / mse))
+    assert metrics.psnr3d_r2(test, ref) == pytest.approx(metrics.psnr3d(test, ref))  # same on [0, 1] volumes
+    assert metrics.psnr3d_r2(ref, ref) == math.inf
+    assert metrics.ssim3d_r2(ref, ref) == pytest.approx(1.0)
+
+
+def test_r2_metrics_normalise_a_reference_outside_unit_range() -> None:
+    test, ref = _volumes_with_empty_margins()
+    test, ref = test / ref.max(), ref / ref.max()  # min-max of a reference with min 0: scale by its max
+    assert metrics.psnr3d_r2(test * 40.0, ref * 40.0) == pytest.approx(metrics.psnr3d_r2(test, ref))
+    assert metrics.ssim3d_r2(test * 40.0, ref * 40.0) == pytest.approx(metrics.ssim3d_r2(test, ref))
+
+
+def test_r2_metrics_edge_cases() -> None:
+    assert math.isnan(metrics.ssim3d_r2(np.ones((8, 8, 8)), np.zeros((8, 8, 8))))  # no slice counts
+    with pytest.raises(ValueError, match="shape mismatch"):
+        metrics.psnr3d_r2(np.zeros((4, 4, 4)), np.zeros((4, 4, 5)))
+    with pytest.raises(ValueError, match="finite"):
+        metrics.ssim3d_r2(np.full((4, 4, 4), np.nan), np.zeros((4, 4, 4)))
+    with pytest.raises(ValueError, match="3D"):
+        metrics.ssim3d_r2(np.zeros((4, 4)), np.zeros((4, 4)))
+    tiny_ref = np.zeros((3, 3, 3))
+    tiny_ref[1, 1, 1] = 1.0  # one non-empty slice per axis, smaller than the window: still defined
+    assert metrics.ssim3d_r2(tiny_ref, tiny_ref) == pytest.approx(1.0)

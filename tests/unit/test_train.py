@@ -111,7 +111,7 @@ def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
                  "config.json", "training.json"):
         assert (out / name).stat().st_size > 0, name
     # test metrics recomputed independently from the written files
-    from ctsplat.evaluation.metrics import psnr3d
+    from ctsplat.evaluation.metrics import psnr3d, psnr3d_r2, ssim3d_r2
     from ctsplat.formats.volume import load_volume
     from ctsplat.splat.gaussians import Gaussians
 
@@ -121,6 +121,8 @@ def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
     ref = load_volume(scene_dir / "volume.nii.gz")
     assert mv.meta["uses_reference_volume"] is True
     assert psnr3d(mv.data, ref.data) == pytest.approx(m["psnr3d"], abs=1e-4)
+    assert psnr3d_r2(mv.data, ref.data) == pytest.approx(m["psnr3d_r2"], abs=1e-4)
+    assert ssim3d_r2(mv.data, ref.data) == pytest.approx(m["ssim3d_r2"], abs=1e-4)
     import imageio.v3 as iio
 
     assert iio.imread(out / "turntable.gif").shape[0] == 4
