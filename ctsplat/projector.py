@@ -21,14 +21,28 @@ Parallel beams whose detector rows run along a voxel axis (circular orbits at el
 classical CT protocol) use an exact-in-the-limit slice-wise Joseph traversal instead, ~10x faster
 (see :func:`_joseph_slices`); ``method=`` picks explicitly.
 
-Noise (optional, seeded): counts ``N = Poisson(I0 exp(-p)) + Normal(0, σ_e)``; counts below one photon
-(including non-positive ones from electronic noise) are clipped to one photon, and ``p_noisy = ln(I0 / N)``.
-The model is monochromatic (no beam hardening or scatter): Poisson quantum noise of the transmitted photons
-plus Gaussian detector read-out noise, the usual first-order CT noise model.
+Noise (optional, seeded, on the splits ``noise.splits`` names: the training views by default, so validation
+and test targets stay noise-free): counts ``N = Poisson(I0 exp(-p / s)) + Normal(0, σ_e)`` and
+``p_noisy = s ln(I0 / N)``, where ``s = 1`` for ``noise.model: physical`` (``p`` in physical units, μ in 1/mm)
+and ``s = max p`` over the noisy views for ``noise.model: tigre`` — TIGRE's ``CTnoise.add(proj, Poisson=I0,
+Gaussian=[0, σ_e])``, which rescales the stack so its most attenuating ray transmits ``exp(-1)``, so the noise
+level does not depend on the volume's physical scale; R²-Gaussian then clips the noisy line integrals at ``>= 0``
+(counts above ``I0``), and so does ``tigre`` here. The log of zero: counts below one photon (non-positive ones
+come from electronic noise) are clipped to one photon before the log, so ``p_noisy <= s ln(I0)`` stays finite
+(TIGRE returns inf/NaN there; at R²'s ``I0 = 1e4``, ``σ_e = 10`` the smallest expected count is ``I0 / e ≈ 3679``
+and the clip never acts, so the values equal TIGRE's). The model is monochromatic (no beam hardening or
+scatter): Poisson quantum noise of the transmitted photons plus Gaussian detector read-out noise, the usual
+first-order CT noise model.
 
 References
 ----------
 Beer–Lambert law of attenuation: ``I = I0 exp(-∫ μ dl)``.
+Biguri, A., Dosanjh, M., Hancock, S., Soleimani, M. (2016). TIGRE: a MATLAB-GPU toolbox for CBCT image
+reconstruction. Biomedical Physics & Engineering Express 2(5), 055010. Code: github.com/CERN/TIGRE,
+``Python/tigre/utilities/CTnoise.py`` (``add``: the ``tigre`` noise model).
+Zha, R. et al. (2024). R²-Gaussian: rectifying radiative Gaussian splatting for tomographic reconstruction.
+NeurIPS. Code: github.com/Ruyi-Zha/r2_gaussian, ``data_generator/synthetic_dataset/generate_data.py`` (noise on
+the training projections only, clipped at >= 0; the cone-beam protocol geometry).
 Hsieh, J. (2009). Computed Tomography: Principles, Design, Artifacts, and Recent Advances (2nd ed.). SPIE Press.
 (Transmission model, photon and electronic noise.)
 Joseph, P. M. (1982). An improved algorithm for reprojecting rays through pixel images. IEEE Transactions on
@@ -60,6 +74,8 @@ from ctsplat.geometry import (
     carm_orbit,
     check_fov,
     circular_orbit,
+    covering_spacing_mm,
+    object_points_mm,
     sphere_orbit,
     support_radius_mm,
 )
@@ -70,6 +86,7 @@ __all__ = [
     "line_integrals",
     "clip_rays_to_box",
     "add_noise",
+    "check_noise",
     "build_view_set",
     "render_radiographs",
 ]
@@ -82,11 +99,20 @@ RADIOGRAPHS_DEFAULTS: dict[str, Any] = {
     "camera": "parallel",
     "detector_width": 128,
     "detector_height": 128,
-    # parallel: detector pixel spacing; cone: detector pitch (mm). null = one voxel (the largest voxel edge)
-    # per pixel at the isocentre (cone: pitch = voxel * dsd / dso).
+    # parallel: detector pixel spacing; cone: detector pitch (mm). null = detector_size_factor when set, else one
+    # voxel (the largest voxel edge) per pixel at the isocentre (cone: pitch = voxel * dsd / dso), enlarged when
+    # needed so that the object lies on the detector in every view (orbit carm: fitted, see fov_margin)
     "pixel_spacing_mm": None,
-    "dso_mm": 1000.0,  # cone: source-to-isocentre distance (mm)
-    "dsd_mm": 1500.0,  # cone: source-to-detector distance (mm)
+    # the detector's physical width (cone: on the detector plane; parallel: at the isocentre) in units of the
+    # volume's side L (its largest extent, mm): spacing = detector_size_factor * L / detector_width. null = unused
+    "detector_size_factor": None,
+    "dso_mm": 1000.0,  # cone: source-to-isocentre distance (mm); null = dso_factor * L
+    "dsd_mm": 1500.0,  # cone: source-to-detector distance (mm); null = dsd_factor * L
+    "dso_factor": 2.5,  # cone with dso_mm null: DSO in units of L (R²-Gaussian's protocol: 2.5 L)
+    "dsd_factor": 3.5,  # cone with dsd_mm null: DSD in units of L (R²-Gaussian's protocol: 3.5 L)
+    # an explicit detector (pixel_spacing_mm or detector_size_factor) that leaves part of the object outside the
+    # field of view is an error; true accepts the truncation (interior / region-of-interest studies) with a warning
+    "allow_truncation": False,
     # parallel: distance of the ray-origin plane from the isocentre (mm); null = just outside the volume
     "parallel_distance_mm": None,
     "isocenter_mm": None,  # null = the volume's geometric centre
@@ -112,8 +138,15 @@ RADIOGRAPHS_DEFAULTS: dict[str, Any] = {
     # the maximum) times fov_margin onto the detector's shorter side
     "fov_margin": 1.0,
     "split": {"train": 0.7, "val": 0.15, "test": 0.15},
+    # circular: explicit numbers of validation / test views (null = from the split fractions); n_views stays the
+    # number of training views
+    "n_val": None,
+    "n_test": None,
     "step_voxels": 0.5,
-    "noise": {"enabled": False, "i0": 1.0e5, "electronic_sigma": 0.0},
+    # photon + electronic noise (module docstring): i0 photons per pixel, electronic_sigma counts; model "physical"
+    # (counts from the physical line integrals) or "tigre" (TIGRE's CTnoise.add: the stack rescaled to max p = 1,
+    # noisy line integrals clipped at >= 0); splits: which views get noise (validation/test stay clean by default)
+    "noise": {"enabled": False, "i0": 1.0e5, "electronic_sigma": 0.0, "model": "physical", "splits": ["train"]},
     "device": "auto",
     "batch_samples": 1 << 22,
 }
@@ -404,12 +437,50 @@ def _joseph_slices(mu: torch.Tensor, A: np.ndarray, camera: Camera, Rs: np.ndarr
     return torch.cat(out)
 
 
-def add_noise(p: np.ndarray, i0: float, electronic_sigma: float, rng: np.random.Generator
-              ) -> tuple[np.ndarray, np.ndarray]:
+NOISE_MODELS = ("physical", "tigre")
+
+
+def check_noise(noise: dict[str, Any], key: str = "radiographs.noise") -> None:
+    """Refuse noise settings out of range with one line naming the key (before any projection).
+
+    Parameters
+    ----------
+    noise : dict
+        The filled ``noise`` settings (:data:`RADIOGRAPHS_DEFAULTS`).
+    key : str
+        Where they sit in the config, for the message.
+
+    Raises
+    ------
+    CtsplatError
+        For a non-positive or non-finite ``i0``, a negative or non-finite ``electronic_sigma``, an unknown
+        ``model``, or ``splits`` that is not a non-empty list of distinct split names.
+    """
+    from ctsplat.formats.viewset import SPLITS
+
+    i0, sigma = noise.get("i0"), noise.get("electronic_sigma")
+    if isinstance(i0, bool) or not isinstance(i0, int | float) or not (math.isfinite(i0) and i0 > 0):
+        raise CtsplatError(f"{key}.i0 must be a positive number of photons per pixel, got {i0!r}")
+    if isinstance(sigma, bool) or not isinstance(sigma, int | float) or not (math.isfinite(sigma) and sigma >= 0):
+        raise CtsplatError(f"{key}.electronic_sigma must be a number of counts >= 0, got {sigma!r}")
+    if noise.get("model") not in NOISE_MODELS:
+        raise CtsplatError(f"{key}.model must be one of {', '.join(NOISE_MODELS)}, got {noise.get('model')!r}")
+    splits = noise.get("splits")
+    if (not isinstance(splits, list | tuple) or not splits or len(set(splits)) != len(splits)
+            or any(sp not in SPLITS for sp in splits)):
+        raise CtsplatError(f"{key}.splits must be a non-empty list of distinct split names from "
+                           f"{', '.join(SPLITS)}, got {splits!r}")
+
+
+def add_noise(p: np.ndarray, i0: float, electronic_sigma: float, rng: np.random.Generator, *,
+              model: str = "physical") -> tuple[np.ndarray, np.ndarray]:
     """Poisson photon noise with ``i0`` photons plus Gaussian electronic noise, back to line integrals.
 
-    ``N = Poisson(i0 exp(-p)) + Normal(0, electronic_sigma)``, ``N <- max(N, 1)``, ``p_noisy = ln(i0 / N)``
-    (Beer–Lambert: the expected count behind a ray with line integral ``p`` is ``i0 exp(-p)``).
+    ``physical``: ``N = Poisson(i0 exp(-p)) + Normal(0, electronic_sigma)``, ``N <- max(N, 1)``,
+    ``p_noisy = ln(i0 / N)`` (Beer–Lambert: the expected count behind a ray with line integral ``p`` is
+    ``i0 exp(-p)``). ``tigre``: the same on ``p / s`` with ``s = max(p)`` and ``p_noisy = max(s ln(i0 / N), 0)``,
+    as TIGRE's ``CTnoise.add`` followed by R²-Gaussian's clip of negative line integrals (module docstring); the
+    one-photon floor keeps the log finite where TIGRE's would be inf/NaN.
 
     Parameters
     ----------
@@ -421,29 +492,42 @@ def add_noise(p: np.ndarray, i0: float, electronic_sigma: float, rng: np.random.
         Standard deviation of the electronic noise (photon counts), >= 0.
     rng : numpy.random.Generator
         Source of the noise (seed it for reproducible radiographs).
+    model : {"physical", "tigre"}
+        How line integrals map to counts, see above.
 
     Returns
     -------
     p_noisy : ndarray, like ``p``, float32
-        Noisy line integrals; at most ``ln(i0)`` (one photon).
+        Noisy line integrals; at most ``s ln(i0)`` (one photon).
     counts : ndarray, like ``p``, float64
         Detected counts after clipping to >= 1.
 
     Raises
     ------
     CtsplatError
-        For a non-positive or non-finite ``i0`` or a negative ``electronic_sigma``.
+        For a non-positive or non-finite ``i0``, a negative ``electronic_sigma`` or an unknown ``model``.
     """
     if not (i0 > 0 and np.isfinite(i0)):
         raise CtsplatError(f"noise i0 (photons per pixel) must be positive, got {i0}")
     if electronic_sigma < 0:
         raise CtsplatError(f"noise electronic_sigma must be >= 0, got {electronic_sigma}")
-    expected = i0 * np.exp(-np.asarray(p, np.float64))
+    if model not in NOISE_MODELS:
+        raise CtsplatError(f"unknown noise model {model!r}; allowed: {', '.join(NOISE_MODELS)}")
+    p64 = np.asarray(p, np.float64)
+    scale = 1.0
+    if model == "tigre":
+        scale = float(p64.max()) if p64.size else 0.0
+        if scale <= 0:  # nothing attenuates: TIGRE's 0/0; the noise-free zeros are the only consistent answer
+            return np.zeros(p64.shape, np.float32), np.full(p64.shape, float(i0))
+    expected = i0 * np.exp(-p64 / scale)
     counts = rng.poisson(expected).astype(np.float64)
     if electronic_sigma > 0:
         counts += rng.normal(0.0, electronic_sigma, size=counts.shape)
     counts = np.maximum(counts, 1.0)
-    return np.log(i0 / counts).astype(np.float32), counts
+    noisy = scale * np.log(i0 / counts)
+    if model == "tigre":
+        noisy = np.maximum(noisy, 0.0)
+    return noisy.astype(np.float32), counts
 
 
 # ------------------------------------------------------------------------------------- view sets
@@ -479,10 +563,15 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
     """The camera and orbit described by a ``radiographs`` config section, for one volume.
 
     Fills the defaults of :data:`RADIOGRAPHS_DEFAULTS`: the isocentre is the volume's centre, a parallel
-    detector gets one voxel (the largest edge) per pixel and starts its rays just outside the volume's
-    bounding sphere; a cone detector's pitch maps one voxel at the isocentre to one pixel, or (``orbit: carm``)
-    fits the object's bounding sphere (:func:`fitted_pitch_mm`). ``arc_deg`` defaults to 180 for parallel and
-    360 for cone beams.
+    detector starts its rays just outside the volume's bounding sphere. The detector spacing is
+    ``pixel_spacing_mm``, or ``detector_size_factor · L / detector_width`` (``L`` the volume's largest extent), or
+    for ``orbit: carm`` the pitch that fits the object's bounding sphere (:func:`fitted_pitch_mm`), or else one
+    voxel (the largest edge) per pixel at the isocentre (cone: ``voxel · dsd / dso``), enlarged to the smallest
+    spacing at which the object (voxels above 1 % of the maximum, as :func:`ctsplat.geometry.check_fov` counts it)
+    lies on the detector in every view (:func:`ctsplat.geometry.covering_spacing_mm`), so the default never
+    truncates the object; ``meta["pixel_spacing_source"]`` says which rule applied. Cone distances ``dso_mm`` /
+    ``dsd_mm`` may be null: ``dso_factor · L`` / ``dsd_factor · L``. ``arc_deg`` defaults to 180 for parallel and
+    360 for cone beams; ``n_val`` / ``n_test`` fix a circular orbit's held-out counts.
 
     Parameters
     ----------
@@ -515,21 +604,38 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
     iso = np.asarray(cfg["isocenter_mm"] if cfg["isocenter_mm"] is not None else volume.center_mm(), float)
     if iso.shape != (3,):
         raise CtsplatError(f"isocenter_mm must be [x, y, z] in mm, got {cfg['isocenter_mm']!r}")
+    if cfg["orbit"] not in ("circular", "sphere", "carm"):
+        raise CtsplatError(f"unknown orbit {cfg['orbit']!r}; allowed: circular, sphere, carm")
+    if cfg["orbit"] != "circular" and (cfg["n_val"] is not None or cfg["n_test"] is not None):
+        raise CtsplatError(f"radiographs.n_val / n_test set the held-out views of orbit: circular; orbit "
+                           f"{cfg['orbit']} splits by the split fractions (set n_val and n_test to null)")
     voxel = float(np.max(volume.spacing_mm))
+    side = float(np.max(np.asarray(volume.shape, float) * np.asarray(volume.spacing_mm, float)))  # L (mm)
     corners = np.array([[a, b, c] for a in (-1, volume.shape[0]) for b in (-1, volume.shape[1])
                         for c in (-1, volume.shape[2])], float)
     corners_mm = corners @ volume.affine[:3, :3].T + volume.affine[:3, 3]
     radius = float(np.linalg.norm(corners_mm - iso, axis=1).max())
     W, H = cfg["detector_width"], cfg["detector_height"]
+    size_factor = cfg["detector_size_factor"]
+    if size_factor is not None and not (isinstance(size_factor, int | float) and size_factor > 0):
+        raise CtsplatError(f"radiographs.detector_size_factor must be a positive number (detector width in volume "
+                           f"sides) or null, got {size_factor!r}")
+    if cfg["pixel_spacing_mm"] is not None and size_factor is not None:
+        raise CtsplatError("radiographs: set pixel_spacing_mm or detector_size_factor, not both")
+    dso = dsd = object_radius = 0.0
     if cfg["camera"] == "parallel":
-        spacing = voxel if cfg["pixel_spacing_mm"] is None else float(cfg["pixel_spacing_mm"])
-        camera: Camera = ParallelCamera(W, H, spacing)
         distance = (radius * 1.05 + 1.0) if cfg["parallel_distance_mm"] is None else float(cfg["parallel_distance_mm"])
         if distance <= radius:
             raise CtsplatError(f"parallel_distance_mm {distance} must exceed the volume's radius {radius:.1f} mm "
                                "(rays start on the plane z_cam = 0)")
     elif cfg["camera"] == "cone":
-        dso, dsd = float(cfg["dso_mm"]), float(cfg["dsd_mm"])
+        for name in ("dso", "dsd"):
+            factor = cfg[f"{name}_factor"]
+            if cfg[f"{name}_mm"] is None and not (isinstance(factor, int | float) and factor > 0):
+                raise CtsplatError(f"radiographs.{name}_factor must be a positive number (volume sides) when "
+                                   f"{name}_mm is null, got {factor!r}")
+        dso = float(cfg["dso_mm"]) if cfg["dso_mm"] is not None else float(cfg["dso_factor"]) * side
+        dsd = float(cfg["dsd_mm"]) if cfg["dsd_mm"] is not None else float(cfg["dsd_factor"]) * side
         for name, val in (("dso_mm", dso), ("dsd_mm", dsd)):
             if not val > 0:
                 raise CtsplatError(f"{name} must be a positive distance in mm, got {val}")
@@ -538,15 +644,8 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
         # every orbit: a source inside the object cannot image it (the rays start behind part of it)
         object_radius = support_radius_mm(volume.data, volume.affine, iso)
         if object_radius >= dso:
-            raise CtsplatError(f"dso_mm ({dso}) must exceed the object's radius ({object_radius:.0f} mm about the "
+            raise CtsplatError(f"dso_mm ({dso:.1f}) must exceed the object's radius ({object_radius:.0f} mm about the "
                                "isocentre): the source would sit inside the object; raise dso_mm (and dsd_mm)")
-        if cfg["pixel_spacing_mm"] is not None:
-            pitch = float(cfg["pixel_spacing_mm"])
-        elif cfg["orbit"] == "carm":
-            pitch = fitted_pitch_mm(object_radius, dso, dsd, min(W, H), float(cfg["fov_margin"]))
-        else:
-            pitch = voxel * dsd / dso
-        camera = ConeCamera(W, H, pitch, dso, dsd)
         distance = dso
         if dso <= radius:
             warnings.warn(f"dso_mm {dso} puts the source inside the volume's bounding sphere (radius "
@@ -559,11 +658,12 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
             arc = 180.0 if cfg["camera"] == "parallel" else 360.0
         views = circular_orbit(cfg["n_views"], iso, distance, split_fractions=cfg["split"],
                                wobble_deg=float(cfg["wobble_deg"]), start_deg=float(cfg["start_deg"]), seed=seed,
-                               arc_deg=float(arc), wobble_cycles=float(cfg["wobble_cycles"]))
+                               arc_deg=float(arc), wobble_cycles=float(cfg["wobble_cycles"]),
+                               heldout_counts={"val": cfg["n_val"], "test": cfg["n_test"]})
     elif cfg["orbit"] == "sphere":
         views = sphere_orbit(cfg["n_views"], iso, distance, elevation_range_deg=cfg["elevation_range_deg"],
                              sampling=cfg["sphere_sampling"], split_fractions=cfg["split"], seed=seed)
-    elif cfg["orbit"] == "carm":
+    else:
         if cfg["camera"] != "cone":
             raise CtsplatError("orbit: carm needs camera: cone (a C-arm is a cone-beam scanner)")
         arc = 360.0 if arc is None else arc
@@ -571,12 +671,27 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
                            wobble_deg=float(cfg["wobble_deg"]), wobble_cycles=float(cfg["wobble_cycles"]),
                            jitter_deg=float(cfg["orbit_jitter_deg"]), jitter_mm=float(cfg["orbit_jitter_mm"]),
                            seed=seed)
+    # the detector spacing: explicit, in volume sides, fitted (C-arm) or one voxel enlarged to cover the object
+    if cfg["pixel_spacing_mm"] is not None:
+        spacing, source = float(cfg["pixel_spacing_mm"]), "pixel_spacing_mm"
+    elif size_factor is not None:
+        spacing, source = float(size_factor) * side / W, "detector_size_factor"
+    elif cfg["orbit"] == "carm":
+        spacing, source = fitted_pitch_mm(object_radius, dso, dsd, min(W, H), float(cfg["fov_margin"])), "carm_fit"
     else:
-        raise CtsplatError(f"unknown orbit {cfg['orbit']!r}; allowed: circular, sphere, carm")
+        one_voxel = voxel if cfg["camera"] == "parallel" else voxel * dsd / dso
+        probe: Camera = ParallelCamera(W, H, 1.0) if cfg["camera"] == "parallel" else ConeCamera(W, H, 1.0, dso, dsd)
+        Rs = np.stack([v.R for v in views])
+        ts = np.stack([v.t for v in views])
+        cover = covering_spacing_mm(probe, Rs, ts, object_points_mm(volume.data, volume.affine))
+        spacing, source = max(one_voxel, cover), ("one_voxel" if one_voxel >= cover else "covers_object")
+    camera: Camera = ParallelCamera(W, H, spacing) if cfg["camera"] == "parallel" else ConeCamera(W, H, spacing,
+                                                                                                   dso, dsd)
     meta = {"orbit": cfg["orbit"], "n_views": int(cfg["n_views"]), "wobble_deg": float(cfg["wobble_deg"]),
             "wobble_cycles": float(cfg["wobble_cycles"]), "arc_deg": float(arc) if arc is not None else None,
             "elevation_range_deg": list(cfg["elevation_range_deg"]), "sphere_sampling": cfg["sphere_sampling"],
-            "split": dict(cfg["split"]), "seed": int(seed), "distance_mm": distance}
+            "split": dict(cfg["split"]), "seed": int(seed), "distance_mm": distance, "volume_side_mm": side,
+            "pixel_spacing_source": source}
     return ViewSet(camera, views, volume.volume_id, iso, meta)
 
 
@@ -610,18 +725,20 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
     Raises
     ------
     CtsplatError
-        For a volume with non-finite voxels or an invalid config (see :func:`build_view_set`); nothing is
-        written.
+        For a volume with non-finite voxels, noise settings out of range (:func:`check_noise`), an invalid config
+        (see :func:`build_view_set`), or an explicit detector (``pixel_spacing_mm`` / ``detector_size_factor``)
+        that does not cover the object without ``allow_truncation: true``; nothing is written.
 
     Warns
     -----
     UserWarning
-        When the detector does not cover the object (:func:`ctsplat.geometry.check_fov`).
+        When the detector does not cover the object (:func:`ctsplat.geometry.check_fov`) and that is allowed.
     """
 
     from ctsplat.formats.volume import load_volume
 
     cfg = merge_config("radiographs", config, RADIOGRAPHS_DEFAULTS)
+    check_noise(cfg["noise"])
     out_dir = Path(out_dir)
     volume = load_volume(volume_path)
     bad = int(np.size(volume.data) - np.count_nonzero(np.isfinite(volume.data)))
@@ -632,6 +749,12 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         fov_outside = check_fov(view_set.camera, view_set.Rs(), view_set.ts(), volume.data, volume.affine)
+    source = view_set.meta.get("pixel_spacing_source")
+    if fov_outside > 0 and source in ("pixel_spacing_mm", "detector_size_factor") and not cfg["allow_truncation"]:
+        raise CtsplatError(
+            f"radiographs.{source}: the detector ({view_set.camera.width} x {view_set.camera.height} px) leaves "
+            f"{100 * fov_outside:.1f}% of the object outside the field of view in the worst view; enlarge it "
+            f"(or set {source} to null to fit it), or set allow_truncation: true to accept a truncated scan")
     for w in caught:
         log.warning("%s", w.message)
         warnings.warn(w.message, stacklevel=2)
@@ -645,8 +768,18 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
     seconds = time.perf_counter() - t0
     noise = cfg["noise"]
     if noise["enabled"]:
-        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x6E6F697365]))
-        p, _ = add_noise(p, float(noise["i0"]), float(noise["electronic_sigma"]), rng)
+        rows = np.concatenate([view_set.indices(sp) for sp in noise["splits"]]).astype(int)
+        rows.sort()
+        if rows.size:
+            rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x6E6F697365]))
+            p[rows], _ = add_noise(p[rows], float(noise["i0"]), float(noise["electronic_sigma"]), rng,
+                                   model=noise["model"])
+        view_set.meta["noise"] = {"enabled": True, "model": noise["model"], "i0": float(noise["i0"]),
+                                  "electronic_sigma": float(noise["electronic_sigma"]),
+                                  "splits": list(noise["splits"]), "noisy_view_ids": [view_set.views[i].id
+                                                                                      for i in rows]}
+    else:
+        view_set.meta["noise"] = {"enabled": False}
     p = np.ascontiguousarray(p, dtype=np.float32)
 
     write_radiographs(out_dir, p, view_set, {

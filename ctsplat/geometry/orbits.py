@@ -42,6 +42,8 @@ __all__ = [
     "support_radius_mm",
     "fov_outside_fraction",
     "check_fov",
+    "object_points_mm",
+    "covering_spacing_mm",
 ]
 
 
@@ -329,7 +331,7 @@ def sphere_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: float
 def circular_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: float, *,
                    split_fractions: dict[str, float] | None = None, wobble_deg: float = 0.0,
                    start_deg: float = 0.0, seed: int = 0, arc_deg: float = 360.0,
-                   wobble_cycles: float = 2.0) -> list[View]:
+                   wobble_cycles: float = 2.0, heldout_counts: dict[str, int | None] | None = None) -> list[View]:
     """Classical CT protocol: ``n_views`` training angles evenly over 360 deg plus random held-out angles.
 
     Training view ``k`` has azimuth ``start + 360 k / n_views`` about the world +z (axial) axis, so the
@@ -364,6 +366,10 @@ def circular_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: flo
         Angular range (degrees) in (0, 360].
     wobble_cycles : float
         Wobble periods per 360 degrees of azimuth.
+    heldout_counts : dict, optional
+        ``{"val": n, "test": m}``: explicit held-out counts (>= 0) that replace the ones the fractions give; a
+        missing or ``None`` entry keeps the fraction's count. The held-out angles stay stratified: one uniform
+        random angle per equal sector, so each is uniformly distributed over the arc.
 
     Returns
     -------
@@ -397,8 +403,13 @@ def circular_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: flo
         raise CtsplatError(f"circular orbit needs a positive train fraction and non-negative others, got {fr}")
     n = int(n_views)
     held = {s: (round(n * fr[s] / fr["train"]) if fr[s] > 0 else 0) for s in ("val", "test")}
+    explicit = {s: c for s, c in (heldout_counts or {}).items() if c is not None}
+    for s, c in explicit.items():
+        if s not in ("val", "test") or isinstance(c, bool) or not isinstance(c, int | np.integer) or c < 0:
+            raise CtsplatError(f"n_{s} must be an integer >= 0 (held-out views of a circular orbit), got {c!r}")
+        held[s] = int(c)
     for s in ("val", "test"):
-        if fr[s] > 0 and held[s] == 0:
+        if s not in explicit and fr[s] > 0 and held[s] == 0:
             raise CtsplatError(f"split leaves '{s}' empty: {n} training views with fractions {fr}; "
                                f"use more views or set {s}: 0")
     rng = np.random.default_rng(seed)
@@ -518,6 +529,94 @@ def support_radius_mm(data: np.ndarray, affine: np.ndarray, centre_mm: np.ndarra
 
 
 # ------------------------------------------------------------------------------------ field of view
+def object_points_mm(data: np.ndarray, affine: np.ndarray, threshold: float = 0.01) -> np.ndarray:
+    """Corners of the voxels on the convex hull of the object: points whose convex hull holds every object voxel.
+
+    The object is the voxels above ``threshold * max(data)`` (all voxels when the maximum is not positive), as
+    :func:`check_fov` defines it. Taking the hull vertices first keeps the point count small for any volume.
+
+    Parameters
+    ----------
+    data : ndarray, shape (I, J, K)
+        Volume values.
+    affine : ndarray, shape (4, 4)
+        Voxel index to world mm.
+    threshold : float
+        Fraction of the maximum above which a voxel belongs to the object.
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+        World points (mm): each hull voxel's 8 corners (index ± 0.5).
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    data = np.asarray(data)
+    vmax = float(data.max()) if data.size else 0.0
+    idx = np.argwhere(data > threshold * vmax) if vmax > 0 else np.argwhere(np.ones(data.shape, bool))
+    idx = idx.astype(float)
+    if len(idx) > 8:
+        try:
+            idx = idx[ConvexHull(idx).vertices]
+        except QhullError:  # a flat object (one slice or one line): every voxel is on its "hull"
+            pass
+    offsets = np.array([[a, b, c] for a in (-0.5, 0.5) for b in (-0.5, 0.5) for c in (-0.5, 0.5)])
+    corners = (idx[:, None, :] + offsets[None]).reshape(-1, 3)
+    A = np.asarray(affine, float)
+    return corners @ A[:3, :3].T + A[:3, 3]
+
+
+def covering_spacing_mm(camera: Camera, Rs: np.ndarray, ts: np.ndarray, points_mm: np.ndarray,
+                        margin_px: float = 1.0) -> float:
+    """Smallest detector pixel spacing (parallel) or pitch (cone) at which every point falls on the detector.
+
+    Points project linearly in ``1 / spacing`` about the detector centre (``u - W/2 = x_cam / spacing`` for a
+    parallel beam, ``(dsd / pitch) x_cam / z_cam`` for a cone beam), so the spacing that puts the farthest point
+    ``margin_px`` pixels inside the detector's edge is ``max |offset at spacing 1| / (W/2 - margin_px)`` (and
+    likewise for the rows).
+
+    Parameters
+    ----------
+    camera : ParallelCamera or ConeCamera
+        The detector (its size and, for cone beams, its distances; its spacing is not used).
+    Rs : ndarray, shape (V, 3, 3)
+        World-to-camera rotations.
+    ts : ndarray, shape (V, 3)
+        World-to-camera translations (mm).
+    points_mm : ndarray, shape (N, 3)
+        World points to cover, e.g. :func:`object_points_mm`.
+    margin_px : float
+        Pixels left free at each edge (0 to half the shorter side).
+
+    Returns
+    -------
+    float
+        Spacing or pitch (mm); 0 when every point projects onto the detector centre.
+
+    Raises
+    ------
+    CtsplatError
+        When a point lies behind a cone-beam source (no pitch can cover it).
+    """
+    from ctsplat.geometry.cameras import world_to_camera
+
+    half_w = camera.width / 2.0 - margin_px
+    half_h = camera.height / 2.0 - margin_px
+    if half_w <= 0 or half_h <= 0:
+        half_w, half_h = camera.width / 2.0, camera.height / 2.0
+    need = 0.0
+    for R, t in zip(np.asarray(Rs, float), np.asarray(ts, float), strict=True):
+        pc = world_to_camera(np.asarray(points_mm, float), R, t)
+        if camera.model == "cone":
+            if np.any(pc[:, 2] <= 0):
+                raise CtsplatError("part of the object lies behind the cone-beam source: raise dso_mm")
+            x, y = camera.dsd_mm * pc[:, 0] / pc[:, 2], camera.dsd_mm * pc[:, 1] / pc[:, 2]
+        else:
+            x, y = pc[:, 0], pc[:, 1]
+        need = max(need, float(np.abs(x).max()) / half_w, float(np.abs(y).max()) / half_h)
+    return need
+
+
 def fov_outside_fraction(camera: Camera, Rs: np.ndarray, ts: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
     """Per view, the fraction of points that project outside the detector (or behind a cone-beam source).
 

@@ -327,9 +327,12 @@ def test_render_radiographs_writes_the_contract(tmp_path, small_volume):
 
 def test_render_radiographs_bad_input(tmp_path, small_volume):
     vol_path, _, _ = small_volume
+    small = {"n_views": 7, "detector_width": 8, "detector_height": 8, "pixel_spacing_mm": 2.0}
+    with pytest.raises(CtsplatError, match=r"^radiographs.pixel_spacing_mm: the detector \(8 x 8 px\) leaves"):
+        render_radiographs(vol_path, tmp_path / "fov", small)
+    assert not (tmp_path / "fov").exists()
     with pytest.warns(UserWarning, match=r"% of the object lies outside the field of view"):
-        render_radiographs(vol_path, tmp_path / "fov", {"n_views": 7, "detector_width": 8, "detector_height": 8,
-                                                        "pixel_spacing_mm": 2.0})
+        render_radiographs(vol_path, tmp_path / "fov", {**small, "allow_truncation": True})
     prov = json.loads((tmp_path / "fov" / "radiographs.json").read_text())
     assert 0 < prov["fov_outside_fraction_worst_view"] < 1
     bad = [
