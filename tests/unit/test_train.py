@@ -11,6 +11,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -329,9 +330,15 @@ def test_fbp_init_uses_training_projections_only(scene_dir: Path, tmp_path: Path
     assert res["init"] == "fbp" and res["uses_reference_volume"] is False
 
 
-def test_fbp_init_on_cone_beam_uses_sirt(scene_dir: Path, tmp_path: Path) -> None:
-    # slice-wise FBP needs a circular parallel orbit; a cone-beam scene is seeded from SIRT of the training views
+def test_fbp_init_on_cone_beam_uses_fdk_or_sirt(scene_dir: Path, tmp_path: Path) -> None:
+    # slice-wise FBP needs a circular parallel orbit; a circular cone-beam scene is seeded from FDK of the training
+    # views when ctsplat.recon.fdk exists, else from SIRT
+    import importlib.util
+
     from ctsplat.projector import render_radiographs
+
+    expected = "fdk" if importlib.util.find_spec("ctsplat.recon") and importlib.util.find_spec("ctsplat.recon.fdk") \
+        else "sirt"
 
     render_radiographs(scene_dir / "volume.nii.gz", tmp_path / "cone",
                        {"camera": "cone", "dso_mm": 120.0, "dsd_mm": 240.0, "detector_width": 32,
@@ -340,16 +347,59 @@ def test_fbp_init_on_cone_beam_uses_sirt(scene_dir: Path, tmp_path: Path) -> Non
     scene = sc.load_scene(cfg)
     truth = scene.volume.data.copy()
     recon, method = seeding.fbp_reconstruction(scene)
-    assert method == "sirt" and recon.shape == truth.shape
+    assert method == expected and recon.shape == truth.shape
     # the reconstruction is the phantom (correlated with it), not the reference voxels read back
     assert np.corrcoef(recon.ravel(), truth.ravel())[0, 1] > 0.8
     scene.volume.data = np.zeros_like(truth)
     seed = seeding.make_seed(cfg, scene, np.random.default_rng(0))
-    assert seed.strategy == "fbp (sirt)" and not seed.uses_reference_volume
+    assert seed.strategy == f"fbp ({expected})" and not seed.uses_reference_volume
     ijk = np.rint((seed.means - scene.volume.affine[:3, 3]) / 2.0).astype(int).clip(0, N - 1)
     inside = truth[tuple(ijk.T)] > 0
     assert seed.densities[inside].sum() > 0.8 * seed.densities.sum()  # the seeded mass sits in the object
 
+
+
+def _cone_scene(scene_dir: Path, tmp_path: Path, **geometry) -> Any:
+    from ctsplat.projector import render_radiographs
+
+    render_radiographs(scene_dir / "volume.nii.gz", tmp_path / "cone",
+                       {"camera": "cone", "dso_mm": 120.0, "dsd_mm": 240.0, "detector_width": 32,
+                        "detector_height": 32, "n_views": 16, "device": "cpu", **geometry})
+    cfg = config.resolve_config(_cfg(scene_dir, init="fbp", radiographs=str(tmp_path / "cone")))
+    return cfg, sc.load_scene(cfg)
+
+
+def test_fbp_init_calls_fdk_on_a_circular_cone_beam(scene_dir: Path, tmp_path: Path, monkeypatch) -> None:
+    import sys
+    import types
+
+    calls = []
+
+    def fdk_volume(line_integrals, view_set, reference, *, filter_name="ramp", clip=True):
+        calls.append((line_integrals.shape, len(view_set), reference.shape, filter_name))
+        return np.full(reference.shape, 0.5, np.float32)
+
+    monkeypatch.setitem(sys.modules, "ctsplat.recon.fdk", types.SimpleNamespace(fdk_volume=fdk_volume))
+    cfg, scene = _cone_scene(scene_dir, tmp_path)
+    recon, method = seeding.fbp_reconstruction(scene, "shepp-logan")
+    assert method == "fdk" and calls == [((16, 32, 32), 16, (N, N, N), "shepp-logan")]
+    assert seeding.make_seed(cfg, scene, np.random.default_rng(0)).strategy == "fbp (fdk)"
+    # a wobbling cone-beam orbit is not what FDK reconstructs: SIRT, FDK never called
+    calls.clear()
+    _, wobbly = _cone_scene(scene_dir, tmp_path / "w", wobble_deg=10.0)
+    assert seeding.fbp_reconstruction(wobbly)[1] == "sirt" and not calls
+
+
+def test_fbp_init_without_fdk_falls_back_to_sirt_and_says_why(scene_dir: Path, tmp_path: Path, monkeypatch,
+                                                              caplog) -> None:
+    import logging
+    import sys
+
+    monkeypatch.setitem(sys.modules, "ctsplat.recon.fdk", None)  # import fails as when the module is absent
+    _, scene = _cone_scene(scene_dir, tmp_path)
+    with caplog.at_level(logging.INFO, logger="ctsplat.training.seeding"):
+        assert seeding.fbp_reconstruction(scene)[1] == "sirt"
+    assert "FDK unavailable" in caplog.text and "SIRT instead" in caplog.text
 
 def test_sfm_init_reads_points(scene_dir: Path, tmp_path: Path) -> None:
     from ctsplat.formats.ply import read_ply_points
