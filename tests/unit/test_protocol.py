@@ -226,3 +226,32 @@ def test_default_settings_do_not_truncate_the_real_head(tmp_path_factory, ct0051
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert check_fov(vs.camera, vs.Rs(), vs.ts(), vol.data, vol.affine) == 0.0
+
+
+@pytest.mark.parametrize(("name", "grid", "detector"),
+                         [("r2_protocol.yaml", 128, 256), ("r2_protocol_256.yaml", 256, 512)])
+def test_protocol_configs_validate_and_say_the_protocol(monkeypatch, name, grid, detector) -> None:
+    from pathlib import Path
+
+    import yaml
+
+    from ctsplat.config import prepare_config
+
+    root = Path(__file__).resolve().parents[2]
+    if not (root.parent / "shared" / "data" / "ct0051_head").is_dir():
+        pytest.skip("../shared/data not found (the configs name its scans)")
+    monkeypatch.chdir(root)
+    cfg = prepare_config(yaml.safe_load((root / "config" / name).read_text()), root)
+    geo = cfg["radiographs"][cfg["grid"]["geometry"]]
+    assert cfg["preprocessing"]["grid"] == grid and geo["detector_width"] == geo["detector_height"] == detector
+    assert (geo["camera"], geo["orbit"], geo["arc_deg"], geo["dso_mm"], geo["dsd_mm"]) == ("cone", "circular", 360,
+                                                                                          None, None)
+    assert (geo["dso_factor"], geo["dsd_factor"], geo["detector_size_factor"]) == (2.5, 3.5, 2.0)
+    assert geo["noise"] == {"enabled": True, "model": "tigre", "i0": 1e4, "electronic_sigma": 10.0,
+                            "splits": ["train"]}
+    assert geo["n_test"] == 100 and geo["n_val"] > 0
+    assert all(geo["n_views"] % v == 0 for v in cfg["grid"]["axes"]["views"]) and cfg["grid"]["axes"]["views"] == [
+        25, 50, 75]
+    assert cfg["grid"]["axes"]["compositor"] == ["radiative"] and cfg["grid"]["axes"]["init"] == ["fbp"]
+    assert set(cfg["volumes"]) == {"phantom", "ct0051_head", "totalseg_abdomen_j2k"}
+    assert cfg["baselines"]["enabled"] and cfg["baselines"]["geometry"] == "cone"
