@@ -1,0 +1,305 @@
+"""The sparse-view CT protocol of R²-Gaussian (NeurIPS 2024) as one command: classical baselines vs Gaussians.
+
+Per volume (``--volumes``: ``phantom`` — the built-in Shepp-Logan head, no beads — and scans in ``--data``, default
+``ct0051_head`` and ``totalseg_abdomen_j2k``) and view count (``--views``, default 25 50 75):
+
+1. ingest at ``--size``³ normalised attenuation (cube side ``L`` mm);
+2. render the protocol radiographs (``config/r2_protocol.yaml``'s geometry): circular cone beam over 360°,
+   DSO 2.5 L, DSD 3.5 L, a 2 L detector of ``2 · size`` pixels a side; training angles uniformly over 360° with
+   TIGRE's noise (Poisson I0 = 1e4 + Gaussian σ = 10 counts, clipped at >= 0) on them only; 100 noise-free test
+   views at random angles and 10 noise-free validation views. One rendering serves every view count when their
+   least common multiple is small (150 angles for 25/50/75: every 6th / 3rd / 2nd), else one per count;
+3. ``ctsplat.baselines.run_baselines`` (every classical method the geometry allows, parameters chosen on the
+   validation views), its saved volumes also scored by R²-Gaussian's 3D metrics;
+4. a Gaussian model per view count (``init: fbp``, i.e. FDK of the training views where available; rectified
+   radiative compositor), trained (``ctsplat.training.train``) and evaluated (``ctsplat.evaluation.evaluate``).
+
+Table (printed, and written as ``protocol.csv`` + ``protocol.md`` under ``--out``; ``protocol.json`` holds the
+arguments and settings): per volume, view count and method the 3D PSNR/SSIM by R²-Gaussian's ``metric_vol``
+(``psnr3d_r2``, ``ssim3d_r2``) and by the project's convention (``psnr3d``, ``ssim3d``), the 2D PSNR/SSIM on the
+test views, wall time, and time to final quality (Gaussians: the first logged training time with 3D PSNR within
+0.25 dB of the final value; classical methods: the chosen reconstruction's time), plus each Gaussian model's
+margin over the best classical method (chosen on validation where the baselines say so; else the best by 3D
+PSNR, marked ``oracle``). Volumes, radiographs and baselines are cached under ``--out/cache``.
+
+Usage::
+
+    python benchmarks/protocol.py                                  # the full CPU protocol (hours on 2 cores)
+    python benchmarks/protocol.py --volumes phantom --views 25 --size 64 --iterations 300    # a quick point
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+DEFAULT_VOLUMES = ["phantom", "ct0051_head", "totalseg_abdomen_j2k"]
+N_VAL, N_TEST = 10, 100
+MAX_SHARED_ANGLES = 600  # above this many, render one view set per view count instead of one shared set
+TABLE_COLUMNS = ["volume", "views", "method", "psnr3d_r2", "ssim3d_r2", "psnr3d", "ssim3d", "psnr2d_test",
+                 "ssim2d_test", "wall_time_s", "time_to_final_quality_s", "best_on_val", "margin_vs_best_classical_db",
+                 "best_classical", "uses_reference_volume"]
+
+
+def protocol_geometry(n_train: int, size: int) -> dict[str, Any]:
+    """The ``radiographs`` settings of the protocol (``config/r2_protocol.yaml``) for ``n_train`` angles."""
+    return {"camera": "cone", "orbit": "circular", "arc_deg": 360.0, "dso_mm": None, "dsd_mm": None,
+            "dso_factor": 2.5, "dsd_factor": 3.5, "detector_size_factor": 2.0, "detector_width": 2 * size,
+            "detector_height": 2 * size, "n_views": int(n_train), "n_val": N_VAL, "n_test": N_TEST,
+            "allow_truncation": True,
+            "noise": {"enabled": True, "model": "tigre", "i0": 1.0e4, "electronic_sigma": 10.0, "splits": ["train"]}}
+
+
+def angle_sets(views: list[int]) -> list[tuple[int, list[int]]]:
+    """Which training-angle counts to render and the view counts each serves (uniform subsets of one set)."""
+    lcm = math.lcm(*views)
+    if lcm <= MAX_SHARED_ANGLES:
+        return [(lcm, sorted(set(views)))]
+    return [(v, [v]) for v in sorted(set(views))]
+
+
+def source_of(name: str, data: Path, cache: Path, size: int) -> Path:
+    """The scan to ingest: the built-in phantom written as DICOM, or ``data / name``."""
+    from ctsplat.utils import CtsplatError
+
+    if name == "phantom":
+        from ctsplat.phantom import write_phantom_dicom
+
+        out = cache / "phantom_dicom"
+        if not out.is_dir():
+            write_phantom_dicom(out, size=size, beads=False, seed=0)
+        return out
+    path = data / name
+    if not path.exists():
+        raise CtsplatError(f"--volumes {name}: {path} not found (give --data, or one of phantom and the scans "
+                           f"in {data})")
+    return path
+
+
+def prepare(name: str, data: Path, out: Path, size: int, n_train: int) -> tuple[Path, Path]:
+    """Ingest once per volume and size, render one protocol view set per training-angle count (cached)."""
+    from ctsplat.projector import render_radiographs
+    from ctsplat.volume import ingest
+
+    cache = out / "cache" / f"{name}-s{size}"
+    cache.mkdir(parents=True, exist_ok=True)
+    vol = cache / "volume.nii.gz"
+    if not vol.exists():
+        ingest(source_of(name, data, cache, size), vol, {"grid": size})
+    rad = cache / f"radiographs_n{n_train:03d}"
+    if not (rad / "views.json").exists():
+        render_radiographs(vol, rad, protocol_geometry(n_train, size), seed=0)
+    return vol, rad
+
+
+def r2_scores(volume_path: Path, reference: np.ndarray) -> tuple[float | None, float | None]:
+    """R²-Gaussian's 3D PSNR/SSIM of a saved reconstruction (None when it was not saved)."""
+    from ctsplat.evaluation.metrics import psnr3d_r2, ssim3d_r2
+    from ctsplat.formats.volume import load_volume
+
+    if not volume_path.exists():
+        return None, None
+    vol = load_volume(volume_path).data
+    return psnr3d_r2(vol, reference), ssim3d_r2(vol, reference)
+
+
+def baseline_rows(name: str, vol: Path, rad: Path, views: list[int], out: Path) -> tuple[list[dict], str | None]:
+    """Every classical method at every view count (cached ``baselines.csv``), with R²'s metrics of its volume."""
+    from ctsplat.baselines import run_baselines
+    from ctsplat.formats.volume import load_volume
+    from ctsplat.utils import CtsplatError
+
+    bdir = rad.parent / f"baselines_{rad.name}_v{'-'.join(map(str, views))}"
+    try:
+        table = pd.read_csv(bdir / "baselines.csv") if (bdir / "baselines.csv").exists() else \
+            run_baselines(vol, rad, bdir, {"n_views": views, "save_volumes": True})
+    except CtsplatError as exc:  # a baseline suite that cannot reconstruct this geometry: say so, keep going
+        logging.getLogger("protocol").warning("baselines of %s: %s", name, exc)
+        return [], str(exc)
+    reference = load_volume(vol).data
+    rows = []
+    for _, b in table.iterrows():
+        method, filt, n = str(b["method"]), b.get("filter"), int(b["n_views"])
+        label = f"{method}:{filt}" if isinstance(filt, str) and filt else method
+        stem = [f"{method}_{filt}_n{n:03d}.nii.gz"] if isinstance(filt, str) and filt else []
+        path = next((bdir / s for s in [*stem, f"{method}_n{n:03d}.nii.gz"] if (bdir / s).exists()),
+                    bdir / f"{method}_n{n:03d}.nii.gz")
+        p_r2, s_r2 = r2_scores(path, reference)
+        seconds = float(b["seconds"])
+        rows.append({"volume": name, "views": n, "method": label, "psnr3d_r2": p_r2, "ssim3d_r2": s_r2,
+                     "psnr3d": float(b["psnr3d"]), "ssim3d": float(b["ssim3d"]),
+                     "psnr2d_test": b.get("psnr2d"), "ssim2d_test": b.get("ssim2d"),
+                     "wall_time_s": seconds + float(b.get("selection_seconds", 0.0) or 0.0),
+                     "time_to_final_quality_s": seconds, "best_on_val": b.get("best_on_val"),
+                     "uses_reference_volume": False})
+    return rows, None
+
+
+def best_classical(rows: list[dict], name: str, n: int) -> tuple[dict | None, str]:
+    """The best classical row at one view count: the one chosen on validation, else (oracle) the best 3D PSNR."""
+    cand = [r for r in rows if r["volume"] == name and r["views"] == n]
+    if not cand:
+        return None, ""
+    chosen = [r for r in cand if r.get("best_on_val") in (True, "True", 1)]
+    if chosen:
+        return chosen[0], chosen[0]["method"]
+    best = max(cand, key=lambda r: r["psnr3d"])
+    return best, f"{best['method']} (oracle)"
+
+
+#: train keys this script sets per run, and the option that sets them instead of --set
+OWN_KEYS = {"volume": "--volumes", "radiographs": "--size", "init": None, "views": "--views",
+            "iterations": "--iterations", "n_init": "--n-init", "progress": None}
+
+
+def train_config(sets: list[str], iterations: int, n_init: int) -> dict:
+    """The train settings every run shares: the protocol's, then ``--set`` (checked against the schema)."""
+    from ctsplat.cli.train import load_train_config
+    from ctsplat.config import check_section
+    from ctsplat.utils import CtsplatError
+
+    user = load_train_config(None, sets)
+    own = [k for k in user if k in OWN_KEYS]
+    if own:
+        option = OWN_KEYS[own[0]]
+        raise CtsplatError(f"--set {own[0]} is set by this benchmark per run" + (f"; use {option}" if option else ""))
+    cfg = {"compositor": "radiative", "device": "cpu", **user, "init": "fbp", "iterations": iterations,
+           "n_init": n_init, "progress": False}
+    return check_section("train", cfg)
+
+
+def time_to(log: pd.DataFrame, value: float) -> float | None:
+    hit = log[log["psnr3d"] >= value]
+    return None if hit.empty else float(hit["timestamp"].iloc[0])
+
+
+def gaussian_row(name: str, vol: Path, rad: Path, n: int, shared: dict, run_dir: Path) -> dict:
+    from ctsplat.evaluation import evaluate
+    from ctsplat.training import train
+
+    cfg = {**shared, "volume": str(vol), "radiographs": str(rad), "views": n}
+    if not (run_dir / "metrics.json").exists():
+        train(cfg, run_dir)
+        evaluate(run_dir, device=cfg["device"])
+    res = json.loads((run_dir / "metrics.json").read_text())
+    log = pd.read_csv(run_dir / "train_log.csv")
+    return {"volume": name, "views": n, "method": f"gaussians ({res['compositor']}, init {res['init']})",
+            "psnr3d_r2": res.get("psnr3d_r2"), "ssim3d_r2": res.get("ssim3d_r2"), "psnr3d": res["psnr3d"],
+            "ssim3d": res["ssim3d"], "psnr2d_test": res["psnr2d"], "ssim2d_test": res["ssim2d"],
+            "wall_time_s": res["wall_time_s"], "time_to_final_quality_s": time_to(log, res["psnr3d"] - 0.25),
+            "best_on_val": None, "uses_reference_volume": res["uses_reference_volume"],
+            "iterations": res["iterations"], "n_gaussians": res["n_gaussians"], "run_dir": str(run_dir)}
+
+
+def markdown(table: pd.DataFrame) -> str:
+    cols = [c for c in TABLE_COLUMNS if c in table]
+
+    def fmt(v: Any) -> str:
+        if v is None or (isinstance(v, float) and math.isnan(v)):
+            return ""
+        return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(fmt(r[c]) for c in cols) + " |" for _, r in table.iterrows()]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    from ctsplat.utils import CtsplatError
+
+    try:
+        return run(argv)
+    except CtsplatError as exc:
+        print(f"protocol.py: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def run(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--volumes", nargs="+", default=DEFAULT_VOLUMES,
+                    help="phantom and/or folder names in --data (default: %(default)s)")
+    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data"))
+    ap.add_argument("--views", type=int, nargs="+", default=[25, 50, 75])
+    ap.add_argument("--size", type=int, default=128, help="volume grid (size^3); detectors are 2 size px a side")
+    ap.add_argument("--iterations", type=int, default=3000)
+    ap.add_argument("--n-init", type=int, default=50000)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="extra train config overrides (as `ctsplat train --set`), e.g. lambda_tv=0.05")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "out" / "protocol"))
+    args = ap.parse_args(argv)
+    for name in ("views", "size", "iterations", "threads", "n_init"):
+        values = getattr(args, name)
+        if min(values if isinstance(values, list) else [values]) < 1:
+            ap.error(f"--{name.replace('_', '-')} must be >= 1")
+    if args.size < 8:
+        ap.error("--size must be >= 8")
+
+    import torch
+
+    from ctsplat.utils import CtsplatError
+
+    torch.set_num_threads(args.threads)
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    shared = train_config(args.set, args.iterations, args.n_init)  # refused before any work
+    data = Path(args.data)
+    for name in args.volumes:
+        if name != "phantom" and not (data / name).exists():
+            raise CtsplatError(f"--volumes {name}: {data / name} not found (give --data, or use phantom)")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows: list[dict] = []
+    errors: dict[str, str] = {}
+
+    def write() -> pd.DataFrame:
+        table = pd.DataFrame(rows)
+        if not table.empty:  # per volume (in --volumes order) and view count: baselines first, then the Gaussians
+            table["_v"] = table["volume"].map({v: i for i, v in enumerate(args.volumes)})
+            table = table.sort_values(["_v", "views"], kind="stable").drop(columns="_v")
+        table = table[[c for c in TABLE_COLUMNS if c in table] + [c for c in table if c not in TABLE_COLUMNS]]
+        table.to_csv(out / "protocol.csv", index=False, lineterminator="\n")
+        (out / "protocol.md").write_text(markdown(table))
+        return table
+
+    t_start = time.perf_counter()
+    for name in args.volumes:
+        for n_train, counts in angle_sets(args.views):
+            vol, rad = prepare(name, data, out, args.size, n_train)
+            base, err = baseline_rows(name, vol, rad, counts, out)
+            if err:
+                errors[name] = err
+            rows.extend(base)
+            for n in counts:
+                g = gaussian_row(name, vol, rad, n, shared, out / "runs" / f"{name}-s{args.size}" / f"views{n:03d}")
+                best, label = best_classical(base, name, n)
+                if best is not None:
+                    key = "psnr3d_r2" if best.get("psnr3d_r2") is not None and g["psnr3d_r2"] is not None else "psnr3d"
+                    g["margin_vs_best_classical_db"] = g[key] - best[key]
+                    g["best_classical"] = label
+                rows.append(g)
+                write()
+    table = write()
+    (out / "protocol.json").write_text(json.dumps({"args": vars(args), "train": shared,
+                                                   "geometry": protocol_geometry(0, args.size),
+                                                   "baseline_errors": errors,
+                                                   "total_seconds": time.perf_counter() - t_start}, indent=2))
+    print(markdown(table), end="")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

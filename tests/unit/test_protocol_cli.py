@@ -1,0 +1,64 @@
+"""benchmarks/protocol.py: bad options are refused with one line before any work; a tiny run writes the table."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def bench(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / "protocol.py"), *map(str, args)],
+                          capture_output=True, text=True, env=env, cwd=cwd, timeout=600)
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--set", "init=volume"], "--set init is set by this benchmark per run"),
+        (["--set", "iterations=5"], "use --iterations"),
+        (["--set", "compositor=radiative_rectified"], "train.compositor: 'radiative_rectified' is not one of"),
+        (["--volumes", "no_such_scan"], "--volumes no_such_scan:"),
+        (["--views", "0"], "--views must be >= 1"),
+        (["--size", "4"], "--size must be >= 8"),
+    ],
+)
+def test_protocol_refuses_bad_options_before_any_work(tmp_path, args, needle):
+    res = bench("--data", tmp_path / "no_data", "--out", tmp_path / "p", *args, cwd=tmp_path)
+    assert res.returncode == 2
+    assert "Traceback" not in res.stderr, res.stderr
+    assert needle in res.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.slow
+def test_protocol_tiny_run_writes_the_table(tmp_path):
+    out = tmp_path / "p"
+    res = bench("--volumes", "phantom", "--views", "4", "--size", "16", "--iterations", "4", "--n-init", "100",
+                "--threads", "1", "--set", "eval_every=2", "--set", "checkpoint_every=2", "--set", "figures=false",
+                "--out", out, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    table = pd.read_csv(out / "protocol.csv")
+    g = table[table["method"].str.startswith("gaussians")]
+    assert len(g) == 1 and g["views"].iloc[0] == 4 and g["volume"].iloc[0] == "phantom"
+    for col in ("psnr3d_r2", "ssim3d_r2", "psnr3d", "ssim3d", "psnr2d_test", "ssim2d_test", "wall_time_s"):
+        assert math.isfinite(float(g[col].iloc[0])), col
+    md = (out / "protocol.md").read_text()
+    assert md.startswith("| volume | views | method | psnr3d_r2 |") and "| phantom | 4 | gaussians (radiative" in md
+    assert "psnr3d_r2" in res.stdout  # the table is printed
+    # the protocol's view set: cone beam in volume sides, noise on the training views only, 100 test views
+    views = json.loads((out / "cache" / "phantom-s16" / "radiographs_n004" / "views.json").read_text())
+    assert views["camera"]["model"] == "cone" and views["camera"]["width"] == 32
+    assert views["meta"]["noise"]["model"] == "tigre" and views["meta"]["noise"]["splits"] == ["train"]
+    assert sum(v["split"] == "test" for v in views["views"]) == 100
+    info = json.loads((out / "protocol.json").read_text())
+    assert info["args"]["size"] == 16 and info["train"]["compositor"] == "radiative"
