@@ -588,6 +588,9 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("sfm", "max_median_rotation_error_deg"): {"type": "number", "exclusiveMinimum": 0, "maximum": 180},
     ("train", "supervision"): {"enum": ["line_integral", "transmission"]},
     ("train", "densify.split_mass"): {"enum": ["conserve", "halve"]},
+    ("train", "densify.strategy"): {"enum": ["gradient", "error", "both"]},
+    ("train", "optimizer_preset"): {"enum": ["per_group", "method"]},
+    ("train", "model_selection"): {"enum": ["last", "best"]},
     # keys the workflow sets per run (not in the schema; checked by check_section for the command line)
     ("train", "device"): {"type": "string", "pattern": "^(auto|cpu|cuda(:[0-9]+)?)$"},
     ("train", "init"): {"enum": ["volume", "uniform", "fbp", "sfm"]},
