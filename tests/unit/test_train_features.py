@@ -350,3 +350,18 @@ def test_schema_knows_the_new_keys():
     assert cfg["train"]["augment"]["rot_deg"] == 0.5
     with pytest.raises(CtsplatError, match="strategy"):
         validate_config({"train": {"densify": {"strategy": "nope"}}})
+
+
+def test_features_benchmark_refuses_keys_its_variants_set(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    res = subprocess.run([sys.executable, str(root / "benchmarks" / "features.py"), "--data", str(tmp_path / "none"),
+                          "--out", str(tmp_path / "o"), "--set", "densify.strategy=error"], capture_output=True,
+                         text=True, env=env, timeout=300)
+    assert res.returncode == 2 and not (tmp_path / "o").exists()
+    assert res.stderr.strip().splitlines()[-1] == ("features.py: error: --set densify.strategy is set by this "
+                                                   "benchmark per run; use --variants")
