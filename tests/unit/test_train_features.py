@@ -365,3 +365,48 @@ def test_features_benchmark_refuses_keys_its_variants_set(tmp_path):
     assert res.returncode == 2 and not (tmp_path / "o").exists()
     assert res.stderr.strip().splitlines()[-1] == ("features.py: error: --set densify.strategy is set by this "
                                                    "benchmark per run; use --variants")
+
+
+# --- grid axes -----------------------------------------------------------------------------------------------------
+
+def test_feature_axes_expand_into_run_folders_and_train_settings(scene_dir):
+    from ctsplat.config import validate_config
+    from ctsplat.grid import expand_grid, parse_run_dir, run_relpath, with_train_overrides
+
+    axes = {"init": ["fbp"], "compositor": ["radiative"], "mip": ["on"], "poses": ["gt"], "views": [8], "seed": [0],
+            "augment": [True, "off"], "densify": ["gradient", "both"], "density_warmup": [1, 10],
+            "prune_redundant": ["on"], "optimizer": ["method"]}
+    runs = expand_grid(axes, ["ph"], exclude=[{"augment": "on", "densify": "both"}])
+    assert len(runs) == 6 and list(runs.columns[-5:]) == ["augment", "density_warmup", "densify", "prune_redundant",
+                                                          "optimizer"]
+    row = runs.iloc[-1].to_dict()
+    rel = run_relpath(row)
+    assert rel == ("init~fbp/compositor~radiative/mip~on/poses~gt/views~8/seed~0/augment~off/density_warmup~10/"
+                   "densify~both/prune_redundant~on/optimizer~method")
+    assert parse_run_dir(f"results/ph/runs/{rel}") == {**row, "density_warmup": 10.0}
+    base = config.resolve_config(_cfg(scene_dir, densify={"interval": 7}))
+    cfg = config.resolve_config(with_train_overrides(base, row))
+    assert cfg["augment"]["enabled"] is False and cfg["densify"]["strategy"] == "both"
+    assert cfg["densify"]["interval"] == 7 and cfg["densify"]["prune_redundant"]["enabled"] is True
+    assert cfg["lambda_density_warmup"]["factor"] == 10.0 and cfg["optimizer_preset"] == "method"
+    # the six-axis layout is unchanged without feature axes; the schema accepts them and their exclusions
+    plain = expand_grid({k: axes[k] for k in list(axes)[:6]}, ["ph"])
+    assert run_relpath(plain.iloc[0].to_dict()) == "init~fbp/compositor~radiative/mip~on/poses~gt/views~8/seed~0"
+    validate_config({"grid": {"axes": {"augment": ["on", "off"], "densify": ["error"]},
+                              "exclude": [{"augment": "on"}]}})
+    with pytest.raises(CtsplatError, match="grid.axes.densify"):
+        validate_config({"grid": {"axes": {"densify": ["random"]}}})
+
+
+def test_workflow_dry_run_with_a_feature_axis(tmp_path, monkeypatch):
+    import yaml
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "workflow"))
+    from smk_helpers import ROOT, job_counts, snakemake, write_config
+
+    cfg = yaml.safe_load((ROOT / "config" / "test_tiny.yaml").read_text())
+    cfg["grid"]["axes"].update(init=["uniform"], mip=["off"], augment=["on", "off"], densify=["error"])
+    proc = snakemake(tmp_path, "-n", configfile=write_config(tmp_path / "c.yaml", cfg))
+    assert job_counts(proc.stdout)["train"] == 2
+    assert "seed~0/augment~on/densify~error/model.pt" in proc.stdout
+    assert "seed~0/augment~off/densify~error/model.pt" in proc.stdout
