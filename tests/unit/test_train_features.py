@@ -325,6 +325,30 @@ def test_all_features_on_are_deterministic(scene_dir, tmp_path):
     assert ra == rb and a["n_gaussians"] == b["n_gaussians"]
 
 
+def test_resume_with_features_continues_bit_for_bit(scene_dir, tmp_path):
+    # error statistics accumulate from 11 to 20 and are in the checkpoint at 10..; augmentation draws from the
+    # checkpointed generators
+    kw = {"iterations": 30, "augment": {"enabled": True}, "densify": {"interval": 20, "start": 20,
+                                                                     "strategy": "error", "error_ratio": 1.2}}
+    full = loop.train(_cfg(scene_dir, **kw), tmp_path / "full")
+
+    class Stop(Exception):
+        pass
+
+    def stop(it: int, _st: state.TrainState) -> None:
+        if it == 15:
+            raise Stop
+
+    with pytest.raises(Stop):
+        loop.train(_cfg(scene_dir, **kw), tmp_path / "cut", callback=stop)
+    resumed = loop.train(_cfg(scene_dir, **kw), tmp_path / "cut", resume=True)
+    drop = ("timestamp", "iters_per_s")
+    rows = [[{k: v for k, v in r.items() if k not in drop} for r in _rows(tmp_path / d / "train_log.csv")]
+            for d in ("full", "cut")]
+    assert rows[0] == rows[1] and full["densify_cloned"] + full["densify_split"] > 0
+    assert resumed["n_gaussians"] == full["n_gaussians"] and resumed["best_iteration"] == full["best_iteration"]
+
+
 @pytest.mark.parametrize(("kw", "msg"), [
     ({"augment": {"rot_deg": -0.5}}, r"train\.augment\.rot_deg must be a number in \[0, 1\], got -0.5"),
     ({"augment": {"shear": 1}}, "unknown config key train.augment.shear"),
