@@ -6,13 +6,17 @@ fixed ``image_scale`` = max of the training targets, so they lie in [0, 1])::
     L = λ1 L1 + λs (1 - SSIM) + λρ mean(ρ) + λscale mean(‖s‖) + λtv TV(voxelised random sub-volume)
 
 (:mod:`ctsplat.training.losses`). With ``supervision: transmission`` the compared images are ``exp(-μ_scale p)``
-instead.
+instead. λρ follows ``lambda_density_warmup`` (:func:`ctsplat.training.features.density_lambda`); with
+``augment`` each training render uses a slightly moved camera and a noisy target
+(:class:`ctsplat.training.features.Augmenter`), never the validation renders.
 
 Optimiser: Adam with one parameter group per quantity (means, log-scales, quaternions, density; plus opacity and
 colour for the alpha compositor), each with its own learning rate decayed by a cosine from ``lr`` to
 ``lr × lr_final_factor``. Mean learning rates are given in voxels per step (multiplied by the mean voxel edge).
+``optimizer_preset: method`` uses one rate for all groups instead (:func:`ctsplat.training.state.make_optimizer`).
 
-Adaptive density control: :mod:`ctsplat.training.densify`. Seeding (``init``): :mod:`ctsplat.training.seeding`.
+Adaptive density control: :mod:`ctsplat.training.densify` (``densify.strategy``: positional gradient, training
+residual, or both; ``densify.prune_redundant``). Seeding (``init``): :mod:`ctsplat.training.seeding`.
 
 Robustness: a non-finite loss or parameter rolls back to the last good state, multiplies the learning rates by
 ``nan_lr_decay`` and is logged; ``nan_max_consecutive`` such events in a row, or ``nan_max_events`` within
@@ -30,7 +34,8 @@ second process writing the same folder fails at once, naming the first.
 
 The run folder gets ``config.json`` (resolved config, hash, code version, scene provenance), ``train_log.csv`` and
 ``per_view.csv`` (periodic validation, :mod:`ctsplat.formats.runlog`), ``checkpoints/``, the final ``model.pt``
-and ``model.ply`` and ``training.json`` (wall time, iterations, events). Test metrics are not computed here:
+and ``model.ply``, ``model_best.pt`` (the model at the periodic validation with the highest PSNR) and
+``training.json`` (wall time, iterations, events, best iteration). Test metrics are not computed here:
 :func:`ctsplat.evaluation.evaluate` reads the finished run folder.
 
 References
