@@ -279,21 +279,21 @@ def check_grid_exclude(cfg: Mapping[str, Any]) -> None:
     CtsplatError
         Naming ``grid.exclude[i].<key>``, the value and the values it can take.
     """
-    from ctsplat.grid import normalise_mip
+    from ctsplat.grid import ONOFF_AXES, normalise_mip
 
     axes = cfg["grid"]["axes"]
     known: dict[str, list[Any]] = {"volume": list(cfg["volumes"])}
     for name, vals in axes.items():
-        known[name] = [normalise_mip(v) for v in vals] if name == "mip" else list(vals)
+        known[name] = [normalise_mip(v, name) for v in vals] if name in ONOFF_AXES else list(vals)
     for i, entry in enumerate(cfg["grid"]["exclude"]):
         for key, vals in entry.items():
             for v in vals if isinstance(vals, list) else [vals]:
                 try:
-                    norm = normalise_mip(v) if key == "mip" else v
+                    norm = normalise_mip(v, key) if key in ONOFF_AXES else v
                 except CtsplatError:
                     norm = v
-                if norm not in known[key]:
-                    shown = ", ".join(map(str, known[key]))
+                if norm not in known.get(key, []):
+                    shown = ", ".join(map(str, known.get(key, []))) or "the axis is not in grid.axes"
                     what = "a volume name" if key == "volume" else f"a value of grid.axes.{key}"
                     raise CtsplatError(f"invalid config at grid.exclude[{i}].{key}: {v!r} is not {what} ({shown}); "
                                        "fix or remove it (it would exclude nothing)")
@@ -596,6 +596,9 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("sfm", "max_median_rotation_error_deg"): {"type": "number", "exclusiveMinimum": 0, "maximum": 180},
     ("train", "supervision"): {"enum": ["line_integral", "transmission"]},
     ("train", "densify.split_mass"): {"enum": ["conserve", "halve"]},
+    ("train", "densify.strategy"): {"enum": ["gradient", "error", "both"]},
+    ("train", "optimizer_preset"): {"enum": ["per_group", "method"]},
+    ("train", "model_selection"): {"enum": ["last", "best"]},
     # keys the workflow sets per run (not in the schema; checked by check_section for the command line)
     ("train", "device"): {"type": "string", "pattern": "^(auto|cpu|cuda(:[0-9]+)?)$"},
     ("train", "init"): {"enum": ["volume", "uniform", "fbp", "sfm"]},

@@ -3,6 +3,10 @@
 A grid is the Cartesian product of the volumes and the values of every axis in :data:`GRID_AXES`, minus the
 cells matched by ``grid.exclude``. Each run lives in a Paramspace-style folder
 ``results/{volume}/runs/init~fbp/compositor~radiative/mip~on/poses~gt/views~50/seed~0``.
+
+The method's training features are optional axes (:data:`FEATURE_AXES`): a config that lists one under
+``grid.axes`` adds it to every run folder after ``seed`` (``.../seed~0/augment~on``) and sets its training key per
+run (:func:`train_overrides`); a config that lists none keeps the six-axis layout.
 """
 
 from __future__ import annotations
@@ -18,21 +22,127 @@ from ctsplat.utils import CtsplatError
 if TYPE_CHECKING:
     import pandas as pd
 
-__all__ = ["GRID_AXES", "expand_grid", "normalise_mip", "run_relpath", "parse_run_dir", "needs_sfm"]
+__all__ = ["GRID_AXES", "FEATURE_AXES", "ALL_AXES", "expand_grid", "normalise_mip", "run_axes", "run_relpath",
+           "parse_run_dir", "needs_sfm", "train_overrides", "with_train_overrides"]
 
-#: The ablation axes, in the folder nesting order of a run directory.
+#: The ablation axes every grid has, in the folder nesting order of a run directory.
 GRID_AXES: tuple[str, ...] = ("init", "compositor", "mip", "poses", "views", "seed")
+#: Optional axes (the method's training features) -> the dotted ``train`` key each sets; nested after ``seed`` in
+#: this order when a config lists them.
+FEATURE_AXES: dict[str, str] = {
+    "augment": "augment.enabled",  # on | off
+    "density_warmup": "lambda_density_warmup.factor",  # the factor (1: off)
+    "densify": "densify.strategy",  # gradient | error | both
+    "prune_redundant": "densify.prune_redundant.enabled",  # on | off
+    "optimizer": "optimizer_preset",  # per_group | method
+}
+#: Every axis a run folder can have, in nesting order.
+ALL_AXES: tuple[str, ...] = GRID_AXES + tuple(FEATURE_AXES)
 #: Axes whose values are integers (parsed back to int from folder names).
 INT_AXES: tuple[str, ...] = ("views", "seed")
+#: Axes whose values are numbers (parsed back to float).
+FLOAT_AXES: tuple[str, ...] = ("density_warmup",)
+#: Axes whose values are on/off labels.
+ONOFF_AXES: tuple[str, ...] = ("mip", "augment", "prune_redundant")
 
 
-def normalise_mip(value: Any) -> str:
-    """The ``mip`` axis value as a folder label.
+def run_axes(names: Any) -> tuple[str, ...]:
+    """The axes of a grid or run: :data:`GRID_AXES` plus the optional :data:`FEATURE_AXES` that ``names`` holds.
+
+    Parameters
+    ----------
+    names : iterable of str or mapping
+        Axis names, e.g. ``grid.axes``, a row of :func:`expand_grid` or the columns of its table.
+
+    Returns
+    -------
+    tuple of str
+        In folder nesting order.
+
+    Examples
+    --------
+    >>> run_axes({"init": [], "augment": ["on", "off"]})
+    ('init', 'compositor', 'mip', 'poses', 'views', 'seed', 'augment')
+    """
+    present = set(names)
+    return GRID_AXES + tuple(a for a in FEATURE_AXES if a in present)
+
+
+def train_overrides(cell: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``train`` settings of a grid cell's feature axes, as a nested dict to merge into the train section.
+
+    Parameters
+    ----------
+    cell : mapping
+        A grid cell (folder labels: on/off as strings).
+
+    Returns
+    -------
+    dict
+        E.g. ``{"augment": {"enabled": True}, "densify": {"strategy": "error"}}``; empty without feature axes.
+
+    Examples
+    --------
+    >>> train_overrides({"init": "fbp", "augment": "on", "density_warmup": "10"})
+    {'augment': {'enabled': True}, 'lambda_density_warmup': {'factor': 10.0}}
+    """
+    out: dict[str, Any] = {}
+    for axis, dotted in FEATURE_AXES.items():
+        if axis not in cell:
+            continue
+        value = cell[axis]
+        if axis in ONOFF_AXES:
+            value = normalise_mip(value, axis) == "on"
+        elif axis in FLOAT_AXES:
+            value = float(value)
+        else:
+            value = str(value)
+        node = out
+        *parents, leaf = dotted.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return out
+
+
+def with_train_overrides(train: Mapping[str, Any], cell: Mapping[str, Any]) -> dict[str, Any]:
+    """A ``train`` section with a grid cell's feature-axis settings (:func:`train_overrides`) merged in, key by key.
+
+    Parameters
+    ----------
+    train : mapping
+        The ``train`` section (not modified).
+    cell : mapping
+        A grid cell.
+
+    Returns
+    -------
+    dict
+        A new section; nested sections are merged, so the settings beside an overridden key stay.
+
+    Examples
+    --------
+    >>> with_train_overrides({"densify": {"interval": 100, "strategy": "gradient"}}, {"densify": "error"})
+    {'densify': {'interval': 100, 'strategy': 'error'}}
+    """
+    def merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+        out = dict(base)
+        for k, v in over.items():
+            out[k] = merge(out.get(k) or {}, v) if isinstance(v, dict) else v
+        return out
+
+    return merge(train, train_overrides(cell))
+
+
+def normalise_mip(value: Any, axis: str = "mip") -> str:
+    """An on/off axis value (``mip``, ``augment``, ``prune_redundant``) as a folder label.
 
     Parameters
     ----------
     value : bool or str
         ``True``/``"on"`` or ``False``/``"off"`` (YAML 1.1 reads a bare on/off as a boolean).
+    axis : str
+        The axis (for the error message).
 
     Returns
     -------
@@ -53,7 +163,7 @@ def normalise_mip(value: Any) -> str:
         return "on"
     if value is False or value == "off":
         return "off"
-    raise CtsplatError(f"invalid mip value {value!r}; allowed: on, off")
+    raise CtsplatError(f"invalid {axis} value {value!r}; allowed: on, off")
 
 
 def _as_list(value: Any) -> list[Any]:
@@ -70,7 +180,7 @@ def expand_grid(
     Parameters
     ----------
     axes : mapping of str to sequence
-        Axis name -> list of values, for every name in :data:`GRID_AXES`.
+        Axis name -> list of values, for every name in :data:`GRID_AXES` and any of :data:`FEATURE_AXES`.
     volumes : sequence of str
         Volume names.
     exclude : sequence of mappings
@@ -80,8 +190,8 @@ def expand_grid(
     Returns
     -------
     pandas.DataFrame
-        Columns ``volume, *GRID_AXES`` (``mip`` as ``"on"``/``"off"``, ``views``/``seed`` int), one row per run,
-        in product order.
+        Columns ``volume, *run_axes(axes)`` (on/off axes as ``"on"``/``"off"``, ``views``/``seed`` int), one row
+        per run, in product order.
 
     Raises
     ------
@@ -101,13 +211,16 @@ def expand_grid(
     missing = [a for a in GRID_AXES if a not in axes]
     if missing:
         raise CtsplatError(f"grid.axes is missing {missing[0]!r}; axes: {', '.join(GRID_AXES)}")
-    values = {a: list(axes[a]) for a in GRID_AXES}
-    values["mip"] = [normalise_mip(v) for v in values["mip"]]
-    rows = [dict(zip(("volume", *GRID_AXES), combo, strict=True))
-            for combo in itertools.product(list(volumes), *(values[a] for a in GRID_AXES))]
+    names = run_axes(axes)
+    values = {a: list(axes[a]) for a in names}
+    for a in ONOFF_AXES:
+        if a in values:
+            values[a] = [normalise_mip(v, a) for v in values[a]]
+    rows = [dict(zip(("volume", *names), combo, strict=True))
+            for combo in itertools.product(list(volumes), *(values[a] for a in names))]
 
     def norm(key: str, v: Any) -> Any:
-        return normalise_mip(v) if key == "mip" else v
+        return normalise_mip(v, key) if key in ONOFF_AXES else v
 
     def excluded(row: dict[str, Any]) -> bool:
         return any(all(row[k] in [norm(k, v) for v in _as_list(vals)] for k, vals in entry.items())
@@ -119,7 +232,7 @@ def expand_grid(
             f"the ablation grid expands to zero runs ({len(rows)} cells, all removed by grid.exclude or no volumes); "
             "loosen grid.exclude or add axis values"
         )
-    df = pd.DataFrame(kept, columns=["volume", *GRID_AXES])
+    df = pd.DataFrame(kept, columns=["volume", *names])
     return df.astype(dict.fromkeys(INT_AXES, int)).reset_index(drop=True)
 
 
@@ -146,7 +259,8 @@ def run_relpath(row: Mapping[str, Any]) -> str:
     Parameters
     ----------
     row : mapping
-        A value for every axis in :data:`GRID_AXES` (e.g. a row of :func:`expand_grid`).
+        A value for every axis in :data:`GRID_AXES` and any of :data:`FEATURE_AXES` (e.g. a row of
+        :func:`expand_grid`).
 
     Returns
     -------
@@ -158,7 +272,7 @@ def run_relpath(row: Mapping[str, Any]) -> str:
     >>> run_relpath({"init": "fbp", "compositor": "radiative", "mip": "on", "poses": "gt", "views": 50, "seed": 0})
     'init~fbp/compositor~radiative/mip~on/poses~gt/views~50/seed~0'
     """
-    return "/".join(f"{a}~{row[a]}" for a in GRID_AXES)
+    return "/".join(f"{a}~{row[a]}" for a in run_axes(row))
 
 
 def parse_run_dir(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -172,8 +286,8 @@ def parse_run_dir(path: str | os.PathLike[str]) -> dict[str, Any]:
     Returns
     -------
     dict
-        Every axis of :data:`GRID_AXES` (``views`` and ``seed`` as int), and ``volume`` when the path has a
-        ``runs`` component with a folder before it.
+        Every axis of :data:`GRID_AXES` (``views`` and ``seed`` as int), the :data:`FEATURE_AXES` the folder has,
+        and ``volume`` when the path has a ``runs`` component with a folder before it.
 
     Raises
     ------
@@ -190,8 +304,8 @@ def parse_run_dir(path: str | os.PathLike[str]) -> dict[str, Any]:
     for p in parts:
         if "~" in p:
             key, _, val = p.partition("~")
-            if key in GRID_AXES:
-                out[key] = int(val) if key in INT_AXES else val
+            if key in ALL_AXES:
+                out[key] = int(val) if key in INT_AXES else float(val) if key in FLOAT_AXES else val
     missing = [a for a in GRID_AXES if a not in out]
     if missing:
         raise CtsplatError(f"{path}: not a run folder (no {missing[0]}~<value> component)")

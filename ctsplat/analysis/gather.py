@@ -12,7 +12,7 @@ import pandas as pd
 
 from ctsplat.analysis.stats import convergence_velocity, mean_iters_per_s, milestones
 from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, PER_VIEW_COLUMNS, read_per_view, read_train_log
-from ctsplat.grid import GRID_AXES, parse_run_dir
+from ctsplat.grid import GRID_AXES, parse_run_dir, run_axes
 from ctsplat.utils import CtsplatError, atomic_path
 
 __all__ = ["TEST_METRICS", "SFM_COLUMNS", "velocity_column", "sfm_summary_path", "gather", "load_runs",
@@ -122,7 +122,7 @@ def gather(
     pandas.DataFrame
         The table written, one row per run:
 
-        - ``volume`` + :data:`ctsplat.grid.GRID_AXES` (from the folder names) and ``run_dir``;
+        - ``volume`` + :data:`ctsplat.grid.GRID_AXES` and any feature axes (from the folder names) and ``run_dir``;
         - the held-out test metrics of ``metrics.json`` as ``test_psnr2d``, ``test_ssim2d``, ``test_psnr3d``,
           ``test_ssim3d``, R²-Gaussian's ``test_psnr3d_r2``, ``test_ssim3d_r2`` (empty for runs evaluated before
           they existed), ``test_lpips`` (``test_lpips_reason``), and its other keys flattened (nested keys
@@ -205,7 +205,7 @@ def load_runs(summary: pd.DataFrame, *, max_gap_iters: int = 10) -> pd.DataFrame
         if not log_path.exists():
             continue
         log = read_train_log(log_path, max_gap_iters=max_gap_iters)
-        for col in ("volume", *GRID_AXES, "run_dir"):
+        for col in ("volume", *run_axes(summary.columns), "run_dir"):
             log[col] = r[col]
         frames.append(log)
     if not frames:
@@ -237,7 +237,7 @@ def load_per_view(summary: pd.DataFrame, *, split: str | None = "val") -> pd.Dat
         pv = read_per_view(path)
         if split is not None:
             pv = pv[pv["split"] == split]
-        for col in ("volume", *GRID_AXES, "run_dir"):
+        for col in ("volume", *run_axes(summary.columns), "run_dir"):
             pv[col] = r[col]
         frames.append(pv)
     if not frames:

@@ -43,7 +43,7 @@ from ctsplat.analysis.stats import (  # noqa: E402
 )
 from ctsplat.config import schema_defaults  # noqa: E402
 from ctsplat.formats.runlog import METRICS_2D3D, read_per_view, read_train_log  # noqa: E402
-from ctsplat.grid import GRID_AXES  # noqa: E402
+from ctsplat.grid import ALL_AXES, GRID_AXES  # noqa: E402
 from ctsplat.utils import CtsplatError, atomic_path  # noqa: E402
 
 __all__ = [
@@ -71,7 +71,7 @@ CBAR_LABELS = {"psnr2d": "PSNR 2D (dB)", "ssim2d": "SSIM 2D (unitless, 1 = ident
 
 
 # Columns that name a run's condition, in naming order (the seed is a replicate, not a condition).
-CONDITION_AXES: tuple[str, ...] = ("volume", *GRID_AXES)
+CONDITION_AXES: tuple[str, ...] = ("volume", *ALL_AXES)
 LINESTYLES: tuple[str, ...] = ("-", "--", ":", "-.")
 MARKERS: tuple[str, ...] = ("o", "s", "^", "D", "v", "P", "X", "*")
 
@@ -414,7 +414,7 @@ def run_figures(run_dir: str | os.PathLike[str], outputs: Mapping[str, str | os.
 
 
 def _run_label(df: pd.DataFrame) -> pd.Series:
-    return df["volume"].astype(str) + "/" + df[list(GRID_AXES)].astype(str).agg("/".join, axis=1)
+    return df["volume"].astype(str) + "/" + df[[a for a in ALL_AXES if a in df]].astype(str).agg("/".join, axis=1)
 
 
 def plot_convergence_by_axis(logs: pd.DataFrame, axis: str, out: str | os.PathLike[str], *,
@@ -646,7 +646,7 @@ def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fig
         The figure written to ``out`` (closed).
     """
     metric_cols = _metric_columns(summary)
-    axes_used = varying_axes(summary, GRID_AXES) or list(GRID_AXES[:1])
+    axes_used = varying_axes(summary, ALL_AXES) or list(GRID_AXES[:1])
     metric_cols = metric_cols or ["test_psnr3d"]
     fig, axs = plt.subplots(len(metric_cols), len(axes_used), figsize=(3.4 * len(axes_used) + 1,
                                                                        2.9 * len(metric_cols)), squeeze=False)
@@ -724,7 +724,7 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
             drawn = True
     if col in summary and len(summary):
         s = summary.assign(score=pd.to_numeric(summary[col], errors="coerce")).dropna(subset=["score"])
-        cond_axes = [a for a in ("volume", *GRID_AXES) if a not in ("views", "seed") and a in s]
+        cond_axes = [a for a in ("volume", *ALL_AXES) if a not in ("views", "seed") and a in s]
         named = varying_axes(s, cond_axes) or [a for a in cond_axes if a != "volume"]
         s = s.assign(condition="Gaussian, " + s[named].astype(str).apply(
             lambda r: ", ".join(f"{a}={r[a]}" for a in named), axis=1))
@@ -789,7 +789,7 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
     if "milestones" in outputs:
         rows = []
         for run, g in logs.groupby("run_dir", sort=True) if not logs.empty else []:
-            rows.append({"run_dir": run, **{a: g[a].iloc[0] for a in ("volume", *GRID_AXES)},
+            rows.append({"run_dir": run, **{a: g[a].iloc[0] for a in ("volume", *ALL_AXES) if a in g},
                          **milestones(g, cfg["milestones"]), "iters_per_s": mean_iters_per_s(g)})
         _write_csv(pd.DataFrame(rows), outputs["milestones"])
     if "ablation" in outputs:

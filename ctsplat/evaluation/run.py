@@ -323,7 +323,8 @@ def orbit_poses(R0: np.ndarray, t0: np.ndarray, center_mm: np.ndarray, n: int) -
 
 
 def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
-             milestones: Mapping[str, float] | None = None, write: bool = True) -> dict[str, Any]:
+             milestones: Mapping[str, float] | None = None, write: bool = True,
+             model: str | None = None) -> dict[str, Any]:
     """Evaluate a finished training run: the one place its held-out metrics are computed.
 
     Reads ``run_dir/config.json``, ``model.pt``, ``training.json`` and ``train_log.csv`` (written by
@@ -346,6 +347,9 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         Write ``metrics.json`` (``metrics_{split}.json`` for other splits), ``per_view_{split}.csv`` and, for the
         test split, ``model_volume.nii.gz`` and the figures (``gallery.png``, ``slices.png``, ``turntable.gif``)
         when the run's config asks for figures.
+    model : {"last", "best"}, optional
+        ``last``: ``model.pt``; ``best``: ``model_best.pt`` (highest validation PSNR during training). Default:
+        the run's ``model_selection``. Recorded as ``model`` (and ``model_iteration``) in the metrics.
 
     Returns
     -------
@@ -383,10 +387,17 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         raise CtsplatError(f"unknown split {split!r}; allowed: test, val, train")
     run_cfg = json.loads((run_dir / "config.json").read_text())
     cfg = run_cfg["config"]
+    model = model or cfg.get("model_selection", "last")
+    if model not in ("last", "best"):
+        raise CtsplatError(f"unknown model {model!r}; allowed: last, best")
+    model_path = run_dir / ("model_best.pt" if model == "best" else "model.pt")
+    if not model_path.exists():
+        raise CtsplatError(f"{run_dir} has no {model_path.name} (model: {model}); evaluate model: last, or retrain "
+                           "with a version that writes it")
     trained = json.loads((run_dir / "training.json").read_text())
     dev = resolve_device(device)
     scene = load_scene(cfg)
-    g = Gaussians.load(run_dir / "model.pt", device=dev)
+    g = Gaussians.load(model_path, device=dev)
     views = scene.split(split)
     tr = scene.train
     rk = render_kwargs(cfg, mip_filter(cfg, g, tr.camera, tr.Rs, tr.ts))
@@ -420,7 +431,9 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         "peak_memory_mb": trained.get("peak_memory_mb"),
         "peak_memory_kind": trained.get("peak_memory_kind"),
         "n_gaussians": len(g),
-        "model_size_bytes": model_size_bytes(run_dir / "model.pt"),
+        "model": model,
+        "model_iteration": g.meta.get("iteration", trained["iterations"] if model == "last" else None),
+        "model_size_bytes": model_size_bytes(model_path),
         "model_ply_size_bytes": model_size_bytes(run_dir / "model.ply"),
         "uses_reference_volume": uses_ref,
         "init": cfg["init"],

@@ -112,6 +112,8 @@ def save_checkpoint(out_dir: Path, state: TrainState, rng: np.random.Generator, 
         "optimizer": state.opt.state_dict(),
         "grad_accum": state.grad_accum.cpu(),
         "grad_count": state.grad_count.cpu(),
+        "err_accum": None if state.err_accum is None else state.err_accum.cpu(),
+        "err_count": None if state.err_count is None else state.err_count.cpu(),
         "lr_factor": state.lr_factor,
         "nan_events": state.nan_events,
         "nan_consecutive": state.nan_consecutive,
@@ -195,7 +197,8 @@ def read_checkpoint(path: Path) -> Checkpoint:
 
 
 def load_checkpoint(ck: Checkpoint | Path, cfg: dict[str, Any], device: torch.device, rng: np.random.Generator,
-                    gen: torch.Generator, voxel_mm: float, cfg_hash: str) -> TrainState:
+                    gen: torch.Generator, voxel_mm: float, cfg_hash: str,
+                    half_extent_mm: float | None = None) -> TrainState:
     """Rebuild the training state of a checkpoint written with the same config; restore the generators in place.
 
     Parameters
@@ -212,6 +215,8 @@ def load_checkpoint(ck: Checkpoint | Path, cfg: dict[str, Any], device: torch.de
         Mean voxel edge (mm), for the mean learning rates.
     cfg_hash : str
         Hash of ``cfg``; must equal the checkpoint's.
+    half_extent_mm : float, optional
+        Half the volume's largest extent (mm), for ``optimizer_preset: method``.
 
     Returns
     -------
@@ -230,7 +235,7 @@ def load_checkpoint(ck: Checkpoint | Path, cfg: dict[str, Any], device: torch.de
     p = ck.payload
     try:
         params = {k: v.to(device).requires_grad_(True) for k, v in p["params"].items()}
-        opt = make_optimizer(params, cfg, voxel_mm)
+        opt = make_optimizer(params, cfg, voxel_mm, half_extent_mm)
         opt.load_state_dict(p["optimizer"])
         state = TrainState(
             params=params, opt=opt, iteration=int(p["iteration"]), grad_accum=p["grad_accum"].to(device),
@@ -239,6 +244,8 @@ def load_checkpoint(ck: Checkpoint | Path, cfg: dict[str, Any], device: torch.de
             elapsed_s=float(p["elapsed_s"]), queue=[list(map(int, b)) for b in p["queue"]],
             densify_counts=dict(p["densify_counts"]), health=dict(p.get("health", {})),
         )
+        if p.get("err_accum") is not None:
+            state.err_accum, state.err_count = p["err_accum"].to(device), p["err_count"].to(device)
         np_state = json.loads(p["np_rng"])
     except Exception as exc:  # noqa: BLE001 - a damaged payload fails in many ways
         raise CtsplatError(f"cannot read checkpoint {ck.path}: {_first_line(exc)}") from exc

@@ -19,10 +19,14 @@ from ctsplat.baselines import FBP_FILTERS
 from ctsplat.splat.render import COMPOSITORS
 from ctsplat.utils import CtsplatError, merge_config
 
-__all__ = ["TRAIN_DEFAULTS", "TRAIN_BOUNDS", "Bound", "INITS", "POSES", "SUPERVISIONS", "resolve_config",
+__all__ = ["TRAIN_DEFAULTS", "TRAIN_BOUNDS", "Bound", "INITS", "POSES", "SUPERVISIONS", "OPTIMIZER_PRESETS",
+           "DENSIFY_STRATEGIES", "MODEL_SELECTIONS", "resolve_config",
            "render_kwargs", "mip_filter"]
 
 INITS = ("volume", "uniform", "fbp", "sfm")
+OPTIMIZER_PRESETS = ("per_group", "method")
+DENSIFY_STRATEGIES = ("gradient", "error", "both")
+MODEL_SELECTIONS = ("last", "best")
 POSES = ("gt", "colmap")
 SUPERVISIONS = ("line_integral", "transmission")
 
@@ -57,6 +61,16 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     "tv_size": 32,  # voxels per side of the random TV sub-volume
     "lr": {"means": 0.02, "scales": 5e-3, "quats": 1e-3, "density": 0.01, "opacity": 0.05, "colors": 0.01},
     "lr_final_factor": 0.1,
+    # per_group: Adam with the `lr` rates above; method: Adam with 3e-3 for every group (means in units of the
+    # volume's half-extent, the method's [-1, 1] scene box), both decayed by the same cosine to lr_final_factor
+    "optimizer_preset": "per_group",
+    # lambda_density x factor for the first `fraction` of the iterations, then a cosine over the next `decay`
+    # fraction down to lambda_density (factor 1: off)
+    "lambda_density_warmup": {"factor": 1.0, "fraction": 0.15, "decay": 0.05},
+    # training views only: each rendered view's camera rotated about the volume centre by <= rot_deg and shifted
+    # in the detector plane by <= shift_px pixels; targets get N(0, target_noise) noise (fraction of the largest
+    # target); validation and evaluation never see either
+    "augment": {"enabled": False, "rot_deg": 0.5, "shift_px": 0.5, "target_noise": 0.005},
     "densify": {
         "interval": 500,
         "start": 500,
@@ -67,8 +81,19 @@ TRAIN_DEFAULTS: dict[str, Any] = {
         "prune_max_scale_fraction": 0.2,
         "max_gaussians": 200000,
         "split_mass": "conserve",  # conserve | halve (radiative compositors; see densify_and_prune)
+        # gradient: positional-gradient rule; error: Gaussians under large training residuals; both: either
+        "strategy": "gradient",
+        # error / both: densify Gaussians whose mean residual under their footprint is >= this x the mean over
+        # the visible Gaussians of the same views
+        "error_ratio": 2.0,
+        # merge nearly coincident Gaussians (centres within `distance` x their mean scale, scales within
+        # `scale_tol` relative, covariances within `cov_tol` relative Frobenius): mass kept in radiative modes
+        "prune_redundant": {"enabled": False, "distance": 0.1, "scale_tol": 0.1, "cov_tol": 0.1},
     },
     "eval_every": 250,
+    # the model `ctsplat evaluate` measures by default: last (model.pt) or best (model_best.pt, the highest
+    # validation PSNR at the periodic evaluations; always written)
+    "model_selection": "last",
     "eval_views": 8,  # validation views per periodic evaluation (evenly spaced); 0 = all
     "checkpoint_every": 500,
     "keep_checkpoints": 2,
@@ -195,6 +220,16 @@ TRAIN_BOUNDS: dict[str, Bound] = {
     "tv_size": _POS_INT,
     **{f"lr.{k}": _POS for k in TRAIN_DEFAULTS["lr"]},
     "lr_final_factor": _UNIT,
+    "lambda_density_warmup.factor": Bound("number", 1),
+    "lambda_density_warmup.fraction": _UNIT,
+    "lambda_density_warmup.decay": _UNIT,
+    "augment.rot_deg": Bound("number", 0, 1),
+    "augment.shift_px": Bound("number", 0, 1),
+    "augment.target_noise": Bound("number", 0, 0.1),
+    "densify.error_ratio": _POS,
+    "densify.prune_redundant.distance": Bound("number", 0, 1),
+    "densify.prune_redundant.scale_tol": Bound("number", 0, 1),
+    "densify.prune_redundant.cov_tol": Bound("number", 0, 1),
     "densify.interval": _NONNEG_INT,
     "densify.start": _NONNEG_INT,
     "densify.stop": _NONNEG_INT,
@@ -221,7 +256,7 @@ TRAIN_BOUNDS: dict[str, Bound] = {
     "fps_height": _POS_INT,
 }
 
-_BOOL_KEYS = ("mip", "figures", "progress")
+_BOOL_KEYS = ("mip", "figures", "progress", "augment.enabled", "densify.prune_redundant.enabled")
 
 
 def _get(cfg: dict[str, Any], dotted: str) -> Any:
@@ -266,14 +301,18 @@ def resolve_config(config: dict[str, Any] | None) -> dict[str, Any]:
     for dotted, bound in TRAIN_BOUNDS.items():
         bound.check(dotted, _get(cfg, dotted))
     for key in _BOOL_KEYS:
-        if not isinstance(cfg[key], bool):
-            raise CtsplatError(f"train.{key} must be true or false, got {cfg[key]!r}")
+        if not isinstance(_get(cfg, key), bool):
+            raise CtsplatError(f"train.{key} must be true or false, got {_get(cfg, key)!r}")
     if float(cfg["lambda_l1"]) == 0 and float(cfg["lambda_ssim"]) == 0:
         raise CtsplatError("train.lambda_l1 and train.lambda_ssim are both 0: the loss has no data term; make at "
                            "least one of them > 0")
     if cfg["supervision"] == "transmission" and cfg["compositor"] == "alpha":
         raise CtsplatError("supervision: transmission needs a radiative compositor (alpha images are not "
                            "line integrals)")
+    for dotted, allowed in (("optimizer_preset", OPTIMIZER_PRESETS), ("densify.strategy", DENSIFY_STRATEGIES),
+                            ("model_selection", MODEL_SELECTIONS)):
+        if _get(cfg, dotted) not in allowed:
+            raise CtsplatError(f"unknown train.{dotted} {_get(cfg, dotted)!r}; allowed: {', '.join(allowed)}")
     if cfg["densify"]["split_mass"] not in ("conserve", "halve"):
         raise CtsplatError(f"unknown train.densify.split_mass {cfg['densify']['split_mass']!r}; allowed: conserve, "
                            "halve")

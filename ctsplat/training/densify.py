@@ -9,6 +9,12 @@ children get ρ·1.6³/2 so the pair carries the parent's mass ``ρ (2π)^{3/2} 
 the literal ρ/2 rule, which removes 1 - 2/1.6³ ≈ 76 % of a split Gaussian's mass). Then Gaussians with
 ρ < ``prune_density``, oversized ones (max scale > ``prune_max_scale_fraction`` × volume extent) and those whose
 centre left the volume box are pruned; the total is capped at ``max_gaussians`` (largest gradients first).
+With ``prune_redundant``, nearly coincident Gaussians are first merged in pairs
+(:func:`ctsplat.training.features.merge_redundant`); this step's clones, coincident by construction, are not
+merged before they have had an interval to separate.
+
+:class:`ErrorDensify` (``strategy: error`` or ``both``) selects the Gaussians under large training residuals
+instead of (or beside) those with large positional gradients; :func:`make_densify` picks the class.
 
 A strategy has two hooks, called by the training loop: :meth:`GradientDensify.accumulate` after each backward
 pass (gradient statistics) and :meth:`GradientDensify.maybe_step` after each optimiser step.
@@ -29,10 +35,11 @@ import numpy as np
 import torch
 
 from ctsplat.splat.gaussians import inverse_softplus, quat_to_rotmat
+from ctsplat.training.features import merge_redundant
 from ctsplat.training.seeding import grid_bounds_mm
 from ctsplat.training.state import TrainState, replace_params
 
-__all__ = ["GradientDensify"]
+__all__ = ["GradientDensify", "ErrorDensify", "make_densify", "reset_stats"]
 
 
 class GradientDensify:
@@ -49,6 +56,9 @@ class GradientDensify:
     iterations : int
         Total training iterations (no densification at the last one).
     """
+
+    #: Whether the loop must call :meth:`ErrorDensify.accumulate_error` (residual maps).
+    wants_error = False
 
     def __init__(self, settings: dict[str, Any], *, compositor: str, iterations: int) -> None:
         self.settings = dict(settings)
@@ -133,17 +143,19 @@ class GradientDensify:
             ``cloned``, ``split``, ``pruned`` and ``n`` (Gaussians after the step).
         """
         d = self.settings
+        # merging first: clones of this step start coincident by design; those of earlier steps had an interval
+        # to separate
+        merged = self.merge(state)
         p = state.params
         n = p["means"].shape[0]
         dev = p["means"].device
         vol = volume
         voxel = float(np.mean(vol.spacing_mm))
         with torch.no_grad():
-            avg = state.grad_accum / state.grad_count.clamp_min(1)
+            cand, avg = self.candidates(state)
             scales = torch.exp(p["log_scales"])
             smax = scales.max(-1).values
             dens = torch.nn.functional.softplus(p["density_raw"])
-            cand = avg >= float(d["grad_threshold"])
             small = smax <= float(d["clone_max_scale_voxels"]) * voxel
             clone = cand & small
             split = cand & ~small
@@ -211,7 +223,209 @@ class GradientDensify:
         good = torch.nonzero(~bad).flatten()
         state.params = replace_params(state.opt, state.params, good, {})
         m = state.params["means"].shape[0]
-        state.grad_accum = torch.zeros(m, device=dev)
-        state.grad_count = torch.zeros(m, device=dev)
-        return {"cloned": int(ci.numel()), "split": int(si.numel()), "pruned": int(bad.sum()), "n": m}
+        reset_stats(state)
+        return {"cloned": int(ci.numel()), "split": int(si.numel()), "pruned": int(bad.sum()) + merged,
+                "merged": merged, "n": m}
+
+    def candidates(self, state: TrainState) -> tuple[torch.Tensor, torch.Tensor]:
+        """Gaussians to clone or split, and their priority when the ``max_gaussians`` budget is short.
+
+        Parameters
+        ----------
+        state : TrainState
+            Its positional-gradient statistics.
+
+        Returns
+        -------
+        cand : Tensor (N,) bool
+            Mean positional gradient >= ``grad_threshold``.
+        priority : Tensor (N,)
+            The mean positional gradient.
+        """
+        avg = state.grad_accum / state.grad_count.clamp_min(1)
+        return avg >= float(self.settings["grad_threshold"]), avg
+
+    def merge(self, state: TrainState) -> int:
+        """Redundant-coverage pruning (``prune_redundant``, :func:`ctsplat.training.features.merge_redundant`).
+
+        Parameters
+        ----------
+        state : TrainState
+            Changed in place (parameters and Adam moments).
+
+        Returns
+        -------
+        int
+            Gaussians removed.
+        """
+        settings = self.settings.get("prune_redundant") or {}
+        if not settings.get("enabled"):
+            return 0
+        drop, updates = merge_redundant(state.params, settings, self.compositor)
+        n_drop = int(drop.sum())
+        if n_drop == 0 or n_drop == drop.numel():
+            return 0
+        with torch.no_grad():
+            for k, v in updates.items():
+                state.params[k].data.copy_(v)
+        keep = torch.nonzero(~drop).flatten()
+        state.params = replace_params(state.opt, state.params, keep, {})
+        for name in ("grad_accum", "grad_count", "err_accum", "err_count"):
+            stat = getattr(state, name)
+            if stat is not None and stat.shape[0] == drop.shape[0]:
+                setattr(state, name, stat[keep])
+        return n_drop
+
+
+class ErrorDensify(GradientDensify):
+    """Error-driven densification, alone (``strategy: error``) or beside the gradient rule (``both``).
+
+    After each training render the absolute residual map of the view is splatted back onto the Gaussians that
+    cover it: with ``a`` a Gaussian's amplitude parameter (``density_raw``; ``opacity_raw`` for alpha) and ``I``
+    the rendered image, ``e = Σ_p |r_p| ∂I_p/∂a / Σ_p ∂I_p/∂a`` is the mean residual under the Gaussian's
+    footprint, weighted by its contribution (the per-Gaussian factor of ``∂I/∂a`` cancels). Each view's ``e`` is
+    divided by its mean over that view's visible Gaussians and accumulated like the positional-gradient
+    statistic; Gaussians whose mean ratio reaches ``error_ratio`` are cloned or split by the same rules as
+    :class:`GradientDensify` (``both``: either criterion).
+
+    Parameters
+    ----------
+    settings, compositor, iterations
+        As :class:`GradientDensify`; ``settings["strategy"]`` is ``error`` or ``both``.
+
+    References
+    ----------
+    Rota Bulò, S., Porzi, L., Kontschieder, P. (2024). Revising densification in Gaussian splatting. ECCV
+    (per-pixel error distributed to the Gaussians that render it).
+    """
+
+    wants_error = True
+
+    def __init__(self, settings: dict[str, Any], *, compositor: str, iterations: int) -> None:
+        super().__init__(settings, compositor=compositor, iterations=iterations)
+        self.mode = str(settings.get("strategy", "error"))
+        self.amplitude = "opacity_raw" if compositor == "alpha" else "density_raw"
+
+    def collecting(self, iteration: int) -> bool:
+        """Whether the step ``iteration`` (1-based) feeds a densification to come (residual maps cost a backward).
+
+        Parameters
+        ----------
+        iteration : int
+
+        Returns
+        -------
+        bool
+        """
+        d = self.settings
+        return bool(d["interval"]) and iteration <= self.stop and iteration < self.iterations
+
+    def error_ratios(self, state: TrainState, image: torch.Tensor, residual: torch.Tensor,
+                     visible: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Splat one view's absolute residual onto the Gaussians that cover it (call before the loss's backward).
+
+        Parameters
+        ----------
+        state : TrainState
+            Its parameters (the amplitude parameter's gradient path).
+        image : Tensor (H, W)
+            The rendered view, attached to the graph (kept for the loss's backward).
+        residual : Tensor (H, W)
+            Prediction minus target, in any units (only ratios are used).
+        visible : Tensor (N,) bool
+
+        Returns
+        -------
+        (cover, ratio) or None
+            ``cover`` (N,) bool, the Gaussians with a footprint in the view; ``ratio`` their mean residual divided
+            by its mean over ``cover``. None when no Gaussian covers a residual.
+        """
+        amp = state.params[self.amplitude]
+        w = residual.detach().abs().to(image.dtype)
+        g_w, = torch.autograd.grad(image, amp, grad_outputs=w, retain_graph=True, allow_unused=True)
+        g_1, = torch.autograd.grad(image, amp, grad_outputs=torch.ones_like(image), retain_graph=True,
+                                   allow_unused=True)
+        if g_w is None or g_1 is None:
+            return None
+        with torch.no_grad():
+            cover = visible & (g_1.abs() > 0)
+            if not bool(cover.any()):
+                return None
+            e = g_w[cover] / g_1[cover]
+            mean = e.mean()
+            if not bool(mean > 0) or not bool(torch.isfinite(e).all()):
+                return None
+            return cover, e / mean
+
+    @staticmethod
+    def accumulate_error(state: TrainState, ratios: tuple[torch.Tensor, torch.Tensor] | None) -> None:
+        """Add one view's :meth:`error_ratios` to the error statistic.
+
+        Parameters
+        ----------
+        state : TrainState
+            ``err_accum`` / ``err_count`` (N,) are updated in place.
+        ratios : (cover, ratio) or None
+        """
+        if ratios is None:
+            return
+        cover, ratio = ratios
+        state.err_accum[cover] += ratio
+        state.err_count[cover] += 1
+
+    def candidates(self, state: TrainState) -> tuple[torch.Tensor, torch.Tensor]:
+        """Gaussians whose mean error ratio reaches ``error_ratio`` (``both``: or the gradient rule's).
+
+        Parameters
+        ----------
+        state : TrainState
+
+        Returns
+        -------
+        cand : Tensor (N,) bool
+        priority : Tensor (N,)
+            The error ratio (``both``: the larger of it and the gradient rule's priority, each relative to its
+            threshold).
+        """
+        err = state.err_accum / state.err_count.clamp_min(1)
+        thr = float(self.settings["error_ratio"])
+        cand = err >= thr
+        if self.mode != "both":
+            return cand, err
+        g_cand, g_avg = super().candidates(state)
+        g_thr = max(float(self.settings["grad_threshold"]), 1e-30)
+        return cand | g_cand, torch.maximum(err / thr, g_avg / g_thr)
+
+
+def make_densify(settings: dict[str, Any], *, compositor: str, iterations: int) -> GradientDensify:
+    """The strategy object of ``settings["strategy"]``: :class:`GradientDensify` or :class:`ErrorDensify`.
+
+    Parameters
+    ----------
+    settings : dict
+        The ``train.densify`` section.
+    compositor : str
+    iterations : int
+
+    Returns
+    -------
+    GradientDensify
+    """
+    cls = GradientDensify if settings.get("strategy", "gradient") == "gradient" else ErrorDensify
+    return cls(settings, compositor=compositor, iterations=iterations)
+
+
+def reset_stats(state: TrainState) -> None:
+    """Zero the densification statistics (positional gradient and error), sized to the current Gaussians.
+
+    Parameters
+    ----------
+    state : TrainState
+    """
+    m = state.params["means"].shape[0]
+    dev = state.params["means"].device
+    state.grad_accum = torch.zeros(m, device=dev)
+    state.grad_count = torch.zeros(m, device=dev)
+    state.err_accum = torch.zeros(m, device=dev)
+    state.err_count = torch.zeros(m, device=dev)
 

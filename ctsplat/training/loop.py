@@ -6,13 +6,17 @@ fixed ``image_scale`` = max of the training targets, so they lie in [0, 1])::
     L = λ1 L1 + λs (1 - SSIM) + λρ mean(ρ) + λscale mean(‖s‖) + λtv TV(voxelised random sub-volume)
 
 (:mod:`ctsplat.training.losses`). With ``supervision: transmission`` the compared images are ``exp(-μ_scale p)``
-instead.
+instead. λρ follows ``lambda_density_warmup`` (:func:`ctsplat.training.features.density_lambda`); with
+``augment`` each training render uses a slightly moved camera and a noisy target
+(:class:`ctsplat.training.features.Augmenter`), never the validation renders.
 
 Optimiser: Adam with one parameter group per quantity (means, log-scales, quaternions, density; plus opacity and
 colour for the alpha compositor), each with its own learning rate decayed by a cosine from ``lr`` to
 ``lr × lr_final_factor``. Mean learning rates are given in voxels per step (multiplied by the mean voxel edge).
+``optimizer_preset: method`` uses one rate for all groups instead (:func:`ctsplat.training.state.make_optimizer`).
 
-Adaptive density control: :mod:`ctsplat.training.densify`. Seeding (``init``): :mod:`ctsplat.training.seeding`.
+Adaptive density control: :mod:`ctsplat.training.densify` (``densify.strategy``: positional gradient, training
+residual, or both; ``densify.prune_redundant``). Seeding (``init``): :mod:`ctsplat.training.seeding`.
 
 Robustness: a non-finite loss or parameter rolls back to the last good state, multiplies the learning rates by
 ``nan_lr_decay`` and is logged; ``nan_max_consecutive`` such events in a row, or ``nan_max_events`` within
@@ -30,7 +34,8 @@ second process writing the same folder fails at once, naming the first.
 
 The run folder gets ``config.json`` (resolved config, hash, code version, scene provenance), ``train_log.csv`` and
 ``per_view.csv`` (periodic validation, :mod:`ctsplat.formats.runlog`), ``checkpoints/``, the final ``model.pt``
-and ``model.ply`` and ``training.json`` (wall time, iterations, events). Test metrics are not computed here:
+and ``model.ply``, ``model_best.pt`` (the model at the periodic validation with the highest PSNR) and
+``training.json`` (wall time, iterations, events, best iteration). Test metrics are not computed here:
 :func:`ctsplat.evaluation.evaluate` reads the finished run folder.
 
 References
@@ -74,7 +79,8 @@ from ctsplat.training.checkpoint import (
     save_checkpoint,
 )
 from ctsplat.training.config import mip_filter, render_kwargs, resolve_config
-from ctsplat.training.densify import GradientDensify
+from ctsplat.training.densify import make_densify, reset_stats
+from ctsplat.training.features import Augmenter, density_lambda
 from ctsplat.training.seeding import make_seed
 from ctsplat.training.state import (
     TrainState,
@@ -106,7 +112,8 @@ log = logging.getLogger(__name__)
 
 #: Files of a run folder that a fresh (not resumed) training run removes first: outputs of an earlier run that
 #: would otherwise sit beside the new model.
-RUN_OUTPUTS = ("training.json", "metrics.json", "model.pt", "model.ply", "model_volume.nii.gz", "per_view_test.csv")
+RUN_OUTPUTS = ("training.json", "metrics.json", "model.pt", "model_best.pt", "model.ply", "model_volume.nii.gz",
+               "per_view_test.csv")
 
 
 def _check_writable(out_dir: Path) -> None:
@@ -276,6 +283,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     scene = load_scene(cfg)
     vol = scene.volume
     voxel_mm = float(np.mean(vol.spacing_mm))
+    half_extent_mm = 0.5 * float(np.max(vol.extent_mm()))
     val = scene.val.take(even_subset(len(scene.val), int(cfg["eval_views"])))
     uses_ref = cfg["init"] == "volume"
 
@@ -290,7 +298,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
             log.info("the checkpoints in %s belong to another config; starting from scratch", checkpoint_dir(out_dir))
             ckpt = None
     if ckpt is not None:
-        state = load_checkpoint(ckpt, cfg, device, rng, gen, voxel_mm, chash)
+        state = load_checkpoint(ckpt, cfg, device, rng, gen, voxel_mm, chash, half_extent_mm)
         _restore_logs(out_dir, ckpt, {"train_log.csv": train_log, "per_view.csv": view_log})
         log.info("resuming from %s (iteration %d)", ckpt.path, state.iteration)
     else:
@@ -298,10 +306,8 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
         _discard_outputs(out_dir)
         seed = make_seed(cfg, scene, rng)
         params = init_params(seed, cfg, device)
-        state = TrainState(params=params, opt=make_optimizer(params, cfg, voxel_mm))
-        n0 = params["means"].shape[0]
-        state.grad_accum = torch.zeros(n0, device=device)
-        state.grad_count = torch.zeros(n0, device=device)
+        state = TrainState(params=params, opt=make_optimizer(params, cfg, voxel_mm, half_extent_mm))
+        reset_stats(state)
         train_log.reset()
         view_log.reset()
     write_json_atomic(out_dir / "config.json", {"config": cfg, "config_hash": chash, "code_version": code_version(),
@@ -320,8 +326,12 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     ndc_half = torch.tensor([0.5 * scene.train.camera.width, 0.5 * scene.train.camera.height], device=device)
     sampler = ViewSampler(scene.train.azimuth_deg, scene.train.elevation_deg, int(cfg["batch_views"]))
     total = int(cfg["iterations"])
-    densify = GradientDensify(cfg["densify"], compositor=cfg["compositor"], iterations=total)
+    densify = make_densify(cfg["densify"], compositor=cfg["compositor"], iterations=total)
+    if state.err_accum is None or state.err_accum.shape[0] != state.params["means"].shape[0]:
+        state.err_accum = torch.zeros(state.params["means"].shape[0], device=device)
+        state.err_count = torch.zeros_like(state.err_accum)
     tr = scene.train
+    augment = Augmenter(cfg["augment"], tr.camera, vol.center_mm())
     state.filter_var = mip_filter(cfg, as_gaussians(state.params), tr.camera, tr.Rs, tr.ts)
     psnr_empty = _empty_psnr(val)
     if "psnr_initial" not in state.health:
@@ -330,6 +340,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                  psnr_empty)
 
     lam = {k: float(cfg[k]) for k in ("lambda_l1", "lambda_ssim", "lambda_density", "lambda_scale", "lambda_tv")}
+    lambda_density = lam["lambda_density"]
     snap = snapshot(state)
     show = bool(cfg["progress"]) and sys.stderr.isatty()
     from tqdm import tqdm
@@ -347,6 +358,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
         if not state.queue:
             state.queue = sampler.refill(rng)
         batch = state.queue.pop(0)
+        lam["lambda_density"] = density_lambda(lambda_density, it - 1, total, cfg["lambda_density_warmup"])
         tv_region = random_region(vol.shape, int(cfg["tv_size"]), generator=gen) if lam["lambda_tv"] > 0 else None
 
         ok = params_finite(state.params)
@@ -357,7 +369,8 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
             rk = render_kwargs(cfg, state.filter_var)
             imgs = []
             for vi in batch:
-                out = render(g, scene.train.camera, tr_R[vi], tr_t[vi], **rk)
+                R_i, t_i = augment.pose(tr_R[vi], tr_t[vi], rng)
+                out = render(g, scene.train.camera, R_i, t_i, **rk)
                 img = out.image.mean(-1) if out.image.ndim == 3 else out.image
                 outs.append(out)
                 if cfg["supervision"] == "transmission":
@@ -365,7 +378,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                 else:
                     imgs.append(img / image_scale)
             pred = torch.stack(imgs)
-            ref = targets_loss[batch]
+            ref = augment.target(targets_loss[batch], gen)
             tv_vol = None
             if tv_region is not None:
                 tv_vol = voxelize(g, vol.shape, torch.as_tensor(vol.affine, dtype=torch.float32, device=device),
@@ -373,6 +386,10 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
             loss, terms = losses.total_loss(pred, ref, density=g.densities, scales=g.scales, data_range=1.0,
                                             tv_volume=tv_vol, **lam)
             ok = bool(torch.isfinite(loss))
+        err_ratios = []
+        if ok and densify.wants_error and densify.collecting(it):
+            err_ratios = [densify.error_ratios(state, pred[k], pred[k] - ref[k], out.visible)
+                          for k, out in enumerate(outs)]
         if ok:
             state.opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -381,6 +398,8 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
             with torch.no_grad():
                 for out in outs:
                     densify.accumulate(state, out.means2d.grad, out.visible, ndc_half)
+                for ratios in err_ratios:
+                    densify.accumulate_error(state, ratios)
             state.opt.step()
             ok = params_finite(state.params)
         if not ok:
@@ -443,6 +462,9 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                 _discard_outputs(out_dir)
                 raise CtsplatError(f"training collapsed at iteration {it}: {reason}; no model written (logs kept "
                                    f"in {out_dir}); lower train.lr or check the inputs")
+            if not float(row["psnr2d"]) <= float(state.health.get("best_psnr", -math.inf)):
+                state.health.update(best_psnr=float(row["psnr2d"]), best_iteration=it)
+                _save_model(state, cfg, out_dir / "model_best.pt", chash)
         if it % int(cfg["checkpoint_every"]) == 0 or it == total:
             state.elapsed_s = time.perf_counter() - t_start
             save_checkpoint(out_dir, state, rng, gen, chash, int(cfg["keep_checkpoints"]))
@@ -453,13 +475,22 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     return _write_model(state, cfg, scene, out_dir, device, train_time, chash)
 
 
-def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: Path, device: torch.device,
-                 train_time: float, chash: str) -> dict[str, Any]:
-    """The final model (``model.pt``, ``model.ply``) and the training summary (``training.json``)."""
+def _save_model(state: TrainState, cfg: dict[str, Any], path: Path, chash: str) -> Any:
+    """Write the current model to ``path`` (``.pt``) with its provenance and iteration; returns the Gaussians."""
     g = as_gaussians({k: v.detach() for k, v in state.params.items()})
     g.meta.update(config_hash=chash, uses_reference_volume=cfg["init"] == "volume", init=cfg["init"],
-                  compositor=cfg["compositor"])
-    g.save(out_dir / "model.pt")
+                  compositor=cfg["compositor"], iteration=state.iteration)
+    if "best_psnr" in state.health:
+        g.meta.update(best_iteration=int(state.health["best_iteration"]), best_val_psnr=state.health["best_psnr"])
+    g.save(path)
+    return g
+
+
+def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: Path, device: torch.device,
+                 train_time: float, chash: str) -> dict[str, Any]:
+    """The final model (``model.pt``, ``model.ply``) and the training summary (``training.json``); the best
+    validation model (``model_best.pt``) was written at the periodic evaluations."""
+    g = _save_model(state, cfg, out_dir / "model.pt", chash)
     g.to_ply(out_dir / "model.ply")
     summary = {
         "wall_time_s": round(train_time, 3),
@@ -467,6 +498,8 @@ def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: 
         "iters_per_s": round(state.iteration / max(train_time, 1e-9), 3),
         "n_gaussians": len(g),
         "nan_events": state.nan_events,
+        "best_iteration": state.health.get("best_iteration"),
+        "best_val_psnr": state.health.get("best_psnr"),
         **{f"densify_{k}": v for k, v in state.densify_counts.items()},
         "n_train_views": len(scene.train),
         "eval_split_during_training": scene.eval_split,

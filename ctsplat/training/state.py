@@ -21,7 +21,7 @@ import torch
 
 from ctsplat.training.seeding import Seed
 
-__all__ = ["PARAM_GROUPS", "TrainState", "ViewSampler", "init_params", "as_gaussians", "make_optimizer",
+__all__ = ["PARAM_GROUPS", "METHOD_LR", "TrainState", "ViewSampler", "init_params", "as_gaussians", "make_optimizer",
            "cosine_factor", "replace_params", "snapshot", "restore", "params_finite"]
 
 PARAM_GROUPS = {"means": "means", "log_scales": "scales", "quats": "quats", "density_raw": "density",
@@ -74,26 +74,43 @@ def as_gaussians(params: dict[str, torch.Tensor]) -> Any:
 
 
 
-def make_optimizer(params: dict[str, torch.Tensor], cfg: dict[str, Any], voxel_mm: float) -> torch.optim.Adam:
-    """Adam with one group per parameter tensor; mean learning rates are in voxels per step (× ``voxel_mm``).
+#: The method's optimiser setting (``optimizer_preset: method``): one Adam learning rate for every group.
+METHOD_LR = 3e-3
+
+
+def make_optimizer(params: dict[str, torch.Tensor], cfg: dict[str, Any], voxel_mm: float,
+                   half_extent_mm: float | None = None) -> torch.optim.Adam:
+    """Adam with one group per parameter tensor.
+
+    ``optimizer_preset: per_group``: each group's rate from ``lr``, mean rates in voxels per step (× ``voxel_mm``).
+    ``method``: :data:`METHOD_LR` for every group, the means' in units of the volume's half-extent (the method
+    trains in a [-1, 1] scene box), i.e. × ``half_extent_mm``. Both are decayed by the loop's cosine.
 
     Parameters
     ----------
     params : dict of str to Tensor
         Leaf tensors (:func:`init_params`).
     cfg : dict
-        Resolved ``train`` config (``lr``: one rate per quantity of :data:`PARAM_GROUPS`).
+        Resolved ``train`` config (``optimizer_preset``; ``lr``: one rate per quantity of :data:`PARAM_GROUPS`).
     voxel_mm : float
         Mean voxel edge in mm.
+    half_extent_mm : float, optional
+        Half the volume's largest extent (mm); required by the ``method`` preset.
 
     Returns
     -------
     torch.optim.Adam
         Groups named after the parameters, each with ``initial_lr`` (the schedule's start).
     """
+    method = cfg.get("optimizer_preset", "per_group") == "method"
+    if method and not half_extent_mm:
+        raise ValueError("optimizer_preset: method needs the volume's half-extent (half_extent_mm)")
     groups = []
     for name, p in params.items():
-        lr = float(cfg["lr"][PARAM_GROUPS[name]]) * (voxel_mm if name == "means" else 1.0)
+        if method:
+            lr = METHOD_LR * (float(half_extent_mm) if name == "means" else 1.0)
+        else:
+            lr = float(cfg["lr"][PARAM_GROUPS[name]]) * (voxel_mm if name == "means" else 1.0)
         groups.append({"params": [p], "lr": lr, "initial_lr": lr, "name": name})
     return torch.optim.Adam(groups, eps=1e-15)
 
@@ -173,6 +190,9 @@ class TrainState:
         Completed iterations.
     grad_accum, grad_count : Tensor (N,)
         Densification statistics: summed view-space positional-gradient norms (NDC) and view counts.
+    err_accum, err_count : Tensor (N,)
+        Error-driven densification statistics: summed residual ratios and view counts
+        (:class:`ctsplat.training.densify.ErrorDensify`).
     lr_factor : float
         Product of the ``nan_lr_decay`` factors applied so far.
     nan_events, nan_consecutive : int
@@ -198,6 +218,8 @@ class TrainState:
     iteration: int = 0
     grad_accum: torch.Tensor | None = None
     grad_count: torch.Tensor | None = None
+    err_accum: torch.Tensor | None = None
+    err_count: torch.Tensor | None = None
     lr_factor: float = 1.0
     nan_events: int = 0
     nan_consecutive: int = 0
@@ -298,9 +320,13 @@ def restore(state: TrainState, snap: dict[str, Any]) -> None:
         if new_st or st:
             state.opt.state[p] = new_st
     m = state.params["means"].shape[0]
+    dev = state.params["means"].device
     if state.grad_accum is None or state.grad_accum.shape[0] != m:
-        state.grad_accum = torch.zeros(m, device=state.params["means"].device)
-        state.grad_count = torch.zeros(m, device=state.params["means"].device)
+        state.grad_accum = torch.zeros(m, device=dev)
+        state.grad_count = torch.zeros(m, device=dev)
+    if state.err_accum is None or state.err_accum.shape[0] != m:
+        state.err_accum = torch.zeros(m, device=dev)
+        state.err_count = torch.zeros(m, device=dev)
 
 
 def params_finite(params: dict[str, torch.Tensor]) -> bool:

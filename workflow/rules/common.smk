@@ -8,7 +8,7 @@ from snakemake.utils import Paramspace
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS
 from ctsplat.config import prepare_config
-from ctsplat.grid import GRID_AXES, expand_grid, needs_sfm
+from ctsplat.grid import expand_grid, needs_sfm, run_axes, with_train_overrides
 from ctsplat.utils import CtsplatError, config_hash
 
 try:
@@ -22,16 +22,17 @@ SFM_GEOMETRY = CFG["sfm"]["settings"]["geometry"]
 BASELINE_GEOMETRY = CFG["baselines"]["geometry"]
 VOLUMES = list(CFG["volumes"])
 RUNS = expand_grid(CFG["grid"]["axes"], VOLUMES, CFG["grid"]["exclude"])
-PARAMSPACE = Paramspace(RUNS[list(GRID_AXES)].drop_duplicates(), param_sep="~")
+RUN_AXES = run_axes(RUNS.columns)
+PARAMSPACE = Paramspace(RUNS[list(RUN_AXES)].drop_duplicates(), param_sep="~")
 RUN_PATTERN = f"{RESULTS}/{{volume}}/runs/{PARAMSPACE.wildcard_pattern}"
-RUN_LABELS = {name: f"{{{name}}}" for name in ("volume", *GRID_AXES)}
+RUN_LABELS = {name: f"{{{name}}}" for name in ("volume", *RUN_AXES)}
 
 
 def run_dirs(volume=None):
     """Run folders of the grid (optionally of one volume), in grid order, from the Paramspace instances."""
     out = []
     for v in VOLUMES if volume is None else [volume]:
-        cells = Paramspace(RUNS[RUNS["volume"] == v][list(GRID_AXES)], param_sep="~")
+        cells = Paramspace(RUNS[RUNS["volume"] == v][list(RUN_AXES)], param_sep="~")
         out += [f"{RESULTS}/{v}/runs/{p}" for p in cells.instance_patterns]
     return out
 
@@ -182,7 +183,8 @@ def train_params(wildcards):
         seed=int(cell["seed"]),
         device=CFG["device"],
     )
-    return cfg
+    # the optional feature axes (ctsplat.grid.FEATURE_AXES)
+    return with_train_overrides(cfg, cell)
 
 
 def train_hash(wildcards):

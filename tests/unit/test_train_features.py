@@ -1,0 +1,436 @@
+"""The method's training features, each behind a config key: pose/target augmentation (training views only), the
+early density-regulariser schedule, error-driven densification, redundant-coverage pruning, the best-validation
+model and the method's optimiser preset; plus their config errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ctsplat.evaluation import evaluate
+from ctsplat.geometry.cameras import ParallelCamera, look_at, project_points
+from ctsplat.splat.gaussians import Gaussians
+from ctsplat.splat.render import render
+from ctsplat.training import config, features, loop, state
+from ctsplat.training.densify import ErrorDensify, GradientDensify, make_densify, reset_stats
+from ctsplat.utils import CtsplatError
+
+N = 20  # voxels per side of the tiny phantom
+MU = 0.02
+
+
+def _phantom() -> tuple[np.ndarray, np.ndarray]:
+    x = np.stack(np.meshgrid(*[np.arange(N)] * 3, indexing="ij"), -1).astype(float)
+    c = (N - 1) / 2
+    outer = np.linalg.norm((x - c) / np.array([7.0, 6.0, 5.0]), axis=-1) < 1
+    inner = np.linalg.norm((x - np.array([7.0, 9.0, 10.0])) / 2.5, axis=-1) < 1
+    data = (0.6 * outer + 0.4 * inner).astype(np.float32)
+    aff = np.diag([2.0, 2.0, 2.0, 1.0])
+    aff[:3, 3] = -19.0
+    return data, aff
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory) -> Path:
+    from ctsplat.formats.volume import Volume, save_volume
+    from ctsplat.projector import render_radiographs
+
+    root = tmp_path_factory.mktemp("scene")
+    data, aff = _phantom()
+    save_volume(Volume(data, aff, {"volume_id": "tiny01", "intensity": {"mu_scale_per_mm": MU}}),
+                root / "volume.nii.gz")
+    render_radiographs(root / "volume.nii.gz", root / "rad",
+                       {"detector_width": 24, "detector_height": 24, "n_views": 12, "device": "cpu"})
+    return root
+
+
+def _cfg(scene: Path, **kw) -> dict:
+    cfg = {
+        "volume": str(scene / "volume.nii.gz"), "radiographs": str(scene / "rad"), "init": "volume",
+        "n_init": 300, "iterations": 30, "eval_every": 10, "checkpoint_every": 10, "device": "cpu",
+        "densify": {"interval": 10, "start": 10}, "figures": False, "fps_width": 32, "fps_height": 18,
+        "progress": False, "lambda_tv": 0.0,
+    }
+    cfg.update(kw)
+    return cfg
+
+
+def _rows(path: Path) -> list[dict]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    c = (np.trace(Ra @ Rb.T) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
+
+
+# --- 1. augmentation ---------------------------------------------------------------------------------------------
+
+def test_perturb_pose_stays_within_bounds_and_is_seeded():
+    cam = ParallelCamera(32, 32, 1.5)
+    R, t = look_at(np.array([300.0, 20.0, 10.0]), np.array([5.0, -3.0, 2.0]))
+    center = np.array([5.0, -3.0, 2.0])
+    u0, _ = project_points(cam, R, t, center[None])
+    rng = np.random.default_rng(0)
+    angles, shifts = [], []
+    for _ in range(300):
+        R2, t2 = features.perturb_pose(R, t, center, 1.0, 1.0 * features.pixel_mm(cam), rng)
+        assert np.allclose(R2 @ R2.T, np.eye(3), atol=1e-12)
+        angles.append(_angle_deg(R2, R))
+        u1, _ = project_points(cam, R2, t2, center[None])
+        shifts.append(float(np.linalg.norm(u1 - u0)))  # the centre moves by the shift only (rotation about it)
+    assert max(angles) <= 1.0 + 1e-9 and max(shifts) <= 1.0 + 1e-9
+    assert max(angles) > 0.8 and max(shifts) > 0.8  # the bounds are reached, not a no-op
+    again = features.perturb_pose(R, t, center, 1.0, 1.5, np.random.default_rng(7))
+    assert all(np.array_equal(a, b) for a, b in zip(again, features.perturb_pose(R, t, center, 1.0, 1.5,
+                                                                               np.random.default_rng(7)), strict=True))
+
+
+def test_augmenter_disabled_draws_nothing_and_noise_has_its_std():
+    cam = ParallelCamera(16, 16, 2.0)
+    R, t = torch.eye(3), torch.zeros(3)
+    off = features.Augmenter({"enabled": False, "rot_deg": 1.0, "shift_px": 1.0, "target_noise": 0.1}, cam,
+                             np.zeros(3))
+    rng = np.random.default_rng(3)
+    before = rng.bit_generator.state
+    assert off.pose(R, t, rng) == (R, t) and rng.bit_generator.state == before
+    ref = torch.zeros(4, 64, 64)
+    assert off.target(ref, torch.Generator().manual_seed(0)) is ref
+    on = features.Augmenter({"enabled": True, "rot_deg": 0.0, "shift_px": 0.0, "target_noise": 0.01}, cam,
+                            np.zeros(3))
+    noisy = on.target(ref, torch.Generator().manual_seed(0))
+    assert abs(float(noisy.std()) - 0.01) < 5e-4 and abs(float(noisy.mean())) < 5e-4
+
+
+def test_training_renders_perturbed_poses_and_validation_the_true_ones(scene_dir, tmp_path, monkeypatch):
+    from ctsplat.scene import load_scene
+
+    train_poses, val_poses = [], []
+    real_render, real_views = loop.render, loop.render_views
+
+    def rec_render(g, cam, R, t, **kw):
+        train_poses.append((R.detach().numpy().astype(float), t.detach().numpy().astype(float)))
+        return real_render(g, cam, R, t, **kw)
+
+    def rec_views(g, cam, Rs, ts, rk):
+        val_poses.append((np.array(Rs), np.array(ts)))
+        return real_views(g, cam, Rs, ts, rk)
+
+    monkeypatch.setattr(loop, "render", rec_render)
+    monkeypatch.setattr(loop, "render_views", rec_views)
+    cfg = _cfg(scene_dir, iterations=12, augment={"enabled": True, "rot_deg": 1.0, "shift_px": 1.0})
+    loop.train(cfg, tmp_path / "run")
+    scene = load_scene(config.resolve_config(cfg))
+    assert len(train_poses) == 12 and val_poses
+    for R, _ in train_poses:
+        nearest = min(_angle_deg(R, Rt) for Rt in scene.train.Rs)
+        assert 0 < nearest <= 1.0 + 1e-4  # moved, within the bound
+    for Rs, ts in val_poses:  # validation: exactly the recorded poses of the validation views
+        assert all(any(np.array_equal(R, Rv) and np.array_equal(t, tv) for Rv, tv in zip(scene.val.Rs, scene.val.ts,
+                                                                                       strict=True))
+                   for R, t in zip(Rs, ts, strict=True))
+
+
+# --- 2. density-regulariser schedule ------------------------------------------------------------------------------
+
+def test_density_lambda_schedule_values():
+    w = {"factor": 10.0, "fraction": 0.15, "decay": 0.05}
+    lam = [features.density_lambda(2e-5, i, 1000, w) for i in range(1000)]
+    assert lam[0] == lam[150] == pytest.approx(2e-4)
+    assert lam[175] == pytest.approx(2e-5 * (1 + 9 * 0.5))
+    assert lam[200] == lam[999] == pytest.approx(2e-5)
+    assert all(a >= b for a, b in zip(lam, lam[1:], strict=False))  # never increases
+    assert features.density_lambda(2e-5, 0, 1000, {**w, "factor": 1.0}) == 2e-5  # factor 1: off
+
+
+def test_loop_uses_the_density_schedule(scene_dir, tmp_path, monkeypatch):
+    from ctsplat.training import losses
+
+    seen = []
+    real = losses.total_loss
+
+    def rec(*a, **kw):
+        seen.append(kw["lambda_density"])
+        return real(*a, **kw)
+
+    monkeypatch.setattr(losses, "total_loss", rec)
+    loop.train(_cfg(scene_dir, iterations=10, lambda_density=1e-3,
+                    lambda_density_warmup={"factor": 5.0, "fraction": 0.2, "decay": 0.2}), tmp_path / "run")
+    want = [features.density_lambda(1e-3, i, 10, {"factor": 5.0, "fraction": 0.2, "decay": 0.2}) for i in range(10)]
+    assert seen == pytest.approx(want) and seen[0] == pytest.approx(5e-3) and seen[-1] == pytest.approx(1e-3)
+
+
+# --- 3. error-driven densification ---------------------------------------------------------------------------------
+
+def _plane_scene() -> tuple[dict, ParallelCamera, torch.Tensor, torch.Tensor, np.ndarray]:
+    """A 6 x 6 grid of Gaussians seen face-on by a parallel camera; returns params, camera, pose and pixel centres."""
+    xs = np.linspace(-15, 15, 6)
+    means = np.array([[0.0, x, y] for x in xs for y in xs])
+    g = Gaussians.from_values(means, 1.0, 0.5)
+    params = {k: v.detach().clone().requires_grad_(True) for k, v in g.tensors().items()
+              if k in state.PARAM_GROUPS}
+    cam = ParallelCamera(48, 48, 1.0)
+    R, t = look_at(np.array([200.0, 0.0, 0.0]), np.zeros(3))
+    uv, _ = project_points(cam, R, t, means)
+    return params, cam, torch.as_tensor(R, dtype=torch.float32), torch.as_tensor(t, dtype=torch.float32), uv
+
+
+@pytest.mark.parametrize("strategy", ["error", "both"])
+def test_error_densify_selects_the_gaussians_under_a_planted_residual(strategy):
+    params, cam, R, t, uv = _plane_scene()
+    st = state.TrainState(params=params, opt=state.make_optimizer(params, {"lr": config.TRAIN_DEFAULTS["lr"]}, 1.0))
+    reset_stats(st)
+    settings = {**config.TRAIN_DEFAULTS["densify"], "strategy": strategy, "grad_threshold": 1e9}
+    dens = make_densify(settings, compositor="radiative", iterations=100)
+    assert isinstance(dens, ErrorDensify) and dens.wants_error
+    out = render(state.as_gaussians(params), cam, R, t)
+    residual = torch.full_like(out.image, 1e-3)
+    planted = [7, 22]  # 4 x 4 px patches of large residual centred on these Gaussians' projections
+    for i in planted:
+        u, v = (int(round(x)) for x in uv[i])
+        residual[v - 2:v + 2, u - 2:u + 2] = 1.0
+    ratios = dens.error_ratios(st, out.image, residual, out.visible)
+    dens.accumulate_error(st, ratios)
+    cand, _ = dens.candidates(st)
+    inside = np.isin(np.arange(len(uv)), planted)
+    assert np.array_equal(cand.numpy(), inside)
+    # the graph is still usable for the loss's backward, and a step densifies exactly those Gaussians
+    out.image.sum().backward()
+    n0 = params["means"].shape[0]
+    from ctsplat.formats.volume import Volume
+
+    vol = Volume(np.zeros((40, 40, 40), np.float32), np.diag([1.0, 1.0, 1.0, 1.0]) + np.c_[np.zeros((4, 3)),
+                                                                                        [-20, -20, -20, 0]], {})
+    counts = dens.step(st, vol, torch.Generator().manual_seed(0))
+    assert counts["cloned"] + counts["split"] == int(inside.sum()) and counts["n"] == n0 + int(inside.sum())
+
+
+def test_gradient_strategy_is_the_default():
+    d = make_densify(config.TRAIN_DEFAULTS["densify"], compositor="radiative", iterations=10)
+    assert type(d) is GradientDensify and not d.wants_error
+
+
+def test_error_densify_trains_and_densifies(scene_dir, tmp_path):
+    res = loop.train(_cfg(scene_dir, iterations=20, densify={"interval": 10, "start": 10, "strategy": "error",
+                                                             "error_ratio": 1.2}), tmp_path / "run")
+    assert res["densify_cloned"] + res["densify_split"] > 0
+
+
+# --- 4. redundant-coverage pruning -----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("offset", [0.0, 0.05])
+def test_redundant_pruning_removes_a_duplicate_and_keeps_the_image(offset):
+    rng = np.random.default_rng(1)
+    means = rng.uniform(-12, 12, (40, 3))
+    scales = rng.uniform(1.0, 2.5, (40, 3))
+    dens = rng.uniform(0.2, 1.0, 40)
+    # Gaussian 5 split into two halves, the copy shifted by `offset` x its mean scale
+    means = np.vstack([means, means[5] + offset * scales[5].mean() * np.array([1.0, 0.0, 0.0])])
+    scales = np.vstack([scales, scales[5]])
+    dens = np.append(dens, dens[5] / 2)
+    dens[5] /= 2
+    g = Gaussians.from_values(means, scales, dens)
+    params = {k: v.detach().clone().requires_grad_(True) for k, v in g.tensors().items() if k in state.PARAM_GROUPS}
+    cam = ParallelCamera(40, 40, 1.0)
+    poses = [look_at(200.0 * np.array([math.cos(a), math.sin(a), 0.1]), np.zeros(3)) for a in (0.0, 1.0, 2.2)]
+    before = [render(state.as_gaussians(params), cam, R, t).image.detach() for R, t in poses]
+    st = state.TrainState(params=params, opt=state.make_optimizer(params, {"lr": config.TRAIN_DEFAULTS["lr"]}, 1.0))
+    settings = {**config.TRAIN_DEFAULTS["densify"], "prune_redundant": {"enabled": True, "distance": 0.1,
+                                                                        "scale_tol": 0.1, "cov_tol": 0.1}}
+    removed = GradientDensify(settings, compositor="radiative", iterations=10).merge(st)
+    assert removed == 1 and st.params["means"].shape[0] == 40
+    after = [render(state.as_gaussians(st.params), cam, R, t).image.detach() for R, t in poses]
+    for a, b in zip(before, after, strict=True):
+        err = float((a - b).abs().max() / a.abs().max())
+        assert err < (1e-5 if offset == 0 else 0.05)
+    # disabled, or nothing coincident: nothing removed
+    assert GradientDensify(config.TRAIN_DEFAULTS["densify"], compositor="radiative", iterations=10).merge(st) == 0
+    assert GradientDensify(settings, compositor="radiative", iterations=10).merge(st) == 0
+
+
+# --- 5. best-validation model ----------------------------------------------------------------------------------------
+
+def test_model_best_is_the_best_validation_checkpoint_and_evaluate_uses_it(scene_dir, tmp_path):
+    out = tmp_path / "run"
+
+    def spoil(it: int, st: state.TrainState) -> None:  # after iteration 20 the model loses most of its mass
+        if it == 20:
+            with torch.no_grad():
+                st.params["density_raw"] -= 4.0
+
+    trained = loop.train(_cfg(scene_dir, iterations=40, collapse_psnr_drop_db=0.0, densify={"interval": 0}), out,
+                         callback=spoil)
+    rows = _rows(out / "train_log.csv")
+    psnr = [float(r["psnr2d"]) for r in rows]
+    best_it = int(rows[int(np.argmax(psnr))]["iteration"])
+    assert best_it == 20 and psnr[-1] < psnr[1]  # the best is not the last
+    assert (out / "model_best.pt").is_file()
+    assert trained["best_iteration"] == best_it and trained["best_val_psnr"] == pytest.approx(max(psnr))
+    best = Gaussians.load(out / "model_best.pt")
+    assert best.meta["iteration"] == best_it
+    # the validation PSNR of the stored best model is the logged maximum (all validation views are logged here)
+    m_best = evaluate(out, split="val", device="cpu", model="best", write=False)
+    assert m_best["model"] == "best" and m_best["model_iteration"] == best_it
+    assert m_best["psnr2d"] == pytest.approx(max(psnr), abs=1e-4)
+    m_last = evaluate(out, device="cpu")
+    assert m_last["model"] == "last" and m_last["model_iteration"] == 40
+    assert json.loads((out / "metrics.json").read_text())["model"] == "last"
+    m = evaluate(out, device="cpu", model="best")
+    assert json.loads((out / "metrics.json").read_text())["model"] == "best" and m["model_iteration"] == best_it
+    (out / "model_best.pt").unlink()
+    with pytest.raises(CtsplatError, match="no model_best.pt"):
+        evaluate(out, device="cpu", model="best", write=False)
+    with pytest.raises(CtsplatError, match="unknown model"):
+        evaluate(out, device="cpu", model="first", write=False)
+
+
+# --- 6. optimiser preset -----------------------------------------------------------------------------------------
+
+def test_method_preset_sets_one_learning_rate_and_the_cosine(scene_dir, tmp_path):
+    params = {"means": torch.zeros(3, 3, requires_grad=True), "log_scales": torch.zeros(3, 3, requires_grad=True),
+              "quats": torch.zeros(3, 4, requires_grad=True), "density_raw": torch.zeros(3, requires_grad=True)}
+    cfg = {"lr": config.TRAIN_DEFAULTS["lr"], "optimizer_preset": "method"}
+    opt = state.make_optimizer(params, cfg, voxel_mm=2.0, half_extent_mm=20.0)
+    lrs = {g["name"]: g["lr"] for g in opt.param_groups}
+    assert lrs == pytest.approx({"means": 3e-3 * 20.0, "log_scales": 3e-3, "quats": 3e-3, "density_raw": 3e-3})
+    per_group = state.make_optimizer(params, {**cfg, "optimizer_preset": "per_group"}, voxel_mm=2.0)
+    assert {g["name"]: g["lr"] for g in per_group.param_groups}["means"] == pytest.approx(0.02 * 2.0)
+    # in a run: the logged mean learning rate follows the cosine from 3e-3 x half-extent (20 voxels of 2 mm)
+    out = tmp_path / "run"
+    loop.train(_cfg(scene_dir, iterations=20, optimizer_preset="method"), out)
+    for r in _rows(out / "train_log.csv"):
+        it = int(r["iteration"])
+        want = 3e-3 * 20.0 * state.cosine_factor(it - 1, 20, 0.1)
+        assert float(r["lr_means"]) == pytest.approx(want, rel=1e-6)
+
+
+# --- all features together: deterministic; bad input --------------------------------------------------------------
+
+def test_all_features_on_are_deterministic(scene_dir, tmp_path):
+    kw = {"iterations": 20, "augment": {"enabled": True}, "optimizer_preset": "method",
+          "lambda_density_warmup": {"factor": 10.0},
+          "densify": {"interval": 10, "start": 10, "strategy": "both", "prune_redundant": {"enabled": True}}}
+    a = loop.train(_cfg(scene_dir, **kw), tmp_path / "a")
+    b = loop.train(_cfg(scene_dir, **kw), tmp_path / "b")
+    drop = ("timestamp", "iters_per_s")
+    ra = [{k: v for k, v in r.items() if k not in drop} for r in _rows(tmp_path / "a" / "train_log.csv")]
+    rb = [{k: v for k, v in r.items() if k not in drop} for r in _rows(tmp_path / "b" / "train_log.csv")]
+    assert ra == rb and a["n_gaussians"] == b["n_gaussians"]
+
+
+def test_resume_with_features_continues_bit_for_bit(scene_dir, tmp_path):
+    # error statistics accumulate from 11 to 20 and are in the checkpoint at 10..; augmentation draws from the
+    # checkpointed generators
+    kw = {"iterations": 30, "augment": {"enabled": True}, "densify": {"interval": 20, "start": 20,
+                                                                     "strategy": "error", "error_ratio": 1.2}}
+    full = loop.train(_cfg(scene_dir, **kw), tmp_path / "full")
+
+    class Stop(Exception):
+        pass
+
+    def stop(it: int, _st: state.TrainState) -> None:
+        if it == 15:
+            raise Stop
+
+    with pytest.raises(Stop):
+        loop.train(_cfg(scene_dir, **kw), tmp_path / "cut", callback=stop)
+    resumed = loop.train(_cfg(scene_dir, **kw), tmp_path / "cut", resume=True)
+    drop = ("timestamp", "iters_per_s")
+    rows = [[{k: v for k, v in r.items() if k not in drop} for r in _rows(tmp_path / d / "train_log.csv")]
+            for d in ("full", "cut")]
+    assert rows[0] == rows[1] and full["densify_cloned"] + full["densify_split"] > 0
+    assert resumed["n_gaussians"] == full["n_gaussians"] and resumed["best_iteration"] == full["best_iteration"]
+
+
+@pytest.mark.parametrize(("kw", "msg"), [
+    ({"augment": {"rot_deg": -0.5}}, r"train\.augment\.rot_deg must be a number in \[0, 1\], got -0.5"),
+    ({"augment": {"shear": 1}}, "unknown config key train.augment.shear"),
+    ({"augment": {"enabled": "yes"}}, "train.augment.enabled must be true or false"),
+    ({"lambda_density_warmup": {"factor": 0.5}}, r"lambda_density_warmup\.factor must be a number >= 1"),
+    ({"lambda_density_warmup": {"ramp": 1}}, "unknown config key train.lambda_density_warmup.ramp"),
+    ({"densify": {"strategy": "random"}}, "unknown train.densify.strategy 'random'; allowed: gradient, error, both"),
+    ({"densify": {"prune_redundant": {"distance": -1}}}, "prune_redundant.distance must be a number in"),
+    ({"optimizer_preset": "sgd"}, "unknown train.optimizer_preset 'sgd'"),
+    ({"model_selection": "median"}, "unknown train.model_selection 'median'"),
+])
+def test_bad_feature_settings_fail_with_one_line(scene_dir, kw, msg):
+    with pytest.raises(CtsplatError, match=msg) as exc:
+        config.resolve_config(_cfg(scene_dir, **kw))
+    assert "\n" not in str(exc.value)
+
+
+def test_schema_knows_the_new_keys():
+    from ctsplat.config import validate_config
+
+    cfg = validate_config({"train": {"augment": {"enabled": True}, "densify": {"strategy": "both"},
+                                     "optimizer_preset": "method", "model_selection": "best"}})
+    assert cfg["train"]["augment"]["rot_deg"] == 0.5
+    with pytest.raises(CtsplatError, match="strategy"):
+        validate_config({"train": {"densify": {"strategy": "nope"}}})
+
+
+def test_features_benchmark_refuses_keys_its_variants_set(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    res = subprocess.run([sys.executable, str(root / "benchmarks" / "features.py"), "--data", str(tmp_path / "none"),
+                          "--out", str(tmp_path / "o"), "--set", "densify.strategy=error"], capture_output=True,
+                         text=True, env=env, timeout=300)
+    assert res.returncode == 2 and not (tmp_path / "o").exists()
+    assert res.stderr.strip().splitlines()[-1] == ("features.py: error: --set densify.strategy is set by this "
+                                                   "benchmark per run; use --variants")
+
+
+# --- grid axes -----------------------------------------------------------------------------------------------------
+
+def test_feature_axes_expand_into_run_folders_and_train_settings(scene_dir):
+    from ctsplat.config import validate_config
+    from ctsplat.grid import expand_grid, parse_run_dir, run_relpath, with_train_overrides
+
+    axes = {"init": ["fbp"], "compositor": ["radiative"], "mip": ["on"], "poses": ["gt"], "views": [8], "seed": [0],
+            "augment": [True, "off"], "densify": ["gradient", "both"], "density_warmup": [1, 10],
+            "prune_redundant": ["on"], "optimizer": ["method"]}
+    runs = expand_grid(axes, ["ph"], exclude=[{"augment": "on", "densify": "both"}])
+    assert len(runs) == 6 and list(runs.columns[-5:]) == ["augment", "density_warmup", "densify", "prune_redundant",
+                                                          "optimizer"]
+    row = runs.iloc[-1].to_dict()
+    rel = run_relpath(row)
+    assert rel == ("init~fbp/compositor~radiative/mip~on/poses~gt/views~8/seed~0/augment~off/density_warmup~10/"
+                   "densify~both/prune_redundant~on/optimizer~method")
+    assert parse_run_dir(f"results/ph/runs/{rel}") == {**row, "density_warmup": 10.0}
+    base = config.resolve_config(_cfg(scene_dir, densify={"interval": 7}))
+    cfg = config.resolve_config(with_train_overrides(base, row))
+    assert cfg["augment"]["enabled"] is False and cfg["densify"]["strategy"] == "both"
+    assert cfg["densify"]["interval"] == 7 and cfg["densify"]["prune_redundant"]["enabled"] is True
+    assert cfg["lambda_density_warmup"]["factor"] == 10.0 and cfg["optimizer_preset"] == "method"
+    # the six-axis layout is unchanged without feature axes; the schema accepts them and their exclusions
+    plain = expand_grid({k: axes[k] for k in list(axes)[:6]}, ["ph"])
+    assert run_relpath(plain.iloc[0].to_dict()) == "init~fbp/compositor~radiative/mip~on/poses~gt/views~8/seed~0"
+    validate_config({"grid": {"axes": {"augment": ["on", "off"], "densify": ["error"]},
+                              "exclude": [{"augment": "on"}]}})
+    with pytest.raises(CtsplatError, match="grid.axes.densify"):
+        validate_config({"grid": {"axes": {"densify": ["random"]}}})
+
+
+def test_workflow_dry_run_with_a_feature_axis(tmp_path, monkeypatch):
+    import yaml
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "workflow"))
+    from smk_helpers import ROOT, job_counts, snakemake, write_config
+
+    cfg = yaml.safe_load((ROOT / "config" / "test_tiny.yaml").read_text())
+    cfg["grid"]["axes"].update(init=["uniform"], mip=["off"], augment=["on", "off"], densify=["error"])
+    proc = snakemake(tmp_path, "-n", configfile=write_config(tmp_path / "c.yaml", cfg))
+    assert job_counts(proc.stdout)["train"] == 2
+    assert "seed~0/augment~on/densify~error/model.pt" in proc.stdout
+    assert "seed~0/augment~off/densify~error/model.pt" in proc.stdout
