@@ -88,7 +88,9 @@ BASELINE_DEFAULTS: dict[str, Any] = {
     "mbir_snr_db": [30.0, 40.0],
     "mbir_max_iterations": 100,
     "patience": 3,  # stop an iterative candidate after this many iterations without a better validation score
-    "detector_binning": None,  # 3D iterative methods: average b x b pixels; null = the coarsest not above a voxel
+    # 3D iterative methods and validation scores: average b x b detector pixels; null = the coarsest binning whose
+    # pixel at the isocentre is at most 1.5 voxels (2 for the cone-beam protocol's 2 pixels per voxel edge)
+    "detector_binning": None,
     "step_voxels": 1.0,  # 3D iterative methods: projector sampling step (voxels)
     "device": "auto",  # FDK and the 3D iterative methods: auto | cpu | cuda
     "split": "train",  # which views of the radiographs to reconstruct from

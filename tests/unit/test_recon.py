@@ -189,7 +189,8 @@ def test_detector_binning_averages_pixels_and_keeps_the_geometry():
     vol = two_balls(16)
     vs = cone_set(16, 2.0, 4)
     p = render(vol, vs)
-    assert auto_binning(vs, vol) == 1  # 2 L / 32 px at the detector = 1 mm at the isocentre < 2 mm voxels...
+    assert auto_binning(vs, vol) == 2  # 2 mm pitch = 1.43 mm at the isocentre: 2 x 2 pixels = 1.43 voxels
+    assert auto_binning(ViewSet(ParallelCamera(16, 16, 2.0), vs.views), vol) == 1  # one voxel per pixel already
     pb, vb = bin_detector(p, vs, 2)
     assert pb.shape == (4, 16, 16) and vb.camera.pitch_mm == pytest.approx(2 * vs.camera.pitch_mm)
     direct = render(vol, vb)
