@@ -275,3 +275,17 @@ def test_baselines_bad_input(tmp_path):
     with pytest.raises(CtsplatError, match="rendered from volume ph16"):
         run_baselines(tmp_path / "o.nii.gz", tmp_path / "rad", tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def test_workflow_config_takes_cone_beam_baselines_and_refuses_a_carm_geometry():
+    from ctsplat.config import prepare_config
+
+    cfg = prepare_config({"radiographs": {"cone": {"camera": "cone"}}})
+    assert cfg["baselines"]["geometry"] == "cone" and cfg["baselines"]["enabled"]
+    carm = {"camera": "cone", "orbit": "carm", "n_views": 30}
+    with pytest.raises(CtsplatError, match=r"baselines\.geometry: 'carm' is a C-arm orbit .* no validation views"):
+        prepare_config({"radiographs": {"circ": {}, "carm": carm}, "baselines": {"geometry": "carm"}})
+    assert prepare_config({"radiographs": {"circ": {}, "carm": carm},
+                           "baselines": {"geometry": "carm", "enabled": False}})["baselines"]["geometry"] == "carm"
+    with pytest.raises(CtsplatError, match=r"baselines\.settings\.asd_pocs_alpha"):
+        prepare_config({"radiographs": {"circ": {}}, "baselines": {"settings": {"asd_pocs_alpha": [0.1, 0]}}})
