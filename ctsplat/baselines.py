@@ -87,6 +87,7 @@ BASELINE_DEFAULTS: dict[str, Any] = {
     "mbir_sharpness": [0.0, 1.0],  # svmbir qGGMRF candidates (circular parallel beam only)
     "mbir_snr_db": [30.0, 40.0],
     "mbir_max_iterations": 50,  # svmbir ICD iterations (run to the end: no early stop)
+    "mbir_threads": 1,  # svmbir threads: 1 is reproducible bit for bit, more are faster but vary by ~1e-3
     "patience": 3,  # stop an iterative candidate after this many iterations without a better validation score
     # 3D iterative methods and validation scores: average b x b detector pixels; null = the coarsest binning whose
     # pixel at the isocentre is at most 1.5 voxels (2 for the cone-beam protocol's 2 pixels per voxel edge)

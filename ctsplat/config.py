@@ -619,6 +619,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("baselines", "mbir_snr_db"): {"type": ["number", "array"], "minimum": 0, "maximum": 100, "minItems": 1,
                                    "items": {"type": "number", "minimum": 0, "maximum": 100}},
     ("baselines", "mbir_max_iterations"): _COUNT,
+    ("baselines", "mbir_threads"): _COUNT,
     ("baselines", "patience"): {"type": ["integer", "null"], "minimum": 1},
     ("baselines", "detector_binning"): {"type": ["integer", "null"], "minimum": 1, "maximum": 16},
     ("baselines", "step_voxels"): {"type": "number", "exclusiveMinimum": 0, "maximum": 1},

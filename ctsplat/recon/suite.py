@@ -221,7 +221,8 @@ def classical_reconstructions(train_p: np.ndarray, train_vs: ViewSet, val_p: np.
                         for q in _as_list(cfg["mbir_snr_db"])]
                 c = choose("mbir", grid, lambda sharpness, snr_db, cache=tmp: mbir_volume(
                     train_p, train_vs, reference, sharpness=sharpness, snr_db=snr_db, clip=clip, lib_path=cache,
-                    max_iterations=int(cfg["mbir_max_iterations"])), validator, clip=clip)
+                    max_iterations=int(cfg["mbir_max_iterations"]), num_threads=int(cfg["mbir_threads"])),
+                    validator, clip=clip)
             finally:
                 shutil.rmtree(tmp, ignore_errors=True)
         log.info("baselines: %s chose %s (validation PSNR %.2f dB, %.1f s)", c.method, c.params, c.val_psnr,

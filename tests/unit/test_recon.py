@@ -216,3 +216,5 @@ def test_mbir_recovers_a_disc():
     assert np.abs(rec - vol.data).mean() < 0.005
     assert np.abs(rec - vol.data).mean() < 0.5 * np.abs(fbp_volume(p, vs, vol) - vol.data).mean()
     assert rec.min() >= 0 and rec.max() <= 1
+    again = mbir_volume(p, vs, vol, sharpness=0.0, snr_db=30.0)  # one thread (the default): bit-identical
+    np.testing.assert_array_equal(again, rec)
