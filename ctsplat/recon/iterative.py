@@ -104,9 +104,9 @@ class _Sweeper:
         """``x`` after one pass over every subset (non-negative), and the data residual ``‖b - A x‖`` seen."""
         res2 = 0.0
         for g, cinv in zip(self.groups, self.cinv, strict=True):
-            r = self.b[g] - self.op.forward(x, g)
-            res2 += float((r * r).sum())
-            x = (x + relaxation * cinv * self.op.adjoint(r * self.rinv[g], g)).clamp_min(0.0)
+            update, r2 = self.op.residual_adjoint(x, self.b[g], self.rinv[g], g)
+            res2 += r2
+            x = (x + relaxation * cinv * update).clamp_min(0.0)
         return x, res2**0.5
 
 

@@ -73,6 +73,11 @@ def test_backprojector_is_the_exact_adjoint(geometry):
     lhs, rhs = float((Ax * y.double()).sum()), float((x.double() * ATy).sum())
     assert abs(lhs - rhs) <= 1e-5 * (abs(lhs) + abs(rhs)), (lhs, rhs)
     assert float(Ax.abs().max()) > 0
+    # the fused residual step of SART/SIRT equals a forward pass followed by the adjoint
+    b, w = torch.rand(op.image_shape), torch.rand(op.image_shape)
+    upd, r2 = op.residual_adjoint(x, b, w)
+    np.testing.assert_allclose(upd.numpy(), op.adjoint((b - op.forward(x)) * w).numpy(), rtol=1e-4, atol=1e-5)
+    assert r2 == pytest.approx(float(((b - op.forward(x)) ** 2).sum()), rel=1e-5)
     # linear: A(2x) = 2 A(x), also for a volume whose zero margin changes
     x2 = x.clone()
     x2[3:] = 0
