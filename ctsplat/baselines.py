@@ -78,17 +78,17 @@ BASELINE_DEFAULTS: dict[str, Any] = {
     "methods": ["fbp", "fdk", "sart", "asd_pocs", "mbir"],
     "fbp_filters": ["ramp", "shepp-logan"],  # FBP and FDK filter candidates
     "sart_max_iterations": 10,
-    "sart_relaxation": [0.15, 0.5, 1.0],  # candidates (a number = one)
+    "sart_relaxation": [0.25, 1.0],  # candidates (a number = one)
     "sart_subsets": 10,  # 3D SART (cone beam, other orbits): ordered subsets per sweep (1 = SIRT)
     "asd_pocs_iterations": 10,
-    "asd_pocs_alpha": [0.005, 0.02, 0.08],  # TV weight candidates (TV step / first data step, Sidky & Pan 2008)
+    "asd_pocs_alpha": [0.005, 0.02],  # TV weight candidates (TV step / first data step, Sidky & Pan 2008)
     "asd_pocs_tv_steps": 20,
     "asd_pocs_subsets": 10,
     "mbir_sharpness": [0.0, 1.0],  # svmbir qGGMRF candidates (circular parallel beam only)
-    "mbir_snr_db": [30.0, 40.0],
+    "mbir_snr_db": [30.0],
     "mbir_max_iterations": 50,  # svmbir ICD iterations (run to the end: no early stop)
     "mbir_threads": 1,  # svmbir threads: 1 is reproducible bit for bit, more are faster but vary by ~1e-3
-    "patience": 3,  # stop an iterative candidate after this many iterations without a better validation score
+    "patience": 2,  # stop an iterative candidate after this many iterations without a better validation score
     # 3D iterative methods and validation scores: average b x b detector pixels; null = the coarsest binning whose
     # pixel at the isocentre is at most 1.5 voxels (2 for the cone-beam protocol's 2 pixels per voxel edge)
     "detector_binning": None,

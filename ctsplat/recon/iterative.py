@@ -63,11 +63,24 @@ def total_variation(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
 
 
 def tv_gradient(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
-    """Gradient of :func:`total_variation` with respect to ``x`` (same shape)."""
-    y = x.detach().clone().requires_grad_(True)
-    with torch.enable_grad():
-        total_variation(y, eps).backward()
-    return y.grad
+    """Gradient of :func:`total_variation` with respect to ``x`` (same shape), in closed form.
+
+    With ``D = √(Δi² + Δj² + Δk² + eps)`` on the voxels that have all three forward neighbours, each such voxel
+    gets ``-(Δi + Δj + Δk) / D`` and its neighbours along i, j, k get ``Δi / D``, ``Δj / D``, ``Δk / D``.
+    """
+    x = x.detach()
+    c = x[:-1, :-1, :-1]
+    di = x[1:, :-1, :-1] - c
+    dj = x[:-1, 1:, :-1] - c
+    dk = x[:-1, :-1, 1:] - c
+    inv = torch.rsqrt(di * di + dj * dj + dk * dk + eps)
+    di, dj, dk = di * inv, dj * inv, dk * inv
+    g = torch.zeros_like(x)
+    g[:-1, :-1, :-1] -= di + dj + dk
+    g[1:, :-1, :-1] += di
+    g[:-1, 1:, :-1] += dj
+    g[:-1, :-1, 1:] += dk
+    return g
 
 
 def _subsets(view_set: ViewSet, subsets: int) -> list[np.ndarray]:
