@@ -1,4 +1,9 @@
-"""Classical reconstructions from circular parallel-beam radiographs: slice-by-slice FBP and SART.
+"""Classical baselines: slice-by-slice FBP and SART for circular parallel beams, and the baseline step for any geometry.
+
+:func:`run_baselines` (the ``baseline`` rule) runs every classical method the geometry allows through
+:mod:`ctsplat.recon` (FDK for circular cone beams, 3D SART and ASD-POCS for any orbit, MBIR through svmbir and the
+slice-wise methods below for circular parallel beams), each with its free parameters chosen on the validation views,
+and only then measures them on the test views and the reference volume.
 
 A circular parallel orbit at elevation 0 (``ctsplat.geometry.circular_orbit``) sees each axial slice of
 the volume independently: detector row ``v`` holds the line integrals of the slice at height
@@ -34,8 +39,8 @@ Science 21(3), 21-43. (The ``shepp-logan`` filter.)
 
 from __future__ import annotations
 
+import json
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -48,7 +53,9 @@ from ctsplat.utils import CtsplatError, atomic_path, code_version, json_safe, me
 __all__ = [
     "BASELINE_DEFAULTS",
     "BASELINES_DEFAULTS",
+    "BASELINE_COLUMNS",
     "FBP_FILTERS",
+    "is_circular_parallel",
     "select_views",
     "circular_sinograms",
     "fbp_volume",
@@ -62,11 +69,31 @@ log = logging.getLogger(__name__)
 #: ``skimage.transform.iradon`` filters accepted by :func:`fbp_volume` and ``baselines.fbp_filters``.
 FBP_FILTERS = ("ramp", "shepp-logan", "cosine", "hamming", "hann")
 
-#: Defaults of the ``baselines`` config section (see :func:`run_baselines`).
+#: Defaults of the ``baselines`` config section (see :func:`run_baselines`). Lists are candidates: every free
+#: parameter is chosen on the validation views (``ctsplat.recon.select``); ``*_iterations`` are maxima (the
+#: iteration count is chosen too).
 BASELINE_DEFAULTS: dict[str, Any] = {
-    "fbp_filters": ["ramp", "shepp-logan"],
-    "sart_max_iterations": 5,  # SART runs 1..N iterations and keeps the best (3D PSNR)
-    "sart_relaxation": 0.15,
+    # methods to run where the geometry allows them: fbp, sart, asd_pocs, mbir (circular parallel beam); fdk, sart,
+    # asd_pocs (circular cone beam); sart, asd_pocs (any other orbit)
+    "methods": ["fbp", "fdk", "sart", "asd_pocs", "mbir"],
+    "fbp_filters": ["ramp", "shepp-logan"],  # FBP and FDK filter candidates
+    "sart_max_iterations": 10,
+    "sart_relaxation": [0.25, 1.0],  # candidates (a number = one)
+    "sart_subsets": 10,  # 3D SART (cone beam, other orbits): ordered subsets per sweep (1 = SIRT)
+    "asd_pocs_iterations": 10,
+    "asd_pocs_alpha": [0.005, 0.02],  # TV weight candidates (TV step / first data step, Sidky & Pan 2008)
+    "asd_pocs_tv_steps": 20,
+    "asd_pocs_subsets": 10,
+    "mbir_sharpness": [0.0, 1.0],  # svmbir qGGMRF candidates (circular parallel beam only)
+    "mbir_snr_db": [30.0],
+    "mbir_max_iterations": 50,  # svmbir ICD iterations (run to the end: no early stop)
+    "mbir_threads": 1,  # svmbir threads: 1 is reproducible bit for bit, more are faster but vary by ~1e-3
+    "patience": 2,  # stop an iterative candidate after this many iterations without a better validation score
+    # 3D iterative methods and validation scores: average b x b detector pixels; null = the coarsest binning whose
+    # pixel at the isocentre is at most 1.5 voxels (2 for the cone-beam protocol's 2 pixels per voxel edge)
+    "detector_binning": None,
+    "step_voxels": 1.0,  # 3D iterative methods: projector sampling step (voxels)
+    "device": "auto",  # FDK and the 3D iterative methods: auto | cpu | cuda
     "split": "train",  # which views of the radiographs to reconstruct from
     # number(s) of views: null/0 = all views of the split; an int or a list of ints = that many views spread
     # evenly over the split sorted by azimuth (the same subset `train.views` uses), one result row each
@@ -437,23 +464,40 @@ def select_views(view_set: ViewSet, split: str, n: int) -> np.ndarray:
     return rows[np.floor(np.arange(n) * rows.size / n).astype(int)]
 
 
+#: Columns of ``baselines.csv``: the first seven as before (the analysis figures read them), then the validation
+#: score that chose the parameters, the chosen parameters (JSON), the 2D test metrics, the time of every candidate
+#: and whether the row is the best classical reconstruction on validation for its view count.
+BASELINE_COLUMNS = ["method", "filter", "iterations", "n_views", "psnr3d", "ssim3d", "seconds", "val_psnr", "params",
+                    "psnr2d", "ssim2d", "selection_seconds", "best_on_val"]
+
+
+def _counts(value: Any) -> list[int]:
+    counts = [0] if value in (None, 0) else ([int(value)] if isinstance(value, int | float) else list(value))
+    if not counts or any(not isinstance(c, int | float) or int(c) < 0 for c in counts):
+        raise CtsplatError(f"baselines.n_views must be null, a non-negative integer or a list of them, got {value}")
+    return [int(c) for c in counts]
+
+
 def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir: str | Path,
                   config: dict[str, Any] | None = None) -> Any:
-    """FBP (each filter) and SART (best of 1..N iterations) from the training views, with 3D metrics.
+    """Every classical reconstruction the geometry allows, parameters chosen on validation, then test metrics.
 
-    For each view count in ``config["n_views"]`` (views chosen by :func:`select_views`) writes one row per
-    FBP filter and one SART row (best 3D PSNR over 1..``sart_max_iterations``) to ``out_dir/baselines.csv``
-    (columns method, filter, iterations, n_views, psnr3d, ssim3d, seconds; ``seconds`` excludes metrics),
-    every SART iteration to ``out_dir/sart_iterations.csv``, the volumes ``fbp_{filter}_n{views:03d}.nii.gz``
-    and ``sart_n{views:03d}.nii.gz`` (normalised, reference grid; when ``save_volumes``) and ``baselines.json``
-    (provenance).
+    Methods and their candidates: :data:`BASELINE_DEFAULTS` and :mod:`ctsplat.recon.suite` (circular parallel
+    beam: FBP, SART, ASD-POCS, MBIR; circular cone beam: FDK, SART, ASD-POCS; other orbits: SART, ASD-POCS). For
+    each view count in ``config["n_views"]`` (views of ``split`` chosen by :func:`select_views`) every method's
+    free parameters are chosen by the re-projection PSNR on the view set's *validation* views
+    (:mod:`ctsplat.recon.select`); only then are the chosen volume's 3D metrics against the reference and its 2D
+    metrics on the test views computed. Writes ``out_dir/baselines.csv`` (:data:`BASELINE_COLUMNS`, one row per
+    method and view count; ``seconds`` is the chosen reconstruction's time, metrics excluded), every candidate's
+    validation score to ``out_dir/trials.csv``, the volumes ``{method}_n{views:03d}.nii.gz`` (normalised,
+    reference grid; when ``save_volumes``) and ``baselines.json`` (provenance).
 
     Parameters
     ----------
     volume_path : str or Path
         The reference volume (its grid, and its values for the metrics).
     radiographs_dir : str or Path
-        Radiographs of that volume from a circular parallel geometry.
+        Radiographs of that volume, any geometry, with validation views.
     out_dir : str or Path
         Output folder (created).
     config : dict, optional
@@ -467,67 +511,66 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
     Raises
     ------
     CtsplatError
-        For an unknown filter, radiographs of another volume, an invalid ``n_views``, an empty split or a
-        geometry slice-wise FBP/SART cannot handle.
+        Before any work, for a bad setting (naming the key), radiographs of another volume, an empty split, no
+        validation views, or methods that cannot reconstruct the geometry.
     """
     import pandas as pd
 
-    from ctsplat.evaluation.metrics import psnr3d, ssim3d
+    from ctsplat.config import check_section
+    from ctsplat.evaluation.metrics import psnr, psnr3d, ssim2d, ssim3d
     from ctsplat.formats.viewset import load_radiographs
     from ctsplat.formats.volume import Volume, load_volume, save_volume
+    from ctsplat.recon.select import Validator
+    from ctsplat.recon.suite import best_choice, classical_reconstructions
 
+    check_section("baselines", dict(config or {}))
     cfg = merge_config("baselines", config, BASELINE_DEFAULTS)
-    for f in cfg["fbp_filters"]:
-        if f not in FBP_FILTERS:
-            raise CtsplatError(f"unknown FBP filter {f!r} in baselines.fbp_filters; allowed: {', '.join(FBP_FILTERS)}")
+    counts = _counts(cfg["n_views"])
     out_dir = Path(out_dir)
     volume = load_volume(volume_path)
     p_all, vs_all = load_radiographs(radiographs_dir)
     if vs_all.volume_id != volume.volume_id:
         raise CtsplatError(f"radiographs in {radiographs_dir} were rendered from volume {vs_all.volume_id}, "
                            f"not {volume.volume_id} ({volume_path}); re-render them")
-    counts = cfg["n_views"]
-    counts = [0] if counts in (None, 0) else ([int(counts)] if isinstance(counts, int | float) else list(counts))
-    if any(int(c) < 0 for c in counts) or not counts:
-        raise CtsplatError(f"baselines.n_views must be null, a non-negative integer or a list of them, got {counts}")
+    val_rows = vs_all.indices("val")
+    if val_rows.size == 0:
+        raise CtsplatError(f"radiographs in {radiographs_dir} have no validation views to choose the baselines' "
+                           "parameters on; render them with a non-zero radiographs split.val")
+    val_vs = vs_all.subset("val")
+    test_rows = vs_all.indices("test")
+    subsets = [select_views(vs_all, cfg["split"], c) for c in counts]  # errors on an empty split, before any work
     ref = volume.data
     rows: list[dict[str, Any]] = []
-    sart_rows: list[dict[str, Any]] = []
+    trials: list[dict[str, Any]] = []
     volumes: dict[str, np.ndarray] = {}
-    for requested in counts:
-        idx = select_views(vs_all, cfg["split"], int(requested))
+    for requested, idx in zip(counts, subsets, strict=True):
         if requested and len(idx) < requested:
             log.warning("baselines: %d views requested but the %s split has %d; using all", requested,
                         cfg["split"], len(idx))
-        vs = ViewSet(vs_all.camera, [vs_all.views[i] for i in idx], vs_all.volume_id, vs_all.isocenter_mm)
-        p = p_all[idx]
+        vs = ViewSet(vs_all.camera, [vs_all.views[i] for i in idx], vs_all.volume_id, vs_all.isocenter_mm,
+                     dict(vs_all.meta))
         nv = len(vs)
-        for f in cfg["fbp_filters"]:
-            t0 = time.perf_counter()
-            rec = fbp_volume(p, vs, volume, filter_name=f, clip=cfg["clip"])
-            sec = time.perf_counter() - t0
-            rows.append({"method": "fbp", "filter": f, "iterations": 0, "n_views": nv,
-                         "psnr3d": psnr3d(rec, ref), "ssim3d": ssim3d(rec, ref), "seconds": sec})
-            volumes[f"fbp_{f}_n{nv:03d}"] = rec
-            log.info("FBP %s, %d views: PSNR %.2f dB (%.1f s)", f, nv, rows[-1]["psnr3d"], sec)
-        best: tuple[float, int, np.ndarray, float] | None = None
-        t0 = time.perf_counter()
-        for it, rec in sart_volumes(p, vs, volume, iterations=cfg["sart_max_iterations"],
-                                    relaxation=cfg["sart_relaxation"], clip=cfg["clip"]):
-            elapsed = time.perf_counter() - t0
-            t1 = time.perf_counter()
-            psnr = psnr3d(rec, ref)
-            sart_rows.append({"n_views": nv, "iterations": it, "psnr3d": psnr, "seconds": elapsed})
-            if best is None or psnr > best[0]:
-                best = (psnr, it, rec, elapsed)
-            t0 += time.perf_counter() - t1  # keep metric time out of the SART timing
-        assert best is not None
-        rows.append({"method": "sart", "filter": "", "iterations": best[1], "n_views": nv, "psnr3d": best[0],
-                     "ssim3d": ssim3d(best[2], ref), "seconds": best[3]})
-        volumes[f"sart_n{nv:03d}"] = best[2]
-        log.info("SART, %d views: best at %d iterations, PSNR %.2f dB", nv, best[1], best[0])
+        choices = classical_reconstructions(p_all[idx], vs, p_all[val_rows], val_vs, volume, cfg,
+                                            work_dir=out_dir.parent)
+        best = best_choice(choices)
+        for c in choices:  # test metrics only now, after every choice is made
+            row = {"method": c.method, "filter": c.params.get("filter", ""),
+                   "iterations": int(c.params.get("iterations", 0)), "n_views": nv, "psnr3d": psnr3d(c.volume, ref),
+                   "ssim3d": ssim3d(c.volume, ref), "seconds": c.seconds, "val_psnr": c.val_psnr,
+                   "params": json.dumps(c.params, sort_keys=True), "psnr2d": float("nan"), "ssim2d": float("nan"),
+                   "selection_seconds": c.selection_seconds, "best_on_val": c is best}
+            if test_rows.size:
+                test = Validator(p_all[test_rows], vs_all.subset("test"), volume)
+                pred, target = test.render(c.volume), test.target
+                row["psnr2d"] = float(np.mean([psnr(a, b) for a, b in zip(pred, target, strict=True)]))
+                row["ssim2d"] = float(np.mean([ssim2d(a, b) for a, b in zip(pred, target, strict=True)]))
+            rows.append(row)
+            trials.extend({"n_views": nv, **t} for t in c.trials)
+            volumes[f"{c.method}_n{nv:03d}"] = c.volume
+            log.info("baselines, %d views: %s %s -> val %.2f dB, 3D PSNR %.2f dB", nv, c.method, c.params,
+                     c.val_psnr, row["psnr3d"])
 
-    df = pd.DataFrame(rows, columns=["method", "filter", "iterations", "n_views", "psnr3d", "ssim3d", "seconds"])
+    df = pd.DataFrame(rows, columns=BASELINE_COLUMNS)
     out_dir.mkdir(parents=True, exist_ok=True)
     if cfg["save_volumes"]:
         for name, rec in volumes.items():
@@ -535,11 +578,12 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
                     "intensity": {"mu_scale_per_mm": volume.mu_scale_per_mm, "normalised": True},
                     "baseline": name, "code_version": code_version()}
             save_volume(Volume(rec, volume.affine, meta), out_dir / f"{name}.nii.gz")
-    with atomic_path(out_dir / "sart_iterations.csv") as tmp:
-        pd.DataFrame(sart_rows).to_csv(tmp, index=False, lineterminator="\n")
+    with atomic_path(out_dir / "trials.csv") as tmp:
+        pd.DataFrame(trials).to_csv(tmp, index=False, lineterminator="\n")
     write_json_atomic(out_dir / "baselines.json", json_safe({
         "config": cfg, "code_version": code_version(), "volume_path": str(volume_path),
         "volume_id": volume.volume_id, "radiographs_dir": str(radiographs_dir), "results": rows,
+        "selection": "parameters chosen by re-projection PSNR on the validation views; test metrics after",
     }))
     with atomic_path(out_dir / "baselines.csv") as tmp:
         df.to_csv(tmp, index=False, lineterminator="\n")

@@ -453,6 +453,11 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
             f"invalid config at baselines.geometry: {cfg['baselines']['geometry']!r} is not a radiographs geometry "
             f"(defined: {', '.join(geometries)})"
         )
+    elif cfg["baselines"]["enabled"] and cfg["baselines"]["geometry"] not in training_geometries:
+        raise CtsplatError(
+            f"invalid config at baselines.geometry: {cfg['baselines']['geometry']!r} is a C-arm orbit (orbit: carm) "
+            "with no validation views to choose the baselines' parameters on; name a circular or sphere geometry"
+        )
     for geo, values in cfg["radiographs"].items():
         check_split(values["split"], f"radiographs.{geo}.split")
     check_grid_exclude(cfg)
@@ -604,11 +609,32 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("train", "init"): {"enum": ["volume", "uniform", "fbp", "sfm"]},
     ("train", "compositor"): {"enum": ["radiative", "radiative_unrectified", "alpha"]},
     ("train", "poses"): {"enum": ["gt", "colmap"]},
-    ("baselines", "fbp_filters"): {"type": "array",
+    ("baselines", "methods"): {"type": "array", "minItems": 1, "uniqueItems": True,
+                               "items": {"enum": ["fbp", "fdk", "sart", "asd_pocs", "mbir"]}},
+    ("baselines", "fbp_filters"): {"type": "array", "minItems": 1,
                                    "items": {"enum": ["ramp", "shepp-logan", "cosine", "hamming", "hann"]}},
     ("baselines", "split"): {"enum": ["train", "val", "test"]},
     ("baselines", "sart_max_iterations"): _COUNT,
-    ("baselines", "sart_relaxation"): {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 2},
+    ("baselines", "sart_relaxation"): {"type": ["number", "array"], "exclusiveMinimum": 0, "exclusiveMaximum": 2,
+                                       "minItems": 1,
+                                       "items": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 2}},
+    ("baselines", "sart_subsets"): _COUNT,
+    ("baselines", "asd_pocs_iterations"): _COUNT,
+    ("baselines", "asd_pocs_alpha"): {"type": ["number", "array"], "exclusiveMinimum": 0, "maximum": 10,
+                                      "minItems": 1, "items": {"type": "number", "exclusiveMinimum": 0,
+                                                               "maximum": 10}},
+    ("baselines", "asd_pocs_tv_steps"): _COUNT,
+    ("baselines", "asd_pocs_subsets"): _COUNT,
+    ("baselines", "mbir_sharpness"): {"type": ["number", "array"], "minimum": -10, "maximum": 10, "minItems": 1,
+                                      "items": {"type": "number", "minimum": -10, "maximum": 10}},
+    ("baselines", "mbir_snr_db"): {"type": ["number", "array"], "minimum": 0, "maximum": 100, "minItems": 1,
+                                   "items": {"type": "number", "minimum": 0, "maximum": 100}},
+    ("baselines", "mbir_max_iterations"): _COUNT,
+    ("baselines", "mbir_threads"): _COUNT,
+    ("baselines", "patience"): {"type": ["integer", "null"], "minimum": 1},
+    ("baselines", "detector_binning"): {"type": ["integer", "null"], "minimum": 1, "maximum": 16},
+    ("baselines", "step_voxels"): {"type": "number", "exclusiveMinimum": 0, "maximum": 1},
+    ("baselines", "device"): {"type": "string", "pattern": "^(auto|cpu|cuda(:[0-9]+)?)$"},
     ("baselines", "n_views"): {"type": ["integer", "array", "null"], "minimum": 0,
                                "items": {"type": "integer", "minimum": 0}},
 }

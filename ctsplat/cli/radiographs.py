@@ -41,10 +41,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     b = subparsers.add_parser(
         "baseline",
-        help="FBP and SART reconstructions from circular parallel-beam radiographs",
-        description="Slice-wise FBP (ramp, shepp-logan) and SART (best of 1..N iterations) from the training "
-        "views; writes baselines.csv, sart_iterations.csv, NIfTI volumes and baselines.json "
-        "(settings: ctsplat.baselines.BASELINE_DEFAULTS).",
+        help="classical reconstructions (FBP/FDK, SART, ASD-POCS, MBIR) from radiographs of any geometry",
+        description="FBP, SART, ASD-POCS and MBIR (circular parallel beam) or FDK, SART and ASD-POCS (cone beam) "
+        "from the training views, parameters chosen on the validation views; writes baselines.csv, trials.csv, "
+        "NIfTI volumes and baselines.json (settings: ctsplat.baselines.BASELINE_DEFAULTS).",
     )
     b.add_argument("--volume", required=True, help="the reference volume.nii.gz the radiographs were rendered from")
     b.add_argument("--radiographs", required=True, help="folder written by `ctsplat project`")

@@ -10,6 +10,7 @@ import pytest
 from skimage.transform import iradon, iradon_sart, radon
 
 from ctsplat.baselines import (
+    BASELINE_COLUMNS,
     BASELINE_DEFAULTS,
     circular_sinograms,
     fbp_volume,
@@ -124,6 +125,10 @@ def test_sirt_reconstructs_from_a_cone_beam_sphere_orbit():
     assert np.linalg.norm(reproj - p) / np.linalg.norm(p) < 0.15
 
 
+QUICK = {"sart_max_iterations": 3, "sart_relaxation": [0.15, 1.0], "asd_pocs_iterations": 2, "asd_pocs_alpha": 0.02,
+         "asd_pocs_tv_steps": 5, "mbir_sharpness": 0.0, "mbir_snr_db": 30.0, "mbir_max_iterations": 20}
+
+
 def test_run_baselines_writes_csv_volumes_and_metrics(tmp_path):
     vol = make_volume(24)
     vol_path = tmp_path / "volume.nii.gz"
@@ -131,22 +136,33 @@ def test_run_baselines_writes_csv_volumes_and_metrics(tmp_path):
     rad = tmp_path / "rad"
     render_radiographs(vol_path, rad, {"n_views": 36, "detector_width": 24, "detector_height": 40})
     out = tmp_path / "baselines"
-    df = run_baselines(vol_path, rad, out, {"sart_max_iterations": 3, "n_views": [12, 36, 99]})
-    assert list(df.columns) == ["method", "filter", "iterations", "n_views", "psnr3d", "ssim3d", "seconds"]
-    assert list(df["method"]) == ["fbp", "fbp", "sart"] * 3 and list(df["filter"][:2]) == ["ramp", "shepp-logan"]
-    assert list(df["n_views"]) == [12] * 3 + [36] * 6  # 99 > 36 training views: all of them
+    df = run_baselines(vol_path, rad, out, {**QUICK, "n_views": [12, 36, 99]})
+    assert list(df.columns) == BASELINE_COLUMNS
+    methods = ["fbp", "sart", "asd_pocs", "mbir"]
+    assert list(df["method"]) == methods * 3 and df["filter"][0] in ("ramp", "shepp-logan")
+    assert list(df["n_views"]) == [12] * 4 + [36] * 8  # 99 > 36 training views: all of them
     csv = pd.read_csv(out / "baselines.csv", keep_default_na=False)
-    assert len(csv) == 9 and list(csv["n_views"]) == list(df["n_views"])
-    iters = pd.read_csv(out / "sart_iterations.csv")
-    assert list(iters["iterations"]) == [1, 2, 3] * 3
-    sart = df[(df.method == "sart") & (df.n_views == 36)].iloc[0]
-    it36 = iters[iters.n_views == 36].reset_index(drop=True)
-    assert sart["psnr3d"] == pytest.approx(it36["psnr3d"].max())
-    assert sart["iterations"] == it36["iterations"][it36["psnr3d"].idxmax()]
-    fbp12, fbp36 = df[df["filter"] == "ramp"]["psnr3d"].iloc[:2]
+    assert len(csv) == 12 and list(csv["n_views"]) == list(df["n_views"])
+    trials = pd.read_csv(out / "trials.csv")
+    for (nv, method), g in df.groupby(["n_views", "method"]):
+        t = trials[(trials.n_views == nv) & (trials.method == method)]
+        row = g.iloc[0]
+        assert row["val_psnr"] == pytest.approx(t["val_psnr"].max())  # the choice is the best on validation
+        params = json.loads(row["params"])
+        best = t.loc[t["val_psnr"].idxmax()]
+        for k, v in params.items():
+            if k in best and k != "detector_binning":
+                assert best[k] == v or str(best[k]) == str(v), (method, k)
+    sart = trials[(trials.method == "sart") & (trials.n_views == 36)]
+    assert sorted(set(sart["relaxation"])) == [0.15, 1.0] and set(sart["iterations"]) <= {1, 2, 3}
+    for block in range(3):  # one best per view count (36 and 99 both use the 36 views)
+        g = df.iloc[4 * block : 4 * block + 4]
+        assert g["best_on_val"].sum() == 1 and g.loc[g["best_on_val"], "val_psnr"].iloc[0] == g["val_psnr"].max()
+    assert df["psnr2d"].notna().all() and (df["ssim2d"] > 0.5).all()
+    fbp12, fbp36 = df[df["method"] == "fbp"]["psnr3d"].iloc[:2]
     assert fbp36 > fbp12  # more views, better FBP
     ref = load_volume(vol_path).data
-    for name, row in (("fbp_ramp_n036", df.iloc[3]), ("fbp_shepp-logan_n036", df.iloc[4]), ("sart_n036", sart)):
+    for name, row in (("fbp_n036", df.iloc[4]), ("sart_n036", df.iloc[5]), ("mbir_n036", df.iloc[7])):
         rec = load_volume(out / f"{name}.nii.gz")
         assert rec.shape == ref.shape and np.allclose(rec.affine, vol.affine, atol=1e-5)
         assert psnr3d(rec.data, ref) == pytest.approx(row["psnr3d"], abs=1e-3)
@@ -154,8 +170,72 @@ def test_run_baselines_writes_csv_volumes_and_metrics(tmp_path):
         assert rec.data.min() >= 0 and rec.data.max() <= 1
     assert (df[df.n_views == 36]["psnr3d"] > 20).all(), df
     prov = json.loads((out / "baselines.json").read_text())
-    assert prov["volume_id"] == "ph24" and len(prov["results"]) == 9
+    assert prov["volume_id"] == "ph24" and len(prov["results"]) == 12
+    assert not list(tmp_path.glob("**/svmbir-*"))  # svmbir's cache is removed
     json.dumps(BASELINE_DEFAULTS)
+
+
+def test_run_baselines_on_a_cone_beam_geometry(tmp_path):
+    vol = make_volume(16)
+    vol_path = tmp_path / "volume.nii.gz"
+    save_volume(vol, vol_path)
+    rad = tmp_path / "rad"
+    render_radiographs(vol_path, rad, {"camera": "cone", "n_views": 24, "detector_width": 32, "detector_height": 32,
+                                       "dso_mm": 80.0, "dsd_mm": 112.0, "pixel_spacing_mm": 112.0 / 80.0 * 2 * 32 / 32})
+    df = run_baselines(vol_path, rad, tmp_path / "out", {**QUICK, "save_volumes": False})
+    assert list(df["method"]) == ["fdk", "sart", "asd_pocs"]
+    assert (df["psnr3d"] > 18).all() and df["best_on_val"].sum() == 1, df
+    assert json.loads(df["params"][1])["detector_binning"] == 1
+
+
+def test_baseline_choice_reads_validation_views_only(tmp_path):
+    """Corrupting the test views and the reference volume changes the test metrics, never the choice."""
+    from ctsplat.formats.viewset import load_radiographs, write_radiographs
+
+    vol = make_volume(20)
+    vol_path = tmp_path / "volume.nii.gz"
+    save_volume(vol, vol_path)
+    rad = tmp_path / "rad"
+    render_radiographs(vol_path, rad, {"n_views": 24, "detector_width": 20, "detector_height": 24,
+                                       "split": {"train": 0.6, "val": 0.2, "test": 0.2}})
+    cfg = {**QUICK, "methods": ["fbp", "sart"], "fbp_filters": ["ramp", "shepp-logan", "hann"], "save_volumes": False}
+    before = run_baselines(vol_path, rad, tmp_path / "a", cfg)
+    p, vs = load_radiographs(rad)
+    rng = np.random.default_rng(0)
+    bad = p.copy()
+    bad[vs.indices("test")] = rng.random(bad[vs.indices("test")].shape) * p.max()
+    write_radiographs(rad, bad, vs, {"volume_id": vs.volume_id})
+    save_volume(Volume(rng.random(vol.shape).astype(np.float32), vol.affine, vol.meta), vol_path)
+    after = run_baselines(vol_path, rad, tmp_path / "b", cfg)
+    for col in ("method", "filter", "iterations", "params", "val_psnr", "best_on_val"):
+        assert list(after[col]) == list(before[col]), col
+    assert (after["psnr3d"] < before["psnr3d"] - 5).all() and (after["psnr2d"] < before["psnr2d"] - 5).all()
+    # while the validation views do decide it
+    bad[vs.indices("val")] += rng.normal(0, 0.3 * p.std(), bad[vs.indices("val")].shape).astype(np.float32)
+    write_radiographs(rad, bad, vs, {"volume_id": vs.volume_id})
+    assert (run_baselines(vol_path, rad, tmp_path / "c", cfg)["val_psnr"] < before["val_psnr"] - 3).all()
+
+
+@pytest.mark.parametrize(("settings", "message"), [
+    ({"methods": ["fbp", "art"]}, "baselines.methods"),
+    ({"sart_relaxation": [0.5, 2.5]}, "baselines.sart_relaxation"),
+    ({"asd_pocs_alpha": -1}, "baselines.asd_pocs_alpha"),
+    ({"detector_binning": 0}, "baselines.detector_binning"),
+    ({"mbir_snr_db": "high"}, "baselines.mbir_snr_db"),
+    ({"fbp_filters": []}, "baselines.fbp_filters"),
+    ({"sart_iterations": 3}, "sart_iterations"),
+    ({"methods": ["fdk"]}, "cannot reconstruct this geometry"),
+    ({"detector_binning": 5}, "baselines.detector_binning 5 must be >= 1 and divide"),
+])
+def test_bad_baseline_options_fail_before_any_work(tmp_path, settings, message):
+    vol = make_volume(12)
+    vol_path = tmp_path / "v.nii.gz"
+    save_volume(vol, vol_path)
+    render_radiographs(vol_path, tmp_path / "rad", {"n_views": 10, "detector_width": 12, "detector_height": 16})
+    with pytest.raises(CtsplatError, match=message) as err:
+        run_baselines(vol_path, tmp_path / "rad", tmp_path / "out", {"methods": ["sart"], **settings})
+    assert "\n" not in str(err.value)
+    assert not (tmp_path / "out").exists()
 
 
 def test_select_views_matches_the_training_subset_rule():
@@ -188,10 +268,24 @@ def test_baselines_bad_input(tmp_path):
     save_volume(vol, vol_path)
     render_radiographs(vol_path, tmp_path / "rad", {"n_views": 10, "detector_width": 16, "detector_height": 32,
                                                     "split": {"train": 1.0, "val": 0.0, "test": 0.0}})
-    with pytest.raises(CtsplatError, match="no 'val' views"):
+    with pytest.raises(CtsplatError, match="no validation views"):
         run_baselines(vol_path, tmp_path / "rad", tmp_path / "out", {"split": "val"})
     other = Volume(vol.data, vol.affine, {**vol.meta, "volume_id": "other"})
     save_volume(other, tmp_path / "o.nii.gz")
     with pytest.raises(CtsplatError, match="rendered from volume ph16"):
         run_baselines(tmp_path / "o.nii.gz", tmp_path / "rad", tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def test_workflow_config_takes_cone_beam_baselines_and_refuses_a_carm_geometry():
+    from ctsplat.config import prepare_config
+
+    cfg = prepare_config({"radiographs": {"cone": {"camera": "cone"}}})
+    assert cfg["baselines"]["geometry"] == "cone" and cfg["baselines"]["enabled"]
+    carm = {"camera": "cone", "orbit": "carm", "n_views": 30}
+    with pytest.raises(CtsplatError, match=r"baselines\.geometry: 'carm' is a C-arm orbit .* no validation views"):
+        prepare_config({"radiographs": {"circ": {}, "carm": carm}, "baselines": {"geometry": "carm"}})
+    assert prepare_config({"radiographs": {"circ": {}, "carm": carm},
+                           "baselines": {"geometry": "carm", "enabled": False}})["baselines"]["geometry"] == "carm"
+    with pytest.raises(CtsplatError, match=r"baselines\.settings\.asd_pocs_alpha"):
+        prepare_config({"radiographs": {"circ": {}}, "baselines": {"settings": {"asd_pocs_alpha": [0.1, 0]}}})

@@ -32,7 +32,7 @@ def test_project_and_baseline_commands(tmp_path, capsys):
     assert main(["baseline", "--volume", str(vol), "--radiographs", str(rad), "--out", str(out),
                  "--set", "sart_max_iterations=2", "--set", "n_views=[10,20]"]) == 0
     df = pd.read_csv(out / "baselines.csv", keep_default_na=False)
-    assert list(df["n_views"]) == [10, 10, 10, 20, 20, 20]
+    assert list(df["n_views"]) == [10] * 4 + [20] * 4  # fbp, sart, asd_pocs, mbir
     assert "psnr3d" in capsys.readouterr().out
     # user errors: one line, exit status 2, nothing written
     assert main(["project", "--volume", str(vol), "--out", str(tmp_path / "bad"), "--set", "camera=cone",

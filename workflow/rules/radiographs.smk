@@ -1,4 +1,4 @@
-# Synthetic radiographs once per volume and geometry, and the FBP/SART baselines on them.
+# Synthetic radiographs once per volume and geometry, and the classical baselines on them (any geometry).
 
 
 rule project:
@@ -42,7 +42,7 @@ rule baseline:
             labels={
                 "volume": "{volume}",
                 "geometry": "{geometry}",
-                "table": "FBP/SART",
+                "table": "classical baselines",
             },
         ),
     log:
