@@ -687,15 +687,17 @@ def _natural(v: str) -> tuple[int, float | str]:
 
 def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os.PathLike[str], *,
                    metric: str = "psnr3d") -> plt.Figure:
-    """Gaussian runs vs FBP/SART per number of training views (3D metric; Gaussian = mean over seeds, with points).
+    """Gaussian runs vs classical reconstructions per number of training views.
+
+    3D metric; a Gaussian condition is the mean over seeds, drawn with its points.
 
     Parameters
     ----------
     summary : pandas.DataFrame
         The table of :func:`ctsplat.analysis.gather.gather`; runs are grouped by (init, compositor, mip, poses).
     baselines : pandas.DataFrame
-        Columns ``method, filter, iterations, n_views, psnr3d, ssim3d`` (+ ``volume``); one line per
-        (method, filter), the best value per view count.
+        Columns ``method, n_views, psnr3d, ssim3d`` (+ ``volume``) of ``baselines.csv``: one row per method and
+        view count, its settings chosen on validation views; one line per method.
     out : path-like
         PNG file to write.
     metric : str
@@ -711,9 +713,8 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
     drawn = False
     if not baselines.empty and metric in baselines:
         b = baselines.copy()
-        b["label"] = b["method"].astype(str) + np.where(
-            b.get("filter", pd.Series([""] * len(b))).fillna("").astype(str) != "",
-            " (" + b.get("filter", pd.Series([""] * len(b))).fillna("").astype(str) + ")", "")
+        # one line per method: its settings (filter, iterations, weights) were chosen on validation views
+        b["label"] = b["method"].astype(str)
         # classical methods in greys with their own markers, so they never share a colour with a Gaussian run
         labels = sorted(b["label"].unique())
         greys = np.linspace(0.0, 0.6, max(len(labels), 1))
@@ -741,7 +742,7 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
         ax.grid(alpha=0.3)
     else:
         _empty(ax, "no Gaussian runs or baselines")
-    ax.set_title("Gaussian model vs FBP/SART per view count")
+    ax.set_title("Gaussian model vs classical reconstructions per view count")
     return _save(fig, out)
 
 

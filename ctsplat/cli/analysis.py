@@ -106,7 +106,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     a = subparsers.add_parser("analyse", help="results figures and tables from summary.csv",
                               description="Convergence by ablation axis, velocity, ACF, KDE windows, 2D-3D "
-                                          "correlations, milestones, ablation paired plots, Gaussian vs FBP/SART.")
+                                          "correlations, milestones, ablation paired plots, Gaussian vs "
+                                          "classical reconstructions.")
     a.add_argument("summary", help="summary.csv written by `ctsplat gather`")
     a.add_argument("--out-dir", default="results/figures", help="output folder (default: %(default)s)")
     a.add_argument("--baselines", nargs="*", help="baselines.csv files from `ctsplat baseline`")

@@ -1,4 +1,4 @@
-"""``ctsplat project`` (synthetic radiographs) and ``ctsplat baseline`` (FBP/SART reconstructions)."""
+"""``ctsplat project`` (synthetic radiographs) and ``ctsplat baseline`` (classical reconstructions)."""
 
 from __future__ import annotations
 

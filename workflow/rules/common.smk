@@ -109,7 +109,7 @@ def radiographs_params(wildcards):
 
 
 def baselines_params(wildcards):
-    """run_baselines config: the user's settings plus the grid's view counts (FBP/SART per view count)."""
+    """run_baselines config: the user's settings plus the grid's view counts (classical reconstructions per view count)."""
     views = sorted(
         set(int(v) for v in RUNS[RUNS["volume"] == wildcards.volume]["views"])
     )
