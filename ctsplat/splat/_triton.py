@@ -31,8 +31,11 @@ __all__ = ["unavailable_reason", "kernels", "SplatAdditive", "AlphaComposite", "
 
 TILE = 16  # pixels per tile side
 BRICK = 8  # voxels per brick side
-G_RASTER = 16  # Gaussians per rasteriser block
-G_VOXEL = 16  # Gaussians per voxelizer block
+# Gaussians per [G, pixels] block: 8 x 256 px over 8 warps keeps each thread at one pixel column of 8 values per
+# live tensor (register-resident on a GPU); the interpreter is indifferent
+G_RASTER = 8
+G_VOXEL = 8  # Gaussians per [G, 8³] voxelizer block
+WARPS = 8
 VOX_BWD_BLOCK = 128  # voxels per step of the voxelizer backward
 INSTALL_HINT = "install the GPU extra: pip install 'ctsplat[gpu]' (or pip install 'triton>=3.2')"
 
@@ -177,7 +180,8 @@ class SplatAdditive(torch.autograd.Function):
         out = torch.zeros(height, width, dtype=dt, device=amps.device)
         n_tiles = offsets.numel() - 1
         with _launch_ctx(out):
-            k.additive_fwd[(n_tiles,)](par, bb, offsets, ids, out, height, width, tiles_x, TILE=TILE, G=G_RASTER)
+            k.additive_fwd[(n_tiles,)](par, bb, offsets, ids, out, height, width, tiles_x, TILE=TILE, G=G_RASTER,
+                                       num_warps=WARPS)
         ctx.save_for_backward(par, bb, ids, offsets, item)
         ctx.geom = (height, width, tiles_x)
         return out
@@ -190,7 +194,7 @@ class SplatAdditive(torch.autograd.Function):
         rows = torch.empty(ids.numel(), 6, dtype=par.dtype, device=par.device)
         with _launch_ctx(par):
             kernels().additive_bwd[(offsets.numel() - 1,)](par, bb, offsets, ids, g, rows, height, width, tiles_x,
-                                                           TILE=TILE, G=G_RASTER)
+                                                           TILE=TILE, G=G_RASTER, num_warps=WARPS)
         grads = _split_grads(rows, item, par.shape[0])
         return grads[:, 0:2], grads[:, 2:5], grads[:, 5], None, None, None
 
@@ -212,7 +216,7 @@ class AlphaComposite(torch.autograd.Function):
         logt = torch.zeros(height, width, dtype=dt, device=opac.device)
         with _launch_ctx(out):
             k.alpha_fwd[(offsets.numel() - 1,)](par, bb, offsets, ids, col, out, logt, height, width, tiles_x, nc,
-                                                TILE=TILE, G=G_RASTER, CP=cp)
+                                                TILE=TILE, G=G_RASTER, CP=cp, num_warps=WARPS)
         ctx.save_for_backward(par, bb, ids, offsets, item, col, logt)
         ctx.geom = (height, width, tiles_x, cp)
         return out
@@ -226,7 +230,7 @@ class AlphaComposite(torch.autograd.Function):
         rows = torch.empty(ids.numel(), 6 + nc, dtype=par.dtype, device=par.device)
         with _launch_ctx(par):
             kernels().alpha_bwd[(offsets.numel() - 1,)](par, bb, offsets, ids, col, logt, g, rows, height, width,
-                                                        tiles_x, nc, TILE=TILE, G=G_RASTER, CP=cp)
+                                                        tiles_x, nc, TILE=TILE, G=G_RASTER, CP=cp, num_warps=WARPS)
         grads = _split_grads(rows, item, par.shape[0])
         return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None, None
 
@@ -254,7 +258,7 @@ class Voxelize(torch.autograd.Function):
         o0, o1, o2 = (int(x) for x in org.tolist())
         with _launch_ctx(out):
             k.voxel_fwd[(offsets.numel() - 1,)](m, p, d, lo_, hi_, aff, offsets, ids, out, o0, o1, o2, n0, n1, n2,
-                                                nb[1], nb[2], B=BRICK, G=G_VOXEL)
+                                                nb[1], nb[2], B=BRICK, G=G_VOXEL, num_warps=WARPS)
         ctx.save_for_backward(m, p, d, lo_, hi_, aff)
         ctx.geom = (o0, o1, o2, n1, n2)
         return out
