@@ -127,3 +127,61 @@ def test_threaded_kernels_match_the_reference_and_do_not_depend_on_the_thread_co
     tol = 1e-9 if dtype == torch.float64 else 2e-4
     for a, b in zip(run("reference", 1), one, strict=True):
         assert float((a - b).abs().max()) <= tol * float(a.abs().max())
+
+
+def _splat_inputs(n: int) -> list[torch.Tensor]:
+    """Projected footprints of a big scene (means2d, conics, amps, bbox) for direct calls of splat_fwd."""
+    from ctsplat.geometry import ParallelCamera, pose_from_angles
+    from ctsplat.splat.render import project
+
+    R, t = pose_from_angles(30.0, 10.0, (0.0, 0.0, 0.0), 200.0)
+    with torch.no_grad():
+        p = project(_big_scene(n, torch.float32), ParallelCamera(50, 45, 1.4), R, t)
+    return [p.means2d.contiguous(), p.conics.contiguous(), p.amps.contiguous(), p.bbox.contiguous()]
+
+
+def _splat_direct(ins: list[torch.Tensor], threads: int) -> torch.Tensor:
+    """splat_fwd through ctypes only (no torch op runs here: torch's OpenMP is not fork-safe, the kernel must be)."""
+    m, c, a, b = ins
+    out = torch.empty(45, 50)
+    _kernel._fn("splat_fwd", torch.float32)(m.shape[0], m.data_ptr(), c.data_ptr(), a.data_ptr(), b.data_ptr(), 45,
+                                            50, out.data_ptr(), threads)
+    return out
+
+
+def _child_splat(ins, conn) -> None:  # noqa: ANN001
+    conn.send(_splat_direct(ins, 2).numpy().tobytes())
+    conn.close()
+
+
+def test_worker_pool_serves_concurrent_callers_and_forked_children(lib):
+    """The kernels' persistent worker threads: Python threads calling at once (one gets the pool, the others start
+    their own threads) and a forked child (the parent's workers do not exist there) all finish, with the same
+    result."""
+    import multiprocessing as mp
+    import threading
+
+    ins = _splat_inputs(6000)
+    want = _splat_direct(ins, 1)
+    assert float(want.max()) > 0
+    assert torch.equal(_splat_direct(ins, 2), want)  # the pool now exists in this process
+    results: list[torch.Tensor] = []
+    callers = [threading.Thread(target=lambda: results.extend(_splat_direct(ins, 2) for _ in range(20)))
+               for _ in range(3)]
+    for th in callers:
+        th.start()
+    for th in callers:
+        th.join(timeout=120)
+    assert len(results) == 60 and all(torch.equal(r, want) for r in results)
+    ctx = mp.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_child_splat, args=(ins, send))
+    child.start()
+    try:
+        assert recv.poll(60), "forked child did not finish (waiting on the parent's worker pool?)"
+        assert recv.recv() == want.numpy().tobytes()
+    finally:
+        child.join(timeout=10)
+        if child.is_alive():
+            child.kill()
+    assert child.exitcode == 0

@@ -4,43 +4,107 @@
 #pragma once
 
 #include <math.h>
+#include <unistd.h>
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <condition_variable>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
+#include <functional>
+#include <mutex>
 #include <thread>
 #include <type_traits>
 #include <vector>
 
-// static block partition of [0, n) over nt std::threads (no OpenMP: it would spin against torch's own pool)
+// Persistent worker threads (no OpenMP: it would spin against torch's own pool). Starting a std::thread costs
+// ~10-20 us, paid per thread and per parallel call (a fwd+bwd view makes four): at 32+ threads that alone rivals
+// the work. Workers sleep on a condition variable between calls (no spinning on a shared machine). A forked child
+// (new pid: the parent's workers do not exist there) builds a new pool; a call while the pool is busy (another
+// Python thread: ctypes releases the GIL) starts its own threads instead of waiting.
+class Pool {
+  public:
+    static Pool* get() {
+        static std::mutex guard;
+        static Pool* pool = nullptr;
+        std::lock_guard<std::mutex> lk(guard);
+        if (pool == nullptr || pool->pid_ != getpid()) pool = new Pool();  // never freed: workers outlive main
+        return pool;
+    }
+    // fn(0) on the calling thread, fn(1 .. nt-1) on workers; false (nothing run) when the pool is busy
+    bool try_run(int nt, const std::function<void(int)>& fn) {
+        std::unique_lock<std::mutex> busy(busy_, std::try_to_lock);
+        if (!busy.owns_lock()) return false;
+        {
+            std::lock_guard<std::mutex> lk(m_);
+            while (workers_ < nt - 1) {
+                const int id = ++workers_;
+                const int64_t seen = gen_;
+                std::thread([this, id, seen] { loop(id, seen); }).detach();
+            }
+            job_ = &fn; want_ = nt - 1; remaining_ = nt - 1; ++gen_;
+        }
+        cv_.notify_all();
+        fn(0);
+        std::unique_lock<std::mutex> lk(m_);
+        done_.wait(lk, [&] { return remaining_ == 0; });
+        job_ = nullptr;
+        return true;
+    }
+
+  private:
+    Pool() : pid_(getpid()) {}
+    void loop(int id, int64_t seen) {
+        std::unique_lock<std::mutex> lk(m_);
+        for (;;) {
+            cv_.wait(lk, [&] { return gen_ != seen; });
+            seen = gen_;
+            if (id > want_) continue;  // this call wants fewer threads
+            const std::function<void(int)>* job = job_;
+            lk.unlock();
+            (*job)(id);
+            lk.lock();
+            if (--remaining_ == 0) done_.notify_one();
+        }
+    }
+    pid_t pid_;
+    std::mutex busy_, m_;
+    std::condition_variable cv_, done_;
+    const std::function<void(int)>* job_ = nullptr;
+    int workers_ = 0, want_ = 0, remaining_ = 0;
+    int64_t gen_ = 0;
+};
+
+// fn(tid) for tid in [0, nt) on nt threads (the pool's, else fresh ones)
+static void run_threads(int nt, const std::function<void(int)>& fn) {
+    if (nt <= 1) { fn(0); return; }
+    if (Pool::get()->try_run(nt, fn)) return;
+    std::vector<std::thread> threads;
+    for (int k = 1; k < nt; ++k) threads.emplace_back(fn, k);
+    fn(0);
+    for (auto& th : threads) th.join();
+}
+
+// static block partition of [0, n) over nt threads; fn(i0, i1, tid)
 template <typename F>
 static void parallel_for(int64_t n, int nt, F fn) {
     if (nt < 1) nt = 1;
     if (n < 4096 || nt == 1) { fn((int64_t)0, n, 0); return; }
-    std::vector<std::thread> pool;
-    for (int k = 1; k < nt; ++k)
-        pool.emplace_back([=]() { fn(n * k / nt, n * (k + 1) / nt, k); });
-    fn((int64_t)0, n / nt, 0);
-    for (auto& th : pool) th.join();
+    run_threads(nt, [&](int k) { fn(n * k / nt, n * (k + 1) / nt, k); });
 }
 
-// tasks [0, n_tasks) claimed one at a time by nt std::threads (dynamic schedule: uneven work balances); fn(task, tid)
+// tasks [0, n_tasks) claimed one at a time by nt threads (dynamic schedule: uneven work balances); fn(task, tid)
 template <typename F>
 static void parallel_tasks(int64_t n_tasks, int nt, F fn) {
     if (nt > n_tasks) nt = (int)n_tasks;
     if (nt <= 1) { for (int64_t k = 0; k < n_tasks; ++k) fn(k, 0); return; }
     std::atomic<int64_t> next(0);
-    auto worker = [&](int tid) {
+    run_threads(nt, [&](int tid) {
         for (int64_t k = next.fetch_add(1, std::memory_order_relaxed); k < n_tasks;
              k = next.fetch_add(1, std::memory_order_relaxed))
             fn(k, tid);
-    };
-    std::vector<std::thread> pool;
-    for (int k = 1; k < nt; ++k) pool.emplace_back(worker, k);
-    worker(0);
-    for (auto& th : pool) th.join();
+    });
 }
 
 // [0, n) in chunks of `chunk` items over nt threads, dynamically scheduled (per-item work varies with the
