@@ -33,7 +33,9 @@ vectorise with glibc's libmvec ``exp``) into ``$CTSPLAT_CACHE`` (default ``~/.ca
 sources, the CPU and the flags, and loaded with ``ctypes``; compiling takes a few seconds. Every C function is
 declared once in :data:`SIGNATURES` (argument and return types) and called through a wrapper that also checks the
 argument count. Threads: ``torch.get_num_threads()`` ``std::thread`` s (no OpenMP runtime that would spin against
-torch's). The additive forward and the voxelizer forward partition the *output*: bands of image rows / voxel planes
+torch's), kept in a persistent pool that sleeps between calls (starting threads per call would cost more than the
+work at many cores; a forked child builds its own pool, a concurrent caller starts its own threads). The
+additive forward and the voxelizer forward partition the *output*: bands of image rows / voxel planes
 (about 8 per thread, claimed dynamically), each with the list of Gaussians that meet it, so a band is written by one
 thread only -- no per-thread copies of the output, no serial reduction, no atomics, and every pixel / voxel adds its
 Gaussians in index order, so results do not depend on the thread count. Backward passes reduce per Gaussian over

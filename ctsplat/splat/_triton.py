@@ -11,8 +11,8 @@ projection stays the differentiable PyTorch :func:`ctsplat.splat.render.project`
 Work lists are built with torch ops: each Gaussian's box covers a range of ``TILE × TILE`` pixel tiles (voxelizer:
 ``BRICK³`` voxel bricks); the (tile, Gaussian) pairs are stably sorted by tile (alpha: the Gaussians are put in
 depth order first, so each tile's list is front to back) and a prefix sum gives each tile's slice. The kernels
-(:mod:`ctsplat.splat._triton_kernels`) run one program per tile; backward passes write one gradient row per pair,
-summed per Gaussian here with ``index_add`` (no atomics in the kernels).
+(:mod:`ctsplat.splat._triton_kernels`) run one program per tile / brick; backward passes write one gradient row
+per pair, summed per Gaussian here with ``index_add`` (no atomics in the kernels).
 
 Triton is optional (the ``gpu`` extra). The kernels run on CUDA tensors, or on CPU tensors through Triton's
 interpreter when ``TRITON_INTERPRET=1`` was set before the kernels were first imported (slow: tests only).
@@ -27,16 +27,26 @@ from typing import Any
 
 import torch
 
-__all__ = ["unavailable_reason", "kernels", "SplatAdditive", "AlphaComposite", "Voxelize", "TILE", "BRICK"]
+__all__ = ["unavailable_reason", "kernels", "tile_lists", "SplatAdditive", "AlphaComposite", "Voxelize", "TILE",
+           "BRICK"]
 
 TILE = 16  # pixels per tile side
 BRICK = 8  # voxels per brick side
-# Gaussians per [G, pixels] block: 8 x 256 px over 8 warps keeps each thread at one pixel column of 8 values per
-# live tensor (register-resident on a GPU); the interpreter is indifferent
-G_RASTER = 8
-G_VOXEL = 8  # Gaussians per [G, 8³] voxelizer block
+# Gaussians per [G, pixels] block: on a GPU 8 x 256 px over 8 warps keeps each thread at one pixel column of 8
+# values per live tensor (register-resident); the interpreter pays per operation, not per element, so it takes
+# bigger blocks (the kernels are the same code for any G; the CUDA tests run G = 8)
+G_GPU, G_INTERPRETER = 8, 32
 WARPS = 8
-VOX_BWD_BLOCK = 128  # voxels per step of the voxelizer backward
+
+
+def g_raster() -> int:
+    """Gaussians per rasteriser block (see ``G_GPU``)."""
+    return G_INTERPRETER if kernels().INTERPRETED else G_GPU
+
+
+def g_voxel() -> int:
+    """Gaussians per ``[G, BRICK³]`` voxelizer block."""
+    return G_INTERPRETER if kernels().INTERPRETED else G_GPU
 INSTALL_HINT = "install the GPU extra: pip install 'ctsplat[gpu]' (or pip install 'triton>=3.2')"
 
 _kernels: ModuleType | None = None
@@ -180,7 +190,7 @@ class SplatAdditive(torch.autograd.Function):
         out = torch.zeros(height, width, dtype=dt, device=amps.device)
         n_tiles = offsets.numel() - 1
         with _launch_ctx(out):
-            k.additive_fwd[(n_tiles,)](par, bb, offsets, ids, out, height, width, tiles_x, TILE=TILE, G=G_RASTER,
+            k.additive_fwd[(n_tiles,)](par, bb, offsets, ids, out, height, width, tiles_x, TILE=TILE, G=g_raster(),
                                        num_warps=WARPS)
         ctx.save_for_backward(par, bb, ids, offsets, item)
         ctx.geom = (height, width, tiles_x)
@@ -194,7 +204,7 @@ class SplatAdditive(torch.autograd.Function):
         rows = torch.empty(ids.numel(), 6, dtype=par.dtype, device=par.device)
         with _launch_ctx(par):
             kernels().additive_bwd[(offsets.numel() - 1,)](par, bb, offsets, ids, g, rows, height, width, tiles_x,
-                                                           TILE=TILE, G=G_RASTER, num_warps=WARPS)
+                                                           TILE=TILE, G=g_raster(), num_warps=WARPS)
         grads = _split_grads(rows, item, par.shape[0])
         return grads[:, 0:2], grads[:, 2:5], grads[:, 5], None, None, None
 
@@ -216,7 +226,7 @@ class AlphaComposite(torch.autograd.Function):
         logt = torch.zeros(height, width, dtype=dt, device=opac.device)
         with _launch_ctx(out):
             k.alpha_fwd[(offsets.numel() - 1,)](par, bb, offsets, ids, col, out, logt, height, width, tiles_x, nc,
-                                                TILE=TILE, G=G_RASTER, CP=cp, num_warps=WARPS)
+                                                TILE=TILE, G=g_raster(), CP=cp, num_warps=WARPS)
         ctx.save_for_backward(par, bb, ids, offsets, item, col, logt)
         ctx.geom = (height, width, tiles_x, cp)
         return out
@@ -230,14 +240,14 @@ class AlphaComposite(torch.autograd.Function):
         rows = torch.empty(ids.numel(), 6 + nc, dtype=par.dtype, device=par.device)
         with _launch_ctx(par):
             kernels().alpha_bwd[(offsets.numel() - 1,)](par, bb, offsets, ids, col, logt, g, rows, height, width,
-                                                        tiles_x, nc, TILE=TILE, G=G_RASTER, CP=cp, num_warps=WARPS)
+                                                        tiles_x, nc, TILE=TILE, G=g_raster(), CP=cp, num_warps=WARPS)
         grads = _split_grads(rows, item, par.shape[0])
         return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None, None
 
 
 class Voxelize(torch.autograd.Function):
-    """Voxelizer (inputs and outputs as :class:`ctsplat.splat._kernel.Voxelize`): forward gathers per ``BRICK³``
-    brick, backward reduces per Gaussian over its box."""
+    """Voxelizer (inputs and outputs as :class:`ctsplat.splat._kernel.Voxelize`): one program per ``BRICK³`` brick
+    of the output over the brick's Gaussian list; the backward writes a gradient row per (brick, Gaussian) pair."""
 
     @staticmethod
     def forward(ctx, means, prec6, dens, lo, ext, affine, origin, out_shape):  # noqa: ANN001
@@ -253,24 +263,24 @@ class Voxelize(torch.autograd.Function):
         rel = lo_ - org
         first = [rel[:, a] // BRICK for a in range(3)]
         count = [torch.where(ext[:, a] > 0, (rel[:, a] + ext[:, a] - 1) // BRICK + 1 - first[a], 0) for a in range(3)]
-        ids, offsets, _ = _ranges_to_pairs(first, count, nb, None)
+        ids, offsets, item = _ranges_to_pairs(first, count, nb, None)
         out = torch.zeros(n0 * n1 * n2, dtype=dt, device=m.device)
-        o0, o1, o2 = (int(x) for x in org.tolist())
+        o = tuple(int(x) for x in org.tolist())
+        geom = (*o, n0, n1, n2, nb[1], nb[2])
         with _launch_ctx(out):
-            k.voxel_fwd[(offsets.numel() - 1,)](m, p, d, lo_, hi_, aff, offsets, ids, out, o0, o1, o2, n0, n1, n2,
-                                                nb[1], nb[2], B=BRICK, G=G_VOXEL, num_warps=WARPS)
-        ctx.save_for_backward(m, p, d, lo_, hi_, aff)
-        ctx.geom = (o0, o1, o2, n1, n2)
+            k.voxel_fwd[(offsets.numel() - 1,)](m, p, d, lo_, hi_, aff, offsets, ids, out, *geom, B=BRICK,
+                                                G=g_voxel(), num_warps=WARPS)
+        ctx.save_for_backward(m, p, d, lo_, hi_, aff, ids, offsets, item)
+        ctx.geom = geom
         return out
 
     @staticmethod
     def backward(ctx, grad_out):  # noqa: ANN001
-        m, p, d, lo_, hi_, aff = ctx.saved_tensors
-        o0, o1, o2, n1, n2 = ctx.geom
+        m, p, d, lo_, hi_, aff, ids, offsets, item = ctx.saved_tensors
         g = grad_out.to(m.dtype).contiguous()
-        gm, gp, gd = torch.empty_like(m), torch.empty_like(p), torch.empty_like(d)
-        if m.shape[0]:
-            with _launch_ctx(m):
-                kernels().voxel_bwd[(m.shape[0],)](m, p, d, lo_, hi_, aff, g, gm, gp, gd, o0, o1, o2, n1, n2,
-                                                   BLOCK=VOX_BWD_BLOCK)
-        return gm, gp, gd, None, None, None, None, None
+        rows = torch.empty(ids.numel(), 10, dtype=m.dtype, device=m.device)
+        with _launch_ctx(m):
+            kernels().voxel_bwd[(offsets.numel() - 1,)](m, p, d, lo_, hi_, aff, offsets, ids, g, rows, *ctx.geom,
+                                                        B=BRICK, G=g_voxel(), num_warps=WARPS)
+        grads = _split_grads(rows, item, m.shape[0])
+        return grads[:, 0:3], grads[:, 3:9], grads[:, 9], None, None, None, None, None

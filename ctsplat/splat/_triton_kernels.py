@@ -12,8 +12,8 @@ Gaussian, so there are no atomics. Alpha compositing keeps the transmittance in 
 so it never underflows, and its backward walks each tile's depth-sorted list back to front with the suffix sums
 ``S_i = Σ_{j>i} c_j α_j T_j`` of the 3DGS backward.
 
-Voxelizer: forward, one program per ``8³`` brick of the output, gathering over the brick's Gaussian list; backward,
-one program per Gaussian, reducing ``∂L/∂μ`` over its voxel box.
+Voxelizer: one program per ``8³`` brick of the output, gathering over the brick's Gaussian list (forward), or
+writing one gradient row per (brick, Gaussian) pair (backward), as the rasterisers do with tiles.
 """
 
 from __future__ import annotations
@@ -194,21 +194,8 @@ def alpha_bwd(params_ptr, bbox_ptr, offsets_ptr, ids_ptr, col_ptr, logt_ptr, gra
 
 
 @triton.jit
-def _load_prec(p_ptr, gid, km):
-    p00 = tl.load(p_ptr + gid * 6 + 0, mask=km, other=0.0)
-    p11 = tl.load(p_ptr + gid * 6 + 1, mask=km, other=0.0)
-    p22 = tl.load(p_ptr + gid * 6 + 2, mask=km, other=0.0)
-    p01 = tl.load(p_ptr + gid * 6 + 3, mask=km, other=0.0)
-    p02 = tl.load(p_ptr + gid * 6 + 4, mask=km, other=0.0)
-    p12 = tl.load(p_ptr + gid * 6 + 5, mask=km, other=0.0)
-    return p00, p11, p22, p01, p02, p12
-
-
-@triton.jit
-def voxel_fwd(means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, aff_ptr, offsets_ptr, ids_ptr, out_ptr,
-              o0, o1, o2, n0, n1, n2, nb1, nb2, B: tl.constexpr, G: tl.constexpr):
-    """One ``B³`` brick of the output: ``μ(x) = Σ ρ_i exp(-½ dᵀ P_i d)`` over its Gaussians whose box holds x."""
-    brick = tl.program_id(0)
+def _brick_voxels(aff_ptr, brick, o0, o1, o2, n0, n1, n2, nb1, nb2, B: tl.constexpr):
+    """The brick's voxels: absolute indices, centres in mm, flat output index and the inside-the-output mask."""
     v = tl.arange(0, B * B * B)
     r0 = (brick // (nb1 * nb2)) * B + v // (B * B)
     r1 = ((brick // nb2) % nb1) * B + (v // B) % B
@@ -216,109 +203,87 @@ def voxel_fwd(means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, aff_ptr, offsets_pt
     i0 = r0 + o0
     i1 = r1 + o1
     i2 = r2 + o2
-    dt = out_ptr.dtype.element_ty
+    dt = aff_ptr.dtype.element_ty
     f0, f1, f2 = i0.to(dt), i1.to(dt), i2.to(dt)
     x = tl.load(aff_ptr + 0) * f0 + tl.load(aff_ptr + 1) * f1 + tl.load(aff_ptr + 2) * f2 + tl.load(aff_ptr + 9)
     y = tl.load(aff_ptr + 3) * f0 + tl.load(aff_ptr + 4) * f1 + tl.load(aff_ptr + 5) * f2 + tl.load(aff_ptr + 10)
     z = tl.load(aff_ptr + 6) * f0 + tl.load(aff_ptr + 7) * f1 + tl.load(aff_ptr + 8) * f2 + tl.load(aff_ptr + 11)
-    start = tl.load(offsets_ptr + brick)
-    end = tl.load(offsets_ptr + brick + 1)
-    acc = tl.zeros([B * B * B], dtype=dt)
-    for k0 in range(start, end, G):
-        kk = k0 + tl.arange(0, G)
-        km = kk < end
-        gid = tl.load(ids_ptr + kk, mask=km, other=0).to(tl.int64)
-        d0 = x[None, :] - tl.load(means_ptr + gid * 3 + 0, mask=km, other=0.0)[:, None]
-        d1 = y[None, :] - tl.load(means_ptr + gid * 3 + 1, mask=km, other=0.0)[:, None]
-        d2 = z[None, :] - tl.load(means_ptr + gid * 3 + 2, mask=km, other=0.0)[:, None]
-        p00, p11, p22, p01, p02, p12 = _load_prec(prec_ptr, gid, km)
-        q = (p00[:, None] * d0 * d0 + p11[:, None] * d1 * d1 + p22[:, None] * d2 * d2
-             + 2.0 * (p01[:, None] * d0 * d1 + p02[:, None] * d0 * d2 + p12[:, None] * d1 * d2))
-        rho = tl.load(dens_ptr + gid, mask=km, other=0.0)
-        inb = ((i0[None, :] >= tl.load(lo_ptr + gid * 3 + 0, mask=km, other=0)[:, None])
-               & (i0[None, :] < tl.load(hi_ptr + gid * 3 + 0, mask=km, other=0)[:, None])
-               & (i1[None, :] >= tl.load(lo_ptr + gid * 3 + 1, mask=km, other=0)[:, None])
-               & (i1[None, :] < tl.load(hi_ptr + gid * 3 + 1, mask=km, other=0)[:, None])
-               & (i2[None, :] >= tl.load(lo_ptr + gid * 3 + 2, mask=km, other=0)[:, None])
-               & (i2[None, :] < tl.load(hi_ptr + gid * 3 + 2, mask=km, other=0)[:, None]))
-        acc += tl.sum(tl.where(inb, rho[:, None] * tl.exp(-0.5 * q), 0.0), axis=0)
+    flat = (r0.to(tl.int64) * n1 + r1) * n2 + r2
     inside = (r0 < n0) & (r1 < n1) & (r2 < n2)
-    tl.store(out_ptr + (r0.to(tl.int64) * n1 + r1) * n2 + r2, acc, mask=inside)
+    return i0, i1, i2, x, y, z, flat, inside
 
 
 @triton.jit
-def voxel_bwd(means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, aff_ptr, grad_ptr, gm_ptr, gp_ptr, gd_ptr,
-              o0, o1, o2, n1, n2, BLOCK: tl.constexpr):
-    """One Gaussian: ``∂L/∂(m, P, ρ)`` reduced over its voxel box (``∂μ/∂m = ρ e P d``, ``∂μ/∂P_aa = -½ ρ e d_a²``,
-    ``∂μ/∂P_ab = -ρ e d_a d_b``, ``∂μ/∂ρ = e``)."""
-    n = tl.program_id(0).to(tl.int64)
-    dt = grad_ptr.dtype.element_ty
-    m0 = tl.load(means_ptr + n * 3 + 0)
-    m1 = tl.load(means_ptr + n * 3 + 1)
-    m2 = tl.load(means_ptr + n * 3 + 2)
-    p00 = tl.load(prec_ptr + n * 6 + 0)
-    p11 = tl.load(prec_ptr + n * 6 + 1)
-    p22 = tl.load(prec_ptr + n * 6 + 2)
-    p01 = tl.load(prec_ptr + n * 6 + 3)
-    p02 = tl.load(prec_ptr + n * 6 + 4)
-    p12 = tl.load(prec_ptr + n * 6 + 5)
-    rho = tl.load(dens_ptr + n)
-    lo0 = tl.load(lo_ptr + n * 3 + 0)
-    lo1 = tl.load(lo_ptr + n * 3 + 1)
-    lo2 = tl.load(lo_ptr + n * 3 + 2)
-    e1 = tl.load(hi_ptr + n * 3 + 1) - lo1
-    e2 = tl.load(hi_ptr + n * 3 + 2) - lo2
-    cnt = (tl.load(hi_ptr + n * 3 + 0) - lo0) * e1 * e2
-    a00, a01, a02 = tl.load(aff_ptr + 0), tl.load(aff_ptr + 1), tl.load(aff_ptr + 2)
-    a10, a11, a12 = tl.load(aff_ptr + 3), tl.load(aff_ptr + 4), tl.load(aff_ptr + 5)
-    a20, a21, a22 = tl.load(aff_ptr + 6), tl.load(aff_ptr + 7), tl.load(aff_ptr + 8)
-    t0, t1, t2 = tl.load(aff_ptr + 9), tl.load(aff_ptr + 10), tl.load(aff_ptr + 11)
-    s_e = tl.zeros([BLOCK], dtype=dt)
-    s_0 = tl.zeros([BLOCK], dtype=dt)
-    s_1 = tl.zeros([BLOCK], dtype=dt)
-    s_2 = tl.zeros([BLOCK], dtype=dt)
-    s_00 = tl.zeros([BLOCK], dtype=dt)
-    s_11 = tl.zeros([BLOCK], dtype=dt)
-    s_22 = tl.zeros([BLOCK], dtype=dt)
-    s_01 = tl.zeros([BLOCK], dtype=dt)
-    s_02 = tl.zeros([BLOCK], dtype=dt)
-    s_12 = tl.zeros([BLOCK], dtype=dt)
-    for s in range(0, cnt, BLOCK):
-        loc = s + tl.arange(0, BLOCK)
-        lm = loc < cnt
-        c = loc % e2
-        rest = loc // e2
-        i0 = lo0 + rest // e1
-        i1 = lo1 + rest % e1
-        i2 = lo2 + c
-        f0, f1, f2 = i0.to(dt), i1.to(dt), i2.to(dt)
-        d0 = a00 * f0 + a01 * f1 + a02 * f2 + t0 - m0
-        d1 = a10 * f0 + a11 * f1 + a12 * f2 + t1 - m1
-        d2 = a20 * f0 + a21 * f1 + a22 * f2 + t2 - m2
-        q = p00 * d0 * d0 + p11 * d1 * d1 + p22 * d2 * d2 + 2.0 * (p01 * d0 * d1 + p02 * d0 * d2 + p12 * d1 * d2)
-        flat = ((i0 - o0) * n1 + (i1 - o1)) * n2 + (i2 - o2)
-        g = tl.load(grad_ptr + flat, mask=lm, other=0.0)
-        ge = tl.where(lm, g * tl.exp(-0.5 * q), 0.0)
-        s_e += ge
-        s_0 += ge * (p00 * d0 + p01 * d1 + p02 * d2)
-        s_1 += ge * (p01 * d0 + p11 * d1 + p12 * d2)
-        s_2 += ge * (p02 * d0 + p12 * d1 + p22 * d2)
-        s_00 += ge * d0 * d0
-        s_11 += ge * d1 * d1
-        s_22 += ge * d2 * d2
-        s_01 += ge * d0 * d1
-        s_02 += ge * d0 * d2
-        s_12 += ge * d1 * d2
-    tl.store(gd_ptr + n, tl.sum(s_e, axis=0))
-    tl.store(gm_ptr + n * 3 + 0, rho * tl.sum(s_0, axis=0))
-    tl.store(gm_ptr + n * 3 + 1, rho * tl.sum(s_1, axis=0))
-    tl.store(gm_ptr + n * 3 + 2, rho * tl.sum(s_2, axis=0))
-    tl.store(gp_ptr + n * 6 + 0, -0.5 * rho * tl.sum(s_00, axis=0))
-    tl.store(gp_ptr + n * 6 + 1, -0.5 * rho * tl.sum(s_11, axis=0))
-    tl.store(gp_ptr + n * 6 + 2, -0.5 * rho * tl.sum(s_22, axis=0))
-    tl.store(gp_ptr + n * 6 + 3, -rho * tl.sum(s_01, axis=0))
-    tl.store(gp_ptr + n * 6 + 4, -rho * tl.sum(s_02, axis=0))
-    tl.store(gp_ptr + n * 6 + 5, -rho * tl.sum(s_12, axis=0))
+def _voxel_block(means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, ids_ptr, kk, km, i0, i1, i2, x, y, z):
+    """``G`` Gaussians on the brick: offsets ``d`` [G, V], precision entries, densities, ``q = dᵀ P d`` and the
+    box mask."""
+    gid = tl.load(ids_ptr + kk, mask=km, other=0).to(tl.int64)
+    d0 = x[None, :] - tl.load(means_ptr + gid * 3 + 0, mask=km, other=0.0)[:, None]
+    d1 = y[None, :] - tl.load(means_ptr + gid * 3 + 1, mask=km, other=0.0)[:, None]
+    d2 = z[None, :] - tl.load(means_ptr + gid * 3 + 2, mask=km, other=0.0)[:, None]
+    p00 = tl.load(prec_ptr + gid * 6 + 0, mask=km, other=0.0)[:, None]
+    p11 = tl.load(prec_ptr + gid * 6 + 1, mask=km, other=0.0)[:, None]
+    p22 = tl.load(prec_ptr + gid * 6 + 2, mask=km, other=0.0)[:, None]
+    p01 = tl.load(prec_ptr + gid * 6 + 3, mask=km, other=0.0)[:, None]
+    p02 = tl.load(prec_ptr + gid * 6 + 4, mask=km, other=0.0)[:, None]
+    p12 = tl.load(prec_ptr + gid * 6 + 5, mask=km, other=0.0)[:, None]
+    q = (p00 * d0 * d0 + p11 * d1 * d1 + p22 * d2 * d2 + 2.0 * (p01 * d0 * d1 + p02 * d0 * d2 + p12 * d1 * d2))
+    rho = tl.load(dens_ptr + gid, mask=km, other=0.0)
+    inb = ((i0[None, :] >= tl.load(lo_ptr + gid * 3 + 0, mask=km, other=0)[:, None])
+           & (i0[None, :] < tl.load(hi_ptr + gid * 3 + 0, mask=km, other=0)[:, None])
+           & (i1[None, :] >= tl.load(lo_ptr + gid * 3 + 1, mask=km, other=0)[:, None])
+           & (i1[None, :] < tl.load(hi_ptr + gid * 3 + 1, mask=km, other=0)[:, None])
+           & (i2[None, :] >= tl.load(lo_ptr + gid * 3 + 2, mask=km, other=0)[:, None])
+           & (i2[None, :] < tl.load(hi_ptr + gid * 3 + 2, mask=km, other=0)[:, None]))
+    return d0, d1, d2, p00, p11, p22, p01, p02, p12, q, rho, inb
+
+
+@triton.jit
+def voxel_fwd(means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, aff_ptr, offsets_ptr, ids_ptr, out_ptr,
+              o0, o1, o2, n0, n1, n2, nb1, nb2, B: tl.constexpr, G: tl.constexpr):
+    """One ``B³`` brick of the output: ``μ(x) = Σ ρ_i exp(-½ dᵀ P_i d)`` over its Gaussians whose box holds x."""
+    brick = tl.program_id(0)
+    i0, i1, i2, x, y, z, flat, inside = _brick_voxels(aff_ptr, brick, o0, o1, o2, n0, n1, n2, nb1, nb2, B)
+    start = tl.load(offsets_ptr + brick)
+    end = tl.load(offsets_ptr + brick + 1)
+    acc = tl.zeros([B * B * B], dtype=out_ptr.dtype.element_ty)
+    for k0 in range(start, end, G):
+        kk = k0 + tl.arange(0, G)
+        km = kk < end
+        d0, d1, d2, p00, p11, p22, p01, p02, p12, q, rho, inb = _voxel_block(
+            means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, ids_ptr, kk, km, i0, i1, i2, x, y, z)
+        acc += tl.sum(tl.where(inb, rho[:, None] * tl.exp(-0.5 * q), 0.0), axis=0)
+    tl.store(out_ptr + flat, acc, mask=inside)
+
+
+@triton.jit
+def voxel_bwd(means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, aff_ptr, offsets_ptr, ids_ptr, grad_ptr, pair_ptr,
+              o0, o1, o2, n0, n1, n2, nb1, nb2, B: tl.constexpr, G: tl.constexpr):
+    """Per (brick, Gaussian) pair, ``∂L/∂(m, P, ρ)`` summed over the brick's voxels (row of 10: means 3, P 6 as
+    (P00, P11, P22, P01, P02, P12), ρ): ``∂μ/∂m = ρ e P d``, ``∂μ/∂P_aa = -½ ρ e d_a²``, ``∂μ/∂P_ab = -ρ e d_a d_b``,
+    ``∂μ/∂ρ = e``."""
+    brick = tl.program_id(0)
+    i0, i1, i2, x, y, z, flat, inside = _brick_voxels(aff_ptr, brick, o0, o1, o2, n0, n1, n2, nb1, nb2, B)
+    g = tl.load(grad_ptr + flat, mask=inside, other=0.0)
+    start = tl.load(offsets_ptr + brick)
+    end = tl.load(offsets_ptr + brick + 1)
+    for k0 in range(start, end, G):
+        kk = k0 + tl.arange(0, G)
+        km = kk < end
+        d0, d1, d2, p00, p11, p22, p01, p02, p12, q, rho, inb = _voxel_block(
+            means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, ids_ptr, kk, km, i0, i1, i2, x, y, z)
+        ge = tl.where(inb, g[None, :] * tl.exp(-0.5 * q), 0.0)
+        row = pair_ptr + kk.to(tl.int64) * 10
+        tl.store(row + 0, rho * tl.sum(ge * (p00 * d0 + p01 * d1 + p02 * d2), axis=1), mask=km)
+        tl.store(row + 1, rho * tl.sum(ge * (p01 * d0 + p11 * d1 + p12 * d2), axis=1), mask=km)
+        tl.store(row + 2, rho * tl.sum(ge * (p02 * d0 + p12 * d1 + p22 * d2), axis=1), mask=km)
+        tl.store(row + 3, -0.5 * rho * tl.sum(ge * d0 * d0, axis=1), mask=km)
+        tl.store(row + 4, -0.5 * rho * tl.sum(ge * d1 * d1, axis=1), mask=km)
+        tl.store(row + 5, -0.5 * rho * tl.sum(ge * d2 * d2, axis=1), mask=km)
+        tl.store(row + 6, -rho * tl.sum(ge * d0 * d1, axis=1), mask=km)
+        tl.store(row + 7, -rho * tl.sum(ge * d0 * d2, axis=1), mask=km)
+        tl.store(row + 8, -rho * tl.sum(ge * d1 * d2, axis=1), mask=km)
+        tl.store(row + 9, tl.sum(ge, axis=1), mask=km)
 
 
 #: whether the kernels were built for Triton's CPU interpreter (TRITON_INTERPRET=1 when this module was imported)
