@@ -68,6 +68,9 @@ def unavailable_reason(device: torch.device) -> str | None:
     if importlib.util.find_spec("triton") is None:
         return f"triton is not installed; {INSTALL_HINT}"
     if device.type == "cuda":
+        major, minor = torch.cuda.get_device_capability(device)
+        if major < 7:  # Triton compiles for Volta (7.0) and newer
+            return f"the GPU's compute capability {major}.{minor} is below Triton's minimum 7.0"
         return None
     if device.type == "cpu":
         interpreted = _kernels.INTERPRETED if _kernels is not None else os.environ.get("TRITON_INTERPRET") == "1"
