@@ -21,7 +21,7 @@ from __future__ import annotations
 import triton
 import triton.language as tl
 
-ALPHA_MAX = 0.99
+ALPHA_MAX = tl.constexpr(0.99)  # opacity cap (3DGS); a constexpr so that compiled kernels may read it
 
 
 @triton.jit
