@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet --upgrade pip
 	# torch first, pinned: on CPU machines this resolves to the local CPU wheel, never the CUDA stack.
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[j2k,dev]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[j2k,dev,gpu]"
 	touch $(STAMP)
 
 run: $(STAMP)

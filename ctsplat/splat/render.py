@@ -66,9 +66,10 @@ Notes for training
   ``mu_scale``. ``compute_3d_filter`` once per densification step (cameras are fixed), then pass its result to every
   :func:`render` and to :func:`voxelize` (``filter_3d_var``) so the volume read-out matches the rendered field.
 * ``backend="auto"`` uses the fused C++ kernels (all compositors) on CPU when a C++ compiler is available
-  (compiled once into ``~/.cache/ctsplat``), else the pure-PyTorch reference (always used on CUDA). Both are
-  differentiable w.r.t. means, log-scales, quats, density_raw (alpha: also opacity_raw, colours, sh_rest);
-  float32 and float64.
+  (compiled once into ``~/.cache/ctsplat``), on CUDA the Triton tile kernels (:mod:`ctsplat.splat._triton`, the
+  ``gpu`` extra) after the PyTorch :func:`project`, else the pure-PyTorch reference (on CUDA with one logged
+  warning). All are differentiable w.r.t. means, log-scales, quats, density_raw (alpha: also opacity_raw, colours,
+  sh_rest); float32 and float64. ``backend="triton"`` on CPU tensors needs ``TRITON_INTERPRET=1`` (tests).
 * Thread count = ``torch.get_num_threads()``. On a shared, overloaded CPU set ``OMP_WAIT_POLICY=PASSIVE`` in the
   environment before starting Python: torch's idle OpenMP workers otherwise spin and steal the cores (2-thread
   fwd+bwd measured ~5x slower without it).
@@ -90,6 +91,7 @@ References
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -97,7 +99,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from ctsplat.splat import _kernel, _reference
+from ctsplat.splat import _kernel, _reference, _triton
 from ctsplat.splat.gaussians import Gaussians, eval_sh, quat_to_rotmat
 from ctsplat.utils import CtsplatError
 
@@ -116,7 +118,8 @@ __all__ = [
 ]
 
 COMPOSITORS = ("radiative", "radiative_unrectified", "alpha")
-BACKENDS = ("auto", "reference", "kernel")  # auto: the fused C++ kernels on CPU when they build, else the reference
+# auto: the fused C++ kernels on CPU when they build, the Triton kernels on CUDA when triton imports, else the reference
+BACKENDS = ("auto", "reference", "kernel", "triton")
 LOWPASS_ALPHA = 0.3  # px², 3DGS dilation
 MIP_2D_VAR = 0.1  # px², Mip-Splatting 2D filter
 EPS_2D = 1e-4  # px², numerical floor
@@ -368,16 +371,38 @@ def project(
 
 
 # ---------------------------------------------------------------------------------------------- render
+_log = logging.getLogger(__name__)
+_triton_fallback_logged = False
+
+
 def _check_backend(backend: str, what: str) -> None:
     if backend not in BACKENDS:
-        raise CtsplatError(f"unknown {what} backend {backend!r}; expected auto, reference or kernel")
+        raise CtsplatError(f"unknown {what} backend {backend!r}; expected auto, reference, kernel or triton")
 
 
 def _use_kernel(backend: str, device: torch.device) -> bool:
     """Whether the fused C++ kernels run: CPU tensors only; ``auto`` when they build, ``kernel`` always."""
-    if backend == "reference" or device.type != "cpu":
+    if backend in ("reference", "triton") or device.type != "cpu":
         return False
     return _kernel.available() if backend == "auto" else True
+
+
+def _use_triton(backend: str, device: torch.device) -> bool:
+    """Whether the Triton kernels run: ``triton`` always (or a one-line error saying what is missing), ``auto`` on
+    CUDA tensors when triton is installed (else the reference, with one logged warning)."""
+    global _triton_fallback_logged
+    if backend == "triton":
+        reason = _triton.unavailable_reason(device)
+        if reason is not None:
+            raise CtsplatError(f"backend='triton' cannot run: {reason}")
+        return True
+    if backend != "auto" or device.type != "cuda":
+        return False
+    reason = _triton.unavailable_reason(device)
+    if reason is not None and not _triton_fallback_logged:
+        _triton_fallback_logged = True
+        _log.warning("rendering on CUDA with the slow pure-PyTorch reference: %s", reason)
+    return reason is None
 
 
 def _check_inputs(gaussians: Gaussians, filter_3d_var: torch.Tensor | None) -> None:
@@ -437,8 +462,9 @@ def render(
         Factor applied to densities (e.g. ``mu_scale_per_mm`` to get 1/mm line integrals).
     sigma_cutoff : float
         Footprint half-width in standard deviations (bounding box).
-    backend : "auto" | "reference" | "kernel"
-        "auto": fused C++ kernels on CPU when available, else the pure-PyTorch reference.
+    backend : "auto" | "reference" | "kernel" | "triton"
+        "auto": fused C++ kernels on CPU when available, Triton kernels on CUDA when triton is installed, else the
+        pure-PyTorch reference.
 
     Returns
     -------
@@ -455,6 +481,7 @@ def render(
         raise CtsplatError(f"sigma_cutoff must be > 0, got {sigma_cutoff}")
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
+    use_triton = _use_triton(backend, gaussians.means.device)
     use_kernel = _use_kernel(backend, gaussians.means.device)
     if use_kernel:
         # the kernel flags NaN/Inf in what it reads (one pass, no per-view torch reductions); the full check
@@ -480,16 +507,17 @@ def render(
     if compositor == "alpha":
         R_t, t_t = _as_pose(R, t, gaussians.means)
         cols = _colors_for_view(gaussians, R_t, t_t, cam["model"])
-        if use_kernel:
-            img = _kernel.AlphaComposite.apply(proj.means2d, proj.conics, proj.amps, cols.to(proj.amps.dtype),
-                                               proj.bbox, proj.depths, H, W)
+        if use_kernel or use_triton:
+            fn = _triton.AlphaComposite if use_triton else _kernel.AlphaComposite
+            img = fn.apply(proj.means2d, proj.conics, proj.amps, cols.to(proj.amps.dtype), proj.bbox, proj.depths, H, W)
         else:
             img = _reference.splat_alpha_reference(proj, cols, H, W)
         if img.shape[-1] == 1:
             img = img[..., 0]
     else:
-        if use_kernel:
-            img = _kernel.SplatAdditive.apply(proj.means2d, proj.conics, proj.amps, proj.bbox, H, W)
+        if use_kernel or use_triton:
+            fn = _triton.SplatAdditive if use_triton else _kernel.SplatAdditive
+            img = fn.apply(proj.means2d, proj.conics, proj.amps, proj.bbox, H, W)
         else:
             img = _reference.splat_additive_reference(proj, H, W)
         if mu_scale != 1.0:
@@ -649,9 +677,10 @@ def voxelize(
         Variance in mm² of the mass-conserving 3D filter (as in :func:`render`).
     sigma_cutoff : float
         Box half-extent in standard deviations.
-    backend : "auto" | "reference" | "kernel"
+    backend : "auto" | "reference" | "kernel" | "triton"
         "auto": the fused C++ kernel on CPU when available (hand-written backward, memory = output grid + O(N);
-        ``chunk`` is then unused), else the chunked PyTorch reference.
+        ``chunk`` is then unused), the Triton kernel on CUDA when triton is installed, else the chunked PyTorch
+        reference.
 
     Returns
     -------
@@ -697,7 +726,10 @@ def voxelize(
     prec6 = torch.stack([inv_cov[:, 0, 0], inv_cov[:, 1, 1], inv_cov[:, 2, 2], inv_cov[:, 0, 1], inv_cov[:, 0, 2],
                          inv_cov[:, 1, 2]], -1)
     _check_backend(backend, "voxelize")
-    if _use_kernel(backend, dev):
+    if _use_triton(backend, dev):
+        out = _triton.Voxelize.apply(means[keep], prec6[keep], dens[keep], lo[keep], ext[keep], A, reg[:, 0],
+                                     out_shape)
+    elif _use_kernel(backend, dev):
         out = _kernel.Voxelize.apply(means[keep], prec6[keep], dens[keep], lo[keep], ext[keep], A, reg[:, 0],
                                      out_shape)
     else:

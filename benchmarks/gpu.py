@@ -1,0 +1,170 @@
+"""GPU benchmark of the Triton kernels: forward+backward per view, 1080p forward FPS, voxelizer, 128³ training.
+
+Usage (on a machine with a CUDA GPU and the ``gpu`` extra, ``pip install -e '.[gpu]'``)::
+
+    python benchmarks/gpu.py                 # every row, training included (needs ../shared/data/ct0051_head)
+    python benchmarks/gpu.py --no-train      # kernels only
+    python benchmarks/gpu.py --reference     # also time the pure-PyTorch reference on the GPU
+
+Rows (the issue's targets in brackets):
+
+* ``fwd+bwd 50k 256²``: render + ``backward()`` of the radiative compositor, 50k Gaussians, parallel and cone beam,
+  and the alpha compositor [≤ 1 ms on a data-centre GPU];
+* ``fwd 1920x1080 200k``: forward only, no gradient [≥ 100 FPS];
+* ``voxelize 50k 128³``: forward+backward of the volume read-out (the 3D TV term's, on the whole grid);
+* ``train 128³ 50 views``: ``benchmarks/quality.py --views 50 --inits fbp --set device=cuda`` (the head protocol;
+  its time to final quality) [≤ 1 minute].
+
+Scene: :mod:`benchmarks.render`'s (N Gaussians uniform in a 160 mm cube, log-uniform scales 0.39..1.95 mm, 200 mm
+field of view). Times are medians over repetitions after a warm-up (Triton compiles each kernel on first use),
+with ``torch.cuda.synchronize()`` around each. Prints the GPU's name with a table and writes
+``benchmarks/out/gpu.csv``. Exits with status 2 and a message when no CUDA device (or no triton) is present.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import importlib.util
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+OUT = HERE / "out"
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(HERE))
+
+
+def _time(step, reps: int, budget_s: float) -> tuple[float, int]:
+    import torch
+
+    step()  # warm-up: Triton JIT, allocator
+    torch.cuda.synchronize()
+    times = []
+    t_start = time.perf_counter()
+    while len(times) < reps or (time.perf_counter() - t_start < budget_s and len(times) < 10 * reps):
+        torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        step()
+        torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), len(times)
+
+
+def kernel_rows(backends: list[str], reps: int, budget_s: float) -> list[dict]:
+    import torch
+    from render import _scene  # benchmarks/render.py: the same scene as the CPU rows
+
+    from ctsplat.geometry import ConeCamera, ParallelCamera
+    from ctsplat.splat.render import render, voxelize
+
+    dev = "cuda"
+    g50, g200 = _scene(50_000, dev), _scene(200_000, dev)
+    R = torch.eye(3, device=dev)
+    t_par, t_cone = torch.tensor([0.0, 0.0, 300.0], device=dev), torch.tensor([0.0, 0.0, 500.0], device=dev)
+    par = ParallelCamera(256, 256, 200.0 / 256)
+    cone = ConeCamera(256, 256, 2 * 200.0 / 256, 500.0, 1000.0)
+    hd = ParallelCamera(1920, 1080, 200.0 / 1080)
+    grid = 128
+    affine = torch.eye(4, dtype=torch.float64)
+    affine[:3, :3] *= 160.0 / grid
+    affine[:3, 3] = -80.0 + 80.0 / grid
+
+    def fwd_bwd(cam, t, comp: str, backend: str):
+        def step() -> None:
+            out = render(g50, cam, R, t, compositor=comp, backend=backend)
+            out.image.sum().backward()
+        return step
+
+    def fwd_hd(backend: str):
+        def step() -> None:
+            with torch.no_grad():
+                render(g200, hd, R, t_par, backend=backend)
+        return step
+
+    def vox(backend: str):
+        def step() -> None:
+            v = voxelize(g50, (grid, grid, grid), affine, backend=backend)
+            v.sum().backward()
+        return step
+
+    rows = []
+    for backend in backends:
+        for name, step in (("fwd+bwd 50k 256² radiative parallel", fwd_bwd(par, t_par, "radiative", backend)),
+                           ("fwd+bwd 50k 256² radiative cone", fwd_bwd(cone, t_cone, "radiative", backend)),
+                           ("fwd+bwd 50k 256² alpha parallel", fwd_bwd(par, t_par, "alpha", backend)),
+                           ("fwd 1920x1080 200k radiative", fwd_hd(backend)),
+                           ("voxelize 50k 128³ fwd+bwd", vox(backend))):
+            med, n = _time(step, reps, budget_s)
+            rows.append({"row": name, "backend": backend, "median_ms": 1e3 * med, "fps": 1.0 / med, "reps": n})
+    return rows
+
+
+def train_row(data: str) -> dict | None:
+    """The 50-view head protocol on the GPU through benchmarks/quality.py; None (with a message) without data."""
+    if not Path(data).is_dir():
+        print(f"train row skipped: ct0051_head not found at {data}", file=sys.stderr)
+        return None
+    out = OUT / "gpu_quality"
+    cmd = [sys.executable, str(HERE / "quality.py"), "--views", "50", "--inits", "fbp", "--set", "device=cuda",
+           "--data", data, "--out", str(out)]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        print(proc.stdout[-2000:] + proc.stderr[-4000:], file=sys.stderr)
+        raise SystemExit(f"train row failed (exit {proc.returncode}): {' '.join(cmd)}")
+    with open(out / "quality.csv") as fh:
+        gs = [r for r in csv.DictReader(fh) if r["method"] == "gs:fbp"][-1]
+    return {"row": "train 128³ 50 views (head, init fbp)", "backend": "auto(cuda)",
+            "time_to_final_s": gs.get("time_to_final_quality_s", ""), "train_wall_s": gs.get("wall_time_s", ""),
+            "psnr3d": gs.get("psnr3d", ""), "script_wall_s": round(wall, 1)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--reps", type=int, default=20, help="minimum timed repetitions per row")
+    p.add_argument("--budget-s", type=float, default=3.0, help="keep repeating a row for this long (<= 10x reps)")
+    p.add_argument("--reference", action="store_true", help="also time the pure-PyTorch reference")
+    p.add_argument("--no-train", action="store_true", help="skip the training row")
+    p.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "ct0051_head"))
+    args = p.parse_args(argv)
+    import torch
+
+    if not torch.cuda.is_available():
+        print("gpu.py: error: no CUDA device is visible to torch (torch.cuda.is_available() is False); run this "
+              "benchmark on a machine with an NVIDIA GPU and a CUDA build of torch", file=sys.stderr)
+        return 2
+    if importlib.util.find_spec("triton") is None:
+        print("gpu.py: error: triton is not installed; pip install -e '.[gpu]'", file=sys.stderr)
+        return 2
+    name = torch.cuda.get_device_name(0)
+    print(f"GPU: {name}; torch {torch.__version__}")
+    rows = kernel_rows(["triton"] + (["reference"] if args.reference else []), args.reps, args.budget_s)
+    print(f"{'row':40s} {'backend':10s} {'median ms':>10s} {'FPS':>9s}")
+    for r in rows:
+        print(f"{r['row']:40s} {r['backend']:10s} {r['median_ms']:10.3f} {r['fps']:9.1f}")
+    if not args.no_train:
+        tr = train_row(args.data)
+        if tr is not None:
+            rows.append(tr)
+            print(f"{tr['row']}: time to final quality {tr['time_to_final_s']} s, training wall "
+                  f"{tr['train_wall_s']} s, 3D PSNR {tr['psnr3d']} dB")
+    OUT.mkdir(exist_ok=True)
+    fields = sorted({k for r in rows for k in r}, key=lambda k: (k != "row", k))
+    with open(OUT / "gpu.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=["gpu", *fields])
+        w.writeheader()
+        for r in rows:
+            w.writerow({"gpu": name, **r})
+    print(f"wrote {OUT / 'gpu.csv'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
