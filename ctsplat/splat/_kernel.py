@@ -32,15 +32,10 @@ compiler (``c++ -O3 -ffast-math -march=native``, without ``-march=native`` if th
 vectorise with glibc's libmvec ``exp``) into ``$CTSPLAT_CACHE`` (default ``~/.cache/ctsplat``), keyed by the
 sources, the CPU and the flags, and loaded with ``ctypes``; compiling takes a few seconds. Every C function is
 declared once in :data:`SIGNATURES` (argument and return types) and called through a wrapper that also checks the
-argument count. Threads: ``torch.get_num_threads()`` ``std::thread`` s (no OpenMP runtime that would spin against
-torch's), kept in a persistent pool that sleeps between calls (starting threads per call would cost more than the
-work at many cores; a forked child builds its own pool, a concurrent caller starts its own threads). The
-additive forward and the voxelizer forward partition the *output*: bands of image rows / voxel planes
-(about 8 per thread, claimed dynamically), each with the list of Gaussians that meet it, so a band is written by one
-thread only -- no per-thread copies of the output, no serial reduction, no atomics, and every pixel / voxel adds its
-Gaussians in index order, so results do not depend on the thread count. Backward passes reduce per Gaussian over
-dynamically claimed chunks of Gaussians (footprint sizes vary). Without a compiler (or with ``CTSPLAT_NO_KERNEL=1``)
-:func:`available` is False and the renderer uses the reference.
+argument count. Threads: ``torch.get_num_threads()`` ``std::thread`` s over static blocks of Gaussians (no OpenMP
+runtime that would spin against torch's); the forward gives each thread its own image buffer and sums them in a
+fixed order, so results are deterministic for a fixed thread count. Without a compiler (or with
+``CTSPLAT_NO_KERNEL=1``) :func:`available` is False and the renderer uses the reference.
 
 References
 ----------
@@ -375,7 +370,7 @@ class AlphaComposite(torch.autograd.Function):
 class Voxelize(torch.autograd.Function):
     """``μ`` on a grid: each Gaussian adds ``ρ exp(-½ dᵀ P d)`` over its voxel box (rows along k vectorised);
     hand-written backward (see csrc/voxelize.h). Same inputs as :class:`ctsplat.splat._reference.Voxelize` minus
-    chunking: memory is the output grid and O(N) (threads write disjoint bands of planes)."""
+    chunking: memory is the output grid (plus one per-thread grid while it is below 2^27 voxels) and O(N)."""
 
     @staticmethod
     def forward(ctx, means, prec6, dens, lo, ext, affine, origin, out_shape):  # noqa: ANN001

@@ -3,40 +3,39 @@
 
 #include "common.h"
 
-// the image's rows in bands (make_bands): each band task adds its Gaussians' rows, in index order
-static Bands splat_bands(int64_t n, const int64_t* bb, int64_t H, int nthreads) {
-    const int nt = (n < 4096 || nthreads < 1) ? 1 : nthreads;
-    return make_bands(n, H, nt, [&](int64_t i, int64_t& lo, int64_t& hi) {
-        lo = bb[4 * i + 2]; hi = bb[4 * i + 1] > bb[4 * i] ? bb[4 * i + 3] : lo; });
-}
-
 template <typename T>
 static void splat_fwd(int64_t n, const T* mean, const T* con, const T* amp, const int64_t* bb, int64_t H, int64_t W,
                       T* out, int nthreads) {
-    std::memset(out, 0, sizeof(T) * (size_t)(H * W));
-    const Bands bands = splat_bands(n, bb, H, nthreads);
-    parallel_tasks(bands.count, nthreads, [&](int64_t band, int) {
-        const int64_t r0 = band * bands.size, r1 = std::min(H, r0 + bands.size);
-        for (int64_t k = bands.offsets[(size_t)band]; k < bands.offsets[(size_t)band + 1]; ++k) {
-            const int64_t i = bands.ids[(size_t)k];
-            const int64_t u0 = bb[4 * i], u1 = bb[4 * i + 1];
-            const int64_t v0 = std::max(bb[4 * i + 2], r0), v1 = std::min(bb[4 * i + 3], r1);
+    int nt = nthreads < 1 ? 1 : nthreads;
+    if (n < 4096) nt = 1;
+    const int64_t npx = H * W;
+    std::memset(out, 0, sizeof(T) * (size_t)npx);
+    std::vector<T> bufs(nt > 1 ? (size_t)(nt - 1) * (size_t)npx : 0, (T)0);
+    parallel_for(n, nt, [&](int64_t i0, int64_t i1, int tid) {
+        T* img = tid == 0 ? out : bufs.data() + (size_t)(tid - 1) * (size_t)npx;
+        for (int64_t i = i0; i < i1; ++i) {
+            const int64_t u0 = bb[4 * i], u1 = bb[4 * i + 1], v0 = bb[4 * i + 2], v1 = bb[4 * i + 3];
+            if (u1 <= u0 || v1 <= v0) continue;
             const T mx = mean[2 * i], my = mean[2 * i + 1];
             const T A = con[3 * i], B = con[3 * i + 1], C = con[3 * i + 2], a = amp[i];
             for (int64_t v = v0; v < v1; ++v) {
                 const T dy = (T)v + (T)0.5 - my;
                 const T cy = (T)(-0.5) * C * dy * dy;
                 const T by = -B * dy;
-                row_fwd<T>(out + v * W + u0, (int)(u1 - u0), (T)u0 + (T)0.5 - mx, A, by, cy, a);
+                row_fwd<T>(img + v * W + u0, (int)(u1 - u0), (T)u0 + (T)0.5 - mx, A, by, cy, a);
             }
         }
     });
+    for (int k = 1; k < nt; ++k) {
+        const T* b = bufs.data() + (size_t)(k - 1) * (size_t)npx;
+        for (int64_t p = 0; p < npx; ++p) out[p] += b[p];
+    }
 }
 
 template <typename T>
 static void splat_bwd(int64_t n, const T* mean, const T* con, const T* amp, const int64_t* bb, int64_t /*H*/,
                       int64_t W, const T* gimg, T* gmean, T* gcon, T* gamp, int nthreads) {
-    parallel_chunks(n, nthreads, 1024, [&](int64_t i0, int64_t i1) {
+    parallel_for(n, nthreads, [&](int64_t i0, int64_t i1, int) {
     for (int64_t i = i0; i < i1; ++i) {
         const int64_t u0 = bb[4 * i], u1 = bb[4 * i + 1], v0 = bb[4 * i + 2], v1 = bb[4 * i + 3];
         T s_e = 0, s_x = 0, s_y = 0, s_xx = 0, s_xy = 0, s_yy = 0;
@@ -94,20 +93,15 @@ static inline v8f vexp8(v8f x) {
 
 static void splat_fwd(int64_t n, const float* mean, const float* con, const float* amp, const int64_t* bb,
                       int64_t H, int64_t W, float* out, int nthreads) {
-    const Bands bands = splat_bands(n, bb, H, nthreads);
-    // per-thread band buffer with 8 floats of padding per row: a row's masked last chunk never reaches the next
-    // row, which may belong to another band
-    const int64_t stride = W + 8;
-    const int nt = std::max(1, std::min<int>(nthreads, (int)bands.count));
-    std::vector<float> bufs((size_t)nt * (size_t)(bands.size * stride));
-    parallel_tasks(bands.count, nt, [&](int64_t band, int tid) {
-        const int64_t r0 = band * bands.size, r1 = std::min(H, r0 + bands.size);
-        float* img = bufs.data() + (size_t)tid * (size_t)(bands.size * stride);
-        std::memset(img, 0, sizeof(float) * (size_t)((r1 - r0) * stride));
-        for (int64_t k = bands.offsets[(size_t)band]; k < bands.offsets[(size_t)band + 1]; ++k) {
-            const int64_t i = bands.ids[(size_t)k];
-            const int64_t u0 = bb[4 * i], u1 = bb[4 * i + 1];
-            const int64_t v0 = std::max(bb[4 * i + 2], r0), v1 = std::min(bb[4 * i + 3], r1);
+    int nt = nthreads < 1 ? 1 : nthreads;
+    if (n < 4096) nt = 1;
+    const int64_t npx = H * W, stride = npx + 8;
+    std::vector<float> bufs((size_t)nt * (size_t)stride, 0.f);
+    parallel_for(n, nt, [&](int64_t i0, int64_t i1, int tid) {
+        float* img = bufs.data() + (size_t)tid * (size_t)stride;
+        for (int64_t i = i0; i < i1; ++i) {
+            const int64_t u0 = bb[4 * i], u1 = bb[4 * i + 1], v0 = bb[4 * i + 2], v1 = bb[4 * i + 3];
+            if (u1 <= u0 || v1 <= v0) continue;
             const int len = (int)(u1 - u0);
             const float mx = mean[2 * i], my = mean[2 * i + 1];
             const float B = con[3 * i + 1], C = con[3 * i + 2];
@@ -120,7 +114,7 @@ static void splat_fwd(int64_t n, const float* mean, const float* con, const floa
             for (int64_t v = v0; v < v1; ++v) {
                 const float dy = (float)v + 0.5f - my;
                 const v8f cy = bc8(-0.5f * C * dy * dy), by = bc8(-B * dy);
-                float* row = img + (v - r0) * stride + u0;
+                float* row = img + v * W + u0;
                 for (int k = 0; k < last; k += 8) {
                     const v8f dx = bc8(x0 + (float)k) + IOTA8;
                     st8(row + k, ld8(row + k) + a * vexp8((h * dx + by) * dx + cy));
@@ -129,9 +123,12 @@ static void splat_fwd(int64_t n, const float* mean, const float* con, const floa
                 st8(row + last, ld8(row + last) + e);
             }
         }
-        for (int64_t v = r0; v < r1; ++v)
-            std::memcpy(out + v * W, img + (v - r0) * stride, sizeof(float) * (size_t)W);
     });
+    for (int64_t p = 0; p < npx; ++p) {
+        float s = bufs[(size_t)p];
+        for (int k = 1; k < nt; ++k) s += bufs[(size_t)k * (size_t)stride + (size_t)p];
+        out[p] = s;
+    }
 }
 
 static void splat_bwd(int64_t n, const float* mean, const float* con, const float* amp, const int64_t* bb,
@@ -139,7 +136,7 @@ static void splat_bwd(int64_t n, const float* mean, const float* con, const floa
     std::vector<float> gpad((size_t)(H * W + 8), 0.f);  // padded copy: the last row's chunk may read past W
     std::memcpy(gpad.data(), gimg, sizeof(float) * (size_t)(H * W));
     const float* g = gpad.data();
-    parallel_chunks(n, nthreads, 1024, [&](int64_t i0, int64_t i1) {
+    parallel_for(n, nthreads, [&](int64_t i0, int64_t i1, int) {
     for (int64_t i = i0; i < i1; ++i) {
         const int64_t u0 = bb[4 * i], u1 = bb[4 * i + 1], v0 = bb[4 * i + 2], v1 = bb[4 * i + 3];
         const float mx = mean[2 * i], my = mean[2 * i + 1];

@@ -6,8 +6,7 @@
 // affine: A (row-major 3x3) then b (3), voxel (i,j,k) -> A (i,j,k) + b; rows along k are contiguous in the output
 // one Gaussian's box, row by row along k (the k axis w = A[:, 2] in mm): for voxel row (i, j) with d = x(i, j, k0) - m
 // the quadratic form along the row is q(c) = q0 + q1 c + wPw c², c = 0 .. ext_k - 1; calls row(flat, d, q0, q1)
-// with flat the output index of (i, j, k0), for the box's planes a in [a0, a1) along i. Shared by the forward and
-// the backward so both walk the same voxels.
+// with flat the output index of (i, j, k0). Shared by the forward and the backward so both walk the same voxels.
 template <typename T>
 struct VoxAxis {
     T w[3], Pw[3], wPw;
@@ -23,8 +22,8 @@ struct VoxAxis {
 template <typename T, typename F>
 static inline void vox_rows(int64_t i, const T* means, const T* P, const VoxAxis<T>& ax, const int64_t* lo,
                             const int64_t* ext, const double* aff, const int64_t* origin, const int64_t* shape,
-                            int64_t a0, int64_t a1, F&& row) {
-    for (int64_t a = a0; a < a1; ++a)
+                            F&& row) {
+    for (int64_t a = 0; a < ext[3 * i]; ++a)
         for (int64_t b = 0; b < ext[3 * i + 1]; ++b) {
             const int64_t ii = lo[3 * i] + a, jj = lo[3 * i + 1] + b, kk = lo[3 * i + 2];
             T d[3];
@@ -37,42 +36,41 @@ static inline void vox_rows(int64_t i, const T* means, const T* P, const VoxAxis
         }
 }
 
-// the output's planes (first index) in bands (make_bands): each band task adds its Gaussians' planes in index
-// order straight into the output (zeroed by the caller), so memory is the output grid alone
 template <typename T>
 static void vox_fwd(int64_t n, const T* means, const T* p6, const T* dens, const int64_t* lo, const int64_t* ext,
                     const double* aff, const int64_t* origin, const int64_t* shape, T* out, int nthreads) {
-    const int nt = (n < 4096 || nthreads < 1) ? 1 : nthreads;
-    const Bands bands = make_bands(n, shape[0], nt, [&](int64_t i, int64_t& l, int64_t& h) {
-        l = lo[3 * i] - origin[0];
-        h = ext[3 * i + 1] > 0 && ext[3 * i + 2] > 0 ? l + ext[3 * i] : l; });
-    parallel_tasks(bands.count, nt, [&](int64_t band, int) {
-        const int64_t r0 = band * bands.size + origin[0], r1 = std::min(shape[0], (band + 1) * bands.size) + origin[0];
-        for (int64_t k = bands.offsets[(size_t)band]; k < bands.offsets[(size_t)band + 1]; ++k) {
-            const int64_t i = bands.ids[(size_t)k];
+    int nt = nthreads < 1 ? 1 : nthreads;
+    const int64_t nvox = shape[0] * shape[1] * shape[2];
+    if (n < 4096 || nvox > ((int64_t)1 << 27)) nt = 1;  // per-thread grids only while they are small
+    std::vector<T> bufs(nt > 1 ? (size_t)(nt - 1) * (size_t)nvox : 0, (T)0);
+    parallel_for(n, nt, [&](int64_t i0, int64_t i1, int tid) {
+        T* grid = tid == 0 ? out : bufs.data() + (size_t)(tid - 1) * (size_t)nvox;
+        for (int64_t i = i0; i < i1; ++i) {
             const T* P = p6 + 6 * i;
             const VoxAxis<T> ax(P, aff);
-            const int64_t a0 = std::max<int64_t>(0, r0 - lo[3 * i]), a1 = std::min(ext[3 * i], r1 - lo[3 * i]);
-            vox_rows(i, means, P, ax, lo, ext, aff, origin, shape, a0, a1, [&](int64_t flat, const T*, T q0, T q1) {
+            vox_rows(i, means, P, ax, lo, ext, aff, origin, shape, [&](int64_t flat, const T*, T q0, T q1) {
                 // value = rho exp(-q/2)
-                row_fwd<T>(out + flat, (int)ext[3 * i + 2], (T)0, ax.wPw, (T)(-0.5) * q1, (T)(-0.5) * q0, dens[i]);
+                row_fwd<T>(grid + flat, (int)ext[3 * i + 2], (T)0, ax.wPw, (T)(-0.5) * q1, (T)(-0.5) * q0, dens[i]);
             });
         }
     });
+    for (int k = 1; k < nt; ++k) {
+        const T* b = bufs.data() + (size_t)(k - 1) * (size_t)nvox;
+        for (int64_t p = 0; p < nvox; ++p) out[p] += b[p];
+    }
 }
 
 template <typename T>
 static void vox_bwd(int64_t n, const T* means, const T* p6, const T* dens, const int64_t* lo, const int64_t* ext,
                     const double* aff, const int64_t* origin, const int64_t* shape, const T* gout, T* gmeans, T* gp6,
                     T* gdens, int nt) {
-    parallel_chunks(n, nt, 256, [&](int64_t i0, int64_t i1) {
+    parallel_for(n, nt, [&](int64_t i0, int64_t i1, int) {
         for (int64_t i = i0; i < i1; ++i) {
             const T* P = p6 + 6 * i;
             const VoxAxis<T> ax(P, aff);
             const T* w = ax.w;
             double S = 0, Sd[3] = {0, 0, 0}, Sdd[6] = {0, 0, 0, 0, 0, 0};  // sums of g e, g e d, g e d d^T
-            vox_rows(i, means, P, ax, lo, ext, aff, origin, shape, 0, ext[3 * i],
-                     [&](int64_t flat, const T* d, T q0, T q1) {
+            vox_rows(i, means, P, ax, lo, ext, aff, origin, shape, [&](int64_t flat, const T* d, T q0, T q1) {
                 T r3[3];  // sums over c of g e, g e c, g e c^2
                 row_bwd<T>(gout + flat, (int)ext[3 * i + 2], (T)0, ax.wPw, (T)(-0.5) * q1, (T)(-0.5) * q0, r3);
                 const double s0 = r3[0], s1 = r3[1], s2 = r3[2];
