@@ -24,6 +24,12 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
         "exhaustive_max_images": 120,
         "sequential_overlap": 10,
         "min_num_inliers": 15,  # two-view geometry
+        "mapper": "incremental",  # incremental | global (GLOMAP-style global positioning)
+        # incremental mapper thresholds, below COLMAP's defaults (100, 30, 0.25): objects on a dark background give
+        # 2-5k features per photo, and the defaults split such a set into several models
+        "init_min_num_inliers": 50,
+        "abs_pose_min_num_inliers": 15,
+        "abs_pose_min_inlier_ratio": 0.15,
         "min_registered": 3,  # fewer registered images in the largest model fail the step
         "num_threads": 2,
         "seed": 0,

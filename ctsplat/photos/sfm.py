@@ -90,6 +90,19 @@ def _extract_and_match(db: Path, image_dir: Path, names: list[str], s: dict[str,
 
 
 def _map(db: Path, image_dir: Path, out: Path, s: dict[str, Any]) -> dict[int, Any]:
+    out.mkdir(parents=True, exist_ok=True)
+    if s["mapper"] == "global":
+        g = pycolmap.GlobalPipelineOptions()
+        g.num_threads = int(s["num_threads"])
+        g.random_seed = int(s["seed"])
+        g.min_num_matches = int(s["min_num_inliers"])
+        g.mapper.num_threads = int(s["num_threads"])
+        g.mapper.random_seed = int(s["seed"])
+        g.mapper.bundle_adjustment.ceres.use_gpu = False
+        g.mapper.global_positioning.use_gpu = False
+        return dict(pycolmap.global_mapping(db, image_dir, out, options=g))
+    if s["mapper"] != "incremental":
+        raise CtsplatError(f"unknown photos.sfm.mapper {s['mapper']!r}; allowed: incremental, global")
     o = pycolmap.IncrementalPipelineOptions()
     o.num_threads = int(s["num_threads"])
     o.random_seed = int(s["seed"])
@@ -99,7 +112,9 @@ def _map(db: Path, image_dir: Path, out: Path, s: dict[str, Any]) -> dict[int, A
     o.extract_colors = True  # point colours seed the Gaussians' colours
     o.mapper.num_threads = int(s["num_threads"])
     o.mapper.random_seed = int(s["seed"])
-    out.mkdir(parents=True, exist_ok=True)
+    o.mapper.init_min_num_inliers = int(s["init_min_num_inliers"])
+    o.mapper.abs_pose_min_num_inliers = int(s["abs_pose_min_num_inliers"])
+    o.mapper.abs_pose_min_inlier_ratio = float(s["abs_pose_min_inlier_ratio"])
     return dict(pycolmap.incremental_mapping(db, image_dir, out, options=o))
 
 
@@ -135,6 +150,8 @@ def run_photo_sfm(image_dir: str | Path, out_dir: str | Path, settings: dict[str
     if s["camera_mode"] not in ("single", "per_image"):
         raise CtsplatError(f"unknown photos.sfm.camera_mode {s['camera_mode']!r}; allowed: single, per_image")
     names = list_photos(image_dir)
+    if s["mapper"] not in ("incremental", "global"):
+        raise CtsplatError(f"unknown photos.sfm.mapper {s['mapper']!r}; allowed: incremental, global")
     check_photos(image_dir, names, single_camera=s["camera_mode"] == "single")
     matching_mode(s, len(names))
     with contextlib.suppress(Exception):
@@ -197,6 +214,7 @@ def _run(image_dir: Path, names: list[str], tmp: Path, s: dict[str, Any]) -> dic
         "n_points": int(rec.num_points3D()),
         "mean_track_length": float(best.compute_mean_track_length()),
         "matching": how,
+        "mapper": s["mapper"],
         "camera": {"model": "PINHOLE", "width": int(cam.width), "height": int(cam.height), "fx": fx, "fy": fy,
                    "cx": cx, "cy": cy},
         "estimated_camera": {"model": raw_cam.model.name, "params": np.asarray(raw_cam.params).tolist()},
