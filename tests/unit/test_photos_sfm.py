@@ -1,6 +1,7 @@
 """COLMAP on a subset of the real skull photographs (../shared/data/skull_photos, CC BY 4.0, "Photogrammetry Test
 Set: Skull - Cameramoves - Flash - No Background" by alansartlog): ten neighbouring photos (three rings of the
-capture, at the set's 1068x712, a quarter of the originals) register in one model and load as training data. Skipped with a reason when the data is absent."""
+capture, at the set's 1068x712, a quarter of the originals) register in one model and load as training data.
+Skipped with a reason when the data is absent."""
 
 from __future__ import annotations
 
