@@ -1,28 +1,21 @@
 # The sanity run on photographs: volumes of kind photos -> COLMAP poses -> alpha 3DGS -> held-out metrics, gallery
 # and turntable (ctsplat.photos). The CT rules never see these volumes (prepare_config keeps them in photo_volumes).
-PHOTO_VOLUMES = list(CFG["photo_volumes"])
-
-
-def photo_targets():
-    """Targets of the photo volumes: the SfM summary and the evaluated run with its figures."""
-    out = []
-    for v in PHOTO_VOLUMES:
-        out += [
-            f"{RESULTS}/{v}/photos/sfm/summary.json",
-            f"{RESULTS}/{v}/photos/run/metrics.json",
-            f"{RESULTS}/{v}/photos/run/figures/gallery.png",
-            f"{RESULTS}/{v}/photos/run/figures/turntable.gif",
-        ]
-    return out
-
-
-def photo_source(wildcards):
-    return CFG["photo_volumes"][wildcards.volume]["source"]
+# Targets of the photo volumes (rule all): the SfM summary and the evaluated run with its figures.
+PHOTO_TARGETS = [
+    f"{RESULTS}/{v}/photos/{f}"
+    for v in CFG["photo_volumes"]
+    for f in (
+        "sfm/summary.json",
+        "run/metrics.json",
+        "run/figures/gallery.png",
+        "run/figures/turntable.gif",
+    )
+]
 
 
 rule photos_sfm:
     input:
-        photo_source,
+        lambda wildcards: CFG["photo_volumes"][wildcards.volume]["source"],
     output:
         summary=f"{RESULTS}/{{volume}}/photos/sfm/summary.json",
     log:
