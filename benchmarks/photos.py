@@ -23,15 +23,17 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
 import torch
 
+from ctsplat.config import check_section
 from ctsplat.photos.evaluate import evaluate_photos
 from ctsplat.photos.sfm import run_photo_sfm
 from ctsplat.photos.train import train_photos
-from ctsplat.utils import code_version, write_json_atomic
+from ctsplat.utils import CtsplatError, code_version, write_json_atomic
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "out"
@@ -41,6 +43,16 @@ ATTRIBUTION = ('"Photogrammetry Test Set: Skull - Cameramoves - Flash - No Backg
 
 
 def main() -> None:
+    """Run the benchmark; bad options and bad input end in one line on stderr (exit status 2)."""
+    try:
+        run()
+    except CtsplatError as exc:
+        print(f"benchmarks/photos.py: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def run() -> None:
+    """Parse the options, then SfM, training and evaluation (module docstring)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--images", default=str(SKULL), help="photo folder (default: the skull set)")
     ap.add_argument("--iterations", type=int, default=7000)
@@ -51,8 +63,10 @@ def main() -> None:
     ap.add_argument("--reuse-sfm", action="store_true", help="train on the SfM folder of a previous run")
     ap.add_argument("--out", default=str(OUT / "photos"))
     args = ap.parse_args()
+    check_section("photos", {"train": {"iterations": args.iterations, "downscale": args.downscale,
+                                       "num_threads": args.threads, "device": args.device}})
     if not Path(args.images).is_dir():
-        raise SystemExit(f"photo folder {args.images} not found (expected ../shared/data/skull_photos)")
+        raise CtsplatError(f"photo folder {args.images} not found (expected ../shared/data/skull_photos)")
     torch.set_num_threads(args.threads)
     out = Path(args.out)
     t0 = time.perf_counter()

@@ -226,3 +226,25 @@ def test_photo_volumes_stay_out_of_the_ct_grid(tmp_path: Path) -> None:
         prepare_config({"volumes": {"skull": {"source": str(photos), "kind": "photos"}}})
     with pytest.raises(CtsplatError, match=r"photos.train.downscale"):
         prepare_config({"volumes": {"phantom": {"source": "phantom"}}, "photos": {"train": {"downscale": 3}}})
+
+
+# ------------------------------------------------------------------------------------------------ benchmark
+@pytest.mark.parametrize(("args", "needle"), [
+    (["--downscale", "3"], "photos.train.downscale: 3 is not one of [1, 2, 4, 8]"),
+    (["--iterations", "0"], "photos.train.iterations: 0 is less than the minimum of 1"),
+    (["--images", "/nonexistent/photos"], "photo folder /nonexistent/photos not found"),
+])
+def test_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: list[str], needle: str) -> None:
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    res = subprocess.run([sys.executable, str(root / "benchmarks" / "photos.py"), *args, "--out", str(tmp_path / "o")],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert res.returncode == 2
+    assert "Traceback" not in res.stderr
+    line = res.stderr.strip().splitlines()[-1]
+    assert line.startswith("benchmarks/photos.py: error:") and needle in line, line
+    assert not (tmp_path / "o").exists()
