@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -60,3 +61,40 @@ def test_ten_neighbouring_skull_photos_register_in_one_model(skull_subset: Path,
         & (uv[:, 1] < v.camera.height)
     assert np.mean(inside) > 0.5
     assert scene.rgb.min() >= 0 and scene.rgb.max() <= 1 and scene.rgb.std() > 0.02  # coloured points
+
+
+def test_workflow_runs_a_photo_volume_beside_the_ct_grid(skull_subset: Path, tmp_path: Path) -> None:
+    """The photo rules (real Snakemake process) pose, train and evaluate a photo volume; the CT grid never
+    schedules a job for it."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    cfg = {"volumes": {"phantom": {"source": "phantom", "phantom": {"size": 32}},
+                       "skull": {"source": str(skull_subset), "kind": "photos"}},
+           "photos": {"train": {"iterations": 20, "log_every": 10, "downscale": 8},
+                      "evaluate": {"turntable_frames": 2, "gallery_views": 2, "attribution": "alansartlog, CC BY 4.0"}},
+           "preprocessing": {"grid": 32}, "radiographs": {"circular": {"detector_width": 32, "detector_height": 32,
+                                                                        "n_views": 12}},
+           "baselines": {"enabled": False}, "sfm": {"enabled": False},
+           "grid": {"axes": {"init": ["uniform"], "compositor": ["radiative"], "mip": ["on"], "poses": ["gt"],
+                             "views": [8], "seed": [0]}}}
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(cfg))
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    base = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(tmp_path), "--cores", "2"]
+    cfg_arg = ["--configfile", str(tmp_path / "config.yaml")]  # list-valued: targets go before it
+    dry = subprocess.run([*base, "-n", *cfg_arg], capture_output=True, text=True, env=env, timeout=300)
+    assert dry.returncode == 0, dry.stderr[-3000:]
+    blocks = re.split(r"\n(?:local)?rule ", dry.stdout)
+    skull_rules = {b.split(":", 1)[0] for b in blocks if "volume=skull" in b}
+    assert skull_rules == {"photos_sfm", "photos_train"}  # no CT rule is scheduled for the photo volume
+    run = subprocess.run([*base, "results/skull/photos/run/metrics.json", *cfg_arg], capture_output=True, text=True,
+                         env=env, timeout=600)
+    assert run.returncode == 0, run.stderr[-4000:]
+    metrics = json.loads((tmp_path / "results/skull/photos/run/metrics.json").read_text())
+    assert metrics["sfm"]["n_registered"] >= 9 and metrics["n_test"] == 2 and metrics["psnr"] > 10
+    assert metrics["attribution"] == "alansartlog, CC BY 4.0"
+    for f in ("figures/gallery.png", "figures/turntable.gif", "train_log.csv", "model.ply"):
+        assert (tmp_path / "results/skull/photos/run" / f).is_file()
+    assert not (tmp_path / "results/phantom").exists()  # only the photo target was asked for
