@@ -15,7 +15,11 @@ Usage::
     python benchmarks/photos.py --reuse-sfm           # train again on benchmarks/out/photos/sfm
 
 Targets: >= 95 % of the 66 photos registered in one model; held-out PSNR >= 25 dB and SSIM >= 0.8 at 1/4
-resolution within 20 minutes on 2 CPU cores.
+resolution within 20 minutes on 2 CPU cores. Measured (``--iterations 4000``, 2 cores shared with three other jobs,
+64 % of a core pair for this process): 64 of 66 photos (97 %) in one model, 0.27 px mean reprojection error, 4438
+points, SfM 307 s; at 266x177 held-out PSNR 20.6 dB / SSIM 0.76 after 4000 iterations (2505 s, 39.7k Gaussians);
+the held-out PSNR peaks at 22.4 dB near iteration 1250 and then falls while the training loss keeps falling
+(floaters and the unmodelled backdrop in the held-out views): the quality target is not met yet.
 """
 
 from __future__ import annotations
