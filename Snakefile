@@ -32,6 +32,7 @@ include: "workflow/rules/sfm.smk"
 include: "workflow/rules/train.smk"
 include: "workflow/rules/analysis.smk"
 include: "workflow/rules/overview.smk"
+include: "workflow/rules/photos.smk"
 
 
 report: "workflow/report/workflow.rst"
@@ -41,3 +42,4 @@ rule all:
     default_target: True
     input:
         all_targets(),
+        PHOTO_TARGETS,

@@ -50,6 +50,7 @@ LIBRARY_SECTIONS: dict[str, tuple[str, str]] = {
     "sfm": ("ctsplat.sfm.step", "SFM_DEFAULTS"),
     "train": ("ctsplat.training.config", "TRAIN_DEFAULTS"),
     "baselines": ("ctsplat.baselines", "BASELINES_DEFAULTS"),
+    "photos": ("ctsplat.photos.config", "PHOTOS_DEFAULTS"),
 }
 
 
@@ -367,6 +368,7 @@ def _library_section_values(config: Mapping[str, Any]) -> list[tuple[str, str, d
     out.append(("baselines.settings", "baselines", config.get("baselines", {}).get("settings", {})))
     out.append(("sfm.settings", "sfm", config.get("sfm", {}).get("settings", {})))
     out.append(("train", "train", config.get("train", {})))
+    out.append(("photos", "photos", config.get("photos", {})))
     return out
 
 
@@ -387,6 +389,12 @@ def check_volume_sources(volumes: Mapping[str, Mapping[str, Any]], base_dir: str
     """
     for name, vol in volumes.items():
         source = vol["source"]
+        if vol.get("kind", "ct") == "photos":
+            path = Path(source) if Path(source).is_absolute() else Path(base_dir) / source
+            if not path.is_dir():
+                raise CtsplatError(f"photo folder not found at volumes.{name}.source: {source!r} (resolved to "
+                                   f"{path.resolve()}); a volume of kind photos needs a folder of photographs")
+            continue
         if source == "phantom":
             continue
         path = Path(source)
@@ -403,8 +411,10 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
     """Everything the workflow checks at parse time, before any job runs.
 
     Validates against the schema with defaults filled (the schema mirrors the library defaults, so no step module
-    is imported here), checks that volume sources exist, resolves ``grid.geometry`` and ``baselines.geometry``
-    (null = the first radiographs geometry that is not a C-arm orbit / the grid's), expands the grid (zero runs is
+    is imported here), checks that volume sources exist, moves the volumes of ``kind: photos`` from ``volumes`` to
+    ``photo_volumes`` (they run the photo path, not the CT grid; at least one CT volume must remain), resolves
+    ``grid.geometry`` and ``baselines.geometry`` (null = the first radiographs geometry that is not a C-arm orbit /
+    the grid's), expands the grid (zero runs is
     an error), checks that the largest ``views`` value fits the training geometry and that SfM, when a run needs
     it, has its C-arm geometry (``sfm.settings.geometry``). The split fractions of every radiographs geometry must
     sum to 1 (:func:`check_split`) and every ``grid.exclude`` value must name an axis value
@@ -429,6 +439,12 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
     """
     cfg = validate_config(config)
     check_volume_sources(cfg["volumes"], base_dir)
+    # photo folders take the photos path (workflow/rules/photos.smk), never the CT grid
+    cfg["photo_volumes"] = {n: v for n, v in cfg["volumes"].items() if v["kind"] == "photos"}
+    cfg["volumes"] = {n: v for n, v in cfg["volumes"].items() if v["kind"] != "photos"}
+    if not cfg["volumes"]:
+        raise CtsplatError("invalid config at volumes: every volume is of kind photos, and the CT grid needs one CT "
+                           "volume (e.g. phantom: {source: phantom}); photographs alone: `ctsplat photos-run`")
     geometries = list(cfg["radiographs"])
     training_geometries = [g for g in geometries if cfg["radiographs"][g]["orbit"] != "carm"]
     if cfg["grid"]["geometry"] is None:
@@ -635,6 +651,46 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("baselines", "detector_binning"): {"type": ["integer", "null"], "minimum": 1, "maximum": 16},
     ("baselines", "step_voxels"): {"type": "number", "exclusiveMinimum": 0, "maximum": 1},
     ("baselines", "device"): {"type": "string", "pattern": "^(auto|cpu|cuda(:[0-9]+)?)$"},
+    ("photos", "sfm.max_image_size"): {"type": "integer", "minimum": 64},
+    ("photos", "sfm.max_num_features"): _COUNT,
+    ("photos", "sfm.camera_mode"): {"enum": ["single", "per_image"]},
+    ("photos", "sfm.camera_model"): {"enum": ["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]},
+    ("photos", "sfm.matching"): {"enum": ["auto", "exhaustive", "sequential"]},
+    ("photos", "sfm.exhaustive_max_images"): _COUNT,
+    ("photos", "sfm.sequential_overlap"): _COUNT,
+    ("photos", "sfm.min_num_inliers"): _COUNT,
+    ("photos", "sfm.mapper"): {"enum": ["incremental", "global"]},
+    ("photos", "sfm.init_min_num_inliers"): _COUNT,
+    ("photos", "sfm.abs_pose_min_num_inliers"): _COUNT,
+    ("photos", "sfm.abs_pose_min_inlier_ratio"): _FRACTION,
+    ("photos", "sfm.min_registered"): {"type": "integer", "minimum": 3},
+    ("photos", "sfm.num_threads"): _COUNT,
+    ("photos", "sfm.seed"): {"type": "integer", "minimum": 0},
+    ("photos", "train.iterations"): _COUNT,
+    ("photos", "train.downscale"): {"enum": [1, 2, 4, 8]},
+    ("photos", "train.test_every"): {"type": "integer", "minimum": 0},
+    ("photos", "train.sh_degree"): {"type": "integer", "minimum": 0, "maximum": 3},
+    ("photos", "train.sh_interval"): _COUNT,
+    ("photos", "train.lambda_dssim"): _FRACTION,
+    ("photos", "train.init_opacity"): {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
+    ("photos", "train.max_points"): _COUNT,
+    **{("photos", f"train.lr.{k}"): _NON_NEGATIVE for k in ("means", "means_final", "log_scales", "quats",
+                                                             "opacity", "colors", "sh_rest")},
+    ("photos", "train.densify.interval"): {"type": "integer", "minimum": 0},
+    ("photos", "train.densify.start"): {"type": "integer", "minimum": 0},
+    ("photos", "train.densify.stop_fraction"): _FRACTION,
+    ("photos", "train.densify.grad_threshold"): _POSITIVE,
+    ("photos", "train.densify.percent_dense"): _POSITIVE,
+    ("photos", "train.densify.prune_opacity"): _FRACTION,
+    ("photos", "train.densify.prune_scale_fraction"): _POSITIVE,
+    ("photos", "train.densify.opacity_reset_interval"): {"type": "integer", "minimum": 0},
+    ("photos", "train.densify.max_gaussians"): _COUNT,
+    ("photos", "train.log_every"): _COUNT,
+    ("photos", "train.num_threads"): _COUNT,
+    ("photos", "train.seed"): {"type": "integer", "minimum": 0},
+    ("photos", "train.device"): {"enum": ["auto", "cpu", "cuda"]},
+    ("photos", "evaluate.turntable_frames"): {"type": "integer", "minimum": 0},
+    ("photos", "evaluate.gallery_views"): {"type": "integer", "minimum": 0},
     ("baselines", "n_views"): {"type": ["integer", "array", "null"], "minimum": 0,
                                "items": {"type": "integer", "minimum": 0}},
 }

@@ -16,7 +16,7 @@ from ctsplat.utils import CtsplatError
 
 # module name -> imported lazily so `ctsplat --help` stays fast and a broken optional step
 # does not take the whole CLI down.
-STEP_MODULES = ["data", "radiographs", "render", "train", "sfm", "analysis"]
+STEP_MODULES = ["data", "radiographs", "render", "train", "sfm", "analysis", "photos"]
 
 
 def build_parser() -> argparse.ArgumentParser:

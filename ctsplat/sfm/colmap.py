@@ -1,7 +1,7 @@
 """COLMAP through pycolmap: feature extraction, matching, incremental / global mapping, pose-prior refinement,
 model merging and depth-reversal repair, with the known pinhole intrinsics of the cone-beam detector held fixed.
 
-pycolmap is imported here and nowhere else in ctsplat.
+pycolmap is imported here and, for ordinary photographs, in :mod:`ctsplat.photos`; nowhere else in ctsplat.
 
 References
 ----------

@@ -87,7 +87,8 @@ def test_validate_does_not_mutate_input():
 
 
 SECTION_PATHS = {"preprocessing": ("preprocessing",), "radiographs": ("radiographs", "circular"),
-                 "sfm": ("sfm", "settings"), "train": ("train",), "baselines": ("baselines", "settings")}
+                 "sfm": ("sfm", "settings"), "train": ("train",), "baselines": ("baselines", "settings"),
+                 "photos": ("photos",)}
 
 
 def test_every_library_section_is_checked():

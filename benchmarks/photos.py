@@ -1,0 +1,106 @@
+"""Photo sanity-run benchmark: COLMAP + alpha 3DGS on the whole skull photo set, evaluated on held-out photos.
+
+The 66 photographs of ``../shared/data/skull_photos`` ("Photogrammetry Test Set: Skull - Cameramoves - Flash - No
+Background" by alansartlog, CC BY 4.0, github.com/AlansCodeLog/photogrammetry-test-sets; keep this attribution
+with any figure) are posed by :func:`ctsplat.photos.sfm.run_photo_sfm`, trained at ``--downscale`` (default 1/4:
+about 265x177) by :func:`ctsplat.photos.train.train_photos` on every image but each 8th and evaluated on the
+held-out ones by :func:`ctsplat.photos.evaluate.evaluate_photos`. Prints one JSON line and writes
+``benchmarks/out/photos/`` (sfm/, run/ with metrics.json, gallery and turntable) and ``benchmarks/out/photos.json``.
+
+Usage::
+
+    python benchmarks/photos.py                       # SfM + 7000 iterations at 1/4 resolution
+    python benchmarks/photos.py --iterations 3000 --downscale 2
+    python benchmarks/photos.py --sfm-only
+    python benchmarks/photos.py --reuse-sfm           # train again on benchmarks/out/photos/sfm
+
+Targets: >= 95 % of the 66 photos registered in one model; held-out PSNR >= 25 dB and SSIM >= 0.8 at 1/4
+resolution within 20 minutes on 2 CPU cores. Measured (``--iterations 4000``, 2 cores shared with three other jobs,
+64 % of a core pair for this process): 64 of 66 photos (97 %) in one model, 0.27 px mean reprojection error, 4438
+points, SfM 307 s; at 266x177 held-out PSNR 20.6 dB / SSIM 0.76 after 4000 iterations (2505 s, 39.7k Gaussians);
+the held-out PSNR peaks at 22.4 dB near iteration 1250 and then falls while the training loss keeps falling
+(floaters and the unmodelled backdrop in the held-out views): the quality target is not met yet.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from ctsplat.config import check_section
+from ctsplat.photos.evaluate import evaluate_photos
+from ctsplat.photos.sfm import run_photo_sfm
+from ctsplat.photos.train import train_photos
+from ctsplat.utils import CtsplatError, code_version, write_json_atomic
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = ROOT / "benchmarks" / "out"
+SKULL = Path(os.environ.get("CTSPLAT_SHARED_DATA", ROOT.parent / "shared" / "data")) / "skull_photos"
+ATTRIBUTION = ('"Photogrammetry Test Set: Skull - Cameramoves - Flash - No Background" by alansartlog, CC BY 4.0 '
+               "(github.com/AlansCodeLog/photogrammetry-test-sets)")
+
+
+def main() -> None:
+    """Run the benchmark; bad options and bad input end in one line on stderr (exit status 2)."""
+    try:
+        run()
+    except CtsplatError as exc:
+        print(f"benchmarks/photos.py: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def run() -> None:
+    """Parse the options, then SfM, training and evaluation (module docstring)."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--images", default=str(SKULL), help="photo folder (default: the skull set)")
+    ap.add_argument("--iterations", type=int, default=7000)
+    ap.add_argument("--downscale", type=int, default=4)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--sfm-only", action="store_true")
+    ap.add_argument("--reuse-sfm", action="store_true", help="train on the SfM folder of a previous run")
+    ap.add_argument("--out", default=str(OUT / "photos"))
+    args = ap.parse_args()
+    check_section("photos", {"train": {"iterations": args.iterations, "downscale": args.downscale,
+                                       "num_threads": args.threads, "device": args.device}})
+    if not Path(args.images).is_dir():
+        raise CtsplatError(f"photo folder {args.images} not found (expected ../shared/data/skull_photos)")
+    torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    if args.reuse_sfm:
+        sfm = json.loads((out / "sfm" / "summary.json").read_text())
+        sfm_s = 0.0
+    else:
+        sfm = run_photo_sfm(args.images, out / "sfm", {"num_threads": args.threads})
+        sfm_s = time.perf_counter() - t0
+    row = {"n_images": sfm["n_images"], "n_registered": sfm["n_registered"],
+           "registration_rate": sfm["registration_rate"], "unregistered": sfm["unregistered"],
+           "models_found": sfm["models_found"], "mean_reprojection_error_px": sfm["mean_reprojection_error_px"],
+           "n_points": sfm["n_points"], "sfm_seconds": sfm_s}
+    if not args.sfm_only:
+        t1 = time.perf_counter()
+        train_photos(out / "sfm", out / "run", {"iterations": args.iterations, "downscale": args.downscale,
+                                                "num_threads": args.threads, "device": args.device})
+        train_s = time.perf_counter() - t1
+        m = evaluate_photos(out / "run", {"attribution": ATTRIBUTION})
+        row.update({"iterations": args.iterations, "downscale": args.downscale, "resolution": m["resolution"],
+                    "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"], "lpips_reason": m["lpips_reason"],
+                    "n_test": m["n_test"], "n_train": m["n_train"], "n_gaussians": m["n_gaussians"],
+                    "fps": m["fps"], "peak_rss_mb": m["peak_rss_mb"], "train_seconds": train_s,
+                    "train_loop_seconds": m["training"].get("seconds")})
+    row.update({"total_seconds": time.perf_counter() - t0, "threads": args.threads, "device": args.device,
+                "code_version": code_version()})
+    OUT.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(OUT / "photos.json", row)
+    print(json.dumps(row))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,92 @@
+"""Settings of the photo path (the ``photos`` config section): SfM, alpha-3DGS training and evaluation.
+
+One dict, :data:`PHOTOS_DEFAULTS`, with three subsections; the workflow schema's ``photos`` section is generated
+from it (``python -m ctsplat.config --sync-defaults``) and :func:`photo_settings` fills a user's values from it.
+The training defaults are 3DGS's (Kerbl et al. 2023) with the schedule shortened for CPU budgets.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ctsplat.utils import merge_config
+
+__all__ = ["PHOTOS_DEFAULTS", "photo_settings"]
+
+#: Defaults of the ``photos`` config section (JSON-serialisable).
+PHOTOS_DEFAULTS: dict[str, Any] = {
+    "sfm": {
+        "max_image_size": 1024,  # SIFT runs on images downscaled to this longest side (CPU budget)
+        "max_num_features": 4096,
+        "camera_mode": "single",  # single: one camera for all images (one size required) | per_image
+        "camera_model": "SIMPLE_RADIAL",  # estimated by bundle adjustment; undistorted to PINHOLE afterwards
+        "matching": "auto",  # auto: exhaustive up to exhaustive_max_images, sequential above | exhaustive | sequential
+        "exhaustive_max_images": 120,
+        "sequential_overlap": 10,
+        "min_num_inliers": 15,  # two-view geometry
+        "mapper": "incremental",  # incremental | global (GLOMAP-style global positioning)
+        # incremental mapper thresholds, below COLMAP's defaults (100, 30, 0.25): objects on a dark background give
+        # 2-5k features per photo, and the defaults split such a set into several models
+        "init_min_num_inliers": 50,
+        "abs_pose_min_num_inliers": 15,
+        "abs_pose_min_inlier_ratio": 0.15,
+        "min_registered": 3,  # fewer registered images in the largest model fail the step
+        "num_threads": 2,
+        "seed": 0,
+    },
+    "train": {
+        "iterations": 7000,
+        "downscale": 4,  # images and intrinsics divided by this (1, 2, 4, 8)
+        "test_every": 8,  # every n-th image (sorted by name, from the first) is held out for testing
+        "sh_degree": 3,  # the highest SH degree
+        "sh_interval": 1000,  # the SH degree rises by one every this many iterations
+        "lambda_dssim": 0.2,  # loss = (1 - λ) L1 + λ (1 - SSIM)
+        "init_opacity": 0.1,
+        "max_points": 100000,  # SfM points used as seeds (random subset above this)
+        "lr": {
+            "means": 1.6e-4,  # times the scene extent; decays exponentially to means_final at the last iteration
+            "means_final": 1.6e-6,
+            "log_scales": 5e-3,
+            "quats": 1e-3,
+            "opacity": 5e-2,
+            "colors": 2.5e-3,
+            "sh_rest": 1.25e-4,
+        },
+        "densify": {
+            "interval": 100,
+            "start": 500,
+            "stop_fraction": 0.5,  # densification stops at this fraction of the iterations
+            "grad_threshold": 2e-4,  # mean view-space positional gradient (3DGS NDC units)
+            "percent_dense": 0.01,  # clone below / split above this fraction of the scene extent
+            "prune_opacity": 0.005,
+            "prune_scale_fraction": 0.1,  # prune Gaussians wider than this fraction of the scene extent
+            "opacity_reset_interval": 3000,  # 0: never
+            "max_gaussians": 300000,
+        },
+        "log_every": 250,  # held-out PSNR/SSIM rows of train_log.csv
+        "num_threads": 2,
+        "seed": 0,
+        "device": "auto",
+    },
+    "evaluate": {
+        "turntable_frames": 36,
+        "gallery_views": 6,  # held-out views shown in the gallery (evenly spaced over the test set)
+        "attribution": "",  # credit line of the photographs, printed on the gallery and the turntable
+    },
+}
+
+
+def photo_settings(user: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The ``photos`` section filled with :data:`PHOTOS_DEFAULTS` (unknown keys fail naming their path).
+
+    Parameters
+    ----------
+    user : dict, optional
+        The user's values (any subset, nested by subsection).
+
+    Returns
+    -------
+    dict
+        ``{"sfm": {...}, "train": {...}, "evaluate": {...}}``, every key present.
+    """
+    return merge_config("photos", user, PHOTOS_DEFAULTS)

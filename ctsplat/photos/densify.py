@@ -1,0 +1,152 @@
+"""Adaptive density control for alpha-composited 3DGS on photographs (Kerbl et al. 2023, section 5.2).
+
+The radiative strategy beside it (:class:`ctsplat.training.densify.GradientDensify`) conserves mass and prunes by
+density and by the CT volume's box; photographs have neither a density nor a box, so this strategy follows 3DGS
+itself: Gaussians whose mean view-space positional gradient exceeds ``grad_threshold`` are cloned (max scale at
+most ``percent_dense`` × the scene extent) or split in two (larger ones; samples from the Gaussian, scales / 1.6);
+Gaussians with opacity below ``prune_opacity`` or wider than ``prune_scale_fraction`` × the extent are pruned;
+every ``opacity_reset_interval`` iterations opacities are clamped to at most 0.01. The gradient statistics are
+accumulated exactly as the radiative strategy does (:meth:`GradientDensify.accumulate`, 3DGS's NDC units).
+
+References
+----------
+Kerbl, B., Kopanas, G., Leimkühler, T., Drettakis, G. (2023). 3D Gaussian Splatting for real-time radiance field
+rendering. ACM TOG 42(4).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from ctsplat.splat.gaussians import quat_to_rotmat
+from ctsplat.training.densify import GradientDensify
+from ctsplat.training.state import replace_params
+
+__all__ = ["AlphaDensify"]
+
+_RESET_OPACITY = 0.01
+
+
+class AlphaDensify:
+    """Clone / split / prune / opacity reset for alpha compositing (module docstring).
+
+    Parameters
+    ----------
+    settings : dict
+        The ``photos.train.densify`` section.
+    iterations : int
+        Total training iterations.
+    extent : float
+        Scene extent (:func:`ctsplat.photos.dataset.scene_extent`), world units.
+    n : int
+        Initial number of Gaussians.
+    """
+
+    def __init__(self, settings: dict[str, Any], *, iterations: int, extent: float, n: int) -> None:
+        self.settings = dict(settings)
+        self.iterations = int(iterations)
+        self.extent = float(extent)
+        self.stop = int(float(settings["stop_fraction"]) * self.iterations)
+        self.grad_accum = torch.zeros(n)
+        self.grad_count = torch.zeros(n)
+
+    def accumulate(self, means2d_grad: torch.Tensor | None, visible: torch.Tensor, ndc_half: torch.Tensor) -> None:
+        """Add one view's positional-gradient norms to the visible Gaussians' statistics.
+
+        Parameters
+        ----------
+        means2d_grad : Tensor (N, 2) or None
+            ∂L/∂(u, v) of the projected means, px.
+        visible : Tensor (N,) bool
+        ndc_half : Tensor (2,)
+            ``(W/2, H/2)``.
+        """
+        GradientDensify.accumulate(self, means2d_grad, visible, ndc_half)
+
+    def due(self, iteration: int) -> bool:
+        """Whether densification runs after ``iteration`` completed iterations."""
+        d = self.settings
+        return bool(d["interval"]) and int(d["start"]) <= iteration <= self.stop \
+            and iteration % int(d["interval"]) == 0 and iteration < self.iterations
+
+    def reset_due(self, iteration: int) -> bool:
+        """Whether opacities are reset after ``iteration`` (only while densifying, as in 3DGS)."""
+        k = int(self.settings["opacity_reset_interval"])
+        return bool(k) and iteration % k == 0 and iteration <= self.stop and iteration < self.iterations
+
+    def step(self, params: dict[str, torch.Tensor], opt: torch.optim.Adam, gen: torch.Generator
+             ) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
+        """One clone / split / prune step (Adam moments follow; statistics reset).
+
+        Parameters
+        ----------
+        params : dict of str to Tensor
+            ``means``, ``log_scales``, ``quats``, ``opacity_raw``, ``colors``, ``sh_rest`` (N rows each).
+        opt : torch.optim.Adam
+            Its groups are named after the parameters.
+        gen : torch.Generator
+            Source of the split samples.
+
+        Returns
+        -------
+        params : dict of str to Tensor
+            New leaf tensors.
+        stats : dict
+            ``cloned``, ``split``, ``pruned``, ``n``.
+        """
+        d = self.settings
+        n = params["means"].shape[0]
+        dev = params["means"].device
+        with torch.no_grad():
+            avg = self.grad_accum.to(dev) / self.grad_count.to(dev).clamp_min(1)
+            scales = torch.exp(params["log_scales"])
+            smax = scales.max(-1).values
+            cand = avg >= float(d["grad_threshold"])
+            small = smax <= float(d["percent_dense"]) * self.extent
+            budget = max(int(d["max_gaussians"]) - n, 0)
+            if int(cand.sum()) > budget:  # keep the largest gradients within the cap
+                idx = torch.nonzero(cand).flatten()
+                keep_idx = idx[torch.argsort(avg[idx], descending=True, stable=True)[:budget]]
+                cand = torch.zeros_like(cand)
+                cand[keep_idx] = True
+            ci = torch.nonzero(cand & small).flatten()
+            si = torch.nonzero(cand & ~small).flatten()
+            new: dict[str, list[torch.Tensor]] = {k: [v.detach()[ci]] for k, v in params.items()}
+            if si.numel():
+                rot = quat_to_rotmat(params["quats"].detach()[si])
+                z = torch.randn((2, si.numel(), 3), generator=gen).to(dev)
+                offs = torch.einsum("nij,knj->kni", rot, z * scales[si][None])
+                for k, v in params.items():
+                    if k == "means":
+                        new[k] += [v.detach()[si] + offs[0], v.detach()[si] + offs[1]]
+                    elif k == "log_scales":
+                        new[k] += [torch.log(scales[si] / 1.6)] * 2
+                    else:
+                        new[k] += [v.detach()[si]] * 2
+            keep = torch.ones(n, dtype=torch.bool, device=dev)
+            keep[si] = False
+            params = replace_params(opt, params, torch.nonzero(keep).flatten(),
+                                    {k: torch.cat(v) for k, v in new.items()})
+            op = torch.sigmoid(params["opacity_raw"])
+            bad = op < float(d["prune_opacity"])
+            bad |= torch.exp(params["log_scales"]).max(-1).values > float(d["prune_scale_fraction"]) * self.extent
+            if bool(bad.all()):  # never prune everything
+                bad[:] = False
+            params = replace_params(opt, params, torch.nonzero(~bad).flatten(), {})
+        m = params["means"].shape[0]
+        self.grad_accum = torch.zeros(m, device=dev)
+        self.grad_count = torch.zeros(m, device=dev)
+        return params, {"cloned": int(ci.numel()), "split": int(si.numel()), "pruned": int(bad.sum()), "n": m}
+
+    @staticmethod
+    def reset_opacity(params: dict[str, torch.Tensor], opt: torch.optim.Adam) -> None:
+        """Clamp every opacity to at most 0.01 and zero its Adam moments (3DGS's opacity reset), in place."""
+        with torch.no_grad():
+            p = params["opacity_raw"]
+            p.copy_(torch.minimum(p, torch.logit(torch.tensor(_RESET_OPACITY, dtype=p.dtype))))
+            st = opt.state.get(p, {})
+            for key in ("exp_avg", "exp_avg_sq"):
+                if key in st:
+                    st[key].zero_()

@@ -1,0 +1,246 @@
+"""Held-out metrics of a photo run: PSNR/SSIM per view, LPIPS where available, FPS, peak memory, a gallery of
+held-out renders beside the photographs, and a turntable around the scene.
+
+PSNR uses data range 1 on renders clipped to [0, 1]; SSIM is the Gaussian-window SSIM (σ 1.5, as 3DGS reports
+it; :func:`ctsplat.training.losses.ssim`) averaged over RGB. LPIPS is ``null`` with the reason when the ``lpips``
+package or its weights cannot be loaded (:func:`ctsplat.evaluation.metrics.lpips_status`). Every figure carries
+the photographs' attribution line (``photos.evaluate.attribution``).
+
+Outputs in the run folder: ``metrics.json``, ``per_view_test.csv`` (the CT runs' per-view columns, with the
+image name as ``view_id``), ``figures/gallery.png`` and ``figures/turntable.gif``.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ctsplat.evaluation.metrics import lpips_status
+from ctsplat.formats.runlog import PER_VIEW_COLUMNS, CsvLog
+from ctsplat.geometry.cameras import look_at
+from ctsplat.photos.config import photo_settings
+from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
+from ctsplat.photos.train import image_metrics, render_view
+from ctsplat.splat.gaussians import Gaussians
+from ctsplat.utils import CtsplatError, atomic_path, json_safe, resolve_device, write_json_atomic
+
+__all__ = ["evaluate_photos", "turntable_poses", "save_photo_gallery", "save_turntable_gif"]
+
+
+def turntable_poses(views: list[PhotoView], n: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``n`` world->camera poses on a circle around the scene, at the photographs' mean height and distance.
+
+    The circle's axis is the mean camera "up" (``-y`` of the OpenCV camera frames); its centre is the point
+    nearest to all optical axes (least squares).
+
+    Parameters
+    ----------
+    views : list of PhotoView
+        At least two, with distinct optical axes.
+    n : int
+        Frames.
+
+    Returns
+    -------
+    list of (ndarray (3, 3), ndarray (3,))
+    """
+    Rs = np.stack([v.R for v in views])
+    C = np.stack([-v.R.T @ v.t for v in views])
+    up = -Rs[:, 1].mean(0)
+    up /= np.linalg.norm(up)
+    d = Rs[:, 2]
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, di in zip(C, d, strict=True):
+        P = np.eye(3) - np.outer(di, di)
+        A += P
+        b += P @ c
+    target = np.linalg.lstsq(A, b, rcond=None)[0]
+    rel = C - target
+    h = float(np.mean(rel @ up))
+    flat = rel - np.outer(rel @ up, up)
+    r = float(np.mean(np.linalg.norm(flat, axis=1)))
+    e1 = flat[0] / max(np.linalg.norm(flat[0]), 1e-12)
+    e2 = np.cross(up, e1)
+    poses = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        centre = target + h * up + r * (np.cos(a) * e1 + np.sin(a) * e2)
+        poses.append(look_at(centre, target, up))
+    return poses
+
+
+def _footer(attribution: str) -> str:
+    return f"Photographs: {attribution}" if attribution else "Photographs: (no attribution given)"
+
+
+def save_photo_gallery(path: str | Path, photos: list[np.ndarray], renders: list[np.ndarray], names: list[str],
+                       psnrs: list[float], attribution: str) -> None:
+    """A PNG with one row per held-out view: photograph | render, the attribution line at the bottom.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output PNG (atomic write).
+    photos, renders : lists of ndarray (H, W, 3) in [0, 1]
+    names : list of str
+    psnrs : list of float
+    attribution : str
+        Credit line of the photographs.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(photos)
+    h, w = photos[0].shape[:2]
+    fig, axes = plt.subplots(n, 2, figsize=(2 * 3.2, n * 3.2 * h / w + 0.6), squeeze=False)
+    for i in range(n):
+        for j, (im, title) in enumerate(((photos[i], f"photo {names[i]} (held out)"),
+                                         (renders[i], f"render, PSNR {psnrs[i]:.2f} dB"))):
+            axes[i, j].imshow(np.clip(im, 0, 1))
+            axes[i, j].set_title(title, fontsize=8)
+            axes[i, j].axis("off")
+    fig.text(0.5, 0.005, _footer(attribution), ha="center", va="bottom", fontsize=6, wrap=True)
+    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)
+
+
+def save_turntable_gif(path: str | Path, frames: list[np.ndarray], attribution: str, fps: float = 12.0) -> None:
+    """A looping GIF of RGB frames in [0, 1] with the attribution line drawn under each frame.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output GIF (atomic write).
+    frames : list of ndarray (H, W, 3)
+    attribution : str
+    fps : float
+    """
+    from PIL import Image, ImageDraw
+
+    text = _footer(attribution)
+    out = []
+    for f in frames:
+        im = Image.fromarray((np.clip(f, 0, 1) * 255 + 0.5).astype(np.uint8))
+        canvas = Image.new("RGB", (im.width, im.height + 14), (0, 0, 0))
+        canvas.paste(im, (0, 0))
+        ImageDraw.Draw(canvas).text((2, im.height + 1), text, fill=(200, 200, 200))
+        out.append(canvas.convert("P", palette=Image.Palette.ADAPTIVE))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        out[0].save(tmp, format="GIF", save_all=True, append_images=out[1:], duration=int(1000 / fps), loop=0)
+
+
+def _peak_memory_mb(device: torch.device) -> dict[str, float | None]:
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    rss_mb = rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024  # bytes on macOS, KiB on Linux
+    gpu = torch.cuda.max_memory_allocated() / 2**20 if device.type == "cuda" else None
+    return {"peak_rss_mb": rss_mb, "peak_gpu_mb": gpu}
+
+
+def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
+                    scene: PhotoScene | None = None) -> dict[str, Any]:
+    """Evaluate a photo run on its held-out views and write the metrics and figures (module docstring).
+
+    Parameters
+    ----------
+    run_dir : str or Path
+        Output of :func:`ctsplat.photos.train.train_photos` (``config.json``, ``model.pt``).
+    settings : dict, optional
+        The ``photos.evaluate`` section.
+    scene : PhotoScene, optional
+        The scene the run was trained on (read from ``config.json``'s ``sfm_dir`` when not given).
+
+    Returns
+    -------
+    dict
+        The contents of ``metrics.json``: ``psnr``, ``ssim``, ``lpips`` (+ ``lpips_reason``), per-view lists,
+        ``fps``, ``render_ms``, ``peak_rss_mb``, ``n_gaussians``, ``resolution``, the SfM summary's registration
+        numbers and the training report.
+    """
+    s = photo_settings({"evaluate": dict(settings or {})})["evaluate"]
+    run_dir = Path(run_dir)
+    cfg_path = run_dir / "config.json"
+    if not cfg_path.is_file() or not (run_dir / "model.pt").is_file():
+        raise CtsplatError(f"{run_dir} is not a photo run (config.json and model.pt); run `ctsplat photos-train`")
+    cfg = json.loads(cfg_path.read_text())
+    t = cfg["train"]
+    device = resolve_device(t["device"])
+    if scene is None:
+        scene = load_scene(cfg["sfm_dir"], downscale=int(t["downscale"]), test_every=int(t["test_every"]),
+                           device=device)
+    test = scene.split("test")
+    if not test:
+        raise CtsplatError(f"{cfg['sfm_dir']} has no held-out view (test_every {t['test_every']}); nothing to "
+                           "evaluate")
+    g = Gaussians.load(run_dir / "model.pt", device=device)
+    rows, renders, times = [], [], []
+    with torch.no_grad():
+        render_view(g, test[0])  # warm-up: kernel build and caches stay out of the timing
+        for v in test:
+            t0 = time.perf_counter()
+            img = render_view(g, v).image
+            times.append(time.perf_counter() - t0)
+            p, ss = image_metrics(img, v.image)
+            rows.append({"iteration": "final", "view_id": v.name, "split": "test", "psnr2d": p, "ssim2d": ss})
+            renders.append(img.clamp(0, 1).cpu().numpy())
+    reason = lpips_status()
+    lpips_reason = reason or "LPIPS is wired for grey CT projections only; not computed on RGB photographs"
+    log_csv = CsvLog(run_dir / "per_view_test.csv", PER_VIEW_COLUMNS)
+    log_csv.reset()
+    log_csv.append(rows)
+    k = min(int(s["gallery_views"]), len(test))
+    pick = np.unique(np.linspace(0, len(test) - 1, k).round().astype(int)) if k else np.array([], int)
+    if len(pick):
+        save_photo_gallery(run_dir / "figures" / "gallery.png", [test[i].image.cpu().numpy() for i in pick],
+                           [renders[i] for i in pick], [test[i].name for i in pick],
+                           [rows[i]["psnr2d"] for i in pick], s["attribution"])
+    n_frames = int(s["turntable_frames"])
+    if n_frames and len(scene.views) >= 2:
+        cam = scene.views[0].camera
+        with torch.no_grad():
+            frames = [render_view(g, None, cam, R, tt).image.clamp(0, 1).cpu().numpy()
+                      for R, tt in turntable_poses(scene.views, n_frames)]
+        save_turntable_gif(run_dir / "figures" / "turntable.gif", frames, s["attribution"])
+    training = json.loads((run_dir / "training.json").read_text()) if (run_dir / "training.json").is_file() else {}
+    sfm_summary = Path(cfg["sfm_dir"]) / "summary.json"
+    sfm = json.loads(sfm_summary.read_text()) if sfm_summary.is_file() else {}
+    ms = float(np.mean(times)) * 1000
+    metrics = {
+        "psnr": float(np.mean([r["psnr2d"] for r in rows])),
+        "ssim": float(np.mean([r["ssim2d"] for r in rows])),
+        "lpips": None,
+        "lpips_reason": lpips_reason,
+        "per_view": {r["view_id"]: {"psnr": r["psnr2d"], "ssim": r["ssim2d"]} for r in rows},
+        "n_test": len(test),
+        "n_train": len(scene.split("train")),
+        "test_views": [v.name for v in test],
+        "resolution": [test[0].camera.width, test[0].camera.height],
+        "downscale": int(t["downscale"]),
+        "n_gaussians": len(g),
+        "render_ms": ms,
+        "fps": 1000.0 / ms if ms > 0 else None,
+        "threads": torch.get_num_threads(),
+        "device": str(device),
+        **_peak_memory_mb(device),
+        "sfm": {k2: sfm.get(k2) for k2 in ("n_images", "n_registered", "registration_rate", "unregistered",
+                                           "mean_reprojection_error_px", "n_points", "models_found")},
+        "training": training,
+        "attribution": s["attribution"],
+    }
+    write_json_atomic(run_dir / "metrics.json", json_safe(metrics))
+    return metrics

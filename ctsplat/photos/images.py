@@ -1,0 +1,111 @@
+"""A folder of photographs: which files are images, whether each decodes whole, and their sizes.
+
+Checked before any output is written, so a bad folder fails with one line naming the file (or count) and leaves
+nothing behind.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from ctsplat.utils import CtsplatError
+
+__all__ = ["IMAGE_SUFFIXES", "list_photos", "check_photos", "load_rgb"]
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+
+
+def list_photos(folder: str | Path) -> list[str]:
+    """The image file names in ``folder`` (not recursive), sorted.
+
+    Parameters
+    ----------
+    folder : str or Path
+
+    Returns
+    -------
+    list of str
+        File names with a suffix of :data:`IMAGE_SUFFIXES` (any case).
+
+    Raises
+    ------
+    CtsplatError
+        When the folder does not exist or holds no image.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CtsplatError(f"photo folder {folder} does not exist or is not a folder")
+    names = sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not names:
+        raise CtsplatError(f"photo folder {folder} holds no images ({', '.join(IMAGE_SUFFIXES)}); "
+                           "point it at the folder with the photographs")
+    return names
+
+
+def check_photos(folder: str | Path, names: list[str], *, single_camera: bool) -> dict[str, tuple[int, int]]:
+    """Decode every image in full and check that one camera can describe them all.
+
+    Parameters
+    ----------
+    folder : str or Path
+    names : list of str
+        File names in ``folder``.
+    single_camera : bool
+        All images must then share one size (one camera for all).
+
+    Returns
+    -------
+    dict of str to (int, int)
+        File name -> ``(width, height)`` px.
+
+    Raises
+    ------
+    CtsplatError
+        For the first image that does not decode whole (truncated or corrupt), or, with ``single_camera``, for
+        images of more than one size (the message counts each size and names an example).
+    """
+    folder = Path(folder)
+    sizes: dict[str, tuple[int, int]] = {}
+    for name in names:
+        path = folder / name
+        try:
+            with Image.open(path) as im:
+                im.load()  # decodes every byte: a truncated JPEG fails here, not at SIFT time
+                sizes[name] = (int(im.width), int(im.height))
+        except (OSError, SyntaxError, ValueError) as exc:
+            raise CtsplatError(f"corrupt or truncated image {path}: {str(exc).splitlines()[0]}; "
+                               "replace or remove it") from exc
+    counts = Counter(sizes.values())
+    if single_camera and len(counts) > 1:
+        parts = []
+        for (w, h), n in counts.most_common():
+            example = next(k for k, v in sizes.items() if v == (w, h))
+            parts.append(f"{n} at {w}x{h} (e.g. {example})")
+        raise CtsplatError(f"photos in {folder} have {len(counts)} sizes: {'; '.join(parts)}; one camera cannot "
+                           "describe them: set photos.sfm.camera_mode: per_image or resize them to one size")
+    return sizes
+
+
+def load_rgb(path: str | Path, downscale: int = 1) -> np.ndarray:
+    """An image as float32 RGB in [0, 1], optionally downscaled by an integer factor (area averaging).
+
+    Parameters
+    ----------
+    path : str or Path
+    downscale : int
+        The output is ``round(W / downscale) x round(H / downscale)``.
+
+    Returns
+    -------
+    ndarray, shape (H', W', 3), float32
+    """
+    with Image.open(path) as im:
+        im = im.convert("RGB")
+        if downscale > 1:
+            size = (max(1, round(im.width / downscale)), max(1, round(im.height / downscale)))
+            im = im.resize(size, Image.Resampling.BOX)
+        return np.asarray(im, dtype=np.float32) / 255.0

@@ -1,0 +1,229 @@
+"""Photographs -> camera poses with COLMAP (pycolmap): SIFT, matching, incremental mapping, undistortion to PINHOLE.
+
+The output folder is a standard undistorted COLMAP scene, as 3DGS implementations read it::
+
+    OUT/images/<name>        undistorted photographs (registered images only)
+    OUT/sparse/0/            PINHOLE cameras, poses and coloured points (binary; text in sparse/0/text)
+    OUT/summary.json         registered / unregistered images, mean reprojection error, points, timings
+
+Unlike the radiograph path (:mod:`ctsplat.sfm.colmap`, known detector intrinsics held fixed) the photo path
+estimates the intrinsics (focal length, principal point, radial distortion) in bundle adjustment, as COLMAP does
+for ordinary photographs. Images that do not register are listed in ``summary.json`` (never dropped silently).
+The folder is written under a temporary name and renamed into place, so a failure leaves nothing behind.
+
+References
+----------
+Schönberger, J. L., Frahm, J.-M. (2016). Structure-from-motion revisited. CVPR.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pycolmap
+
+from ctsplat.photos.config import photo_settings
+from ctsplat.photos.images import check_photos, list_photos
+from ctsplat.sfm.colmap import write_model
+from ctsplat.utils import CtsplatError, code_version, write_json_atomic
+
+__all__ = ["run_photo_sfm", "matching_mode"]
+
+log = logging.getLogger(__name__)
+
+
+def matching_mode(settings: dict[str, Any], n_images: int) -> str:
+    """``exhaustive`` or ``sequential`` for ``n_images`` under the ``matching`` setting (``auto`` by count).
+
+    Parameters
+    ----------
+    settings : dict
+        The ``photos.sfm`` section.
+    n_images : int
+
+    Returns
+    -------
+    str
+    """
+    mode = settings["matching"]
+    if mode == "auto":
+        return "exhaustive" if n_images <= int(settings["exhaustive_max_images"]) else "sequential"
+    if mode not in ("exhaustive", "sequential"):
+        raise CtsplatError(f"unknown photos.sfm.matching {mode!r}; allowed: auto, exhaustive, sequential")
+    return mode
+
+
+def _extract_and_match(db: Path, image_dir: Path, names: list[str], s: dict[str, Any]) -> str:
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.num_threads = int(s["num_threads"])
+    ext.use_gpu = False
+    ext.max_image_size = int(s["max_image_size"])
+    ext.sift.max_num_features = int(s["max_num_features"])
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = str(s["camera_model"])
+    mode = pycolmap.CameraMode.SINGLE if s["camera_mode"] == "single" else pycolmap.CameraMode.PER_IMAGE
+    pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=mode, reader_options=reader,
+                              extraction_options=ext, device=pycolmap.Device.cpu)
+    mat = pycolmap.FeatureMatchingOptions()
+    mat.num_threads = int(s["num_threads"])
+    mat.use_gpu = False
+    ver = pycolmap.TwoViewGeometryOptions()
+    ver.min_num_inliers = int(s["min_num_inliers"])
+    ver.ransac.random_seed = int(s["seed"])
+    how = matching_mode(s, len(names))
+    if how == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=mat, verification_options=ver, device=pycolmap.Device.cpu)
+    else:
+        pair = pycolmap.SequentialPairingOptions()
+        pair.overlap = int(s["sequential_overlap"])
+        pair.loop_detection = False  # needs a vocabulary tree file; photo sets here are ordered captures
+        pycolmap.match_sequential(db, matching_options=mat, pairing_options=pair, verification_options=ver,
+                                  device=pycolmap.Device.cpu)
+    return how
+
+
+def _map(db: Path, image_dir: Path, out: Path, s: dict[str, Any]) -> dict[int, Any]:
+    out.mkdir(parents=True, exist_ok=True)
+    if s["mapper"] == "global":
+        g = pycolmap.GlobalPipelineOptions()
+        g.num_threads = int(s["num_threads"])
+        g.random_seed = int(s["seed"])
+        g.min_num_matches = int(s["min_num_inliers"])
+        g.mapper.num_threads = int(s["num_threads"])
+        g.mapper.random_seed = int(s["seed"])
+        g.mapper.bundle_adjustment.ceres.use_gpu = False
+        g.mapper.global_positioning.use_gpu = False
+        return dict(pycolmap.global_mapping(db, image_dir, out, options=g))
+    if s["mapper"] != "incremental":
+        raise CtsplatError(f"unknown photos.sfm.mapper {s['mapper']!r}; allowed: incremental, global")
+    o = pycolmap.IncrementalPipelineOptions()
+    o.num_threads = int(s["num_threads"])
+    o.random_seed = int(s["seed"])
+    o.min_num_matches = int(s["min_num_inliers"])
+    o.min_model_size = 3
+    o.multiple_models = True  # all models are counted in the summary; the largest is kept
+    o.extract_colors = True  # point colours seed the Gaussians' colours
+    o.mapper.num_threads = int(s["num_threads"])
+    o.mapper.random_seed = int(s["seed"])
+    o.mapper.init_min_num_inliers = int(s["init_min_num_inliers"])
+    o.mapper.abs_pose_min_num_inliers = int(s["abs_pose_min_num_inliers"])
+    o.mapper.abs_pose_min_inlier_ratio = float(s["abs_pose_min_inlier_ratio"])
+    return dict(pycolmap.incremental_mapping(db, image_dir, out, options=o))
+
+
+def run_photo_sfm(image_dir: str | Path, out_dir: str | Path, settings: dict[str, Any] | None = None
+                  ) -> dict[str, Any]:
+    """Poses, intrinsics and a coloured point cloud from a folder of photographs (module docstring).
+
+    Parameters
+    ----------
+    image_dir : str or Path
+        Folder of JPEG/PNG/TIFF photographs of one scene.
+    out_dir : str or Path
+        Output folder (replaced when it exists, only after success).
+    settings : dict, optional
+        The ``photos.sfm`` section (:data:`ctsplat.photos.config.PHOTOS_DEFAULTS`); missing keys take defaults.
+
+    Returns
+    -------
+    dict
+        The summary also written to ``summary.json``: ``n_images``, ``n_registered``, ``registered`` and
+        ``unregistered`` (names), ``registration_rate``, ``models_found``, ``model_sizes``,
+        ``mean_reprojection_error_px``, ``n_points``, ``mean_track_length``, ``matching``, ``camera`` (PINHOLE
+        intrinsics of the first camera) and ``seconds_*``.
+
+    Raises
+    ------
+    CtsplatError
+        For a folder without images, a corrupt image, mixed sizes with one camera, or fewer than
+        ``min_registered`` images registered in the largest model.
+    """
+    s = photo_settings({"sfm": dict(settings or {})})["sfm"]
+    image_dir, out_dir = Path(image_dir), Path(out_dir)
+    if s["camera_mode"] not in ("single", "per_image"):
+        raise CtsplatError(f"unknown photos.sfm.camera_mode {s['camera_mode']!r}; allowed: single, per_image")
+    names = list_photos(image_dir)
+    if s["mapper"] not in ("incremental", "global"):
+        raise CtsplatError(f"unknown photos.sfm.mapper {s['mapper']!r}; allowed: incremental, global")
+    check_photos(image_dir, names, single_camera=s["camera_mode"] == "single")
+    matching_mode(s, len(names))
+    with contextlib.suppress(Exception):
+        pycolmap.set_random_seed(int(s["seed"]))
+        pycolmap.logging.minloglevel = 2  # glog: errors only
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        summary = _run(image_dir, names, tmp, s)
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        tmp.rename(out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return summary
+
+
+def _run(image_dir: Path, names: list[str], tmp: Path, s: dict[str, Any]) -> dict[str, Any]:
+    work = tmp / "work"
+    work.mkdir()
+    db = work / "database.db"
+    t0 = time.perf_counter()
+    how = _extract_and_match(db, image_dir, names, s)
+    t1 = time.perf_counter()
+    models = _map(db, image_dir, work / "models", s)
+    t2 = time.perf_counter()
+    sizes = sorted((int(m.num_reg_images()) for m in models.values()), reverse=True)
+    if not models or sizes[0] < int(s["min_registered"]):
+        got = sizes[0] if sizes else 0
+        raise CtsplatError(f"SfM registered only {got} of {len(names)} photos in {image_dir} in one model (need "
+                           f">= {s['min_registered']}); the photos need more overlap or texture")
+    best = max(models.values(), key=lambda m: m.num_reg_images())
+    best_dir = work / "best"
+    best_dir.mkdir()
+    best.write_binary(str(best_dir))
+    und = work / "undistorted"
+    pycolmap.undistort_images(und, best_dir, image_dir, num_threads=int(s["num_threads"]))
+    rec = pycolmap.Reconstruction(str(und / "sparse"))
+    write_model(rec, tmp / "sparse" / "0")
+    (und / "images").rename(tmp / "images")
+    t3 = time.perf_counter()
+    registered = sorted(img.name for img in rec.images.values() if img.has_pose)
+    unregistered = sorted(set(names) - set(registered))
+    if unregistered:
+        log.warning("%d of %d photos did not register: %s", len(unregistered), len(names), ", ".join(unregistered))
+    cam = next(iter(rec.cameras.values()))
+    fx, fy, cx, cy = (float(v) for v in cam.params[:4])
+    raw_cam = next(iter(best.cameras.values()))
+    summary = {
+        "image_dir": str(image_dir),
+        "n_images": len(names),
+        "n_registered": len(registered),
+        "registration_rate": len(registered) / len(names),
+        "registered": registered,
+        "unregistered": unregistered,
+        "models_found": len(models),
+        "model_sizes": sizes,
+        "mean_reprojection_error_px": float(best.compute_mean_reprojection_error()),
+        "n_points": int(rec.num_points3D()),
+        "mean_track_length": float(best.compute_mean_track_length()),
+        "matching": how,
+        "mapper": s["mapper"],
+        "camera": {"model": "PINHOLE", "width": int(cam.width), "height": int(cam.height), "fx": fx, "fy": fy,
+                   "cx": cx, "cy": cy},
+        "estimated_camera": {"model": raw_cam.model.name, "params": np.asarray(raw_cam.params).tolist()},
+        "seconds_features_matching": t1 - t0,
+        "seconds_mapping": t2 - t1,
+        "seconds_undistortion": t3 - t2,
+        "settings": s,
+        "code_version": code_version(),
+    }
+    shutil.rmtree(work)
+    write_json_atomic(tmp / "summary.json", summary)
+    return summary

@@ -1,0 +1,329 @@
+"""Alpha-composited 3DGS with spherical-harmonic colour, trained on posed photographs.
+
+The model is :class:`ctsplat.splat.gaussians.Gaussians` rendered by :func:`ctsplat.splat.render.render` with the
+``alpha`` compositor and a :class:`ctsplat.photos.dataset.PinholeCamera`; its colour is the base colour plus the SH
+terms of degrees 1..``d`` (the renderer reads ``d`` from the shape of ``sh_rest``: the full degree-3 coefficients
+are trained, and the first ``(d + 1)² - 1`` of them are passed while the degree is ``d``). As in 3DGS:
+
+- seeds: one Gaussian per SfM point, its colour, isotropic scale = RMS distance to the 3 nearest points,
+  opacity ``init_opacity``;
+- the SH degree starts at 0 and rises by one every ``sh_interval`` iterations up to ``sh_degree``;
+- loss ``(1 - λ) L1 + λ (1 - SSIM)``, Adam (eps 1e-15), the means' learning rate (× scene extent) decaying
+  exponentially; density control by :class:`ctsplat.photos.densify.AlphaDensify`;
+- the composite lies over a black background (the renderer returns ``Σ c α T``).
+
+Outputs (written under a temporary name, renamed into place when training ends): ``config.json``,
+``train_log.csv`` (the CT runs' columns, :data:`ctsplat.formats.runlog.LOG_COLUMNS`; ``psnr2d``/``ssim2d`` on the
+held-out views, 3D metrics empty), ``model.pt``, ``model.ply`` (3DGS layout) and ``training.json``.
+
+References
+----------
+Kerbl, B., Kopanas, G., Leimkühler, T., Drettakis, G. (2023). 3D Gaussian Splatting for real-time radiance field
+rendering. ACM TOG 42(4).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from ctsplat.formats.runlog import LOG_COLUMNS, CsvLog
+from ctsplat.photos.config import photo_settings
+from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
+from ctsplat.photos.densify import AlphaDensify
+from ctsplat.splat.gaussians import Gaussians
+from ctsplat.splat.render import render
+from ctsplat.training.losses import ssim
+from ctsplat.utils import CtsplatError, code_version, config_hash, resolve_device, write_json_atomic
+
+__all__ = ["PHOTO_LOG_EXTRAS", "train_photos", "train_scene", "init_params", "to_gaussians", "render_view",
+           "image_metrics"]
+
+log = logging.getLogger(__name__)
+
+#: Columns of ``train_log.csv`` after :data:`LOG_COLUMNS` (a subset of the CT runs' extras, same names).
+PHOTO_LOG_EXTRAS: tuple[str, ...] = ("loss", "l1", "dssim", "n_gaussians", "lr_means", "iters_per_s", "cloned",
+                                     "split", "pruned", "sh_degree")
+_PARAMS = ("means", "log_scales", "quats", "opacity_raw", "colors", "sh_rest")
+
+
+def init_params(xyz: np.ndarray, rgb: np.ndarray, settings: dict[str, Any], gen: np.random.Generator,
+                device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+    """Trainable tensors seeded from SfM points (module docstring).
+
+    Parameters
+    ----------
+    xyz : ndarray (P, 3)
+    rgb : ndarray (P, 3) in [0, 1]
+    settings : dict
+        The ``photos.train`` section (``max_points``, ``init_opacity``).
+    gen : numpy.random.Generator
+        Picks the subset when there are more than ``max_points`` points.
+    device : torch.device or str
+
+    Returns
+    -------
+    dict of str to Tensor
+        ``means`` (N, 3), ``log_scales`` (N, 3), ``quats`` (N, 4), ``opacity_raw`` (N,), ``colors`` (N, 3),
+        ``sh_rest`` (N, 15, 3), leaves that require grad.
+    """
+    xyz = np.asarray(xyz, float).reshape(-1, 3)
+    rgb = np.asarray(rgb, float).reshape(-1, 3)
+    if len(xyz) < 4:
+        raise CtsplatError(f"{len(xyz)} SfM points cannot seed a model (need >= 4); register more photos")
+    if len(xyz) > int(settings["max_points"]):
+        idx = np.sort(gen.choice(len(xyz), int(settings["max_points"]), replace=False))
+        xyz, rgb = xyz[idx], rgb[idx]
+    d, _ = cKDTree(xyz).query(xyz, k=4)
+    scale = np.sqrt(np.maximum(np.mean(d[:, 1:] ** 2, axis=1), 1e-14))
+    n = len(xyz)
+    kw = {"dtype": torch.float32, "device": device}
+    quats = torch.zeros(n, 4, **kw)
+    quats[:, 0] = 1.0
+    op = float(settings["init_opacity"])
+    params = {
+        "means": torch.as_tensor(xyz, **kw),
+        "log_scales": torch.as_tensor(np.log(scale), **kw)[:, None].repeat(1, 3),
+        "quats": quats,
+        "opacity_raw": torch.full((n,), math.log(op / (1 - op)), **kw),
+        "colors": torch.as_tensor(rgb, **kw),
+        "sh_rest": torch.zeros(n, 15, 3, **kw),
+    }
+    return {k: v.clone().requires_grad_(True) for k, v in params.items()}
+
+
+def to_gaussians(params: dict[str, torch.Tensor], degree: int) -> Gaussians:
+    """The :class:`Gaussians` the renderer sees at SH degree ``degree`` (0..3).
+
+    Parameters
+    ----------
+    params : dict of str to Tensor
+        From :func:`init_params`.
+    degree : int
+
+    Returns
+    -------
+    Gaussians
+        Sharing (not copying) the parameter tensors; ``density_raw`` is an unused constant.
+    """
+    k = (degree + 1) ** 2 - 1
+    m = params["means"]
+    return Gaussians(means=m, log_scales=params["log_scales"], quats=params["quats"],
+                     density_raw=torch.zeros(m.shape[0], dtype=m.dtype, device=m.device),
+                     opacity_raw=params["opacity_raw"], colors=params["colors"],
+                     sh_rest=params["sh_rest"][:, :k] if k else None)
+
+
+def render_view(g: Gaussians, view: PhotoView | Any, camera: Any = None, R: Any = None, t: Any = None
+                ) -> Any:
+    """Render ``g`` from a view (or from ``camera``, ``R``, ``t``) with the alpha compositor.
+
+    Parameters
+    ----------
+    g : Gaussians
+    view : PhotoView or None
+    camera, R, t : optional
+        Used instead of the view's.
+
+    Returns
+    -------
+    ctsplat.splat.render.RenderOutput
+        ``image`` (H, W, 3).
+    """
+    cam = camera if camera is not None else view.camera
+    R = R if R is not None else view.R
+    t = t if t is not None else view.t
+    return render(g, cam, R, t, compositor="alpha")
+
+
+def image_metrics(img: torch.Tensor, ref: torch.Tensor) -> tuple[float, float]:
+    """PSNR (dB, data range 1) and SSIM (Gaussian window σ 1.5, mean over RGB) of one image in [0, 1].
+
+    Parameters
+    ----------
+    img, ref : Tensor (H, W, 3)
+        ``img`` is clipped to [0, 1] first.
+
+    Returns
+    -------
+    (float, float)
+    """
+    x = img.detach().clamp(0, 1).float()
+    y = ref.float()
+    mse = float(torch.mean((x - y) ** 2))
+    p = float("inf") if mse == 0 else 10 * math.log10(1.0 / mse)
+    s = float(ssim(x.permute(2, 0, 1), y.permute(2, 0, 1), 1.0))
+    return p, s
+
+
+def _optimizer(params: dict[str, torch.Tensor], lr: dict[str, float], extent: float) -> torch.optim.Adam:
+    key = {"opacity_raw": "opacity"}
+    groups = [{"params": [params[k]], "lr": float(lr[key.get(k, k)]) * (extent if k == "means" else 1.0),
+               "name": k} for k in _PARAMS]
+    return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+
+def _eval_views(params: dict[str, torch.Tensor], degree: int, views: list[PhotoView]) -> tuple[float, float]:
+    if not views:
+        return float("nan"), float("nan")
+    with torch.no_grad():
+        g = to_gaussians(params, degree)
+        vals = [image_metrics(render_view(g, v).image, v.image) for v in views]
+    return float(np.mean([a for a, _ in vals])), float(np.mean([b for _, b in vals]))
+
+
+def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | None = None,
+                device: torch.device | str = "cpu") -> tuple[Gaussians, dict[str, Any]]:
+    """Train on the ``train`` views of a scene (module docstring); held-out PSNR/SSIM every ``log_every``.
+
+    Parameters
+    ----------
+    scene : PhotoScene
+    settings : dict
+        The filled ``photos.train`` section.
+    log_path : Path, optional
+        ``train_log.csv`` to write (started over).
+    device : torch.device or str
+
+    Returns
+    -------
+    model : Gaussians
+        Detached, at the final SH degree.
+    report : dict
+        ``iterations``, ``seconds``, ``n_gaussians``, ``initial_test_psnr``, ``final_test_psnr``,
+        ``final_test_ssim``, ``sh_degree``.
+    """
+    s = settings
+    iters = int(s["iterations"])
+    seed = int(s["seed"])
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    params = init_params(scene.xyz, scene.rgb, s, rng, device)
+    opt = _optimizer(params, s["lr"], scene.extent)
+    dens = AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, n=params["means"].shape[0])
+    train, test = scene.split("train"), scene.split("test")
+    lam = float(s["lambda_dssim"])
+    lr0 = float(s["lr"]["means"]) * scene.extent
+    lr1 = float(s["lr"]["means_final"]) * scene.extent
+    csv = CsvLog(log_path, [*LOG_COLUMNS, *PHOTO_LOG_EXTRAS]) if log_path is not None else None
+    if csv is not None:
+        csv.reset()
+    p0, s0 = _eval_views(params, 0, test)
+    if csv is not None:
+        csv.append([{"iteration": 0, "timestamp": 0.0, "psnr2d": p0, "ssim2d": s0,
+                     "n_gaussians": int(params["means"].shape[0]), "sh_degree": 0}])
+    order: list[int] = []
+    counts = {"cloned": 0, "split": 0, "pruned": 0}
+    t_start = time.perf_counter()
+    t_last, it_last = t_start, 0
+    degree = 0
+    for it in range(1, iters + 1):
+        degree = min(int(s["sh_degree"]), (it - 1) // max(int(s["sh_interval"]), 1))
+        if not order:
+            order = rng.permutation(len(train)).tolist()
+        view = train[order.pop()]
+        lr_means = lr0 * (lr1 / lr0) ** ((it - 1) / max(iters - 1, 1)) if lr0 > 0 else 0.0
+        opt.param_groups[0]["lr"] = lr_means
+        out = render_view(to_gaussians(params, degree), view)
+        img = out.image
+        l1 = torch.mean(torch.abs(img - view.image))
+        dssim = 1.0 - ssim(img.permute(2, 0, 1), view.image.permute(2, 0, 1), 1.0)
+        loss = (1 - lam) * l1 + lam * dssim
+        loss.backward()
+        if not torch.isfinite(loss):
+            raise CtsplatError(f"training diverged at iteration {it} (loss {float(loss)}); lower photos.train.lr")
+        with torch.no_grad():
+            ndc = torch.tensor([view.camera.width / 2, view.camera.height / 2], device=img.device)
+            dens.accumulate(out.means2d.grad, out.visible, ndc)
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+        if dens.due(it):
+            params, st = dens.step(params, opt, gen)
+            for k in counts:
+                counts[k] += st[k]
+        if dens.reset_due(it):
+            dens.reset_opacity(params, opt)
+        if csv is not None and (it % int(s["log_every"]) == 0 or it == iters):
+            now = time.perf_counter()
+            ps, ss = _eval_views(params, degree, test)
+            csv.append([{"iteration": it, "timestamp": now - t_start, "psnr2d": ps, "ssim2d": ss,
+                         "loss": float(loss.detach()), "l1": float(l1.detach()), "dssim": float(dssim.detach()),
+                         "n_gaussians": int(params["means"].shape[0]), "lr_means": lr_means,
+                         "iters_per_s": (it - it_last) / max(now - t_last, 1e-9), **counts, "sh_degree": degree}])
+            log.info("photos train %d/%d: held-out PSNR %.2f dB SSIM %.3f, %d Gaussians", it, iters, ps, ss,
+                     params["means"].shape[0])
+            counts = dict.fromkeys(counts, 0)
+            t_last, it_last = time.perf_counter(), it
+    seconds = time.perf_counter() - t_start
+    model = to_gaussians({k: v.detach() for k, v in params.items()}, degree)
+    pf, sf = _eval_views(params, degree, test)
+    report = {"iterations": iters, "seconds": seconds, "n_gaussians": len(model), "sh_degree": degree,
+              "initial_test_psnr": p0, "initial_test_ssim": s0, "final_test_psnr": pf, "final_test_ssim": sf,
+              "n_train": len(train), "n_test": len(test)}
+    return model, report
+
+
+def _check(s: dict[str, Any]) -> None:
+    if int(s["iterations"]) < 1:
+        raise CtsplatError(f"photos.train.iterations must be >= 1, got {s['iterations']}")
+    if int(s["downscale"]) not in (1, 2, 4, 8):
+        raise CtsplatError(f"photos.train.downscale must be 1, 2, 4 or 8, got {s['downscale']}")
+    if not 0 <= int(s["sh_degree"]) <= 3:
+        raise CtsplatError(f"photos.train.sh_degree must be 0..3, got {s['sh_degree']}")
+
+
+def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, Any] | None = None
+                 ) -> dict[str, Any]:
+    """Train alpha 3DGS on an SfM folder and write the run folder (module docstring).
+
+    Parameters
+    ----------
+    sfm_dir : str or Path
+        Output of :func:`ctsplat.photos.sfm.run_photo_sfm`.
+    out_dir : str or Path
+        The run folder (replaced when training succeeds; nothing is written on failure).
+    settings : dict, optional
+        The ``photos.train`` section; missing keys take :data:`ctsplat.photos.config.PHOTOS_DEFAULTS`.
+
+    Returns
+    -------
+    dict
+        The contents of ``training.json``.
+    """
+    s = photo_settings({"train": dict(settings or {})})["train"]
+    _check(s)
+    device = resolve_device(s["device"])
+    torch.set_num_threads(int(s["num_threads"]))
+    scene = load_scene(sfm_dir, downscale=int(s["downscale"]), test_every=int(s["test_every"]), device=device)
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        config = {"sfm_dir": str(sfm_dir), "train": s}
+        write_json_atomic(tmp / "config.json", {**config, "config_hash": config_hash(config),
+                                                "code_version": code_version()})
+        model, report = train_scene(scene, s, tmp / "train_log.csv", device)
+        model.meta.update({"compositor": "alpha", "source": "photos", "sfm_dir": str(sfm_dir)})
+        model.save(tmp / "model.pt")
+        model.to_ply(tmp / "model.ply")
+        w, h = scene.views[0].camera.width, scene.views[0].camera.height
+        report.update({"resolution": [w, h], "downscale": int(s["downscale"]), "extent": scene.extent,
+                       "device": str(device), "threads": torch.get_num_threads()})
+        write_json_atomic(tmp / "training.json", report)
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        tmp.rename(out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return report

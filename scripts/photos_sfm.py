@@ -1,0 +1,10 @@
+"""Snakemake adapter: rule photos_sfm -> ctsplat.photos.sfm.run_photo_sfm."""
+
+from pathlib import Path
+
+from _adapter import logged
+
+from ctsplat.photos.sfm import run_photo_sfm
+
+with logged(snakemake):  # noqa: F821
+    run_photo_sfm(snakemake.input[0], Path(snakemake.output.summary).parent, snakemake.params.sfm)  # noqa: F821

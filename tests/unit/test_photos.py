@@ -1,0 +1,250 @@
+"""The photo path: bad photo folders fail with one line and leave nothing behind; alpha 3DGS with SH colour learns a
+synthetic scene rendered by the renderer from known cameras; the config's ``kind: photos`` keeps photo folders
+out of the CT grid."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from ctsplat.cli import main
+from ctsplat.config import prepare_config
+from ctsplat.geometry.cameras import look_at
+from ctsplat.photos.config import photo_settings
+from ctsplat.photos.dataset import PhotoScene, PhotoView, PinholeCamera, load_scene, scene_extent, split_names
+from ctsplat.photos.evaluate import evaluate_photos, turntable_poses
+from ctsplat.photos.images import check_photos, list_photos
+from ctsplat.photos.sfm import run_photo_sfm
+from ctsplat.photos.train import image_metrics, render_view, to_gaussians, train_scene
+from ctsplat.splat.gaussians import Gaussians
+from ctsplat.utils import CtsplatError
+
+
+def _jpeg(path: Path, w: int = 64, h: int = 48, seed: int = 0) -> Path:
+    rng = np.random.default_rng(seed)
+    Image.fromarray(rng.integers(0, 255, (h, w, 3), dtype=np.uint8)).save(path, quality=90)
+    return path
+
+
+def _nothing_written(parent: Path, out: Path) -> None:
+    assert not out.exists()
+    assert [p.name for p in parent.iterdir() if p.name.startswith(f".{out.name}.")] == []
+
+
+# ------------------------------------------------------------------------------------------------ bad input
+def test_folder_without_images_fails_naming_it(tmp_path: Path) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (photos / "notes.txt").write_text("no images here")
+    out = tmp_path / "sfm"
+    with pytest.raises(CtsplatError, match=r"holds no images") as exc:
+        run_photo_sfm(photos, out)
+    assert str(photos) in str(exc.value) and "\n" not in str(exc.value)
+    _nothing_written(tmp_path, out)
+
+
+def test_truncated_jpeg_fails_naming_the_file(tmp_path: Path) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        _jpeg(photos / f"{i:02d}.jpg", seed=i)
+    bad = photos / "01.jpg"
+    data = bad.read_bytes()
+    bad.write_bytes(data[: len(data) // 2])  # a download cut short
+    out = tmp_path / "sfm"
+    with pytest.raises(CtsplatError, match=r"corrupt or truncated image .*01\.jpg"):
+        run_photo_sfm(photos, out)
+    _nothing_written(tmp_path, out)
+
+
+def test_mixed_sizes_need_a_camera_per_image(tmp_path: Path) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    _jpeg(photos / "a.jpg", 64, 48)
+    _jpeg(photos / "b.jpg", 64, 48, seed=1)
+    _jpeg(photos / "c.jpg", 48, 64, seed=2)
+    out = tmp_path / "sfm"
+    with pytest.raises(CtsplatError, match=r"2 sizes: 2 at 64x48 \(e.g. a.jpg\); 1 at 48x64 \(e.g. c.jpg\).*per_image"):
+        run_photo_sfm(photos, out)
+    _nothing_written(tmp_path, out)
+    sizes = check_photos(photos, list_photos(photos), single_camera=False)
+    assert sizes == {"a.jpg": (64, 48), "b.jpg": (64, 48), "c.jpg": (48, 64)}
+
+
+def test_too_few_registered_images_fail_with_the_count(tmp_path: Path) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):  # unrelated noise: features, but no two-view geometry between them
+        _jpeg(photos / f"{i}.jpg", 160, 120, seed=10 + i)
+    out = tmp_path / "sfm"
+    with pytest.raises(CtsplatError, match=r"registered only 0 of 3 photos .*need >= 3"):
+        run_photo_sfm(photos, out, {"num_threads": 1})
+    _nothing_written(tmp_path, out)
+
+
+def test_cli_reports_one_line_and_exit_code_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    photos = tmp_path / "empty"
+    photos.mkdir()
+    assert main(["photos-sfm", str(photos), str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ctsplat photos-sfm: error: photo folder") and "\n" not in err
+    assert main(["photos-train", str(tmp_path / "missing"), str(tmp_path / "run")]) == 2
+    assert "run `ctsplat photos-sfm IMAGES OUT` first" in capsys.readouterr().err
+    assert main(["photos-sfm", str(photos), str(tmp_path / "out"), "--set", "train.downscale=3"]) == 2
+    assert "photos.train.downscale" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_load_scene_refuses_a_folder_that_is_not_sfm_output(tmp_path: Path) -> None:
+    with pytest.raises(CtsplatError, match=r"not a photo SfM folder .*photos-sfm"):
+        load_scene(tmp_path)
+
+
+# ------------------------------------------------------------------------------------------------ pieces
+def test_every_eighth_image_is_held_out() -> None:
+    names = [f"{i:02d}.jpg" for i in range(1, 18)]
+    split = split_names(list(reversed(names)), 8)
+    assert [n for n in names if split[n] == "test"] == ["01.jpg", "09.jpg", "17.jpg"]
+    assert set(split_names(names, 0).values()) == {"train"}
+
+
+def test_pinhole_camera_scales_with_the_image() -> None:
+    cam = PinholeCamera(1061, 707, 2400.0, 2400.0, 530.5, 353.5)
+    q = cam.scaled(4)
+    assert (q.width, q.height) == (265, 177)
+    assert q.fx == pytest.approx(2400 * 265 / 1061) and q.cx == pytest.approx(530.5 * 265 / 1061)
+    assert q.model == "cone" and q.dsd_mm == q.fx  # what the renderer reads
+
+
+def test_photo_settings_fill_defaults_and_refuse_unknown_keys() -> None:
+    s = photo_settings({"train": {"iterations": 5}})
+    assert s["train"]["iterations"] == 5 and s["train"]["lr"]["means"] == pytest.approx(1.6e-4)
+    with pytest.raises(CtsplatError, match=r"photos\.train\.iteration"):
+        photo_settings({"train": {"iteration": 5}})
+
+
+# ------------------------------------------------------------------------------------------------ training
+def _synthetic_scene(tmp: Path | None = None) -> tuple[PhotoScene, Gaussians]:
+    """24 coloured Gaussians seen by 16 cameras on a ring (64x48), rendered by the renderer itself."""
+    gen = torch.Generator().manual_seed(0)
+    n = 24
+    means = (torch.rand(n, 3, generator=gen) - 0.5) * 1.2
+    colors = torch.rand(n, 3, generator=gen) * 0.8 + 0.1
+    truth = Gaussians.from_values(means, 0.12, 1.0, opacities=0.8, colors=colors, sh_degree=1)
+    truth.sh_rest[:, 0] = 0.1  # a little view dependence
+    cam = PinholeCamera(64, 48, 70.0, 70.0, 32.0, 24.0)
+    views = []
+    for k in range(16):
+        a = 2 * np.pi * k / 16
+        centre = np.array([4 * np.cos(a), 4 * np.sin(a), 1.0 + 0.5 * np.sin(3 * a)])
+        R, t = look_at(centre, np.zeros(3), (0, 0, 1))
+        with torch.no_grad():
+            img = render_view(truth, None, cam, R, t).image.clamp(0, 1)
+        views.append(PhotoView(f"{k:02d}.png", img, cam, R, t, "test" if k % 8 == 0 else "train"))
+    rng = np.random.default_rng(1)
+    xyz = means.numpy() + rng.normal(0, 0.15, (n, 3))  # noisy "SfM" points, random colours
+    xyz = np.concatenate([xyz, rng.uniform(-0.6, 0.6, (40, 3))])
+    scene = PhotoScene(views, xyz, rng.uniform(0, 1, (len(xyz), 3)),
+                       scene_extent([v.R for v in views], [v.t for v in views]))
+    return scene, truth
+
+
+def test_training_learns_a_synthetic_scene_from_known_cameras(tmp_path: Path) -> None:
+    torch.set_num_threads(2)
+    scene, _ = _synthetic_scene()
+    s = photo_settings({"train": {"iterations": 600, "log_every": 200, "sh_interval": 150,
+                                  "densify": {"start": 100, "interval": 100, "opacity_reset_interval": 0}}})["train"]
+    model, report = train_scene(scene, s, tmp_path / "train_log.csv")
+    assert report["n_test"] == 2 and report["n_train"] == 14
+    assert report["final_test_psnr"] > report["initial_test_psnr"] + 8
+    assert report["final_test_psnr"] > 24
+    assert report["sh_degree"] == 3 and model.sh_degree == 3
+    log = (tmp_path / "train_log.csv").read_text().splitlines()
+    assert log[0].startswith("iteration,timestamp,psnr2d,ssim2d,psnr3d,ssim3d")
+    assert len(log) == 1 + 4  # iteration 0, 200, 400, 600
+    # held-out metric as evaluation computes it
+    with torch.no_grad():
+        p, ss = image_metrics(render_view(model, scene.split("test")[0]).image, scene.split("test")[0].image)
+    assert p > 24 and 0.8 < ss <= 1
+
+
+def test_sh_degree_slices_the_trained_coefficients() -> None:
+    from ctsplat.photos.train import init_params
+
+    params = init_params(np.random.default_rng(0).normal(size=(10, 3)), np.full((10, 3), 0.5),
+                         photo_settings()["train"], np.random.default_rng(0))
+    assert to_gaussians(params, 0).sh_rest is None
+    assert [to_gaussians(params, d).sh_degree for d in (1, 2, 3)] == [1, 2, 3]
+    assert to_gaussians(params, 2).sh_rest.data_ptr() == params["sh_rest"].data_ptr()  # a view, trained in place
+
+
+def test_turntable_circles_the_object() -> None:
+    scene, _ = _synthetic_scene()
+    poses = turntable_poses(scene.views, 8)
+    centres = np.stack([-R.T @ t for R, t in poses])
+    assert np.allclose(np.linalg.norm(centres[:, :2], axis=1), 4.0, atol=0.2)
+    for R, t in poses:  # each looks at the ring's centre (the object)
+        assert (R @ np.zeros(3) + t)[2] > 3.5 and np.allclose((R @ np.zeros(3) + t)[:2], 0, atol=1e-6)
+
+
+def test_evaluation_writes_metrics_gallery_and_turntable(tmp_path: Path) -> None:
+    scene, truth = _synthetic_scene()
+    run = tmp_path / "run"
+    run.mkdir()
+    truth.save(run / "model.pt")
+    t = photo_settings()["train"]
+    (run / "config.json").write_text(json.dumps({"sfm_dir": str(tmp_path / "sfm"), "train": t}))
+    m = evaluate_photos(run, {"turntable_frames": 4, "gallery_views": 2, "attribution": "by someone, CC BY 4.0"},
+                        scene=scene)
+    assert m["psnr"] > 40 and m["ssim"] > 0.99  # the true model renders its own targets
+    assert m["lpips"] is None and m["lpips_reason"]
+    assert m["fps"] > 0 and m["peak_rss_mb"] > 0 and m["n_test"] == 2
+    assert json.loads((run / "metrics.json").read_text())["attribution"] == "by someone, CC BY 4.0"
+    assert Image.open(run / "figures" / "gallery.png").size[0] > 100
+    gif = Image.open(run / "figures" / "turntable.gif")
+    assert gif.n_frames == 4
+    assert (run / "per_view_test.csv").read_text().startswith("iteration,view_id,")
+
+
+# ------------------------------------------------------------------------------------------------ workflow config
+def test_photo_volumes_stay_out_of_the_ct_grid(tmp_path: Path) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    cfg = prepare_config({"volumes": {"phantom": {"source": "phantom"},
+                                      "skull": {"source": str(photos), "kind": "photos"}}})
+    assert list(cfg["volumes"]) == ["phantom"] and list(cfg["photo_volumes"]) == ["skull"]
+    assert cfg["photos"]["train"]["test_every"] == 8
+    with pytest.raises(CtsplatError, match=r"volumes.skull.source: .*folder of photographs"):
+        prepare_config({"volumes": {"phantom": {"source": "phantom"},
+                                    "skull": {"source": str(tmp_path / "nope"), "kind": "photos"}}})
+    with pytest.raises(CtsplatError, match=r"every volume is of kind photos"):
+        prepare_config({"volumes": {"skull": {"source": str(photos), "kind": "photos"}}})
+    with pytest.raises(CtsplatError, match=r"photos.train.downscale"):
+        prepare_config({"volumes": {"phantom": {"source": "phantom"}}, "photos": {"train": {"downscale": 3}}})
+
+
+# ------------------------------------------------------------------------------------------------ benchmark
+@pytest.mark.parametrize(("args", "needle"), [
+    (["--downscale", "3"], "photos.train.downscale: 3 is not one of [1, 2, 4, 8]"),
+    (["--iterations", "0"], "photos.train.iterations: 0 is less than the minimum of 1"),
+    (["--images", "/nonexistent/photos"], "photo folder /nonexistent/photos not found"),
+])
+def test_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: list[str], needle: str) -> None:
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    res = subprocess.run([sys.executable, str(root / "benchmarks" / "photos.py"), *args, "--out", str(tmp_path / "o")],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert res.returncode == 2
+    assert "Traceback" not in res.stderr
+    line = res.stderr.strip().splitlines()[-1]
+    assert line.startswith("benchmarks/photos.py: error:") and needle in line, line
+    assert not (tmp_path / "o").exists()

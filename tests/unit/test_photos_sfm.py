@@ -1,0 +1,100 @@
+"""COLMAP on a subset of the real skull photographs (../shared/data/skull_photos, CC BY 4.0, "Photogrammetry Test
+Set: Skull - Cameramoves - Flash - No Background" by alansartlog): ten neighbouring photos (three rings of the
+capture, at the set's 1068x712, a quarter of the originals) register in one model and load as training data.
+Skipped with a reason when the data is absent."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ctsplat.photos.dataset import load_scene
+from ctsplat.photos.sfm import run_photo_sfm
+
+ROOT = Path(__file__).resolve().parents[2]
+SKULL = Path(os.environ.get("CTSPLAT_SHARED_DATA", ROOT.parent / "shared" / "data")) / "skull_photos"
+# the ten camera centres nearest to 38.jpg's in a model of the whole set: one side of the skull seen from the
+# three heights of the capture (at lower resolution, e.g. 512 px, they fall apart into several small models)
+NEIGHBOURS = [f"{i:02d}.jpg" for i in (19, 20, 21, 36, 37, 38, 39, 54, 55, 56)]
+
+
+@pytest.fixture(scope="module")
+def skull_subset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    if not SKULL.is_dir():
+        pytest.skip(f"skull photos not found at {SKULL} (expected ../shared/data/skull_photos)")
+    folder = tmp_path_factory.mktemp("skull10")
+    for name in NEIGHBOURS:
+        (folder / name).symlink_to(SKULL / name)
+    return folder
+
+
+def test_ten_neighbouring_skull_photos_register_in_one_model(skull_subset: Path, tmp_path: Path) -> None:
+    out = tmp_path / "sfm"
+    summary = run_photo_sfm(skull_subset, out, {"num_threads": 2})
+    assert summary["n_images"] == 10
+    assert summary["n_registered"] >= 9, summary["unregistered"]
+    assert sorted(summary["registered"] + summary["unregistered"]) == NEIGHBOURS
+    assert summary["matching"] == "exhaustive"
+    assert 0 < summary["mean_reprojection_error_px"] < 1.5
+    assert summary["n_points"] > 300
+    assert json.loads((out / "summary.json").read_text())["n_registered"] == summary["n_registered"]
+    for f in ("cameras.bin", "images.bin", "points3D.bin", "text/cameras.txt"):
+        assert (out / "sparse" / "0" / f).is_file()
+    assert "PINHOLE" in (out / "sparse" / "0" / "text" / "cameras.txt").read_text()
+    assert len(list((out / "images").iterdir())) == summary["n_registered"]
+    assert not (out / "work").exists()
+
+    scene = load_scene(out, downscale=4, test_every=8)
+    assert [v.name for v in scene.split("test")] == [v.name for v in scene.views[::8]]
+    v = scene.views[0]
+    assert tuple(v.image.shape) == (v.camera.height, v.camera.width, 3)
+    assert 0.8 * 1068 / 4 < v.camera.width <= 1068 / 4 + 1
+    # the SfM points project inside the photos that see them (poses and intrinsics agree)
+    x = scene.xyz @ v.R.T + v.t
+    uv = x[:, :2] / x[:, 2:] * [v.camera.fx, v.camera.fy] + [v.camera.cx, v.camera.cy]
+    inside = (x[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < v.camera.width) & (uv[:, 1] >= 0) \
+        & (uv[:, 1] < v.camera.height)
+    assert np.mean(inside) > 0.5
+    assert scene.rgb.min() >= 0 and scene.rgb.max() <= 1 and scene.rgb.std() > 0.02  # coloured points
+
+
+def test_workflow_runs_a_photo_volume_beside_the_ct_grid(skull_subset: Path, tmp_path: Path) -> None:
+    """The photo rules (real Snakemake process) pose, train and evaluate a photo volume; the CT grid never
+    schedules a job for it."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    cfg = {"volumes": {"phantom": {"source": "phantom", "phantom": {"size": 32}},
+                       "skull": {"source": str(skull_subset), "kind": "photos"}},
+           "photos": {"train": {"iterations": 20, "log_every": 10, "downscale": 8},
+                      "evaluate": {"turntable_frames": 2, "gallery_views": 2, "attribution": "alansartlog, CC BY 4.0"}},
+           "preprocessing": {"grid": 32}, "radiographs": {"circular": {"detector_width": 32, "detector_height": 32,
+                                                                        "n_views": 12}},
+           "baselines": {"enabled": False}, "sfm": {"enabled": False},
+           "grid": {"axes": {"init": ["uniform"], "compositor": ["radiative"], "mip": ["on"], "poses": ["gt"],
+                             "views": [8], "seed": [0]}}}
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(cfg))
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    base = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(tmp_path), "--cores", "2"]
+    cfg_arg = ["--configfile", str(tmp_path / "config.yaml")]  # list-valued: targets go before it
+    dry = subprocess.run([*base, "-n", *cfg_arg], capture_output=True, text=True, env=env, timeout=300)
+    assert dry.returncode == 0, dry.stderr[-3000:]
+    blocks = re.split(r"\n(?:local)?rule ", dry.stdout)
+    skull_rules = {b.split(":", 1)[0] for b in blocks if "volume=skull" in b}
+    assert skull_rules == {"photos_sfm", "photos_train"}  # no CT rule is scheduled for the photo volume
+    run = subprocess.run([*base, "results/skull/photos/run/metrics.json", *cfg_arg], capture_output=True, text=True,
+                         env=env, timeout=600)
+    assert run.returncode == 0, run.stderr[-4000:]
+    metrics = json.loads((tmp_path / "results/skull/photos/run/metrics.json").read_text())
+    assert metrics["sfm"]["n_registered"] >= 9 and metrics["n_test"] == 2 and metrics["psnr"] > 10
+    assert metrics["attribution"] == "alansartlog, CC BY 4.0"
+    for f in ("figures/gallery.png", "figures/turntable.gif", "train_log.csv", "model.ply"):
+        assert (tmp_path / "results/skull/photos/run" / f).is_file()
+    assert not (tmp_path / "results/phantom").exists()  # only the photo target was asked for
