@@ -200,7 +200,7 @@ def _cfg(scene: Path, **kw) -> dict:
         "volume": str(scene / "volume.nii.gz"), "radiographs": str(scene / "rad"), "init": "fbp", "n_init": 600,
         "iterations": 200, "eval_every": 100, "checkpoint_every": 100, "device": "cpu", "densify": {"interval": 0},
         "figures": False, "progress": False, "lambda_tv": 0.0, "perturb_rot_deg": 2.0, "perturb_trans_mm": 0.5,
-        "pose_refine": {"start": 40, "lr_rot_deg": 0.05, "lr_trans_mm": 0.05},
+        "pose_refine": {"start": 60, "lr_rot_deg": 0.05, "lr_trans_mm": 0.05},
     }
     cfg.update(kw)
     return cfg
@@ -214,14 +214,17 @@ def _last_psnr(run: Path) -> float:
 
 
 def test_refinement_lowers_pose_error_and_raises_val_psnr(scene_dir: Path, tmp_path: Path) -> None:
-    plain = loop.train(_cfg(scene_dir, poses="perturbed"), tmp_path / "plain")
-    refined = loop.train(_cfg(scene_dir, poses="perturbed+refine"), tmp_path / "refined")
+    # 400 iterations (about 5 s): the median rotation error drops from 2.0 to about 1.7 deg and validation PSNR
+    # rises by about 0.7 dB; the azimuth part of a parallel-beam error is the slowest to go (sparse views)
+    kw = {"iterations": 400, "eval_every": 200, "checkpoint_every": 200}
+    plain = loop.train(_cfg(scene_dir, poses="perturbed", **kw), tmp_path / "plain")
+    refined = loop.train(_cfg(scene_dir, poses="perturbed+refine", **kw), tmp_path / "refined")
     assert plain["pose_rot_err_median_deg_before"] > 1.0
     assert plain["pose_rot_err_median_deg_after"] == plain["pose_rot_err_median_deg_before"]
     assert refined["pose_rot_err_median_deg_before"] == plain["pose_rot_err_median_deg_before"]
-    assert refined["pose_rot_err_median_deg_after"] < refined["pose_rot_err_median_deg_before"]
+    assert refined["pose_rot_err_median_deg_after"] < refined["pose_rot_err_median_deg_before"] - 0.15
     assert refined["pose_iso_err_median_mm_after"] < refined["pose_iso_err_median_mm_before"]
-    assert _last_psnr(tmp_path / "refined") > _last_psnr(tmp_path / "plain")
+    assert _last_psnr(tmp_path / "refined") > _last_psnr(tmp_path / "plain") + 0.3
     rv = json.loads((tmp_path / "refined" / "refined_views.json").read_text())
     assert len(rv["views"]) == refined["n_train_views"] and not (tmp_path / "plain" / "refined_views.json").exists()
 
