@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from ctsplat.evaluation import evaluate
 from ctsplat.geometry.cameras import ConeCamera, ParallelCamera, pose_from_angles
 from ctsplat.grid import needs_sfm, uses_colmap
 from ctsplat.splat.gaussians import Gaussians
@@ -200,6 +201,7 @@ def _cfg(scene: Path, **kw) -> dict:
         "volume": str(scene / "volume.nii.gz"), "radiographs": str(scene / "rad"), "init": "fbp", "n_init": 600,
         "iterations": 200, "eval_every": 100, "checkpoint_every": 100, "device": "cpu", "densify": {"interval": 0},
         "figures": False, "progress": False, "lambda_tv": 0.0, "perturb_rot_deg": 2.0, "perturb_trans_mm": 0.5,
+        "fps_width": 32, "fps_height": 18,
         "pose_refine": {"start": 60, "lr_rot_deg": 0.05, "lr_trans_mm": 0.05},
     }
     cfg.update(kw)
@@ -227,6 +229,13 @@ def test_refinement_lowers_pose_error_and_raises_val_psnr(scene_dir: Path, tmp_p
     assert _last_psnr(tmp_path / "refined") > _last_psnr(tmp_path / "plain") + 0.3
     rv = json.loads((tmp_path / "refined" / "refined_views.json").read_text())
     assert len(rv["views"]) == refined["n_train_views"] and not (tmp_path / "plain" / "refined_views.json").exists()
+    # the gauge: no common world rotation is left in the corrections the run ended with
+    om = np.radians([v["omega_deg"] for v in rv["views"]])
+    R0 = np.array([v["R_start"] for v in rv["views"]])
+    assert np.abs(np.einsum("vji,vj->i", R0, om)).max() / len(om) < 1e-5 < np.abs(om).max()
+    # the pose errors reach metrics.json
+    res = evaluate(tmp_path / "refined", device="cpu", write=False)
+    assert res["pose_rot_err_median_deg_after"] == refined["pose_rot_err_median_deg_after"]
 
 
 def test_resume_continues_the_corrections_exactly(scene_dir: Path, tmp_path: Path) -> None:
