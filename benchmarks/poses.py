@@ -177,6 +177,7 @@ def run(argv: list[str] | None = None) -> int:
                 "psnr2d_test": res["psnr2d"],
                 **{k: trained.get(f"pose_{k}") for k in (
                     "rot_err_median_deg_before", "rot_err_p90_deg_before", "rot_err_median_deg_after",
+                    "rot_err_aligned_median_deg_before", "rot_err_aligned_median_deg_after",
                     "rot_err_p90_deg_after", "iso_err_median_mm_before", "iso_err_median_mm_after")},
                 "wall_time_s": trained["wall_time_s"], "total_time_s": round(time.perf_counter() - t0, 3),
                 "n_gaussians": res["n_gaussians"], "config_hash": res["config_hash"], "settings": " ".join(args.set),

@@ -36,12 +36,13 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     # gt: the true poses; perturbed: the true poses with a seeded per-view C-arm error (perturb_*); colmap: SfM's.
     # `+refine` refines the training poses jointly with the Gaussians (as pose_refine.enabled does)
     "poses": "gt",
-    "perturb_rot_deg": 1.0,  # poses: perturbed: azimuth and elevation errors, N(0, σ²) each (degrees)
+    # poses: perturbed, drawn from `seed`: azimuth and elevation errors, N(0, σ²) each (degrees)
+    "perturb_rot_deg": 1.0,
     "perturb_trans_mm": 0.5,  # poses: perturbed: isocentre shift, N(0, σ² I) (mm)
     # per-view rigid corrections of the training cameras about the designed isocentre (ctsplat.training.poses),
     # stepped from iteration `start` on by their own Adam (rates per step, same cosine as the Gaussians), with a
     # Gaussian prior of these standard deviations times `prior_weight` in the loss; held-out views are not refined
-    "pose_refine": {"enabled": False, "start": 300, "lr_rot_deg": 0.02, "lr_trans_mm": 0.02, "prior_rot_deg": 2.0,
+    "pose_refine": {"enabled": False, "start": 300, "lr_rot_deg": 0.05, "lr_trans_mm": 0.05, "prior_rot_deg": 2.0,
                     "prior_trans_mm": 2.0, "prior_weight": 1e-4},
     "sfm_dir": "",  # folder of the sfm step (aligned_views.json, summary.json, points3d.ply)
     # poses: colmap: the radiographs folder of the view set SfM registered ("": the one its summary.json names)

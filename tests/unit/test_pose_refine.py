@@ -163,6 +163,12 @@ def test_perturbed_poses_and_errors() -> None:
     assert 0.7 < err["rot_err_median_deg"] < 1.8 and err["rot_err_p90_deg"] > err["rot_err_median_deg"]
     assert 0.2 < err["iso_err_median_mm"] < 1.5
     assert poses.pose_errors(Rs, ts, Rs, ts, ISO, "parallel")["rot_err_p90_deg"] < 1e-6
+    # a common rotation of every camera is the gauge: the aligned error ignores it
+    from scipy.spatial.transform import Rotation
+
+    G = Rotation.from_rotvec([0.01, -0.02, 0.015]).as_matrix()
+    moved = poses.pose_errors(Rs @ G, ts, Rs, ts, ISO, "cone")
+    assert moved["rot_err_median_deg"] > 1.0 and moved["rot_err_aligned_p90_deg"] < 1e-6
 
 
 # ------------------------------------------------------------------------------------ training run
