@@ -8,7 +8,13 @@ from snakemake.utils import Paramspace
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS
 from ctsplat.config import prepare_config
-from ctsplat.grid import expand_grid, needs_sfm, run_axes, uses_colmap, with_train_overrides
+from ctsplat.grid import (
+    expand_grid,
+    needs_sfm,
+    run_axes,
+    uses_colmap,
+    with_train_overrides,
+)
 from ctsplat.utils import CtsplatError, config_hash
 
 try:
