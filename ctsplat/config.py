@@ -624,7 +624,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("train", "device"): {"type": "string", "pattern": "^(auto|cpu|cuda(:[0-9]+)?)$"},
     ("train", "init"): {"enum": ["volume", "uniform", "fbp", "sfm"]},
     ("train", "compositor"): {"enum": ["radiative", "radiative_unrectified", "alpha"]},
-    ("train", "poses"): {"enum": ["gt", "colmap"]},
+    ("train", "poses"): {"enum": ["gt", "perturbed", "colmap", "gt+refine", "perturbed+refine", "colmap+refine"]},
     ("baselines", "methods"): {"type": "array", "minItems": 1, "uniqueItems": True,
                                "items": {"enum": ["fbp", "fdk", "sart", "asd_pocs", "mbir"]}},
     ("baselines", "fbp_filters"): {"type": "array", "minItems": 1,

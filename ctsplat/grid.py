@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     import pandas as pd
 
 __all__ = ["GRID_AXES", "FEATURE_AXES", "ALL_AXES", "expand_grid", "normalise_mip", "run_axes", "run_relpath",
-           "parse_run_dir", "needs_sfm", "train_overrides", "with_train_overrides"]
+           "parse_run_dir", "needs_sfm", "uses_colmap", "train_overrides", "with_train_overrides"]
 
 #: The ablation axes every grid has, in the folder nesting order of a run directory.
 GRID_AXES: tuple[str, ...] = ("init", "compositor", "mip", "poses", "views", "seed")
@@ -237,7 +237,8 @@ def expand_grid(
 
 
 def needs_sfm(runs: Any, *, enabled: bool = False) -> bool:
-    """Whether SfM must run for these grid cells: when ``enabled`` or when a cell uses COLMAP poses or SfM points.
+    """Whether SfM must run for these grid cells: when ``enabled`` or when a cell uses COLMAP poses (``colmap``,
+    ``colmap+refine``) or SfM points.
 
     Parameters
     ----------
@@ -250,7 +251,27 @@ def needs_sfm(runs: Any, *, enabled: bool = False) -> bool:
     -------
     bool
     """
-    return bool(enabled) or bool(((runs["poses"] == "colmap") | (runs["init"] == "sfm")).any())
+    return bool(enabled) or bool((runs["poses"].map(uses_colmap) | (runs["init"] == "sfm")).any())
+
+
+def uses_colmap(poses: Any) -> bool:
+    """Whether a ``poses`` value trains on the poses SfM recovered (``colmap``, ``colmap+refine``).
+
+    Parameters
+    ----------
+    poses : str
+        A ``poses`` axis value.
+
+    Returns
+    -------
+    bool
+
+    Examples
+    --------
+    >>> uses_colmap("colmap+refine"), uses_colmap("perturbed")
+    (True, False)
+    """
+    return str(poses).removesuffix("+refine") == "colmap"
 
 
 def run_relpath(row: Mapping[str, Any]) -> str:

@@ -5,8 +5,15 @@ Two pose sources:
 
 - ``poses: gt`` — training views are the ``train`` split of the training geometry's view set, at their true
   poses;
+- ``poses: perturbed`` — as ``gt``, but the training poses carry a seeded per-view C-arm error (azimuth and
+  elevation N(0, ``perturb_rot_deg``²), isocentre shift N(0, ``perturb_trans_mm``² I);
+  :func:`ctsplat.training.poses.perturb_poses`) while the radiographs stay those of the true poses;
 - ``poses: colmap`` — training views are views of the C-arm view set that SfM registered, with the poses SfM
   recovered (``aligned_views.json``) and the radiographs of that view set as targets (same view ids).
+
+A ``+refine`` suffix (``perturbed+refine``, ``colmap+refine``) reads the same scene; the training loop then refines
+the training poses (:mod:`ctsplat.training.poses`). Training views keep their true poses beside the ones trained
+with (``true_Rs``, ``true_ts``) so pose errors can be scored.
 
 In both cases ``views`` (> 0) picks that many training views spread evenly over the candidates in orbit order
 (:func:`even_subset`; ``gt``: the train split ordered by azimuth; ``colmap``: the registered views ordered by view
@@ -55,6 +62,8 @@ class ViewData:
         Line integrals of the normalised volume (mm).
     split : str
         ``"train"``, ``"val"`` or ``"test"``.
+    true_Rs, true_ts : ndarray (V, 3, 3), ndarray (V, 3), optional
+        The true poses of these views when ``Rs``/``ts`` are not (perturbed or SfM training poses); None otherwise.
     """
 
     camera: Any
@@ -65,6 +74,8 @@ class ViewData:
     elevation_deg: np.ndarray
     images: np.ndarray
     split: str
+    true_Rs: np.ndarray | None = None
+    true_ts: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(len(self.ids))
@@ -84,7 +95,20 @@ class ViewData:
         """
         idx = np.asarray(idx, int)
         return ViewData(self.camera, self.ids[idx], self.Rs[idx], self.ts[idx], self.azimuth_deg[idx],
-                        self.elevation_deg[idx], self.images[idx], self.split)
+                        self.elevation_deg[idx], self.images[idx], self.split,
+                        None if self.true_Rs is None else self.true_Rs[idx],
+                        None if self.true_ts is None else self.true_ts[idx])
+
+    def truth(self) -> tuple[np.ndarray, np.ndarray]:
+        """The true poses of these views: ``true_Rs``/``true_ts`` when set, else ``Rs``/``ts``.
+
+        Returns
+        -------
+        Rs, ts : ndarray (V, 3, 3), ndarray (V, 3)
+        """
+        if self.true_Rs is None:
+            return self.Rs, self.ts
+        return self.true_Rs, self.true_ts
 
     @classmethod
     def from_view_set(cls, vs: ViewSet, images: np.ndarray, rows: np.ndarray, split: str, mu_scale: float
@@ -139,6 +163,8 @@ class Scene:
         The volume's ``mu_scale_per_mm`` (1/mm per normalised unit).
     eval_split : str
         The split training validates on: ``"val"``, or ``"test"`` when there are no val views.
+    isocenter_mm : ndarray (3,)
+        The designed isocentre of the training views (world mm): pose corrections turn cameras about it.
     info : dict
         Provenance: view counts, cameras, and for ``poses: colmap`` the SfM registration numbers.
     """
@@ -150,6 +176,7 @@ class Scene:
     mu_scale: float
     eval_split: str
     info: dict[str, Any] = field(default_factory=dict)
+    isocenter_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def split(self, name: str) -> ViewData:
         """The views of one split.
@@ -212,7 +239,8 @@ def _check_volume(vs: ViewSet, volume: Any, where: str) -> None:
                            f"reference volume is {volume.shape}; re-render the radiographs")
 
 
-def _colmap_train(cfg: dict[str, Any], volume: Any, mu_scale: float) -> tuple[ViewData, dict[str, Any]]:
+def _colmap_train(cfg: dict[str, Any], volume: Any, mu_scale: float
+                  ) -> tuple[ViewData, dict[str, Any], np.ndarray]:
     """Training views of the C-arm view set at the poses SfM recovered (see the module docstring)."""
     sfm_dir = Path(cfg["sfm_dir"])
     summary_path = sfm_dir / "summary.json"
@@ -256,12 +284,14 @@ def _colmap_train(cfg: dict[str, Any], volume: Any, mu_scale: float) -> tuple[Vi
         elevation_deg=np.array([v.elevation_deg for v in chosen], float),
         images=(images[[row_of[v.id] for v in chosen]] / mu_scale).astype(np.float32),
         split="train",
+        true_Rs=np.stack([carm.views[row_of[v.id]].R for v in chosen]),
+        true_ts=np.stack([carm.views[row_of[v.id]].t for v in chosen]),
     )
     info = {"sfm_registration_rate": rate, "sfm_views_total": n_total or len(carm),
             "sfm_views_registered": len(registered),
             "views_dropped_unregistered": int((n_total or len(carm)) - len(registered)),
             "sfm_ok": bool(summary.get("ok", False)), "sfm_radiographs": str(rad_dir)}
-    return vd, info
+    return vd, info, carm.isocenter_mm
 
 
 def load_scene(cfg: dict[str, Any]) -> Scene:
@@ -271,7 +301,8 @@ def load_scene(cfg: dict[str, Any]) -> Scene:
     ----------
     cfg : dict
         A resolved ``train`` config (:func:`ctsplat.training.config.resolve_config`): ``volume``,
-        ``radiographs``, ``poses``, ``views``, and for ``poses: colmap`` ``sfm_dir`` (+ ``sfm_radiographs``,
+        ``radiographs``, ``poses``, ``views`` (``perturbed``: ``perturb_rot_deg``, ``perturb_trans_mm``, ``seed``),
+        and for ``poses: colmap`` ``sfm_dir`` (+ ``sfm_radiographs``,
         ``min_registration_rate``).
 
     Returns
@@ -297,8 +328,12 @@ def load_scene(cfg: dict[str, Any]) -> Scene:
         raise CtsplatError(f"volume {cfg['volume']} has a non-positive mu_scale_per_mm ({mu_scale})")
     split_rows = {s: vs.indices(s) for s in SPLITS}
     info: dict[str, Any] = {"views_dropped_unregistered": 0}
-    if cfg["poses"] == "colmap":
-        train, extra = _colmap_train(cfg, volume, mu_scale)
+    from ctsplat.training.poses import perturb_poses, pose_source
+
+    source = pose_source(cfg["poses"])
+    iso = vs.isocenter_mm.copy()
+    if source == "colmap":
+        train, extra, iso = _colmap_train(cfg, volume, mu_scale)
         info.update(extra)
     else:
         if split_rows["train"].size == 0:
@@ -312,6 +347,10 @@ def load_scene(cfg: dict[str, Any]) -> Scene:
                                f"{rows.size}; lower views or render more")
         rows = rows[order][even_subset(rows.size, want)]
         train = ViewData.from_view_set(vs, images, rows, "train", mu_scale)
+        if source == "perturbed" and len(train):
+            train.true_Rs, train.true_ts = train.Rs, train.ts
+            train.Rs, train.ts = perturb_poses(train.Rs, train.ts, iso, float(cfg["perturb_rot_deg"]),
+                                               float(cfg["perturb_trans_mm"]), int(cfg["seed"]))
     if len(train) == 0:
         raise CtsplatError("the train split is empty after selecting views; check train.views and the view set")
     if split_rows["test"].size == 0 and split_rows["val"].size == 0:
@@ -324,4 +363,5 @@ def load_scene(cfg: dict[str, Any]) -> Scene:
     val = ViewData.from_view_set(vs, images, val_rows, eval_split, mu_scale)
     info.update(n_train_views=len(train), n_val_views=len(val), n_test_views=len(test),
                 radiographs_volume_id=vs.volume_id, camera=vs.camera.to_dict(), train_camera=train.camera.to_dict())
-    return Scene(train=train, val=val, test=test, volume=volume, mu_scale=mu_scale, eval_split=eval_split, info=info)
+    return Scene(train=train, val=val, test=test, volume=volume, mu_scale=mu_scale, eval_split=eval_split, info=info,
+                 isocenter_mm=np.asarray(iso, float))

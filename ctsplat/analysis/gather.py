@@ -12,7 +12,7 @@ import pandas as pd
 
 from ctsplat.analysis.stats import convergence_velocity, mean_iters_per_s, milestones
 from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, PER_VIEW_COLUMNS, read_per_view, read_train_log
-from ctsplat.grid import GRID_AXES, parse_run_dir, run_axes
+from ctsplat.grid import GRID_AXES, parse_run_dir, run_axes, uses_colmap
 from ctsplat.utils import CtsplatError, atomic_path
 
 __all__ = ["TEST_METRICS", "SFM_COLUMNS", "velocity_column", "sfm_summary_path", "gather", "load_runs",
@@ -173,7 +173,7 @@ def gather(
             row[velocity_column(per_iters)] = convergence_velocity(log["iteration"], log["psnr2d"], per_iters)
         rows.append(row)
     df = pd.DataFrame(rows)
-    colmap = df["poses"].astype(str) == "colmap"
+    colmap = df["poses"].map(uses_colmap)
     if colmap.any():
         sfm = pd.DataFrame([_sfm_columns(Path(r)) if c else dict.fromkeys(SFM_COLUMNS)
                             for r, c in zip(df["run_dir"], colmap, strict=True)], index=df.index)

@@ -91,7 +91,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="radiographs folder of the view set SfM registered (default: the one sfm's summary names)")
     p.add_argument("--init", help="volume | uniform | fbp | sfm")
     p.add_argument("--compositor", help="radiative | radiative_unrectified | alpha")
-    p.add_argument("--poses", help="gt | colmap")
+    p.add_argument("--poses", help="gt | perturbed | colmap, each optionally +refine (e.g. colmap+refine)")
     p.add_argument("--device", help="auto | cpu | cuda")
     p.add_argument("--seed", type=int)
     p.add_argument("--iterations", type=int)

@@ -449,6 +449,8 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         "config_hash": run_cfg.get("config_hash"),
         "code_version": code_version(),
         "volume_id": scene.volume.volume_id,
+        # training-pose errors against the true poses, before and after pose refinement (training.json)
+        **{k: v for k, v in trained.items() if k.startswith("pose_")},
     }
     if not write:
         return result

@@ -27,13 +27,23 @@ INITS = ("volume", "uniform", "fbp", "sfm")
 OPTIMIZER_PRESETS = ("per_group", "method")
 DENSIFY_STRATEGIES = ("gradient", "error", "both")
 MODEL_SELECTIONS = ("last", "best")
-POSES = ("gt", "colmap")
+POSES = ("gt", "perturbed", "colmap", "gt+refine", "perturbed+refine", "colmap+refine")
 SUPERVISIONS = ("line_integral", "transmission")
 
 TRAIN_DEFAULTS: dict[str, Any] = {
     "volume": "",  # reference volume (.nii.gz): grid for 3D metrics, and the values for init: volume
     "radiographs": "",  # folder with line_integrals.tif + views.json
-    "poses": "gt",  # gt | colmap
+    # gt: the true poses; perturbed: the true poses with a seeded per-view C-arm error (perturb_*); colmap: SfM's.
+    # `+refine` refines the training poses jointly with the Gaussians (as pose_refine.enabled does)
+    "poses": "gt",
+    # poses: perturbed, drawn from `seed`: azimuth and elevation errors, N(0, σ²) each (degrees)
+    "perturb_rot_deg": 1.0,
+    "perturb_trans_mm": 0.5,  # poses: perturbed: isocentre shift, N(0, σ² I) (mm)
+    # per-view rigid corrections of the training cameras about the designed isocentre (ctsplat.training.poses),
+    # stepped from iteration `start` on by their own Adam (rates per step, same cosine as the Gaussians), with a
+    # Gaussian prior of these standard deviations times `prior_weight` in the loss; held-out views are not refined
+    "pose_refine": {"enabled": False, "start": 300, "lr_rot_deg": 0.05, "lr_trans_mm": 0.05, "prior_rot_deg": 2.0,
+                    "prior_trans_mm": 2.0, "prior_weight": 1e-4},
     "sfm_dir": "",  # folder of the sfm step (aligned_views.json, summary.json, points3d.ply)
     # poses: colmap: the radiographs folder of the view set SfM registered ("": the one its summary.json names)
     "sfm_radiographs": "",
@@ -203,6 +213,14 @@ _UNIT = Bound("number", 0, 1)
 #: :func:`resolve_config`, mirrored by the workflow schema (:meth:`Bound.json_schema`).
 TRAIN_BOUNDS: dict[str, Bound] = {
     "min_registration_rate": _UNIT,
+    "perturb_rot_deg": Bound("number", 0, 10),
+    "perturb_trans_mm": Bound("number", 0, 50),
+    "pose_refine.start": _NONNEG_INT,
+    "pose_refine.lr_rot_deg": _POS,
+    "pose_refine.lr_trans_mm": _POS,
+    "pose_refine.prior_rot_deg": _POS,
+    "pose_refine.prior_trans_mm": _POS,
+    "pose_refine.prior_weight": _NONNEG,
     "n_init": _POS_INT,
     "init_top_fraction": Bound("number", 0, 1, low_open=True),
     "init_scale_voxels": Bound("number", 0, low_open=True, nullable=True),
@@ -256,7 +274,7 @@ TRAIN_BOUNDS: dict[str, Bound] = {
     "fps_height": _POS_INT,
 }
 
-_BOOL_KEYS = ("mip", "figures", "progress", "augment.enabled", "densify.prune_redundant.enabled")
+_BOOL_KEYS = ("mip", "figures", "progress", "augment.enabled", "densify.prune_redundant.enabled", "pose_refine.enabled")
 
 
 def _get(cfg: dict[str, Any], dotted: str) -> Any:
@@ -320,7 +338,7 @@ def resolve_config(config: dict[str, Any] | None) -> dict[str, Any]:
         raise CtsplatError("train.volume is empty: give the preprocessed reference volume (.nii.gz)")
     if not cfg["radiographs"]:
         raise CtsplatError("train.radiographs is empty: give the folder written by `ctsplat project`")
-    if (cfg["poses"] == "colmap" or cfg["init"] == "sfm") and not cfg["sfm_dir"]:
+    if (cfg["poses"].startswith("colmap") or cfg["init"] == "sfm") and not cfg["sfm_dir"]:
         raise CtsplatError(f"train.sfm_dir is empty but poses={cfg['poses']}, init={cfg['init']} needs the sfm "
                            "step's folder")
     return cfg

@@ -10,6 +10,13 @@ instead. λρ follows ``lambda_density_warmup`` (:func:`ctsplat.training.feature
 ``augment`` each training render uses a slightly moved camera and a noisy target
 (:class:`ctsplat.training.features.Augmenter`), never the validation renders.
 
+Pose refinement (``pose_refine.enabled`` or ``poses: *+refine``): from iteration ``pose_refine.start`` on, each
+training view's camera carries a rigid correction (:class:`ctsplat.training.poses.PoseCorrection`) rendered as the
+equivalent motion of the Gaussians, stepped by its own Adam together with the Gaussians, with a prior toward the
+starting pose in the loss and the common (unobservable) motion removed after every step. Validation and evaluation
+views keep their recorded poses. The corrected training poses go to ``refined_views.json``; pose errors against
+the true poses, before and after, to ``training.json``.
+
 Optimiser: Adam with one parameter group per quantity (means, log-scales, quaternions, density; plus opacity and
 colour for the alpha compositor), each with its own learning rate decayed by a cosine from ``lr`` to
 ``lr × lr_final_factor``. Mean learning rates are given in voxels per step (multiplied by the mean voxel edge).
@@ -81,6 +88,7 @@ from ctsplat.training.checkpoint import (
 from ctsplat.training.config import mip_filter, render_kwargs, resolve_config
 from ctsplat.training.densify import make_densify, reset_stats
 from ctsplat.training.features import Augmenter, density_lambda
+from ctsplat.training.poses import PoseCorrection, pose_errors, refine_enabled
 from ctsplat.training.seeding import make_seed
 from ctsplat.training.state import (
     TrainState,
@@ -113,7 +121,7 @@ log = logging.getLogger(__name__)
 #: Files of a run folder that a fresh (not resumed) training run removes first: outputs of an earlier run that
 #: would otherwise sit beside the new model.
 RUN_OUTPUTS = ("training.json", "metrics.json", "model.pt", "model_best.pt", "model.ply", "model_volume.nii.gz",
-               "per_view_test.csv")
+               "per_view_test.csv", "refined_views.json")
 
 
 def _check_writable(out_dir: Path) -> None:
@@ -332,6 +340,10 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
         state.err_count = torch.zeros_like(state.err_accum)
     tr = scene.train
     augment = Augmenter(cfg["augment"], tr.camera, vol.center_mm())
+    state.pose, state.pose_opt = _make_pose_refiner(cfg, scene, device)
+    if ckpt is not None and state.pose is not None:
+        _load_pose(state, ckpt)
+    pr_start = int(cfg["pose_refine"]["start"])
     state.filter_var = mip_filter(cfg, as_gaussians(state.params), tr.camera, tr.Rs, tr.ts)
     psnr_empty = _empty_psnr(val)
     if "psnr_initial" not in state.health:
@@ -342,6 +354,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     lam = {k: float(cfg[k]) for k in ("lambda_l1", "lambda_ssim", "lambda_density", "lambda_scale", "lambda_tv")}
     lambda_density = lam["lambda_density"]
     snap = snapshot(state)
+    pose_snap = _pose_snapshot(state)
     show = bool(cfg["progress"]) and sys.stderr.isatty()
     from tqdm import tqdm
 
@@ -355,6 +368,10 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
         f = cosine_factor(it - 1, total, float(cfg["lr_final_factor"])) * state.lr_factor
         for g_ in state.opt.param_groups:
             g_["lr"] = g_["initial_lr"] * f
+        refining = state.pose is not None and it > pr_start
+        if state.pose_opt is not None:
+            for g_ in state.pose_opt.param_groups:
+                g_["lr"] = g_["initial_lr"] * f
         if not state.queue:
             state.queue = sampler.refill(rng)
         batch = state.queue.pop(0)
@@ -370,7 +387,8 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
             imgs = []
             for vi in batch:
                 R_i, t_i = augment.pose(tr_R[vi], tr_t[vi], rng)
-                out = render(g, scene.train.camera, R_i, t_i, **rk)
+                g_i = as_gaussians(state.pose.transform(state.params, vi)) if refining else g
+                out = render(g_i, scene.train.camera, R_i, t_i, **rk)
                 img = out.image.mean(-1) if out.image.ndim == 3 else out.image
                 outs.append(out)
                 if cfg["supervision"] == "transmission":
@@ -385,6 +403,8 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                                   region=tv_region, filter_3d_var=rk.get("filter_3d_var"))
             loss, terms = losses.total_loss(pred, ref, density=g.densities, scales=g.scales, data_range=1.0,
                                             tv_volume=tv_vol, **lam)
+            if refining:
+                loss = loss + state.pose.prior(batch)
             ok = bool(torch.isfinite(loss))
         err_ratios = []
         if ok and densify.wants_error and densify.collecting(it):
@@ -392,8 +412,12 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                           for k, out in enumerate(outs)]
         if ok:
             state.opt.zero_grad(set_to_none=True)
+            if refining:
+                state.pose_opt.zero_grad(set_to_none=True)
             loss.backward()
             ok = all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in state.params.values())
+            if ok and refining:
+                ok = all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in state.pose.parameters())
         if ok:
             with torch.no_grad():
                 for out in outs:
@@ -401,7 +425,10 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                 for ratios in err_ratios:
                     densify.accumulate_error(state, ratios)
             state.opt.step()
-            ok = params_finite(state.params)
+            if refining:
+                state.pose_opt.step()
+                state.pose.fix_gauge()
+            ok = params_finite(state.params) and (not refining or params_finite(dict(state.pose.named_parameters())))
         if not ok:
             state.nan_events += 1
             state.nan_consecutive += 1
@@ -412,6 +439,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                         "(%d in a row, %d in the last %d iterations)", it, state.lr_factor, state.nan_consecutive,
                         len(state.nan_iters), window)
             restore(state, snap)
+            _pose_restore(state, pose_snap)
             if state.nan_consecutive >= int(cfg["nan_max_consecutive"]):
                 bar.close()
                 raise CtsplatError(
@@ -439,6 +467,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
             state.filter_var = mip_filter(cfg, as_gaussians(state.params), tr.camera, tr.Rs, tr.ts)
         if ok and (counts is not None or it % 10 == 0):
             snap = snapshot(state)
+            pose_snap = _pose_snapshot(state)
 
         bar.update(1)
         if it % int(cfg["eval_every"]) == 0 or it == total:
@@ -456,6 +485,10 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
             train_log.append([row])
             view_log.append(per_view)
             bar.set_postfix(loss=f"{last_loss:.4f}", psnr=f"{row['psnr2d']:.2f}", n=row["n_gaussians"])
+            if state.pose is not None:
+                err = _pose_errors(state, scene)
+                log.info("pose refinement at %d: median rotation error %.3f deg, isocentre %.3f mm", it,
+                         err["pose_rot_err_median_deg_after"], err["pose_iso_err_median_mm_after"])
             reason = _collapse_reason(state, cfg, row, it == total, psnr_empty)
             if reason:
                 bar.close()
@@ -507,7 +540,88 @@ def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: 
         "config_hash": chash,
         "code_version": code_version(),
     }
+    summary.update(pose_refine=state.pose is not None, **_pose_errors(state, scene))
+    if state.pose is not None:
+        _write_refined_views(state, scene, out_dir)
     summary["peak_memory_mb"], summary["peak_memory_kind"] = peak_memory_mb(device)
     summary["peak_memory_mb"] = round(summary["peak_memory_mb"], 1)
     write_json_atomic(out_dir / "training.json", json_safe(summary))
     return summary
+
+
+# ------------------------------------------------------------------------------------------ pose refinement
+def _make_pose_refiner(cfg: dict[str, Any], scene: Scene, device: torch.device
+                       ) -> tuple[PoseCorrection | None, torch.optim.Adam | None]:
+    """The training views' pose corrections and their Adam (rates in radians and mm per step), or None, None."""
+    if not refine_enabled(cfg):
+        return None, None
+    pr = cfg["pose_refine"]
+    tr = scene.train
+    pose = PoseCorrection(tr.Rs, tr.ts, scene.isocenter_mm, tr.camera.model, prior_rot_deg=float(pr["prior_rot_deg"]),
+                          prior_trans_mm=float(pr["prior_trans_mm"]), prior_weight=float(pr["prior_weight"]),
+                          device=device)
+    groups = [{"params": [pose.omega], "lr": math.radians(float(pr["lr_rot_deg"])), "name": "pose_rot"},
+              {"params": [pose.tau], "lr": float(pr["lr_trans_mm"]), "name": "pose_trans"}]
+    for g_ in groups:
+        g_["initial_lr"] = g_["lr"]
+    return pose, torch.optim.Adam(groups, eps=1e-15)
+
+
+def _load_pose(state: TrainState, ckpt: Checkpoint) -> None:
+    """The corrections and their optimiser state of a checkpoint (a resumed run continues them exactly)."""
+    stored = ckpt.payload.get("pose")
+    if stored is None:
+        raise CtsplatError(f"checkpoint {ckpt.path} has no pose corrections although pose refinement is on; start "
+                           "over (ctsplat train --restart)")
+    state.pose.load(stored["corrections"])
+    state.pose_opt.load_state_dict(stored["optimizer"])
+
+
+def _pose_snapshot(state: TrainState) -> dict[str, Any] | None:
+    """A copy of the corrections and their Adam state to roll back to after a non-finite step."""
+    if state.pose is None:
+        return None
+    import copy
+
+    return {"corrections": state.pose.state(), "optimizer": copy.deepcopy(state.pose_opt.state_dict())}
+
+
+def _pose_restore(state: TrainState, snap: dict[str, Any] | None) -> None:
+    if state.pose is None or snap is None:
+        return
+    state.pose.load(snap["corrections"])
+    state.pose_opt.load_state_dict(snap["optimizer"])
+
+
+def _pose_errors(state: TrainState, scene: Scene) -> dict[str, float]:
+    """Rotation and isocentre errors of the training poses against the true ones, before and after refinement."""
+    tr = scene.train
+    Rs_true, ts_true = tr.truth()
+    model = tr.camera.model
+    before = pose_errors(tr.Rs, tr.ts, Rs_true, ts_true, scene.isocenter_mm, model)
+    if state.pose is None:
+        after = before
+    else:
+        Rs, ts = state.pose.corrected_poses()
+        after = pose_errors(Rs, ts, Rs_true, ts_true, scene.isocenter_mm, model)
+    out = {f"pose_{k}_before": v for k, v in before.items()}
+    out.update({f"pose_{k}_after": v for k, v in after.items()})
+    return out
+
+
+def _write_refined_views(state: TrainState, scene: Scene, out_dir: Path) -> None:
+    """``refined_views.json``: the corrected training poses with their corrections and starting poses."""
+    tr = scene.train
+    Rs, ts = state.pose.corrected_poses()
+    om = np.degrees(state.pose.omega.detach().cpu().double().numpy())
+    ta = (state.pose.tau * state.pose.mask).detach().cpu().double().numpy()
+    views = [{"id": int(tr.ids[i]), "R": Rs[i].tolist(), "t": ts[i].tolist(), "R_start": tr.Rs[i].tolist(),
+              "t_start": tr.ts[i].tolist(), "omega_deg": om[i].tolist(), "tau_mm": ta[i].tolist()}
+             for i in range(len(tr))]
+    write_json_atomic(out_dir / "refined_views.json", {
+        "format": "ctsplat.refined_views", "format_version": 1, "camera": tr.camera.to_dict(),
+        "isocenter_mm": np.asarray(scene.isocenter_mm, float).tolist(),
+        "convention": "x_cam = R x + t (OpenCV); omega (deg, camera frame) turns the camera about the isocentre, "
+                      "tau (mm, camera frame) shifts it: R = exp(omega) R_start, t = exp(omega) (t_start - c) + c + "
+                      "tau, c = R_start iso + t_start",
+        "views": views})

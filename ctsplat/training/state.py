@@ -207,6 +207,8 @@ class TrainState:
         Mip 3D filter variance (mm²); recomputed, not checkpointed.
     densify_counts : dict of str to int
         Cloned, split and pruned Gaussians so far.
+    pose, pose_opt : PoseCorrection, torch.optim.Adam or None
+        Per-view pose corrections of the training views and their optimiser (pose refinement only).
     health : dict
         Collapse watch (:mod:`ctsplat.training.loop`): ``psnr_initial`` (dB), ``loss_first`` (mean loss of the
         first validation interval), ``loss_sum`` / ``loss_n`` (finite losses since the last validation),
@@ -229,6 +231,8 @@ class TrainState:
     filter_var: torch.Tensor | None = None
     densify_counts: dict[str, int] = field(default_factory=lambda: {"cloned": 0, "split": 0, "pruned": 0})
     health: dict[str, Any] = field(default_factory=dict)
+    pose: Any = None
+    pose_opt: Any = None
 
 
 class ViewSampler:

@@ -8,7 +8,13 @@ from snakemake.utils import Paramspace
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS
 from ctsplat.config import prepare_config
-from ctsplat.grid import expand_grid, needs_sfm, run_axes, with_train_overrides
+from ctsplat.grid import (
+    expand_grid,
+    needs_sfm,
+    run_axes,
+    uses_colmap,
+    with_train_overrides,
+)
 from ctsplat.utils import CtsplatError, config_hash
 
 try:
@@ -137,7 +143,7 @@ def sfm_inputs(wildcards):
 def run_inputs(wildcards):
     """Inputs of `train` and `evaluate`: the reference volume, the training geometry's view set, SfM when used.
 
-    With poses: colmap the training targets are the C-arm view set's radiographs at the poses SfM recovered.
+    With poses: colmap (or colmap+refine) the training targets are the C-arm view set's radiographs at the poses SfM recovered.
     """
     rd = radiographs_dir(wildcards.volume, GEOMETRY)
     inputs = {
@@ -145,7 +151,7 @@ def run_inputs(wildcards):
         "line_integrals": f"{rd}/line_integrals.tif",
         "views": f"{rd}/views.json",
     }
-    if wildcards.poses == "colmap" or wildcards.init == "sfm":
+    if uses_colmap(wildcards.poses) or wildcards.init == "sfm":
         inputs["sfm"] = f"{RESULTS}/{wildcards.volume}/sfm/summary.json"
         sfm_rd = radiographs_dir(wildcards.volume, SFM_GEOMETRY)
         inputs["sfm_views"] = f"{sfm_rd}/views.json"
@@ -238,7 +244,7 @@ def sfm_summaries():
     return [
         f"{RESULTS}/{v}/sfm/summary.json"
         for v in VOLUMES
-        if (RUNS[RUNS["volume"] == v]["poses"] == "colmap").any()
+        if RUNS[RUNS["volume"] == v]["poses"].map(uses_colmap).any()
     ]
 
 
