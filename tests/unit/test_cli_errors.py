@@ -156,7 +156,10 @@ def test_ctrl_c_exits_130_with_one_line(scene, tmp_path):
     run = tmp_path / "run"
     cmd = [*CTSPLAT, "train", "--volume", str(vol), "--radiographs", str(rad), "--out",
            str(run), "--iterations", "1000000", "--no-evaluate", *TINY_TRAIN]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    # a background job (nohup, `cmd &`) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt: give
+    # the child the default disposition a terminal's foreground job has
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(),
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and proc.poll() is None:
