@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from train_helpers import N, write_tiny_scene
 
 from ctsplat.evaluation import evaluate
 from ctsplat.geometry.cameras import ConeCamera, ParallelCamera, pose_from_angles
@@ -176,10 +177,6 @@ def test_perturbed_poses_and_errors() -> None:
 
 
 # ------------------------------------------------------------------------------------ training run
-N = 20
-MU = 0.02
-
-
 def _phantom() -> tuple[np.ndarray, np.ndarray]:
     x = np.stack(np.meshgrid(*[np.arange(N)] * 3, indexing="ij"), -1).astype(float)
     c = (N - 1) / 2
@@ -194,16 +191,8 @@ def _phantom() -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def scene_dir(tmp_path_factory) -> Path:
-    from ctsplat.formats.volume import Volume, save_volume
-    from ctsplat.projector import render_radiographs
-
-    root = tmp_path_factory.mktemp("pose_scene")
     data, aff = _phantom()
-    save_volume(Volume(data, aff, {"volume_id": "tinypose", "intensity": {"mu_scale_per_mm": MU}}),
-                root / "volume.nii.gz")
-    render_radiographs(root / "volume.nii.gz", root / "rad",
-                       {"detector_width": 24, "detector_height": 24, "n_views": 24, "device": "cpu"})
-    return root
+    return write_tiny_scene(tmp_path_factory.mktemp("pose_scene"), data, aff, volume_id="tinypose", n_views=24)
 
 
 def _cfg(scene: Path, **kw) -> dict:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from train_helpers import tiny_phantom, tiny_train_cfg, write_tiny_scene
 
 from ctsplat.evaluation import evaluate
 from ctsplat.geometry.cameras import ParallelCamera, look_at, project_points
@@ -21,44 +22,14 @@ from ctsplat.training import config, features, loop, state
 from ctsplat.training.densify import ErrorDensify, GradientDensify, make_densify, reset_stats
 from ctsplat.utils import CtsplatError
 
-N = 20  # voxels per side of the tiny phantom
-MU = 0.02
-
-
-def _phantom() -> tuple[np.ndarray, np.ndarray]:
-    x = np.stack(np.meshgrid(*[np.arange(N)] * 3, indexing="ij"), -1).astype(float)
-    c = (N - 1) / 2
-    outer = np.linalg.norm((x - c) / np.array([7.0, 6.0, 5.0]), axis=-1) < 1
-    inner = np.linalg.norm((x - np.array([7.0, 9.0, 10.0])) / 2.5, axis=-1) < 1
-    data = (0.6 * outer + 0.4 * inner).astype(np.float32)
-    aff = np.diag([2.0, 2.0, 2.0, 1.0])
-    aff[:3, 3] = -19.0
-    return data, aff
-
 
 @pytest.fixture(scope="module")
 def scene_dir(tmp_path_factory) -> Path:
-    from ctsplat.formats.volume import Volume, save_volume
-    from ctsplat.projector import render_radiographs
-
-    root = tmp_path_factory.mktemp("scene")
-    data, aff = _phantom()
-    save_volume(Volume(data, aff, {"volume_id": "tiny01", "intensity": {"mu_scale_per_mm": MU}}),
-                root / "volume.nii.gz")
-    render_radiographs(root / "volume.nii.gz", root / "rad",
-                       {"detector_width": 24, "detector_height": 24, "n_views": 12, "device": "cpu"})
-    return root
+    data, aff = tiny_phantom()
+    return write_tiny_scene(tmp_path_factory.mktemp("scene"), data, aff, volume_id="tiny01", n_views=12)
 
 
-def _cfg(scene: Path, **kw) -> dict:
-    cfg = {
-        "volume": str(scene / "volume.nii.gz"), "radiographs": str(scene / "rad"), "init": "volume",
-        "n_init": 300, "iterations": 30, "eval_every": 10, "checkpoint_every": 10, "device": "cpu",
-        "densify": {"interval": 10, "start": 10}, "figures": False, "fps_width": 32, "fps_height": 18,
-        "progress": False, "lambda_tv": 0.0,
-    }
-    cfg.update(kw)
-    return cfg
+_cfg = tiny_train_cfg
 
 
 def _rows(path: Path) -> list[dict]:
