@@ -113,13 +113,6 @@ def train_config(sets: list[str], iterations: int, n_init: int, init: str) -> di
     return check_section("train", cfg)
 
 
-def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = _merge(out.get(k) or {}, v) if isinstance(v, dict) else v
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
     from ctsplat.utils import CtsplatError
 
@@ -158,6 +151,7 @@ def run(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from ctsplat.evaluation import evaluate
     from ctsplat.training import train
+    from ctsplat.utils import deep_update
 
     shared = train_config(args.set, args.iterations, args.n_init, args.init)  # refused before any work
     data = Path(args.data)
@@ -176,7 +170,7 @@ def run(argv: list[str] | None = None) -> int:
         vol, rad = prepare(data, cache, args.grid, n, 10, 100, args.detector)
         base_val = None
         for variant in variants:
-            cfg = _merge({**shared, "volume": str(vol), "radiographs": str(rad)}, VARIANTS[variant])
+            cfg = deep_update({**shared, "volume": str(vol), "radiographs": str(rad)}, VARIANTS[variant])
             run_dir = out / f"run_baseline_n{n:03d}" if variant == "best_model" else out / f"run_{variant}_n{n:03d}"
             model = "best" if variant == "best_model" else "last"
             t0 = time.perf_counter()

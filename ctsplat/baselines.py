@@ -543,6 +543,7 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
     rows: list[dict[str, Any]] = []
     trials: list[dict[str, Any]] = []
     volumes: dict[str, np.ndarray] = {}
+    test = Validator(p_all[test_rows], vs_all.subset("test"), volume) if test_rows.size else None
     for requested, idx in zip(counts, subsets, strict=True):
         if requested and len(idx) < requested:
             log.warning("baselines: %d views requested but the %s split has %d; using all", requested,
@@ -559,8 +560,7 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
                    "ssim3d": ssim3d(c.volume, ref), "seconds": c.seconds, "val_psnr": c.val_psnr,
                    "params": json.dumps(c.params, sort_keys=True), "psnr2d": float("nan"), "ssim2d": float("nan"),
                    "selection_seconds": c.selection_seconds, "best_on_val": c is best}
-            if test_rows.size:
-                test = Validator(p_all[test_rows], vs_all.subset("test"), volume)
+            if test is not None:
                 pred, target = test.render(c.volume), test.target
                 row["psnr2d"] = float(np.mean([psnr(a, b) for a, b in zip(pred, target, strict=True)]))
                 row["ssim2d"] = float(np.mean([ssim2d(a, b) for a, b in zip(pred, target, strict=True)]))

@@ -17,7 +17,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ctsplat.utils import CtsplatError
+from ctsplat.utils import CtsplatError, deep_update
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -125,13 +125,7 @@ def with_train_overrides(train: Mapping[str, Any], cell: Mapping[str, Any]) -> d
     >>> with_train_overrides({"densify": {"interval": 100, "strategy": "gradient"}}, {"densify": "error"})
     {'densify': {'interval': 100, 'strategy': 'error'}}
     """
-    def merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
-        out = dict(base)
-        for k, v in over.items():
-            out[k] = merge(out.get(k) or {}, v) if isinstance(v, dict) else v
-        return out
-
-    return merge(train, train_overrides(cell))
+    return deep_update(train, train_overrides(cell))
 
 
 def normalise_mip(value: Any, axis: str = "mip") -> str:

@@ -11,7 +11,7 @@ import random
 import subprocess
 import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -27,6 +27,7 @@ __all__ = [
     "json_safe",
     "code_version",
     "config_hash",
+    "deep_update",
     "resolve_device",
     "seed_everything",
     "run_lock",
@@ -384,6 +385,20 @@ def _command_name() -> str:
     if name in ("ctsplat", "__main__.py") and len(argv) > 1 and argv[1].isidentifier():
         name = f"ctsplat {argv[1]}"
     return name
+
+
+def deep_update(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``over`` applied key by key: nested dicts are merged, any other value replaces (no checks).
+
+    Examples
+    --------
+    >>> deep_update({"densify": {"interval": 100, "strategy": "gradient"}}, {"densify": {"strategy": "error"}})
+    {'densify': {'interval': 100, 'strategy': 'error'}}
+    """
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = deep_update(out.get(k) or {}, v) if isinstance(v, dict) else v
+    return out
 
 
 def merge_config(section: str, user: dict[str, Any] | None, defaults: dict[str, Any]) -> dict[str, Any]:

@@ -38,14 +38,16 @@ from typing import Any
 import numpy as np
 import torch
 
+from ctsplat.baselines import FBP_FILTERS
 from ctsplat.formats.viewset import ViewSet
 from ctsplat.recon.operators import check_stack, reference_grid
 from ctsplat.utils import CtsplatError
 
 __all__ = ["FDK_FILTERS", "fdk_volume", "is_circular_cone", "orbit_angles", "ramp_filter"]
 
-#: Apodisation windows of the ramp filter (as ``skimage.transform.iradon`` names them).
-FDK_FILTERS = ("ramp", "shepp-logan", "cosine", "hamming", "hann")
+#: Apodisation windows of the ramp filter: the ones slice-wise FBP offers (``skimage.transform.iradon``'s names),
+#: since one ``baselines.fbp_filters`` list feeds both.
+FDK_FILTERS = FBP_FILTERS
 
 
 def ramp_filter(size: int, filter_name: str = "ramp") -> np.ndarray:

@@ -47,6 +47,8 @@ def g_raster() -> int:
 def g_voxel() -> int:
     """Gaussians per ``[G, BRICK³]`` voxelizer block."""
     return G_INTERPRETER if kernels().INTERPRETED else G_GPU
+
+
 INSTALL_HINT = "install the GPU extra: pip install 'ctsplat[gpu]' (or pip install 'triton>=3.2')"
 
 _kernels: ModuleType | None = None

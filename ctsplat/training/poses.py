@@ -44,9 +44,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from ctsplat.splat.gaussians import quat_to_rotmat
 from ctsplat.utils import CtsplatError
 
-__all__ = ["rotvec_to_quat", "quat_to_rotmat", "quat_mul", "correct_pose", "transform_gaussians", "PoseCorrection",
+__all__ = ["rotvec_to_quat", "quat_mul", "correct_pose", "transform_gaussians", "PoseCorrection",
            "pose_errors", "perturb_poses", "pose_source", "refine_enabled"]
 
 
@@ -101,26 +102,6 @@ def rotvec_to_quat(w: torch.Tensor) -> torch.Tensor:
     half = 0.5 * theta
     # sin(θ/2)/θ = ½ sinc(θ/2π) with torch's normalised sinc: finite, smooth at θ = 0
     return torch.cat([torch.cos(half), 0.5 * torch.sinc(half / math.pi) * w], -1)
-
-
-def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices of unit quaternions ``(w, x, y, z)``.
-
-    Parameters
-    ----------
-    q : Tensor (..., 4)
-
-    Returns
-    -------
-    Tensor (..., 3, 3)
-    """
-    w, x, y, z = q.unbind(-1)
-    rows = [
-        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ]
-    return torch.stack(rows, -2)
 
 
 def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
