@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ctsplat.evaluation.metrics import psnr
 from ctsplat.formats.viewset import ViewSet
 from ctsplat.recon.operators import check_stack, reference_grid
 from ctsplat.utils import CtsplatError
@@ -76,8 +77,7 @@ class Validator:
 
     def score(self, volume: np.ndarray | torch.Tensor) -> float:
         """Validation PSNR (dB) of the re-projected line integrals; higher is better."""
-        mse = float(np.mean((self.render(volume) - self.target) ** 2))
-        return float("inf") if mse == 0 else float(10.0 * np.log10(self.data_range**2 / mse))
+        return psnr(self.render(volume), self.target, self.data_range)
 
 
 @dataclass
