@@ -42,4 +42,5 @@ rule all:
     default_target: True
     input:
         all_targets(),
+        sfm_targets,
         PHOTO_TARGETS,

@@ -246,16 +246,19 @@ def _colmap_train(cfg: dict[str, Any], volume: Any, mu_scale: float
     summary_path = sfm_dir / "summary.json"
     if not summary_path.exists():
         raise CtsplatError(f"{summary_path} does not exist; run the sfm step before training with poses: colmap")
+    from ctsplat.sfm.step import sfm_failure  # pycolmap loads only for poses: colmap
+
     summary = json.loads(summary_path.read_text())
     rate = float(summary.get("registration_rate", 0.0))
     n_total = int(summary.get("n_views", 0))
-    if rate < float(cfg["min_registration_rate"]) or not (sfm_dir / "aligned_views.json").exists():
-        raise CtsplatError(
-            f"the SfM run failed ({summary_path}): it registered only {rate:.0%} of {n_total} views (need >= "
-            f"{cfg['min_registration_rate']:.0%} for poses: colmap; {summary.get('reason', 'no aligned poses')}); "
-            "use poses: gt or improve the sfm step")
-    if not summary.get("ok", False):
-        log.warning("sfm summary is not ok (%s); training with its poses anyway", summary.get("reason", ""))
+    failure = sfm_failure(summary)
+    if rate < float(cfg["min_registration_rate"]) and failure is None:
+        failure = f"registered only {rate:.0%} of {n_total} views (need >= {cfg['min_registration_rate']:.0%})"
+    if failure is None and not (sfm_dir / "aligned_views.json").exists():
+        failure = "it wrote no aligned poses (aligned_views.json)"
+    if failure is not None:  # never train on poses the SfM step itself rejected
+        raise CtsplatError(f"the SfM run failed ({summary_path}): {failure}; poses: colmap does not train on failed "
+                           "poses: use poses: gt or improve the sfm step")
     aligned = ViewSet.load(sfm_dir / "aligned_views.json")
     if aligned.volume_id != volume.volume_id:
         raise CtsplatError(f"SfM poses in {sfm_dir} belong to volume {aligned.volume_id}, not {volume.volume_id}; "

@@ -1,7 +1,5 @@
 """Snakemake adapter: rule gather -> ctsplat.analysis.gather.gather (results/summary.csv)."""
 
-from pathlib import Path
-
 from _adapter import logged
 
 from ctsplat.analysis.gather import gather
@@ -9,5 +7,5 @@ from ctsplat.analysis.gather import gather
 with logged(snakemake):  # noqa: F821
     sm = snakemake  # noqa: F821
     cfg = sm.params.analysis
-    gather([Path(p).parent for p in sm.input.metrics], sm.output.summary, thresholds=cfg["milestones"],
-           max_gap_iters=cfg["max_gap_iters"], per_iters=cfg["velocity_per_iters"])
+    gather(sm.params.runs, sm.output.summary, thresholds=cfg["milestones"], max_gap_iters=cfg["max_gap_iters"],
+           per_iters=cfg["velocity_per_iters"], baselines_csvs=list(sm.input.baselines))

@@ -1,5 +1,5 @@
-"""Analysis of training runs: statistics of the logs (:mod:`.stats`), ``summary.csv`` (:mod:`.gather`) and the
-figures of the results chapter (:mod:`.plots`).
+"""Analysis of training runs: statistics of the logs (:mod:`.stats`), ``summary.csv`` (:mod:`.gather`), the
+method's claims checked on the grid (:mod:`.claims`) and the figures of the results chapter (:mod:`.plots`).
 
 The names of the outputs are defined here, apart from the plotting code, so the workflow can declare them at parse
 time without importing matplotlib.
@@ -13,6 +13,7 @@ __all__ = ["ANALYSIS_OUTPUTS", "RUN_FIGURES"]
 
 # Grid-level outputs of plots.analyse: name -> (file name under results/figures/, report category).
 ANALYSIS_OUTPUTS: dict[str, tuple[str, str]] = {
+    "claims": ("claims.csv", "Claims"),
     **{f"convergence_by_{a}": (f"convergence_by_{a}.png", "Convergence") for a in GRID_AXES},
     "velocity": ("velocity.png", "Convergence"),
     "acf": ("acf.png", "Convergence"),

@@ -15,8 +15,8 @@ from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, PER_VIEW_COLUMNS, 
 from ctsplat.grid import GRID_AXES, parse_run_dir, run_axes, uses_colmap
 from ctsplat.utils import CtsplatError, atomic_path
 
-__all__ = ["TEST_METRICS", "SFM_COLUMNS", "velocity_column", "sfm_summary_path", "gather", "load_runs",
-           "load_per_view"]
+__all__ = ["TEST_METRICS", "SFM_COLUMNS", "BASELINE_SUMMARY_COLUMNS", "NOT_RUN", "velocity_column",
+           "sfm_summary_path", "read_baselines", "gather", "load_runs", "load_per_view"]
 
 
 def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -44,6 +44,14 @@ SFM_COLUMNS: dict[str, str] = {
     "sfm_registration_rate": "registration_rate",
     "sfm_ok": "ok",
 }
+
+
+# Per run, the strongest classical reconstruction at the same volume and view count (baselines.csv): the method
+# with the highest test 3D PSNR, an upper bound on the classical methods (each tuned on validation views).
+BASELINE_SUMMARY_COLUMNS: tuple[str, ...] = ("best_baseline", "best_baseline_test_psnr3d", "best_baseline_test_ssim3d",
+                                             "test_psnr3d_minus_best_baseline_db")
+#: ``status`` of a grid cell that did not train (``not_run_reason`` says why); trained cells have "trained".
+NOT_RUN = "not run"
 
 
 def velocity_column(per_iters: int) -> str:
@@ -94,6 +102,60 @@ def _sfm_columns(run_dir: Path) -> dict[str, Any]:
     return out
 
 
+def _not_run_reason(run_dir: Path, row: Mapping[str, Any]) -> str | None:
+    """Why a cell that trains on SfM output has no results: its volume's SfM run failed (None otherwise)."""
+    if not (uses_colmap(row.get("poses")) or row.get("init") == "sfm"):
+        return None
+    path = sfm_summary_path(run_dir)
+    if path is None:
+        return None
+    from ctsplat.sfm.step import sfm_failure  # pycolmap loads only when a cell needs SfM
+
+    failure = sfm_failure(path)
+    return None if failure is None else f"SfM failed ({path}): {failure}"
+
+
+def read_baselines(paths: Sequence[str | os.PathLike[str]]) -> pd.DataFrame:
+    """``baselines.csv`` files in one table, with the volume taken from ``.../{volume}/baselines/...`` when a file
+    has no ``volume`` column.
+
+    Parameters
+    ----------
+    paths : sequence of path-like
+        ``baselines.csv`` files of :func:`ctsplat.baselines.run_baselines`.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Their rows (:data:`ctsplat.baselines.BASELINE_COLUMNS` + ``volume``); empty when no path is given.
+    """
+    frames = []
+    for p in paths:
+        b = pd.read_csv(p)
+        if "volume" not in b:
+            parts = Path(p).parts
+            b["volume"] = parts[parts.index("baselines") - 1] if "baselines" in parts else ""
+        frames.append(b)
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def _baseline_columns(df: pd.DataFrame, baselines: pd.DataFrame) -> pd.DataFrame:
+    """:data:`BASELINE_SUMMARY_COLUMNS` for each row of the summary (empty where no baseline matches)."""
+    out = pd.DataFrame(index=df.index, columns=list(BASELINE_SUMMARY_COLUMNS), dtype=object)
+    if baselines.empty or "views" not in df:
+        return out
+    b = baselines.assign(psnr3d=pd.to_numeric(baselines["psnr3d"], errors="coerce")).dropna(subset=["psnr3d"])
+    for i, r in df.iterrows():
+        match = b[(b["volume"] == r["volume"]) & (b["n_views"] == int(r["views"]))]
+        if match.empty:
+            continue
+        best = match.loc[match["psnr3d"].idxmax()]
+        score = pd.to_numeric(pd.Series([r.get("test_psnr3d")]), errors="coerce").iloc[0]
+        out.loc[i] = [best["method"], float(best["psnr3d"]), float(best["ssim3d"]),
+                      float(score - best["psnr3d"]) if pd.notna(score) else None]
+    return out
+
+
 def gather(
     run_dirs: Sequence[str | os.PathLike[str]],
     out_csv: str | os.PathLike[str],
@@ -101,8 +163,9 @@ def gather(
     thresholds: Mapping[str, float] | None = None,
     max_gap_iters: int = 10,
     per_iters: int = 1000,
+    baselines_csvs: Sequence[str | os.PathLike[str]] = (),
 ) -> pd.DataFrame:
-    """Write ``summary.csv``: one row per run with every axis value and its final metrics.
+    """Write ``summary.csv``: one row per grid cell with every axis value and its final metrics.
 
     Parameters
     ----------
@@ -116,13 +179,18 @@ def gather(
         Gap tolerance of :func:`ctsplat.formats.runlog.read_train_log`.
     per_iters : int
         Unit of the convergence velocity (gain per this many iterations).
+    baselines_csvs : sequence of path-like
+        ``baselines.csv`` files (:func:`read_baselines`); each run is compared with the strongest classical
+        reconstruction at its volume and view count.
 
     Returns
     -------
     pandas.DataFrame
-        The table written, one row per run:
+        The table written, one row per grid cell:
 
         - ``volume`` + :data:`ctsplat.grid.GRID_AXES` and any feature axes (from the folder names) and ``run_dir``;
+        - ``status``: ``trained``, or :data:`NOT_RUN` for a cell that trains on SfM output when its volume's SfM
+          run failed, with the reason in ``not_run_reason`` (its metric columns are empty);
         - the held-out test metrics of ``metrics.json`` as ``test_psnr2d``, ``test_ssim2d``, ``test_psnr3d``,
           ``test_ssim3d``, R²-Gaussian's ``test_psnr3d_r2``, ``test_ssim3d_r2`` (empty for runs evaluated before
           they existed), ``test_lpips`` (``test_lpips_reason``), and its other keys flattened (nested keys
@@ -132,12 +200,15 @@ def gather(
           (:func:`ctsplat.analysis.stats.milestones`, tags from the thresholds), ``iters_per_s`` and the median
           PSNR2D gain per ``per_iters`` iterations (:func:`velocity_column`);
         - for ``poses: colmap`` runs the pose errors of the volume's ``sfm/summary.json`` (:data:`SFM_COLUMNS`;
-          ``sfm_ok`` False when that file is missing), empty for the other runs.
+          ``sfm_ok`` False when that file is missing), empty for the other runs;
+        - :data:`BASELINE_SUMMARY_COLUMNS`: the classical method with the highest test 3D PSNR at the run's volume
+          and view count, its test 3D PSNR / SSIM, and the run's test 3D PSNR minus it (dB).
 
     Raises
     ------
     CtsplatError
-        When no run folder is given, a folder is not a run folder, or a run has neither file.
+        When no run folder is given, a folder is not a run folder, or a run has neither file (unless it is a cell
+        of a failed SfM run).
     """
     if thresholds is None:
         from ctsplat.config import schema_defaults
@@ -152,7 +223,12 @@ def gather(
         metrics_path = rd / "metrics.json"
         log_path = rd / "train_log.csv"
         if not metrics_path.exists() and not log_path.exists():
-            raise CtsplatError(f"gather: {rd} has neither metrics.json nor train_log.csv; did training finish?")
+            reason = _not_run_reason(rd, row)
+            if reason is None:
+                raise CtsplatError(f"gather: {rd} has neither metrics.json nor train_log.csv; did training finish?")
+            rows.append({**row, "status": NOT_RUN, "not_run_reason": reason})
+            continue
+        row["status"] = "trained"
         if metrics_path.exists():
             with open(metrics_path) as fh:
                 metrics = json.load(fh)
@@ -178,6 +254,7 @@ def gather(
         sfm = pd.DataFrame([_sfm_columns(Path(r)) if c else dict.fromkeys(SFM_COLUMNS)
                             for r, c in zip(df["run_dir"], colmap, strict=True)], index=df.index)
         df = df.drop(columns=[c for c in SFM_COLUMNS if c in df]).join(sfm)
+    df = df.join(_baseline_columns(df, read_baselines(baselines_csvs)))
     with atomic_path(out_csv) as tmp:
         df.to_csv(tmp, index=False, lineterminator="\n")
     return df

@@ -24,8 +24,9 @@ import pandas as pd  # noqa: E402
 import seaborn as sns  # noqa: E402
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS  # noqa: E402
-from ctsplat.analysis.gather import load_per_view, load_runs  # noqa: E402
+from ctsplat.analysis.gather import load_per_view, load_runs, read_baselines  # noqa: E402
 from ctsplat.analysis.stats import (  # noqa: E402
+    CONDITION_AXES,
     METRIC_RANGES,
     acf,
     acf_band,
@@ -34,6 +35,8 @@ from ctsplat.analysis.stats import (  # noqa: E402
     detrend,
     mean_iters_per_s,
     milestones,
+    natural_value,
+    paired_table,
     porkchop_table,
     rolling_centered,
     varying_axes,
@@ -70,8 +73,6 @@ CBAR_LABELS = {"psnr2d": "PSNR 2D (dB)", "ssim2d": "SSIM 2D (unitless, 1 = ident
                "psnr3d": "PSNR 3D (dB)", "ssim3d": "SSIM 3D (unitless, 1 = identical)"}
 
 
-# Columns that name a run's condition, in naming order (the seed is a replicate, not a condition).
-CONDITION_AXES: tuple[str, ...] = ("volume", *ALL_AXES)
 LINESTYLES: tuple[str, ...] = ("-", "--", ":", "-.")
 MARKERS: tuple[str, ...] = ("o", "s", "^", "D", "v", "P", "X", "*")
 
@@ -101,7 +102,7 @@ def condition_styles(table: pd.DataFrame, label_col: str = "condition", exclude:
     """
     used = varying_axes(table, axes, exclude)
     first = table.drop_duplicates(label_col).sort_values(label_col, key=lambda c: c.map(_natural_key))
-    levels = [sorted(table[a].astype(str).unique(), key=_natural) for a in used]
+    levels = [sorted(table[a].astype(str).unique(), key=natural_value) for a in used]
     palette = sns.color_palette(n_colors=max(len(levels[0]), 1) if levels else 1)
     rest = sorted({tuple(str(r[a]) for a in used[2:]) for _, r in first.iterrows()}, key=str)
     out: dict[str, dict[str, Any]] = {}
@@ -117,7 +118,7 @@ def _natural_key(label: str) -> tuple:
     """Sort key of a condition name with numbers compared as numbers (views=8 before views=16)."""
     import re
 
-    return tuple(_natural(p) for p in re.split(r"(\d+(?:\.\d+)?)", str(label)))
+    return tuple(natural_value(p) for p in re.split(r"(\d+(?:\.\d+)?)", str(label)))
 
 
 def _save(fig: plt.Figure, out: str | os.PathLike[str]) -> plt.Figure:
@@ -599,32 +600,6 @@ def _bare_metric(col: str) -> str:
     return col.removeprefix("test_").removeprefix("val_").removesuffix("_last")
 
 
-def paired_table(summary: pd.DataFrame, axis: str, metric_col: str) -> pd.DataFrame:
-    """Runs that differ only in ``axis``: one row per pair group, one column per value of ``axis``.
-
-    Parameters
-    ----------
-    summary : pandas.DataFrame
-        The table of :func:`ctsplat.analysis.gather.gather`.
-    axis : str
-        The ablation axis that changes within a group.
-    metric_col : str
-        The summary column compared.
-
-    Returns
-    -------
-    pandas.DataFrame
-        Index: the values of every other axis (volume and seed included, so each group is one cell of the grid
-        with only ``axis`` changed); columns: the values of ``axis`` in natural order; groups with fewer than two
-        finite values are dropped.
-    """
-    others = [a for a in CONDITION_AXES if a != axis and a in summary]
-    df = summary.assign(_score=pd.to_numeric(summary[metric_col], errors="coerce"), _level=summary[axis].astype(str))
-    wide = df.pivot_table(index=others, columns="_level", values="_score", aggfunc="mean")
-    wide = wide[sorted(wide.columns, key=_natural)]
-    return wide[wide.notna().sum(axis=1) >= 2]
-
-
 def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
     """Paired comparisons: each line is one cell of the grid with one axis changed (metrics × axes panels).
 
@@ -678,13 +653,6 @@ def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fig
     return _save(fig, out)
 
 
-def _natural(v: str) -> tuple[int, float | str]:
-    try:
-        return (0, float(v))
-    except ValueError:
-        return (1, v)
-
-
 def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os.PathLike[str], *,
                    metric: str = "psnr3d") -> plt.Figure:
     """Gaussian runs vs classical reconstructions per number of training views.
@@ -708,8 +676,15 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
     matplotlib.figure.Figure
         The figure written to ``out`` (closed).
     """
-    fig, ax = plt.subplots(figsize=(8, 5))
     col = f"test_{metric}" if f"test_{metric}" in summary else f"val_{metric}_last"
+    views = set()
+    if col in summary:
+        views |= set(summary.loc[pd.to_numeric(summary[col], errors="coerce").notna(), "views"].astype(int))
+    if not baselines.empty and "n_views" in baselines:
+        views |= set(baselines["n_views"].astype(int))
+    if len(views) == 1:
+        return _plot_baseline_bars(summary, baselines, out, col=col, metric=metric, views=views.pop())
+    fig, ax = plt.subplots(figsize=(8, 5))
     drawn = False
     if not baselines.empty and metric in baselines:
         b = baselines.copy()
@@ -743,6 +718,44 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
     else:
         _empty(ax, "no Gaussian runs or baselines")
     ax.set_title("Gaussian model vs classical reconstructions per view count")
+    return _save(fig, out)
+
+
+def _plot_baseline_bars(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os.PathLike[str], *, col: str,
+                        metric: str, views: int) -> plt.Figure:
+    """One view count: every Gaussian run and classical method as a bar, best first (see :func:`plot_baselines`)."""
+    bars: list[tuple[str, float, str]] = []  # (label, score, colour)
+    if not baselines.empty and metric in baselines:
+        for method, g in baselines.groupby("method"):
+            bars.append((f"{method} (classical)", float(pd.to_numeric(g[metric], errors="coerce").max()), "0.55"))
+    if col in summary and len(summary):
+        s = summary.assign(score=pd.to_numeric(summary[col], errors="coerce")).dropna(subset=["score"])
+        cond_axes = [a for a in ("volume", *ALL_AXES) if a not in ("views", "seed") and a in s]
+        named = varying_axes(s, cond_axes) or [a for a in cond_axes if a != "volume"]
+        for _, g in s.groupby(named, sort=False):
+            r = g.iloc[0]
+            label = ", ".join(f"{a}={r[a]}" for a in named)
+            ref = r.get("init") == "volume"
+            bars.append((label + (" [reads reference]" if ref else ""), float(g["score"].mean()),
+                         "C1" if ref else ("C0" if r.get("compositor") == "radiative" else "C2")))
+    fig, ax = plt.subplots(figsize=(8, 0.28 * max(len(bars), 4) + 1.4))
+    if not bars:
+        _empty(ax, "no Gaussian runs or baselines")
+    else:
+        bars.sort(key=lambda b: b[1])
+        y = np.arange(len(bars))
+        ax.barh(y, [b[1] for b in bars], color=[b[2] for b in bars])
+        ax.set_yticks(y, [b[0] for b in bars], fontsize=7)
+        lo = min(b[1] for b in bars)
+        ax.set_xlim(lo - 2.0 if metric.startswith("psnr") else max(0.0, lo - 0.1), None)
+        for yi, b in zip(y, bars, strict=True):
+            ax.text(b[1], yi, f" {b[1]:.2f}", va="center", fontsize=7)
+        ax.set_xlabel(f"test {METRIC_LABELS.get(metric, metric)}")
+        ax.grid(alpha=0.3, axis="x")
+    ax.set_title(f"Gaussian runs vs classical reconstructions, {views} training views\n(grey: classical, settings "
+                 "chosen on validation views; blue: rectified radiative; green: other compositors; orange: seeded "
+                 "from the reference)", fontsize=8)
+    fig.tight_layout()
     return _save(fig, out)
 
 
@@ -795,16 +808,12 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
         _write_csv(pd.DataFrame(rows), outputs["milestones"])
     if "ablation" in outputs:
         plot_ablation(summary, outputs["ablation"])
+    if "claims" in outputs:
+        from ctsplat.analysis.claims import claims_table
+
+        _write_csv(claims_table(summary), outputs["claims"])
     if "baselines" in outputs:
-        frames = []
-        for p in baselines_csvs:
-            b = pd.read_csv(p)
-            if "volume" not in b:
-                parts = Path(p).parts
-                b["volume"] = parts[parts.index("baselines") - 1] if "baselines" in parts else ""
-            frames.append(b)
-        base = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-        plot_baselines(summary, base, outputs["baselines"])
+        plot_baselines(summary, read_baselines(baselines_csvs), outputs["baselines"])
 
 
 def plot_acf_runs(logs: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 40,

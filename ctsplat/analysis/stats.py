@@ -11,6 +11,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
+from ctsplat.grid import ALL_AXES
 from ctsplat.utils import CtsplatError
 
 __all__ = [
@@ -31,7 +32,13 @@ __all__ = [
     "bounded_kde",
     "varying_axes",
     "condition_labels",
+    "CONDITION_AXES",
+    "natural_value",
+    "paired_table",
 ]
+
+# Columns that name a run's condition, in naming order (the seed is a replicate, not a condition).
+CONDITION_AXES: tuple[str, ...] = ("volume", *ALL_AXES)
 
 # Range of each metric: PSNR is non-negative and unbounded above; SSIM lies in [-1, 1]. Densities are confined to it.
 METRIC_RANGES: dict[str, tuple[float | None, float | None]] = {
@@ -505,3 +512,37 @@ def condition_labels(table: pd.DataFrame, axes: Sequence[str], exclude: Sequence
     if not used:
         return pd.Series("all runs", index=table.index, dtype=object)
     return table[used].astype(str).apply(lambda r: ", ".join(f"{a}={r[a]}" for a in used), axis=1).astype(object)
+
+
+def natural_value(v: str) -> tuple[int, float | str]:
+    """Sort key of an axis value: numbers first, in numeric order (``"8" < "16"``), then text."""
+    try:
+        return (0, float(v))
+    except ValueError:
+        return (1, v)
+
+
+def paired_table(summary: pd.DataFrame, axis: str, metric_col: str) -> pd.DataFrame:
+    """Runs that differ only in ``axis``: one row per pair group, one column per value of ``axis``.
+
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        The table of :func:`ctsplat.analysis.gather.gather`.
+    axis : str
+        The ablation axis that changes within a group.
+    metric_col : str
+        The summary column compared.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Index: the values of every other axis (volume and seed included, so each group is one cell of the grid
+        with only ``axis`` changed); columns: the values of ``axis`` in natural order; groups with fewer than two
+        finite values are dropped.
+    """
+    others = [a for a in CONDITION_AXES if a != axis and a in summary]
+    df = summary.assign(_score=pd.to_numeric(summary[metric_col], errors="coerce"), _level=summary[axis].astype(str))
+    wide = df.pivot_table(index=others, columns="_level", values="_score", aggfunc="mean")
+    wide = wide[sorted(wide.columns, key=natural_value)]
+    return wide[wide.notna().sum(axis=1) >= 2]

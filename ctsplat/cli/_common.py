@@ -17,11 +17,12 @@ def load_section(path: str | None, section: str) -> dict[str, Any]:
     p = Path(path)
     if not p.exists():
         raise CtsplatError(f"config file {p} does not exist")
-    import yaml  # JSON is YAML too
+    import yaml
 
     try:
-        cfg = yaml.safe_load(p.read_text()) or {}
-    except yaml.YAMLError as exc:
+        # JSON by its own parser: YAML 1.1 reads exponents without a dot (5e-05, as json.dumps writes them) as text
+        cfg = (json.loads(p.read_text()) if p.suffix.lower() == ".json" else yaml.safe_load(p.read_text())) or {}
+    except (yaml.YAMLError, json.JSONDecodeError) as exc:
         raise CtsplatError(f"config file {p} is not valid YAML/JSON: {str(exc).splitlines()[0]}") from exc
     if not isinstance(cfg, dict):
         raise CtsplatError(f"config file {p} must hold a mapping (the {section} section)")

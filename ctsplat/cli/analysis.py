@@ -62,8 +62,10 @@ def run_gather(args: argparse.Namespace) -> None:
     from ctsplat.analysis.gather import gather
 
     cfg = _analysis_config(args)
+    _check_baselines(args.baselines)
     df = gather(_run_dirs(args.runs), args.out, thresholds=cfg["milestones"],
-                max_gap_iters=cfg["max_gap_iters"], per_iters=cfg["velocity_per_iters"])
+                max_gap_iters=cfg["max_gap_iters"], per_iters=cfg["velocity_per_iters"],
+                baselines_csvs=args.baselines or [])
     print(f"{args.out}: {len(df)} runs")
 
 
@@ -76,12 +78,16 @@ def run_analyse(args: argparse.Namespace) -> None:
     cfg = _analysis_config(args)
     if not Path(args.summary).exists():
         raise CtsplatError(f"summary {args.summary} does not exist; run `ctsplat gather` first")
-    missing = [b for b in args.baselines or [] if not Path(b).is_file()]
-    if missing:
-        raise CtsplatError(f"baselines file {missing[0]} does not exist; run `ctsplat baseline` first")
+    _check_baselines(args.baselines)
     analyse(args.summary, outputs, baselines_csvs=args.baselines or [], analysis=cfg)
     for path in outputs.values():
         print(path)
+
+
+def _check_baselines(paths: list[str] | None) -> None:
+    missing = [b for b in paths or [] if not Path(b).is_file()]
+    if missing:
+        raise CtsplatError(f"baselines file {missing[0]} does not exist; run `ctsplat baseline` first")
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -90,6 +96,8 @@ def _common(p: argparse.ArgumentParser) -> None:
                         + _default("max_gap_iters"))
     p.add_argument("--velocity-per-iters", type=int,
                    help="velocity unit: gain per N iterations " + _default("velocity_per_iters"))
+    p.add_argument("--baselines", nargs="*", help="baselines.csv files from `ctsplat baseline` (gather: each run "
+                   "against the strongest classical method at its views; analyse: the baselines figure)")
     p.add_argument("--milestone", action="append", metavar="METRIC=VALUE",
                    help="milestone threshold, repeatable; adds to or overrides " + _default("milestones"))
 
@@ -98,7 +106,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     g = subparsers.add_parser("gather", help="one row per training run -> summary.csv",
                               description="Collect run folders (results/{volume}/runs/init~.../seed~N) into a "
                                           "summary CSV: axis values, metrics.json, final logged metrics, "
-                                          "milestones, convergence velocity.")
+                                          "milestones, convergence velocity, the strongest baseline.")
     g.add_argument("runs", nargs="+", help="run folders, or folders to search for them (e.g. results/)")
     g.add_argument("--out", default="results/summary.csv", help="output CSV (default: %(default)s)")
     _common(g)
@@ -110,7 +118,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "classical reconstructions.")
     a.add_argument("summary", help="summary.csv written by `ctsplat gather`")
     a.add_argument("--out-dir", default="results/figures", help="output folder (default: %(default)s)")
-    a.add_argument("--baselines", nargs="*", help="baselines.csv files from `ctsplat baseline`")
     a.add_argument("--window", type=int, help="centred rolling-mean window (evaluations) " + _default("window"))
     a.add_argument("--acf-max-lag", type=int, help="largest ACF lag (evaluations) " + _default("acf_max_lag"))
     a.add_argument("--kde-windows", type=int, help="training windows of the KDE figure " + _default("kde_windows"))

@@ -30,10 +30,13 @@ Schönberger, J. L., Frahm, J.-M. (2016). Structure-from-motion revisited. CVPR.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
+import os
 import shutil
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -63,7 +66,7 @@ from ctsplat.sfm.colmap import (
 from ctsplat.sfm.features import enhance_for_features, feature_masks, write_pngs
 from ctsplat.utils import CtsplatError, atomic_path, code_version, json_safe, merge_config, write_json_atomic
 
-__all__ = ["SFM_DEFAULTS", "run_sfm", "run_sfm_on_images", "naive_slices_sfm", "summarize"]
+__all__ = ["SFM_DEFAULTS", "run_sfm", "run_sfm_on_images", "naive_slices_sfm", "summarize", "sfm_failure"]
 
 log = logging.getLogger(__name__)
 
@@ -194,6 +197,37 @@ def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str,
                          f" median rotation error {out['rot_err_deg_median']} deg"
                          f" (need <= {cfg['max_median_rotation_error_deg']})")
     return out
+
+
+def sfm_failure(summary: Mapping[str, Any] | str | os.PathLike[str]) -> str | None:
+    """Why an SfM run may not be trained on, or None when it may (its ``ok`` verdict, see :func:`summarize`).
+
+    Parameters
+    ----------
+    summary : mapping or path-like
+        The ``summary.json`` of :func:`run_sfm`, or its path.
+
+    Returns
+    -------
+    str or None
+        None when ``ok`` is true; otherwise one line naming the numbers that fell short (``reason``), or that the
+        summary is missing.
+
+    Examples
+    --------
+    >>> sfm_failure({"ok": True}) is None
+    True
+    >>> sfm_failure({"ok": False, "reason": "registration rate 0.10 (need >= 0.8)"})
+    'registration rate 0.10 (need >= 0.8)'
+    """
+    if not isinstance(summary, Mapping):
+        path = Path(summary)
+        if not path.exists():
+            return f"{path} does not exist (the sfm step did not run)"
+        summary = json.loads(path.read_text())
+    if summary.get("ok", False):
+        return None
+    return str(summary.get("reason") or "the SfM summary is not ok and records no reason")
 
 
 def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, float, float], Rs_true: np.ndarray,

@@ -444,3 +444,38 @@ def test_load_per_view_tags_rows_and_keeps_the_split(tmp_path):
                       "ssim2d": [0.5, 0.6, 0.7]}).to_csv(rd / "per_view.csv", index=False)
     pv = load_per_view(gather(runs, tmp_path / "s.csv"))
     assert len(pv) == 4 and set(pv["split"]) == {"val"} and set(pv["init"]) == {"fbp", "uniform"}
+
+
+def test_gather_lists_the_cells_of_a_failed_sfm_run_as_not_run(tmp_path):
+    gt = _fake_run(tmp_path, poses="gt")
+    colmap = tmp_path / "phantom" / "runs" / run_relpath({"init": "fbp", "compositor": "radiative", "mip": "on",
+                                                          "poses": "colmap", "views": 8, "seed": 0})
+    (tmp_path / "phantom" / "sfm").mkdir(parents=True)
+    (tmp_path / "phantom" / "sfm" / "summary.json").write_text(json.dumps({
+        "ok": False, "registration_rate": 1.0, "rot_err_deg_median": 3.2, "reason": "median rotation error 3.2 deg"}))
+    back = gather([gt, colmap], tmp_path / "summary.csv").set_index("run_dir")
+    assert back.loc[str(gt), "status"] == "trained" and pd.isna(back.loc[str(gt), "not_run_reason"])
+    r = back.loc[str(colmap)]
+    assert r["status"] == "not run" and pd.isna(r["test_psnr3d"])
+    assert r["not_run_reason"].startswith("SfM failed (") and "median rotation error 3.2 deg" in r["not_run_reason"]
+    assert r["sfm_rot_err_deg_median"] == 3.2 and not r["sfm_ok"]
+    # an ok SfM run does not excuse a missing result: the cell should have trained
+    (tmp_path / "phantom" / "sfm" / "summary.json").write_text(json.dumps({"ok": True, "registration_rate": 1.0}))
+    with pytest.raises(CtsplatError, match="neither metrics.json nor train_log.csv"):
+        gather([gt, colmap], tmp_path / "summary2.csv")
+
+
+def test_gather_compares_each_run_with_the_strongest_baseline_at_its_views(tmp_path):
+    runs = [_fake_run(tmp_path, views=v) for v in (8, 16)] + [_fake_run(tmp_path, volume="head", views=8)]
+    bdir = tmp_path / "phantom" / "baselines" / "circular"
+    bdir.mkdir(parents=True)
+    pd.DataFrame({"method": ["fbp", "asd_pocs", "fbp", "asd_pocs"], "n_views": [8, 8, 16, 16],
+                  "psnr3d": [22.0, 27.5, 24.0, 23.0], "ssim3d": [0.6, 0.85, 0.7, 0.65]}).to_csv(
+        bdir / "baselines.csv", index=False)
+    back = gather(runs, tmp_path / "summary.csv", baselines_csvs=[bdir / "baselines.csv"]).set_index("run_dir")
+    r8, r16, head = back.loc[str(runs[0])], back.loc[str(runs[1])], back.loc[str(runs[2])]
+    assert (r8["best_baseline"], r8["best_baseline_test_psnr3d"]) == ("asd_pocs", 27.5)
+    assert r8["test_psnr3d_minus_best_baseline_db"] == pytest.approx(25.0 - 27.5)
+    assert (r16["best_baseline"], r16["best_baseline_test_ssim3d"]) == ("fbp", 0.7)
+    assert r16["test_psnr3d_minus_best_baseline_db"] == pytest.approx(1.0)
+    assert pd.isna(head["best_baseline"])  # no baseline of that volume

@@ -34,7 +34,7 @@ def test_defaults_filled_from_empty_config():
     assert vol["source"] == "phantom" and vol["phantom"]["size"] == 64 and vol["phantom"]["beads"] is True
     assert vol["series_uid"] is None and vol["allow_modalities"] == ["CT"] and vol["preprocessing"] == {}
     assert cfg["grid"]["axes"]["init"] == ["fbp"] and cfg["grid"]["exclude"] == []
-    assert cfg["analysis"]["milestones"] == {"psnr2d": 30.0, "ssim2d": 0.9}
+    assert cfg["analysis"]["milestones"] == {"psnr2d": 30.0, "ssim2d": 0.9, "psnr3d": 30.0, "ssim3d": 0.9}
     assert cfg["resources"]["train"]["mem_mb"] > 0
     # nested library defaults are filled too (radiographs geometry -> split fractions)
     assert cfg["radiographs"]["circular"]["split"]["train"] == pytest.approx(0.7)
@@ -129,7 +129,7 @@ def test_schema_is_package_data_and_defaults_are_copies():
     assert load_schema() == yaml.safe_load(
         resources.files("ctsplat").joinpath("schemas/config.schema.yaml").read_text(encoding="utf-8"))
     analysis = schema_defaults("analysis")
-    assert analysis["milestones"] == {"psnr2d": 30.0, "ssim2d": 0.9}
+    assert analysis["milestones"] == {"psnr2d": 30.0, "ssim2d": 0.9, "psnr3d": 30.0, "ssim3d": 0.9}
     analysis["milestones"]["psnr2d"] = 0.0
     assert schema_defaults("analysis")["milestones"]["psnr2d"] == 30.0
     assert schema_defaults()["analysis"] == schema_defaults("analysis")

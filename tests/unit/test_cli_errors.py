@@ -253,3 +253,18 @@ def test_csvs_use_lf_and_figures_off_removes_stale_figures(scene, tmp_path, caps
     assert main(["evaluate", str(run), "--device", "cpu"]) == 0
     assert (run / "metrics.json").exists()
     assert not any((run / f).exists() for f in figures)
+
+
+def test_a_run_config_json_is_read_back_with_its_exponent_floats(tmp_path):
+    """json.dumps writes 5e-05, which YAML 1.1 reads as text: a .json config is parsed as JSON."""
+    from ctsplat.cli._common import load_section
+    from ctsplat.utils import CtsplatError
+
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"train": {"lambda_density": 5e-05, "lr": {"means": 1e-3}}}))
+    assert "5e-05" in path.read_text()
+    cfg = load_section(str(path), "train")
+    assert cfg["lambda_density"] == 5e-05 and cfg["lr"]["means"] == 1e-3
+    path.write_text("{not json")
+    with pytest.raises(CtsplatError, match=r"config\.json is not valid YAML/JSON"):
+        load_section(str(path), "train")

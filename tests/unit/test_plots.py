@@ -12,7 +12,15 @@ import pytest
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS, RUN_FIGURES, plots
 from ctsplat.analysis.gather import gather, load_runs
-from ctsplat.analysis.stats import acf, acf_band, detrend, porkchop_table, rolling_centered, velocity_curve
+from ctsplat.analysis.stats import (
+    acf,
+    acf_band,
+    detrend,
+    paired_table,
+    porkchop_table,
+    rolling_centered,
+    velocity_curve,
+)
 from ctsplat.formats.runlog import METRICS_2D3D, read_per_view
 from ctsplat.grid import run_relpath
 from ctsplat.utils import CtsplatError
@@ -246,6 +254,24 @@ def test_baselines_plot_has_gs_and_classical_lines(tmp_path):
     assert len(set(map(str, colours))) == len(colours)  # no two lines share a colour
 
 
+def test_baselines_plot_with_one_view_count_is_ranked_bars(tmp_path):
+    summary = pd.DataFrame({"volume": "p", "init": ["fbp", "fbp", "volume"], "compositor": ["radiative", "alpha",
+                            "radiative"], "mip": "on", "poses": "gt", "views": 24, "seed": 0,
+                            "test_psnr3d": [30.0, 27.0, 35.0]})
+    base = pd.DataFrame({"method": ["fbp", "asd_pocs"], "n_views": [24, 24], "psnr3d": [25.0, 32.0],
+                         "ssim3d": [0.5, 0.8]})
+    fig = plots.plot_baselines(summary, base, tmp_path / "bars.png")
+    ax = fig.axes[0]
+    labels = [t.get_text() for t in ax.get_yticklabels()]
+    widths = [p.get_width() for p in ax.patches]
+    # best at the top (last bar), one bar per method and per Gaussian condition, the seeded run labelled
+    assert labels == ["fbp (classical)", "init=fbp, compositor=alpha", "init=fbp, compositor=radiative",
+                      "asd_pocs (classical)", "init=volume, compositor=radiative [reads reference]"]
+    np.testing.assert_allclose(widths, [25.0, 27.0, 30.0, 32.0, 35.0])
+    assert "24 training views" in ax.get_title() and ax.get_xlabel() == "test PSNR 3D (dB)"
+    assert _is_png(tmp_path / "bars.png")
+
+
 def test_ablation_is_paired_lines_not_boxes(tmp_path):
     runs = [_make_run(tmp_path, init=i, views=v, seed=s) for i in ("fbp", "uniform") for v in (8, 16)
             for s in (0, 1)]
@@ -263,7 +289,7 @@ def test_ablation_is_paired_lines_not_boxes(tmp_path):
     for ln in grey:
         np.testing.assert_allclose(np.diff(ln.get_ydata()), 0.8)
     assert "4 pairs" in views_ax.get_title() and "+0.8 dB" in views_ax.get_title()
-    table = plots.paired_table(summary, "views", "test_psnr3d")
+    table = paired_table(summary, "views", "test_psnr3d")
     assert list(table.columns) == ["8", "16"] and len(table) == 4
     assert _is_png(tmp_path / "ab.png")
 

@@ -463,9 +463,18 @@ def test_colmap_cone_poses_train_with_fbp_init(scene_dir: Path, carm_dir: Path, 
 
 
 def test_colmap_poses_fail_on_low_registration(scene_dir: Path, carm_dir: Path, tmp_path: Path) -> None:
-    _sfm_result(carm_dir, tmp_path / "sfm", [0, 1, 2], rate=0.25, ok=False)
+    _sfm_result(carm_dir, tmp_path / "sfm", [0, 1, 2], rate=0.25, ok=True)  # ok, but below train's own minimum
     cfg = _cfg(scene_dir, poses="colmap", sfm_dir=str(tmp_path / "sfm"))
-    with pytest.raises(CtsplatError, match=r"registered only 25% of 12 views"):
+    with pytest.raises(CtsplatError, match=r"the SfM run failed .*registered only 25% of 12 views"):
+        loop.train(cfg, tmp_path / "r")
+    assert not (tmp_path / "r" / "model.pt").exists()
+
+
+def test_colmap_poses_refuse_a_failed_sfm_run(scene_dir: Path, carm_dir: Path, tmp_path: Path) -> None:
+    """Every view registered, but the SfM step's verdict is not ok (pose error): never trained on those poses."""
+    _sfm_result(carm_dir, tmp_path / "sfm", list(range(12)), rate=1.0, ok=False)
+    cfg = _cfg(scene_dir, poses="colmap", sfm_dir=str(tmp_path / "sfm"), iterations=10)
+    with pytest.raises(CtsplatError, match=r"the SfM run failed \(.*summary\.json\): too few; poses: colmap does not"):
         loop.train(cfg, tmp_path / "r")
     assert not (tmp_path / "r" / "model.pt").exists()
 

@@ -69,7 +69,7 @@ def test_installed_package_runs_without_the_source_tree(installed):
     out = _run([str(python), "-c", probe], tmp, env).stdout.splitlines()
     assert Path(out[0]).resolve().is_relative_to(venv.resolve()), out[0]
     assert Path(out[1]).resolve().is_relative_to(venv.resolve()) and Path(out[1]).is_file(), out[1]
-    assert out[2] == "circular {'psnr2d': 30.0, 'ssim2d': 0.9}"
+    assert out[2] == "circular {'psnr2d': 30.0, 'ssim2d': 0.9, 'psnr3d': 30.0, 'ssim3d': 0.9}"
 
     help_text = _run([str(venv / "bin" / "ctsplat"), "--help"], tmp, env).stdout
     assert "gather" in help_text and "train" in help_text

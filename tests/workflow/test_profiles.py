@@ -8,7 +8,7 @@ import yaml
 from smk_helpers import ROOT
 
 RULES = {m.group(1) for p in (ROOT / "workflow" / "rules").glob("*.smk")
-         for m in re.finditer(r"^rule (\w+):", p.read_text(), re.M)}
+         for m in re.finditer(r"^(?:rule|checkpoint) (\w+):", p.read_text(), re.M)}
 
 
 def test_rules_found():

@@ -1,14 +1,17 @@
-"""The report's data, radiographs, SfM and run-figure sections, on a tiny grid where SfM is made to fail.
+"""The report's data, radiographs, SfM, claims and run-figure sections, on a tiny grid where SfM is made to fail.
 
-Real Snakemake jobs in a temp folder: the SfM failure must be visible in the rule log, in the SfM figure and in
-the error of the ``poses: colmap`` cell (which must not train on the failed poses); the overview figures and the
-evaluate rule's figures must exist and be registered in the HTML report.
+Real Snakemake jobs in a temp folder: the SfM failure must be visible in the rule log, in the SfM figure, in the
+error of the ``poses: colmap`` cell (which must not train on the failed poses), and, after a whole run that
+finishes, in ``summary.csv``, the claims table and the HTML report (the ``poses: colmap`` cell listed as not run,
+with the reason); the overview figures and the evaluate rule's figures must exist and be registered in the report.
 """
 
 from __future__ import annotations
 
+import base64
 import copy
 import json
+import re
 
 import pandas as pd
 import pytest
@@ -73,3 +76,30 @@ def test_overview_and_run_figures_are_in_the_report(wd):
     for word in ("Data", "Radiographs", "SfM", "Runs", "volume_slices.png", "radiographs_carm.png",
                  "pose_errors.png", "gallery.png", "slices.png"):
         assert word in html, word
+
+
+def _embedded(html: str, name: str) -> str:
+    """A file the report embeds (a base64 data URI after its name)."""
+    m = re.search(re.escape(f'"{name}": {{') + r'.*?"data_uri": "data:[^"]*?base64,([A-Za-z0-9+/=]+)"', html, re.S)
+    assert m, name
+    return base64.b64decode(m.group(1)).decode()
+
+
+def test_a_whole_run_with_a_failed_sfm_finishes_and_reports_the_cell_as_not_run(wd):
+    snakemake(wd, configfile=wd / "config.yaml")  # the default target: every cell, gather, analyse
+    assert not (wd / COLMAP_RUN / "model.pt").exists()  # never trained on the failed poses
+    reason = json.loads((wd / VOL / "sfm/summary.json").read_text())["reason"]
+    summary = pd.read_csv(wd / "results/summary.csv").set_index("poses")
+    assert summary.loc["gt", "status"] == "trained" and summary.loc["gt", "test_psnr3d"] > 0
+    row = summary.loc["colmap"]
+    assert row["status"] == "not run" and pd.isna(row["test_psnr3d"]) and not row["sfm_ok"]
+    assert row["not_run_reason"].startswith("SfM failed (") and reason in row["not_run_reason"]
+    claims = pd.read_csv(wd / "results/figures/claims.csv")
+    not_run = claims[claims["result"] == "not run"]
+    assert len(not_run) == 1 and COLMAP_RUN in not_run["comparison"].iloc[0] and reason in not_run["note"].iloc[0]
+    snakemake(wd, "--report", "report.html", configfile=wd / "config.yaml")
+    html = (wd / "report.html").read_text(errors="ignore")
+    assert "Claims" in html and "SfM" in html
+    assert reason in _embedded(html, "results/figures/claims.csv")
+    assert "not run" in _embedded(html, "results/summary.csv")
+

@@ -52,9 +52,12 @@ rule run_figures:
 
 rule gather:
     input:
-        metrics=all_metrics(),
-        logs=all_logs(),
+        metrics=metrics_of(run_dirs(sfm_cells=False)),
+        logs=logs_of(run_dirs(sfm_cells=False)),
+        sfm_metrics=sfm_metrics,
+        sfm_logs=sfm_logs,
         sfm=sfm_summaries(),
+        baselines=all_baselines(),
     output:
         summary=report(
             f"{RESULTS}/summary.csv",
@@ -74,6 +77,7 @@ rule gather:
         runtime=rule_resources("gather")["runtime"],
     params:
         analysis=analysis_params(),
+        runs=run_dirs(),
     script:
         "../../scripts/gather.py"
 

@@ -8,6 +8,7 @@ from snakemake.utils import Paramspace
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS
 from ctsplat.config import prepare_config
+from ctsplat.sfm.step import sfm_failure
 from ctsplat.grid import (
     expand_grid,
     needs_sfm,
@@ -34,13 +35,25 @@ RUN_PATTERN = f"{RESULTS}/{{volume}}/runs/{PARAMSPACE.wildcard_pattern}"
 RUN_LABELS = {name: f"{{{name}}}" for name in ("volume", *RUN_AXES)}
 
 
-def run_dirs(volume=None):
-    """Run folders of the grid (optionally of one volume), in grid order, from the Paramspace instances."""
+def run_dirs(volume=None, *, sfm_cells=None):
+    """Run folders of the grid (optionally of one volume), in grid order, from the Paramspace instances.
+
+    sfm_cells: None for every cell, True for only the cells that train on SfM output (poses: colmap, init: sfm),
+    False for only the others.
+    """
     out = []
     for v in VOLUMES if volume is None else [volume]:
-        cells = Paramspace(RUNS[RUNS["volume"] == v][list(RUN_AXES)], param_sep="~")
+        rows = RUNS[RUNS["volume"] == v]
+        if sfm_cells is not None:
+            rows = rows[cells_need_sfm(rows) == sfm_cells]
+        cells = Paramspace(rows[list(RUN_AXES)], param_sep="~")
         out += [f"{RESULTS}/{v}/runs/{p}" for p in cells.instance_patterns]
     return out
+
+
+def cells_need_sfm(rows):
+    """Per grid row: whether it trains on the SfM step's output."""
+    return rows["poses"].map(uses_colmap) | (rows["init"] == "sfm")
 
 
 def sfm_runs_for(volume):
@@ -48,16 +61,39 @@ def sfm_runs_for(volume):
     return needs_sfm(RUNS[RUNS["volume"] == volume], enabled=CFG["sfm"]["enabled"])
 
 
+def sfm_run_dirs(wildcards=None):
+    """The cells that train on SfM output, for the volumes whose SfM run is ok.
+
+    `sfm` is a checkpoint: these cells are scheduled once its summary exists, and never on a failed run (gather
+    lists them as not run, with the reason). Input functions only: it waits for the checkpoint.
+    """
+    out = []
+    for v in VOLUMES:
+        if sfm_runs_for(v):
+            summary = checkpoints.sfm.get(volume=v).output.summary
+            if sfm_failure(summary) is None:
+                out += run_dirs(v, sfm_cells=True)
+    return out
+
+
 def baselines_enabled():
     return CFG["baselines"]["enabled"]
 
 
+def run_targets(dirs):
+    return [
+        t
+        for rd in dirs
+        for t in (f"{rd}/metrics.json", f"{rd}/figures/convergence.png")
+    ]
+
+
 def all_targets():
-    """Targets of the default target (all): per-run metrics and figures, the summary and the analysis figures."""
+    """Targets of the default target (all): per-run metrics and figures of the cells that do not wait for SfM,
+    the summary and the analysis figures (the SfM cells are `sfm_targets`)."""
     targets = [f"{RESULTS}/summary.csv"]
     targets += [f"{RESULTS}/figures/{fname}" for fname, _ in ANALYSIS_OUTPUTS.values()]
-    for rd in run_dirs():
-        targets += [f"{rd}/metrics.json", f"{rd}/figures/convergence.png"]
+    targets += run_targets(run_dirs(sfm_cells=False))
     for v in VOLUMES:
         targets.append(f"{RESULTS}/{v}/figures/volume_slices.png")
         targets.append(f"{RESULTS}/{v}/figures/radiographs_{GEOMETRY}.png")
@@ -68,6 +104,11 @@ def all_targets():
         if baselines_enabled():
             targets.append(f"{RESULTS}/{v}/baselines/{BASELINE_GEOMETRY}/baselines.csv")
     return targets
+
+
+def sfm_targets(wildcards):
+    """Per-run targets of the cells that train on an ok SfM run (waits for the sfm checkpoint)."""
+    return run_targets(sfm_run_dirs())
 
 
 def rule_resources(rule):
@@ -210,12 +251,20 @@ def analysis_params():
     return dict(CFG["analysis"])
 
 
-def all_metrics():
-    return [f"{rd}/metrics.json" for rd in run_dirs()]
+def metrics_of(dirs):
+    return [f"{rd}/metrics.json" for rd in dirs]
 
 
-def all_logs():
-    return [f"{rd}/train_log.csv" for rd in run_dirs()]
+def logs_of(dirs):
+    return [f"{rd}/train_log.csv" for rd in dirs]
+
+
+def sfm_metrics(wildcards):
+    return metrics_of(sfm_run_dirs())
+
+
+def sfm_logs(wildcards):
+    return logs_of(sfm_run_dirs())
 
 
 def all_baselines():
@@ -240,12 +289,9 @@ def analysis_outputs():
 
 
 def sfm_summaries():
-    """SfM summaries of the volumes with poses: colmap runs: their pose errors are columns of summary.csv."""
-    return [
-        f"{RESULTS}/{v}/sfm/summary.json"
-        for v in VOLUMES
-        if RUNS[RUNS["volume"] == v]["poses"].map(uses_colmap).any()
-    ]
+    """SfM summaries of the volumes with cells that train on SfM output: their pose errors are columns of
+    summary.csv, and a failed run's reason is the not-run reason of those cells."""
+    return [f"{RESULTS}/{v}/sfm/summary.json" for v in VOLUMES if sfm_runs_for(v)]
 
 
 def contact_sheet_split(wildcards):

@@ -1,7 +1,8 @@
 # COLMAP poses once per volume for the C-arm view set that `project` rendered, aligned to the world frame.
+# A checkpoint: the cells that train on its poses are scheduled only when its summary says ok.
 
 
-rule sfm:
+checkpoint sfm:
     input:
         unpack(sfm_inputs),
     output:
