@@ -313,7 +313,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
         shutil.rmtree(checkpoint_dir(out_dir), ignore_errors=True)
         _discard_outputs(out_dir)
         seed = make_seed(cfg, scene, rng)
-        params = init_params(seed, cfg, device)
+        params = init_params(seed, cfg, device, alpha_colour=float(np.max(scene.train.images)) or 1.0)
         state = TrainState(params=params, opt=make_optimizer(params, cfg, voxel_mm, half_extent_mm))
         reset_stats(state)
         train_log.reset()

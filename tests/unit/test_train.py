@@ -555,3 +555,21 @@ def test_cli_train_and_evaluate(scene_dir: Path, tmp_path: Path, capsys) -> None
     rc = main(["train", "--config", str(tmp_path / "c.yaml"), "--out", str(tmp_path / "r2"), "--set", "bogus=1"])
     assert rc == 2
     assert "unknown config key train.bogus" in capsys.readouterr().err
+
+
+def test_alpha_colours_start_at_the_brightest_target(scene_dir: Path, tmp_path: Path) -> None:
+    """Alpha compositing never renders above its brightest colour: the seeds start at the brightest training
+    target, so an opaque Gaussian can reproduce it (a grey 0.5 would cap the rendering at 0.5 / max target)."""
+    from ctsplat.training.seeding import Seed
+
+    cfg = config.resolve_config(_cfg(scene_dir, compositor="alpha"))
+    seed = Seed(np.zeros((3, 3), np.float32), np.ones((3, 3), np.float32), np.ones(3, np.float32), False, "t")
+    params = state.init_params(seed, cfg, torch.device("cpu"), alpha_colour=2.5)
+    assert torch.equal(params["colors"], torch.full((3, 1), 2.5))
+    brightest = float(np.max(sc.load_scene(cfg).train.images))
+    loop.train(_cfg(scene_dir, compositor="alpha", iterations=1, eval_every=1), tmp_path / "r")
+    from ctsplat.splat.gaussians import Gaussians
+
+    colours = Gaussians.load(tmp_path / "r" / "model.pt").colors.numpy()
+    # one Adam step moves each colour by at most its learning rate
+    assert np.abs(colours - brightest).max() <= 1.01 * cfg["lr"]["colors"] and brightest > 0.5
