@@ -162,7 +162,8 @@ def claims_table(summary: pd.DataFrame) -> pd.DataFrame:
     for axis, high, low, label in (("mip", "on", "off", "mip filter on vs off, paired"),
                                    ("init", "fbp", "uniform", "init fbp vs uniform, paired"),
                                    ("init", "volume", "fbp", "init volume (reads the reference) vs fbp, paired"),
-                                   ("poses", "colmap", "gt", "poses colmap (SfM) vs gt, paired")):
+                                   ("poses", "colmap", "gt", "poses colmap (SfM poses of the C-arm view set) vs gt "
+                                                             "(true poses of the training geometry), paired")):
         row = _paired_rows(trained, axis, high, low, None, label)
         if row is not None:
             rows.append(row)

@@ -12,6 +12,8 @@ checkpoint sfm:
         f"{RESULTS}/logs/sfm/{{volume}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/sfm/{{volume}}.tsv"
+    # early, so the cells that wait for it (and their longer C-arm training) are not left to run alone at the end
+    priority: 10
     conda:
         "../../envs/ctsplat.yaml"
     threads: rule_resources("sfm")["threads"]
