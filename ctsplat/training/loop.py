@@ -114,7 +114,7 @@ from ctsplat.utils import (
     write_json_atomic,
 )
 
-__all__ = ["train", "RUN_OUTPUTS"]
+__all__ = ["train", "RUN_OUTPUTS", "ALPHA_OPACITIES", "fit_alpha_seeds"]
 
 log = logging.getLogger(__name__)
 
@@ -153,6 +153,53 @@ def _val_psnr(state: TrainState, cfg: dict[str, Any], val: ViewData) -> float:
     g = as_gaussians({k: v.detach() for k, v in state.params.items()})
     preds = render_views(g, val.camera, val.Rs, val.ts, render_kwargs(cfg, state.filter_var))
     return float(np.mean(view_metrics(preds, val.images)["psnr2d"]))
+
+
+#: Initial opacities :func:`fit_alpha_seeds` chooses from (3DGS starts at 0.1).
+ALPHA_OPACITIES: tuple[float, ...] = (0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.4)
+
+
+def fit_alpha_seeds(state: TrainState, cfg: dict[str, Any], train: ViewData, *, n_views: int = 8
+                    ) -> tuple[float, float]:
+    """Scale a fresh alpha model to the training views: colour = the brightest target, opacity fitted.
+
+    Alpha compositing never renders above its brightest colour, so the seeds start at the brightest training
+    target (white, in 3DGS's terms); their common initial opacity is the one of :data:`ALPHA_OPACITIES` whose
+    rendering has the least squared error on up to ``n_views`` evenly spaced training views. Dense seeds (a
+    uniform init) then start faint instead of flooding the air, sparse ones opaque enough to reach the targets.
+
+    Parameters
+    ----------
+    state : TrainState
+        A fresh alpha model (``colors`` (N, 1), ``opacity_raw`` (N,)); set in place.
+    cfg : dict
+        Resolved ``train`` config (render settings).
+    train : ViewData
+        Training views: camera, poses (V, 3, 3) / (V, 3), images (V, H, W) (line integrals).
+    n_views : int
+        Views used for the fit.
+
+    Returns
+    -------
+    (float, float)
+        The colour (line-integral units) and the opacity chosen.
+    """
+    idx = np.unique(np.linspace(0, len(train.Rs) - 1, min(n_views, len(train.Rs))).round().astype(int))
+    y = np.asarray(train.images[idx], np.float64)
+    colour = max(float(y.max()), 1e-6)
+    rk = render_kwargs(cfg, state.filter_var)
+    best: tuple[float, float] | None = None
+    with torch.no_grad():
+        state.params["colors"].fill_(colour)
+        for opacity in ALPHA_OPACITIES:
+            state.params["opacity_raw"].fill_(math.log(opacity / (1.0 - opacity)))
+            g = as_gaussians({k: v.detach() for k, v in state.params.items()})
+            pred = np.asarray(render_views(g, train.camera, train.Rs[idx], train.ts[idx], rk), np.float64)
+            sse = float((((pred.mean(-1) if pred.ndim == 4 else pred) - y) ** 2).sum())
+            if best is None or sse < best[0]:
+                best = (sse, opacity)
+        state.params["opacity_raw"].fill_(math.log(best[1] / (1.0 - best[1])))
+    return colour, best[1]
 
 
 def _empty_psnr(val: ViewData) -> float:
@@ -313,7 +360,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
         shutil.rmtree(checkpoint_dir(out_dir), ignore_errors=True)
         _discard_outputs(out_dir)
         seed = make_seed(cfg, scene, rng)
-        params = init_params(seed, cfg, device, alpha_colour=float(np.max(scene.train.images)) or 1.0)
+        params = init_params(seed, cfg, device)
         state = TrainState(params=params, opt=make_optimizer(params, cfg, voxel_mm, half_extent_mm))
         reset_stats(state)
         train_log.reset()
@@ -345,6 +392,9 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
         _load_pose(state, ckpt)
     pr_start = int(cfg["pose_refine"]["start"])
     state.filter_var = mip_filter(cfg, as_gaussians(state.params), tr.camera, tr.Rs, tr.ts)
+    if ckpt is None and cfg["compositor"] == "alpha":
+        log.info("alpha seeds: colour %.4g (the brightest target), opacity %.3g (fitted to the training views)",
+                 *fit_alpha_seeds(state, cfg, tr))
     psnr_empty = _empty_psnr(val)
     if "psnr_initial" not in state.health:
         state.health["psnr_initial"] = _val_psnr(state, cfg, val)

@@ -28,8 +28,7 @@ PARAM_GROUPS = {"means": "means", "log_scales": "scales", "quats": "quats", "den
                 "opacity_raw": "opacity", "colors": "colors"}
 
 
-def init_params(seed: Seed, cfg: dict[str, Any], device: torch.device, *, alpha_colour: float = 0.5
-                ) -> dict[str, torch.Tensor]:
+def init_params(seed: Seed, cfg: dict[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
     """Leaf parameter tensors (float32, requires_grad) from a seed.
 
     Parameters
@@ -38,12 +37,8 @@ def init_params(seed: Seed, cfg: dict[str, Any], device: torch.device, *, alpha_
         Means (N, 3) mm, scales (N, 3) mm, densities (N,) (:mod:`ctsplat.training.seeding`).
     cfg : dict
         Resolved ``train`` config; the alpha compositor adds ``opacity_raw`` (N,) (opacity 0.1) and ``colors``
-        (N, 1) (``alpha_colour``).
+        (N, 1) (0.5).
     device : torch.device
-    alpha_colour : float
-        Initial colour of the alpha compositor's Gaussians, in the units of the rendered image. Alpha compositing
-        never renders above its brightest colour, so the training loop passes the brightest training target:
-        a nearly opaque Gaussian then reproduces the brightest pixel from the first step.
 
     Returns
     -------
@@ -55,7 +50,7 @@ def init_params(seed: Seed, cfg: dict[str, Any], device: torch.device, *, alpha_
 
     kw: dict[str, Any] = {}
     if cfg["compositor"] == "alpha":
-        kw = {"opacities": 0.1, "colors": np.full((len(seed), 1), alpha_colour, np.float32)}
+        kw = {"opacities": 0.1, "colors": np.full((len(seed), 1), 0.5, np.float32)}
     g = Gaussians.from_values(seed.means, seed.scales, seed.densities, dtype=torch.float32, device=device, **kw)
     return {k: v.detach().clone().requires_grad_(True) for k, v in g.tensors().items() if k in PARAM_GROUPS}
 
