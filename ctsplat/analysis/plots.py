@@ -634,11 +634,22 @@ def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fig
                 _empty(ax, f"no runs differing only in {axis}")
                 continue
             x = np.arange(len(wide.columns))
-            for _, row in wide.iterrows():
+            # lines of different compositors sit at very different levels: colour them so pairs are told apart
+            by = ("compositor" if axis != "compositor" and "compositor" in wide.index.names
+                  and wide.index.get_level_values("compositor").nunique() > 1 else None)
+            colours = ({v: f"C{k}" for k, v in enumerate(sorted(set(wide.index.get_level_values(by))))}
+                       if by else {})
+            for idx, row in wide.iterrows():
                 ok = row.notna().to_numpy()
-                ax.plot(x[ok], row.to_numpy(dtype=float)[ok], "-o", color="0.45", lw=1, ms=4, alpha=0.8)
+                key = dict(zip(wide.index.names, idx if isinstance(idx, tuple) else (idx,), strict=True)).get(by)
+                ax.plot(x[ok], row.to_numpy(dtype=float)[ok], "-o", color=colours.get(key, "0.45"), lw=1, ms=4,
+                        alpha=0.8, label=f"compositor={key}" if by else None)
             med = wide.median(axis=0)
-            ax.plot(x, med.to_numpy(dtype=float), "-D", color="C3", lw=2.2, ms=6, label="median", zorder=5)
+            ax.plot(x, med.to_numpy(dtype=float), "-D", color="k", lw=2.2, ms=6, label="median", zorder=5)
+            if by and i == 0:
+                handles, labels = ax.get_legend_handles_labels()
+                seen = dict(zip(labels, handles, strict=True))
+                ax.legend(seen.values(), seen.keys(), fontsize=6, loc="best")
             ax.set_xticks(x, [str(c) for c in wide.columns])
             first, last = wide.columns[0], wide.columns[-1]
             delta = (wide[last] - wide[first]).median()
@@ -648,7 +659,8 @@ def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fig
             ax.set_ylabel(f"test {METRIC_LABELS.get(m, m)}" if col.startswith("test_") else
                           f"last validation {METRIC_LABELS.get(m, m)}")
             ax.grid(alpha=0.3)
-    fig.suptitle("Paired ablation: each grey line is one grid cell with only that axis changed")
+    fig.suptitle("Paired ablation: each thin line is one grid cell with only that axis changed (coloured by "
+                 "compositor where it varies); black: the median")
     fig.tight_layout()
     return _save(fig, out)
 

@@ -292,6 +292,21 @@ def test_ablation_is_paired_lines_not_boxes(tmp_path):
     table = paired_table(summary, "views", "test_psnr3d")
     assert list(table.columns) == ["8", "16"] and len(table) == 4
     assert _is_png(tmp_path / "ab.png")
+    assert {ln.get_color() for ln in grey} == {"0.45"}  # one compositor: grey lines
+
+
+def test_ablation_colours_the_pairs_by_compositor(tmp_path):
+    summary = pd.DataFrame({"volume": "p", "init": ["fbp", "uniform"] * 2, "compositor": ["radiative"] * 2
+                            + ["alpha"] * 2, "mip": "on", "poses": "gt", "views": 8, "seed": 0,
+                            "test_psnr3d": [30.0, 28.0, 20.0, 19.0]})
+    fig = plots.plot_ablation(summary, tmp_path / "ab.png")
+    init_ax = next(ax for ax in fig.axes if ax.get_xlabel() == "init" or "uniform" in
+                   [t.get_text() for t in ax.get_xticklabels()])
+    lines = {ln.get_label(): ln for ln in init_ax.get_lines()}
+    assert lines["compositor=alpha"].get_color() != lines["compositor=radiative"].get_color()
+    np.testing.assert_allclose(lines["compositor=radiative"].get_ydata(), [30.0, 28.0])
+    assert {t.get_text() for t in init_ax.get_legend().get_texts()} == {"compositor=alpha", "compositor=radiative",
+                                                                        "median"}
 
 
 def test_analyse_and_run_figures_write_every_output(tmp_path):
