@@ -23,7 +23,8 @@ if TYPE_CHECKING:
     import pandas as pd
 
 __all__ = ["GRID_AXES", "FEATURE_AXES", "ALL_AXES", "expand_grid", "normalise_mip", "run_axes", "run_relpath",
-           "parse_run_dir", "needs_sfm", "uses_colmap", "train_overrides", "with_train_overrides"]
+           "parse_run_dir", "needs_sfm", "cell_needs_sfm", "cells_need_sfm", "uses_colmap", "train_overrides",
+           "with_train_overrides"]
 
 #: The ablation axes every grid has, in the folder nesting order of a run directory.
 GRID_AXES: tuple[str, ...] = ("init", "compositor", "mip", "poses", "views", "seed")
@@ -245,7 +246,46 @@ def needs_sfm(runs: Any, *, enabled: bool = False) -> bool:
     -------
     bool
     """
-    return bool(enabled) or bool((runs["poses"].map(uses_colmap) | (runs["init"] == "sfm")).any())
+    return bool(enabled) or bool(cells_need_sfm(runs).any())
+
+
+def cell_needs_sfm(cell: Mapping[str, Any]) -> bool:
+    """Whether a grid cell trains on the SfM step's output: COLMAP poses (``colmap``, ``colmap+refine``) or SfM
+    points (``init: sfm``).
+
+    Parameters
+    ----------
+    cell : mapping
+        A grid cell (its ``poses`` and ``init``).
+
+    Returns
+    -------
+    bool
+
+    Examples
+    --------
+    >>> cell_needs_sfm({"poses": "colmap+refine", "init": "fbp"}), cell_needs_sfm({"poses": "gt", "init": "sfm"})
+    (True, True)
+    """
+    return uses_colmap(cell.get("poses")) or cell.get("init") == "sfm"
+
+
+def cells_need_sfm(runs: Any) -> Any:
+    """:func:`cell_needs_sfm` for every row of a table of grid cells.
+
+    Parameters
+    ----------
+    runs : pandas.DataFrame
+        Grid cells (``poses`` and ``init`` columns).
+
+    Returns
+    -------
+    pandas.Series of bool
+        Indexed like ``runs``.
+    """
+    import pandas as pd
+
+    return pd.Series([cell_needs_sfm(r) for r in runs.to_dict("records")], index=runs.index, dtype=bool)
 
 
 def uses_colmap(poses: Any) -> bool:

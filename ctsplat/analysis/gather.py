@@ -12,7 +12,7 @@ import pandas as pd
 
 from ctsplat.analysis.stats import convergence_velocity, mean_iters_per_s, milestones
 from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, PER_VIEW_COLUMNS, read_per_view, read_train_log
-from ctsplat.grid import GRID_AXES, parse_run_dir, run_axes, uses_colmap
+from ctsplat.grid import GRID_AXES, cell_needs_sfm, parse_run_dir, run_axes, uses_colmap
 from ctsplat.utils import CtsplatError, atomic_path
 
 __all__ = ["TEST_METRICS", "SFM_COLUMNS", "BASELINE_SUMMARY_COLUMNS", "NOT_RUN", "velocity_column",
@@ -104,7 +104,7 @@ def _sfm_columns(run_dir: Path) -> dict[str, Any]:
 
 def _not_run_reason(run_dir: Path, row: Mapping[str, Any]) -> str | None:
     """Why a cell that trains on SfM output has no results: its volume's SfM run failed (None otherwise)."""
-    if not (uses_colmap(row.get("poses")) or row.get("init") == "sfm"):
+    if not cell_needs_sfm(row):
         return None
     path = sfm_summary_path(run_dir)
     if path is None:

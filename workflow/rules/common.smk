@@ -10,6 +10,7 @@ from ctsplat.analysis import ANALYSIS_OUTPUTS
 from ctsplat.config import prepare_config
 from ctsplat.sfm.step import sfm_failure
 from ctsplat.grid import (
+    cells_need_sfm,
     expand_grid,
     needs_sfm,
     run_axes,
@@ -49,11 +50,6 @@ def run_dirs(volume=None, *, sfm_cells=None):
         cells = Paramspace(rows[list(RUN_AXES)], param_sep="~")
         out += [f"{RESULTS}/{v}/runs/{p}" for p in cells.instance_patterns]
     return out
-
-
-def cells_need_sfm(rows):
-    """Per grid row: whether it trains on the SfM step's output."""
-    return rows["poses"].map(uses_colmap) | (rows["init"] == "sfm")
 
 
 def sfm_runs_for(volume):
