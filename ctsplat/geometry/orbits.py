@@ -691,8 +691,11 @@ def check_fov(camera: Camera, Rs: np.ndarray, ts: np.ndarray, data: np.ndarray, 
     frac = fov_outside_fraction(camera, np.asarray(Rs), np.asarray(ts), pts)
     worst = float(frac.max())
     if worst > 0:
+        pct = 100 * worst
+        # a few points of a faint rim must not read as "0.0%"
+        shown = f"{pct:.1f}" if pct >= 0.1 else f"{pct:.2g}"
         warnings.warn(
-            f"detector does not cover the volume: {100 * worst:.1f}% of the object lies outside the field of view "
+            f"detector does not cover the volume: {shown}% of the object lies outside the field of view "
             f"in the worst view ({int(np.sum(frac > 0))}/{len(frac)} views affected); enlarge the detector or "
             "its pixel spacing",
             stacklevel=2,

@@ -294,6 +294,12 @@ def test_fov_fraction_and_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert check_fov(ParallelCamera(12, 12, 1.0), R[None], t[None], data, affine) == 0.0
+    # one corner voxel of 4097 outside: the warning names a non-zero share, not "0.0%"
+    rim = np.zeros((20, 20, 20), np.float32)
+    rim[2:18, 2:18, 2:18] = 1.0
+    rim[0, 0, 0] = 1.0
+    with pytest.warns(UserWarning, match=r"detector does not cover the volume: 0\.024% of the object"):
+        assert check_fov(ParallelCamera(17, 17, 1.0), R[None], t[None], rim, affine) == pytest.approx(1 / 4097)
     # cone: points behind the source are outside
     cone = ConeCamera(1000, 1000, 1.0, 5.0, 10.0)
     R, t = pose_from_angles(0.0, 0.0, ISO, 5.0)
