@@ -94,6 +94,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from types import ModuleType
 from typing import Any
 
 import torch
@@ -405,6 +406,14 @@ def _use_triton(backend: str, device: torch.device) -> bool:
     return reason is None
 
 
+def _fused(backend: str, device: torch.device) -> ModuleType | None:
+    """The module whose fused kernels run for ``backend`` on ``device`` (``_triton`` or ``_kernel``), or ``None``
+    for the pure-PyTorch reference."""
+    if _use_triton(backend, device):
+        return _triton
+    return _kernel if _use_kernel(backend, device) else None
+
+
 def _check_inputs(gaussians: Gaussians, filter_3d_var: torch.Tensor | None) -> None:
     gaussians.validate()
     if filter_3d_var is not None:
@@ -481,9 +490,8 @@ def render(
         raise CtsplatError(f"sigma_cutoff must be > 0, got {sigma_cutoff}")
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
-    use_triton = _use_triton(backend, gaussians.means.device)
-    use_kernel = _use_kernel(backend, gaussians.means.device)
-    if use_kernel:
+    fused = _fused(backend, gaussians.means.device)
+    if fused is _kernel:
         # the kernel flags NaN/Inf in what it reads (one pass, no per-view torch reductions); the full check
         # then names the parameter. Colours, which the kernel does not read, are checked here (alpha only).
         gaussians.validate(check_finite=("colors", "sh_rest") if compositor == "alpha" else False)
@@ -507,17 +515,16 @@ def render(
     if compositor == "alpha":
         R_t, t_t = _as_pose(R, t, gaussians.means)
         cols = _colors_for_view(gaussians, R_t, t_t, cam["model"])
-        if use_kernel or use_triton:
-            fn = _triton.AlphaComposite if use_triton else _kernel.AlphaComposite
-            img = fn.apply(proj.means2d, proj.conics, proj.amps, cols.to(proj.amps.dtype), proj.bbox, proj.depths, H, W)
+        if fused is not None:
+            img = fused.AlphaComposite.apply(proj.means2d, proj.conics, proj.amps, cols.to(proj.amps.dtype),
+                                             proj.bbox, proj.depths, H, W)
         else:
             img = _reference.splat_alpha_reference(proj, cols, H, W)
         if img.shape[-1] == 1:
             img = img[..., 0]
     else:
-        if use_kernel or use_triton:
-            fn = _triton.SplatAdditive if use_triton else _kernel.SplatAdditive
-            img = fn.apply(proj.means2d, proj.conics, proj.amps, proj.bbox, H, W)
+        if fused is not None:
+            img = fused.SplatAdditive.apply(proj.means2d, proj.conics, proj.amps, proj.bbox, H, W)
         else:
             img = _reference.splat_additive_reference(proj, H, W)
         if mu_scale != 1.0:
@@ -726,12 +733,9 @@ def voxelize(
     prec6 = torch.stack([inv_cov[:, 0, 0], inv_cov[:, 1, 1], inv_cov[:, 2, 2], inv_cov[:, 0, 1], inv_cov[:, 0, 2],
                          inv_cov[:, 1, 2]], -1)
     _check_backend(backend, "voxelize")
-    if _use_triton(backend, dev):
-        out = _triton.Voxelize.apply(means[keep], prec6[keep], dens[keep], lo[keep], ext[keep], A, reg[:, 0],
-                                     out_shape)
-    elif _use_kernel(backend, dev):
-        out = _kernel.Voxelize.apply(means[keep], prec6[keep], dens[keep], lo[keep], ext[keep], A, reg[:, 0],
-                                     out_shape)
+    fused = _fused(backend, dev)
+    if fused is not None:
+        out = fused.Voxelize.apply(means[keep], prec6[keep], dens[keep], lo[keep], ext[keep], A, reg[:, 0], out_shape)
     else:
         out = _reference.voxelize_reference(means[keep], prec6[keep], dens[keep], lo[keep], ext[keep], A, reg[:, 0],
                                             out_shape, chunk)
