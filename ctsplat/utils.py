@@ -8,6 +8,7 @@ import json
 import math
 import os
 import random
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -94,6 +95,43 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
+        raise
+
+
+@contextlib.contextmanager
+def atomic_dir(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield an empty temporary folder next to ``path``; it replaces ``path`` only if the block succeeds.
+
+    The folder-level twin of :func:`atomic_path`: an existing ``path`` is removed and the temporary folder renamed
+    onto it (one file system, so readers see the old folder or the whole new one); on any error the temporary
+    folder is removed and the exception propagates, leaving ``path`` as it was.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The final output folder. Its parent folder is created if missing.
+
+    Yields
+    ------
+    pathlib.Path
+        The temporary folder to write into (permissions as a plain ``mkdir`` would give).
+
+    Examples
+    --------
+    >>> with atomic_dir("out/views") as tmp:
+    ...     (tmp / "views.json").write_text("{}")
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp creates 0700
+        yield tmp
+        if path.exists():
+            shutil.rmtree(path)
+        os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
         raise
 
 

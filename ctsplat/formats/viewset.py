@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from ctsplat.geometry.cameras import Camera, camera_center, camera_from_dict, rotmat_to_qvec
-from ctsplat.utils import CtsplatError, code_version, write_json_atomic
+from ctsplat.utils import CtsplatError, atomic_dir, code_version, write_json_atomic
 
 __all__ = [
     "VIEWSET_FORMAT",
@@ -235,17 +235,9 @@ def write_png_stack(images: np.ndarray, out_dir: str | Path, names: list[str]) -
     if len(names) != len(images):
         raise CtsplatError(f"{len(images)} images but {len(names)} names")
     out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with atomic_dir(out_dir) as tmp:
         for name, img in zip(names, images, strict=True):
             iio.imwrite(tmp / name, img)
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
 
 
 def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, provenance: dict[str, Any]) -> None:

@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import shutil
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -32,7 +31,7 @@ import pycolmap
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.images import check_photos, list_photos
 from ctsplat.sfm.colmap import write_model
-from ctsplat.utils import CtsplatError, code_version, write_json_atomic
+from ctsplat.utils import CtsplatError, atomic_dir, code_version, write_json_atomic
 
 __all__ = ["run_photo_sfm", "matching_mode"]
 
@@ -157,16 +156,8 @@ def run_photo_sfm(image_dir: str | Path, out_dir: str | Path, settings: dict[str
     with contextlib.suppress(Exception):
         pycolmap.set_random_seed(int(s["seed"]))
         pycolmap.logging.minloglevel = 2  # glog: errors only
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with atomic_dir(out_dir) as tmp:
         summary = _run(image_dir, names, tmp, s)
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        tmp.rename(out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return summary
 
 

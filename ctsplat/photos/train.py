@@ -26,8 +26,6 @@ from __future__ import annotations
 
 import logging
 import math
-import shutil
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -43,7 +41,7 @@ from ctsplat.photos.densify import AlphaDensify
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.splat.render import render
 from ctsplat.training.losses import ssim
-from ctsplat.utils import CtsplatError, code_version, config_hash, resolve_device, write_json_atomic
+from ctsplat.utils import CtsplatError, atomic_dir, code_version, config_hash, resolve_device, write_json_atomic
 
 __all__ = ["PHOTO_LOG_EXTRAS", "train_photos", "train_scene", "init_params", "to_gaussians", "render_view",
            "image_metrics"]
@@ -306,9 +304,7 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
     torch.set_num_threads(int(s["num_threads"]))
     scene = load_scene(sfm_dir, downscale=int(s["downscale"]), test_every=int(s["test_every"]), device=device)
     out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with atomic_dir(out_dir) as tmp:
         config = {"sfm_dir": str(sfm_dir), "train": s}
         write_json_atomic(tmp / "config.json", {**config, "config_hash": config_hash(config),
                                                 "code_version": code_version()})
@@ -320,10 +316,4 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
         report.update({"resolution": [w, h], "downscale": int(s["downscale"]), "extent": scene.extent,
                        "device": str(device), "threads": torch.get_num_threads()})
         write_json_atomic(tmp / "training.json", report)
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        tmp.rename(out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return report

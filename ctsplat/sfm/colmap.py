@@ -28,7 +28,7 @@ import numpy as np
 import pycolmap
 
 from ctsplat.sfm.align import evaluate_poses, umeyama
-from ctsplat.utils import CtsplatError
+from ctsplat.utils import CtsplatError, atomic_dir
 
 __all__ = ["REFINE_MODES", "colmap_reconstruct", "colmap_map", "reverse_depth", "fix_reversal", "merge_models",
            "model_poses", "set_poses_and_triangulate", "isocentric_adjust", "per_image_reproj", "write_model"]
@@ -713,15 +713,7 @@ def write_model(rec: Any, out_dir: Path) -> None:
     out_dir : Path
         Target folder (e.g. ``sparse/0``).
     """
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=".sparse.", dir=out_dir.parent))
-    try:
+    with atomic_dir(out_dir) as tmp:
         rec.write_binary(str(tmp))
         (tmp / "text").mkdir()
         rec.write_text(str(tmp / "text"))
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        tmp.rename(out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise

@@ -416,6 +416,27 @@ def test_atomic_writes_leave_nothing_on_error_and_use_normal_permissions(tmp_pat
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json"]
 
 
+def test_atomic_dir_replaces_whole_folders_or_leaves_the_old_one(tmp_path):
+    from ctsplat.utils import atomic_dir
+
+    out = tmp_path / "views"
+    out.mkdir()
+    (out / "old.png").write_bytes(b"old")
+    with pytest.raises(RuntimeError), atomic_dir(out) as tmp:
+        (tmp / "new.png").write_bytes(b"partial")
+        raise RuntimeError("writer failed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["views"]  # no temporary folder left
+    assert sorted(p.name for p in out.iterdir()) == ["old.png"]
+    with atomic_dir(out) as tmp:
+        (tmp / "new.png").write_bytes(b"new")
+        assert not (out / "new.png").exists()  # nothing visible before the block ends
+    assert sorted(p.name for p in out.iterdir()) == ["new.png"]
+    umask = os.umask(0o022)
+    os.umask(umask)
+    assert (out.stat().st_mode & 0o777) == 0o777 & ~umask  # not mkdtemp's 0700
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["views"]
+
+
 # ------------------------------------------------------------------------------------------ rescale
 
 
