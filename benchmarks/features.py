@@ -28,7 +28,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import logging
 import os
@@ -41,6 +40,8 @@ import pandas as pd
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+
+from _common import cli_main, data_cache, shared_train_config  # noqa: E402
 
 #: train overrides of each variant (applied on top of the shared config; the baseline has none)
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -65,19 +66,6 @@ OWN_KEYS = {"volume": "--data", "radiographs": "--views / --detector", "init": "
             "densify.prune_redundant": "--variants", "model_selection": "--variants"}
 
 
-def _dotted(d: dict[str, Any], prefix: str = "") -> list[str]:
-    out = []
-    for k, v in d.items():
-        out += _dotted(v, f"{prefix}{k}.") if isinstance(v, dict) else [f"{prefix}{k}"]
-    return out
-
-
-def data_cache(out: Path, data: Path, grid: int) -> Path:
-    """The cache folder of one data set and grid size: named after it and a hash of its resolved path."""
-    key = hashlib.sha256(str(data.resolve()).encode()).hexdigest()[:8]
-    return out / "cache" / f"{data.name}-{key}-g{grid}"
-
-
 def prepare(data: Path, cache: Path, grid: int, n_views: int, n_val: int, n_test: int, detector: int
             ) -> tuple[Path, Path]:
     """Ingest once (``grid``^3) and render one radiograph set per training-view count (cached in ``cache``)."""
@@ -99,28 +87,12 @@ def prepare(data: Path, cache: Path, grid: int, n_views: int, n_val: int, n_test
 
 def train_config(sets: list[str], iterations: int, n_init: int, init: str) -> dict[str, Any]:
     """The train settings every run shares: this benchmark's defaults, then ``--set`` (checked against the schema)."""
-    from ctsplat.cli.train import load_train_config
-    from ctsplat.config import check_section
-    from ctsplat.utils import CtsplatError
-
-    user = load_train_config(None, sets)
-    own = [(key, p) for key in _dotted(user) for p in OWN_KEYS if key == p or key.startswith(p + ".")]
-    if own:
-        key, option = own[0][0], OWN_KEYS[own[0][1]]
-        raise CtsplatError(f"--set {key} is set by this benchmark per run" + (f"; use {option}" if option else ""))
-    cfg = {"compositor": "radiative", "device": "cpu", "init": init, **user, "iterations": iterations,
-           "n_init": n_init, "progress": False}
-    return check_section("train", cfg)
+    return shared_train_config(sets, own_keys=OWN_KEYS, defaults={"init": init},
+                               fixed={"iterations": iterations, "n_init": n_init})
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ctsplat.utils import CtsplatError
-
-    try:
-        return run(argv)
-    except CtsplatError as exc:
-        print(f"features.py: error: {exc}", file=sys.stderr)
-        return 2
+    return cli_main(run, argv, "features.py")
 
 
 def run(argv: list[str] | None = None) -> int:
@@ -160,7 +132,7 @@ def run(argv: list[str] | None = None) -> int:
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    cache = data_cache(out, data, args.grid)
+    cache = data_cache(out, data, f"-g{args.grid}")
     cache.mkdir(parents=True, exist_ok=True)
     variants = list(args.variants)
     if "best_model" in variants and "baseline" not in variants:

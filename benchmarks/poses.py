@@ -28,7 +28,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import logging
 import os
@@ -42,10 +41,15 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from _common import cli_main, data_cache, shared_train_config  # noqa: E402
+
 POSES = ("gt", "perturbed", "perturbed+refine", "colmap", "colmap+refine")
 CONE = {"dso_mm": 600.0, "dsd_mm": 1000.0}
 CARM = {"camera": "cone", "orbit": "carm", "n_views": 90, "wobble_deg": 15.0, **CONE, "orbit_jitter_deg": 1.0,
         "orbit_jitter_mm": 0.5}
+#: keys each run sets, and the option that sets them (refused in --set)
+OWN_KEYS = {"volume": "--data", "radiographs": "--views / --detector", "poses": "--poses", "views": "--views",
+            "sfm_dir": None, "iterations": "--iterations", "n_init": "--n-init", "progress": None}
 #: the C-arm SfM recipe of config/config.yaml (docs/sfm.md)
 SFM = {"pose_prior": "isocentric", "design_sigma_deg": 1.0, "highpass_frac": 0.03, "lowpass_px": 1.0,
        "percentile_low": 0.5, "percentile_high": 99.5, "silhouette_margin_frac": 0.05}
@@ -99,27 +103,12 @@ def sfm_result(vol: Path, cache: Path, detector: int) -> Path:
 
 def train_config(sets: list[str], iterations: int, n_init: int) -> dict[str, Any]:
     """The settings every run shares: this benchmark's defaults, then ``--set`` (checked against the schema)."""
-    from ctsplat.cli.train import load_train_config
-    from ctsplat.config import check_section
-    from ctsplat.utils import CtsplatError
-
-    user = load_train_config(None, sets)
-    for key in ("volume", "radiographs", "poses", "views", "sfm_dir", "iterations", "n_init"):
-        if key in user:
-            raise CtsplatError(f"--set {key} is set by this benchmark per run; use its own option")
-    cfg = {"compositor": "radiative", "device": "cpu", "init": "fbp", **user, "iterations": iterations,
-           "n_init": n_init, "progress": False}
-    return check_section("train", cfg)
+    return shared_train_config(sets, own_keys=OWN_KEYS, defaults={"init": "fbp"},
+                               fixed={"iterations": iterations, "n_init": n_init})
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ctsplat.utils import CtsplatError
-
-    try:
-        return run(argv)
-    except CtsplatError as exc:
-        print(f"poses.py: error: {exc}", file=sys.stderr)
-        return 2
+    return cli_main(run, argv, "poses.py")
 
 
 def run(argv: list[str] | None = None) -> int:
@@ -155,8 +144,7 @@ def run(argv: list[str] | None = None) -> int:
         print(f"poses.py: error: no volume source at {args.data}", file=sys.stderr)
         return 2
     out = Path(args.out)
-    key = hashlib.sha256(str(Path(args.data).resolve() if args.data != "phantom" else "phantom").encode())
-    cache = out / "cache" / f"{Path(args.data).name}-{key.hexdigest()[:8]}-g{args.grid}"
+    cache = data_cache(out, args.data, f"-g{args.grid}")
     cache.mkdir(parents=True, exist_ok=True)
     vol = ingest_volume(args.data, cache, args.grid)
     sfm_dir = sfm_result(vol, cache, args.detector) if any(p.startswith("colmap") for p in args.poses) else None

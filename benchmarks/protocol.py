@@ -46,6 +46,8 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from _common import cli_main, shared_train_config, time_to  # noqa: E402
+
 DEFAULT_VOLUMES = ["phantom", "ct0051_head", "totalseg_abdomen_j2k"]
 N_VAL, N_TEST = 10, 100
 MAX_SHARED_ANGLES = 600  # above this many, render one view set per view count instead of one shared set
@@ -167,23 +169,8 @@ OWN_KEYS = {"volume": "--volumes", "radiographs": "--size", "init": None, "views
 
 def train_config(sets: list[str], iterations: int, n_init: int) -> dict:
     """The train settings every run shares: the protocol's, then ``--set`` (checked against the schema)."""
-    from ctsplat.cli.train import load_train_config
-    from ctsplat.config import check_section
-    from ctsplat.utils import CtsplatError
-
-    user = load_train_config(None, sets)
-    own = [k for k in user if k in OWN_KEYS]
-    if own:
-        option = OWN_KEYS[own[0]]
-        raise CtsplatError(f"--set {own[0]} is set by this benchmark per run" + (f"; use {option}" if option else ""))
-    cfg = {"compositor": "radiative", "device": "cpu", **user, "init": "fbp", "iterations": iterations,
-           "n_init": n_init, "progress": False}
-    return check_section("train", cfg)
-
-
-def time_to(log: pd.DataFrame, value: float) -> float | None:
-    hit = log[log["psnr3d"] >= value]
-    return None if hit.empty else float(hit["timestamp"].iloc[0])
+    return shared_train_config(sets, own_keys=OWN_KEYS, defaults={},
+                               fixed={"init": "fbp", "iterations": iterations, "n_init": n_init})
 
 
 def gaussian_row(name: str, vol: Path, rad: Path, n: int, shared: dict, run_dir: Path) -> dict:
@@ -218,13 +205,7 @@ def markdown(table: pd.DataFrame) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ctsplat.utils import CtsplatError
-
-    try:
-        return run(argv)
-    except CtsplatError as exc:
-        print(f"protocol.py: error: {exc}", file=sys.stderr)
-        return 2
+    return cli_main(run, argv, "protocol.py")
 
 
 def run(argv: list[str] | None = None) -> int:

@@ -22,7 +22,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import logging
 import os
@@ -34,6 +33,8 @@ import pandas as pd
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+
+from _common import cli_main, data_cache, shared_train_config, time_to  # noqa: E402
 
 
 def prepare(data: Path, cache: Path, n_views: int, n_val: int, n_test: int, detector: int) -> tuple[Path, Path]:
@@ -53,12 +54,6 @@ def prepare(data: Path, cache: Path, n_views: int, n_val: int, n_test: int, dete
             "n_views": n_views, "split": {"train": n_views / tot, "val": n_val / tot, "test": n_test / tot},
         }, seed=0)
     return vol, rad
-
-
-def data_cache(out: Path, data: Path) -> Path:
-    """The cache folder of one data set: named after it and a hash of its resolved path."""
-    key = hashlib.sha256(str(data.resolve()).encode()).hexdigest()[:8]
-    return out / "cache" / f"{data.name}-{key}"
 
 
 def baselines(vol: Path, rad: Path, out: Path) -> pd.DataFrame:
@@ -81,33 +76,12 @@ def train_config(sets: list[str], iterations: int, n_init: int) -> dict:
     Keys the script sets per run are refused in ``--set`` (they have their own options); anything else takes
     effect, e.g. ``--set compositor=radiative_unrectified``.
     """
-    from ctsplat.cli.train import load_train_config
-    from ctsplat.config import check_section
-    from ctsplat.utils import CtsplatError
-
-    user = load_train_config(None, sets)
-    own = [k for k in user if k in OWN_KEYS]
-    if own:
-        option = OWN_KEYS[own[0]]
-        raise CtsplatError(f"--set {own[0]} is set by this benchmark per run" + (f"; use {option}" if option else ""))
-    cfg = {"compositor": "radiative", "device": "cpu", **user, "iterations": iterations, "n_init": n_init,
-           "progress": False}
-    return check_section("train", cfg)  # the options' ranges too
-
-
-def time_to(rows: pd.DataFrame, value: float) -> float | None:
-    hit = rows[rows["psnr3d"] >= value]
-    return None if hit.empty else float(hit["timestamp"].iloc[0])
+    return shared_train_config(sets, own_keys=OWN_KEYS, defaults={},
+                               fixed={"iterations": iterations, "n_init": n_init})
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ctsplat.utils import CtsplatError
-
-    try:
-        return run(argv)
-    except CtsplatError as exc:
-        print(f"quality.py: error: {exc}", file=sys.stderr)
-        return 2
+    return cli_main(run, argv, "quality.py")
 
 
 def run(argv: list[str] | None = None) -> int:

@@ -1,0 +1,82 @@
+"""What the training benchmarks share: the one-line error exit, the shared train settings, cache folders and the
+time to a quality level.
+
+Imported by the scripts in this folder (Python puts a script's folder first on ``sys.path``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import sys
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+
+def cli_main(run: Callable[[list[str] | None], int], argv: list[str] | None, script: str) -> int:
+    """Run ``run(argv)``; a :class:`~ctsplat.utils.CtsplatError` becomes one line ``script: error: ...`` and exit 2."""
+    from ctsplat.utils import CtsplatError
+
+    try:
+        return run(argv)
+    except CtsplatError as exc:
+        print(f"{script}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _dotted(d: Mapping[str, Any], prefix: str = "") -> list[str]:
+    """The leaf key paths of a nested dict, dotted (``densify.strategy``)."""
+    out = []
+    for k, v in d.items():
+        out += _dotted(v, f"{prefix}{k}.") if isinstance(v, Mapping) else [f"{prefix}{k}"]
+    return out
+
+
+def shared_train_config(sets: list[str], *, own_keys: Mapping[str, str | None], defaults: Mapping[str, Any],
+                        fixed: Mapping[str, Any]) -> dict[str, Any]:
+    """The train settings every run of a benchmark shares, checked against the schema.
+
+    Parameters
+    ----------
+    sets : list of str
+        The ``--set KEY=VALUE`` options (as ``ctsplat train --set``).
+    own_keys : mapping
+        Keys (dotted for nested ones) that the benchmark sets per run, each to the option that sets it (or
+        ``None``): one in ``sets``, or under it, is a one-line error naming that option.
+    defaults : mapping
+        The benchmark's defaults; ``sets`` override them.
+    fixed : mapping
+        Settings that override ``sets`` (the benchmark's own options).
+
+    Returns
+    -------
+    dict
+        ``{"compositor": "radiative", "device": "cpu", **defaults, **user, **fixed, "progress": False}``, with the
+        schema's defaults and ranges applied.
+    """
+    from ctsplat.cli.train import load_train_config
+    from ctsplat.config import check_section
+    from ctsplat.utils import CtsplatError
+
+    user = load_train_config(None, sets)
+    own = [(key, p) for key in _dotted(user) for p in own_keys if key == p or key.startswith(p + ".")]
+    if own:
+        key, option = own[0][0], own_keys[own[0][1]]
+        raise CtsplatError(f"--set {key} is set by this benchmark per run" + (f"; use {option}" if option else ""))
+    cfg = {"compositor": "radiative", "device": "cpu", **defaults, **user, **fixed, "progress": False}
+    return check_section("train", cfg)
+
+
+def data_cache(out: Path, data: Path | str, suffix: str = "") -> Path:
+    """The cache folder of one data set: its name and a hash of its resolved path (``phantom`` stays as is)."""
+    data = str(data)
+    key = hashlib.sha256((data if data == "phantom" else str(Path(data).resolve())).encode()).hexdigest()[:8]
+    return Path(out) / "cache" / f"{Path(data).name}-{key}{suffix}"
+
+
+def time_to(log: pd.DataFrame, value: float) -> float | None:
+    """Seconds (the log's ``timestamp``) at which the 3D PSNR first reached ``value`` dB, or ``None``."""
+    hit = log[log["psnr3d"] >= value]
+    return None if hit.empty else float(hit["timestamp"].iloc[0])
