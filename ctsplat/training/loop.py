@@ -382,9 +382,6 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     sampler = ViewSampler(scene.train.azimuth_deg, scene.train.elevation_deg, int(cfg["batch_views"]))
     total = int(cfg["iterations"])
     densify = make_densify(cfg["densify"], compositor=cfg["compositor"], iterations=total)
-    if state.err_accum is None or state.err_accum.shape[0] != state.params["means"].shape[0]:
-        state.err_accum = torch.zeros(state.params["means"].shape[0], device=device)
-        state.err_count = torch.zeros_like(state.err_accum)
     tr = scene.train
     augment = Augmenter(cfg["augment"], tr.camera, vol.center_mm())
     state.pose, state.pose_opt = _make_pose_refiner(cfg, scene, device)

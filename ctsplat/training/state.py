@@ -234,6 +234,13 @@ class TrainState:
     pose: Any = None
     pose_opt: Any = None
 
+    def __post_init__(self) -> None:
+        # statistics not given (a fresh run, or a checkpoint written without them) start at zero, one per Gaussian
+        m, dev = self.params["means"].shape[0], self.params["means"].device
+        for name in ("grad_accum", "grad_count", "err_accum", "err_count"):
+            if getattr(self, name) is None:
+                setattr(self, name, torch.zeros(m, device=dev))
+
 
 class ViewSampler:
     """Stratified view sampling over direction.
