@@ -16,7 +16,6 @@ makes the expected seeded field equal to the voxel values ``V`` ("density propor
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -29,7 +28,6 @@ from ctsplat.utils import CtsplatError
 if TYPE_CHECKING:
     from ctsplat.scene import Scene
 
-log = logging.getLogger(__name__)
 
 __all__ = [
     "make_seed",
@@ -303,26 +301,12 @@ def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> Se
 SIRT_SEED_ITERATIONS = 10
 
 
-def _is_circular_cone(view_set: Any) -> bool:
-    """A cone-beam view set on one planar circular orbit about +z at elevation 0 (what FDK reconstructs)."""
-    if view_set.camera.model != "cone" or len(view_set) < 2:
-        return False
-    Rs, ts = view_set.Rs(), view_set.ts()
-    if np.abs(Rs[:, 2, 2]).max() > 1e-6 or np.abs(Rs[:, 1] - [0.0, 0.0, -1.0]).max() > 1e-6:
-        return False  # not looking horizontally with world +z up: wobble or SfM poses
-    centres = -np.einsum("vji,vj->vi", Rs, ts)  # source positions C = -R^T t
-    iso = np.asarray(view_set.isocenter_mm, float)
-    radial = np.linalg.norm(centres[:, :2] - iso[:2], axis=1)
-    tol = 1e-6 * max(1.0, float(radial.max()))
-    return bool(np.ptp(centres[:, 2]) <= tol and np.ptp(radial) <= tol)
-
-
 def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> tuple[np.ndarray, str]:
     """Reconstruction of the *training* projections only onto the reference grid (geometry only, no voxel values).
 
-    Circular parallel-beam orbits at elevation 0 use slice-wise FBP (``ctsplat.baselines.fbp_volume``); circular
-    cone-beam orbits at elevation 0 use FDK (``ctsplat.recon.fdk.fdk_volume``, imported when needed; without that
-    module the run logs why and falls back to SIRT); any other geometry (wobbling or spherical orbits, C-arm or
+    Circular parallel-beam orbits at elevation 0 use slice-wise FBP (``ctsplat.baselines.fbp_volume``); planar
+    circular cone-beam orbits use FDK (``ctsplat.recon.fdk.fdk_volume``, where
+    ``ctsplat.recon.fdk.is_circular_cone`` holds); any other geometry (wobbling or spherical orbits, C-arm or
     SfM poses) uses ``SIRT_SEED_ITERATIONS`` iterations of ``ctsplat.baselines.sirt_volume``, which works with the
     projector's own geometry. The training targets are already normalised line integrals, so the result is in
     normalised units.
@@ -342,6 +326,7 @@ def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> tuple[np.ndar
     from ctsplat.baselines import fbp_volume, is_circular_parallel, sirt_volume
     from ctsplat.formats.viewset import View, ViewSet
     from ctsplat.formats.volume import Volume
+    from ctsplat.recon import fdk
 
     tr = scene.train
     views = [View(int(i), R, t, float(a), float(e), "train")
@@ -351,13 +336,8 @@ def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> tuple[np.ndar
     if is_circular_parallel(vs):
         return np.asarray(fbp_volume(tr.images, vs, grid, filter_name=filter_name, mu_scale_per_mm=1.0),
                           np.float32), "fbp"
-    if _is_circular_cone(vs):
-        try:
-            from ctsplat.recon.fdk import fdk_volume
-        except ImportError as exc:
-            log.info("init fbp on a circular cone beam: FDK unavailable (%s); seeding from SIRT instead", exc)
-        else:
-            # the grid carries no intensity scale (1.0): the targets are normalised line integrals already
-            return np.asarray(fdk_volume(tr.images, vs, grid, filter_name=filter_name), np.float32), "fdk"
+    if fdk.is_circular_cone(vs):
+        # the grid carries no intensity scale (1.0): the targets are normalised line integrals already
+        return np.asarray(fdk.fdk_volume(tr.images, vs, grid, filter_name=filter_name), np.float32), "fdk"
     recon = sirt_volume(tr.images, vs, grid, iterations=SIRT_SEED_ITERATIONS, mu_scale_per_mm=1.0)
     return np.asarray(recon, np.float32), "sirt"

@@ -341,8 +341,7 @@ def _cone_scene(scene_dir: Path, tmp_path: Path, **geometry) -> Any:
 
 
 def test_fbp_init_calls_fdk_on_a_circular_cone_beam(scene_dir: Path, tmp_path: Path, monkeypatch) -> None:
-    import sys
-    import types
+    from ctsplat.recon import fdk
 
     calls = []
 
@@ -350,7 +349,7 @@ def test_fbp_init_calls_fdk_on_a_circular_cone_beam(scene_dir: Path, tmp_path: P
         calls.append((line_integrals.shape, len(view_set), reference.shape, filter_name))
         return np.full(reference.shape, 0.5, np.float32)
 
-    monkeypatch.setitem(sys.modules, "ctsplat.recon.fdk", types.SimpleNamespace(fdk_volume=fdk_volume))
+    monkeypatch.setattr(fdk, "fdk_volume", fdk_volume)
     cfg, scene = _cone_scene(scene_dir, tmp_path)
     recon, method = seeding.fbp_reconstruction(scene, "shepp-logan")
     assert method == "fdk" and calls == [((16, 32, 32), 16, (N, N, N), "shepp-logan")]
@@ -359,32 +358,6 @@ def test_fbp_init_calls_fdk_on_a_circular_cone_beam(scene_dir: Path, tmp_path: P
     calls.clear()
     _, wobbly = _cone_scene(scene_dir, tmp_path / "w", wobble_deg=10.0)
     assert seeding.fbp_reconstruction(wobbly)[1] == "sirt" and not calls
-
-
-def test_fbp_init_without_fdk_falls_back_to_sirt_and_says_why(scene_dir: Path, tmp_path: Path, monkeypatch,
-                                                              caplog) -> None:
-    import logging
-    import sys
-
-    monkeypatch.setitem(sys.modules, "ctsplat.recon.fdk", None)  # import fails as when the module is absent
-    _, scene = _cone_scene(scene_dir, tmp_path)
-    with caplog.at_level(logging.INFO, logger="ctsplat.training.seeding"):
-        assert seeding.fbp_reconstruction(scene)[1] == "sirt"
-    assert "FDK unavailable" in caplog.text and "SIRT instead" in caplog.text
-
-def test_sfm_init_reads_points(scene_dir: Path, tmp_path: Path) -> None:
-    from ctsplat.formats.ply import read_ply_points
-
-    sfm = tmp_path / "sfm"
-    sfm.mkdir()
-    pts = np.random.default_rng(0).uniform(-10, 10, size=(40, 3)).astype(np.float32)
-    head = "ply\nformat binary_little_endian 1.0\nelement vertex 40\nproperty float x\nproperty float y\n" \
-           "property float z\nend_header\n"
-    (sfm / "points3d.ply").write_bytes(head.encode() + pts.tobytes())
-    assert np.allclose(read_ply_points(sfm / "points3d.ply"), pts)
-    cfg = config.resolve_config(_cfg(scene_dir, init="sfm", sfm_dir=str(sfm), n_init=100))
-    seed = seeding.make_seed(cfg, sc.load_scene(cfg), np.random.default_rng(0))
-    assert len(seed) == 100 and np.allclose(seed.means[:40], pts)
 
 
 # ------------------------------------------------------------------------------------------ poses: colmap
