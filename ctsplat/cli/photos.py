@@ -12,10 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ctsplat.cli._common import apply_sets, load_section
-from ctsplat.utils import CtsplatError
 
-_SUMMARY_KEYS = ("n_images", "n_registered", "registration_rate", "unregistered", "models_found",
-                 "mean_reprojection_error_px", "n_points")
 _METRIC_KEYS = ("psnr", "ssim", "lpips", "n_test", "resolution", "n_gaussians", "fps", "peak_rss_mb")
 
 
@@ -32,11 +29,12 @@ def _settings(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _sfm(args: argparse.Namespace) -> None:
+    from ctsplat.photos.config import SFM_SUMMARY_KEYS
     from ctsplat.photos.sfm import run_photo_sfm
 
     s = _settings(args)
     summary = run_photo_sfm(args.images, args.out_dir, s["sfm"])
-    print(json.dumps({k: summary.get(k) for k in _SUMMARY_KEYS}))
+    print(json.dumps({k: summary.get(k) for k in SFM_SUMMARY_KEYS}))
 
 
 def _train_and_evaluate(sfm_dir: str | Path, out_dir: str | Path, s: dict[str, Any]) -> dict[str, Any]:
@@ -48,20 +46,19 @@ def _train_and_evaluate(sfm_dir: str | Path, out_dir: str | Path, s: dict[str, A
 
 
 def _train(args: argparse.Namespace) -> None:
-    if not Path(args.sfm_dir).is_dir():
-        raise CtsplatError(f"SfM folder {args.sfm_dir} does not exist; run `ctsplat photos-sfm IMAGES OUT` first")
     m = _train_and_evaluate(args.sfm_dir, args.out_dir, _settings(args))
     print(json.dumps({k: m.get(k) for k in _METRIC_KEYS}))
 
 
 def _run(args: argparse.Namespace) -> None:
-    s = _settings(args)
+    from ctsplat.photos.config import SFM_SUMMARY_KEYS
     from ctsplat.photos.sfm import run_photo_sfm
 
+    s = _settings(args)
     out = Path(args.out_dir)
     summary = run_photo_sfm(args.images, out / "sfm", s["sfm"])
     m = _train_and_evaluate(out / "sfm", out / "run", s)
-    print(json.dumps({**{k: summary.get(k) for k in _SUMMARY_KEYS}, **{k: m.get(k) for k in _METRIC_KEYS}}))
+    print(json.dumps({**{k: summary.get(k) for k in SFM_SUMMARY_KEYS}, **{k: m.get(k) for k in _METRIC_KEYS}}))
 
 
 def _common(p: argparse.ArgumentParser) -> None:

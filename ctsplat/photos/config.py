@@ -11,7 +11,11 @@ from typing import Any
 
 from ctsplat.utils import merge_config
 
-__all__ = ["PHOTOS_DEFAULTS", "photo_settings"]
+__all__ = ["PHOTOS_DEFAULTS", "SFM_SUMMARY_KEYS", "photo_settings"]
+
+#: the keys of a photo SfM folder's ``summary.json`` that the CLI prints and ``metrics.json`` repeats
+SFM_SUMMARY_KEYS = ("n_images", "n_registered", "registration_rate", "unregistered", "models_found",
+                    "mean_reprojection_error_px", "n_points")
 
 #: Defaults of the ``photos`` config section (JSON-serialisable).
 PHOTOS_DEFAULTS: dict[str, Any] = {

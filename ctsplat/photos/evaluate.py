@@ -25,7 +25,7 @@ import torch
 from ctsplat.evaluation.metrics import lpips_status
 from ctsplat.formats.runlog import PER_VIEW_COLUMNS, CsvLog
 from ctsplat.geometry.cameras import look_at
-from ctsplat.photos.config import photo_settings
+from ctsplat.photos.config import SFM_SUMMARY_KEYS, photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
 from ctsplat.photos.train import image_metrics, render_view
 from ctsplat.splat.gaussians import Gaussians
@@ -237,8 +237,7 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
         "threads": torch.get_num_threads(),
         "device": str(device),
         **_peak_memory_mb(device),
-        "sfm": {k2: sfm.get(k2) for k2 in ("n_images", "n_registered", "registration_rate", "unregistered",
-                                           "mean_reprojection_error_px", "n_points", "models_found")},
+        "sfm": {k2: sfm.get(k2) for k2 in SFM_SUMMARY_KEYS},
         "training": training,
         "attribution": s["attribution"],
     }

@@ -100,8 +100,6 @@ def _map(db: Path, image_dir: Path, out: Path, s: dict[str, Any]) -> dict[int, A
         g.mapper.bundle_adjustment.ceres.use_gpu = False
         g.mapper.global_positioning.use_gpu = False
         return dict(pycolmap.global_mapping(db, image_dir, out, options=g))
-    if s["mapper"] != "incremental":
-        raise CtsplatError(f"unknown photos.sfm.mapper {s['mapper']!r}; allowed: incremental, global")
     o = pycolmap.IncrementalPipelineOptions()
     o.num_threads = int(s["num_threads"])
     o.random_seed = int(s["seed"])
