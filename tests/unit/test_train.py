@@ -360,6 +360,21 @@ def test_fbp_init_calls_fdk_on_a_circular_cone_beam(scene_dir: Path, tmp_path: P
     assert seeding.fbp_reconstruction(wobbly)[1] == "sirt" and not calls
 
 
+def test_sfm_init_reads_points(scene_dir: Path, tmp_path: Path) -> None:
+    from ctsplat.formats.ply import read_ply_points
+
+    sfm = tmp_path / "sfm"
+    sfm.mkdir()
+    pts = np.random.default_rng(0).uniform(-10, 10, size=(40, 3)).astype(np.float32)
+    head = "ply\nformat binary_little_endian 1.0\nelement vertex 40\nproperty float x\nproperty float y\n" \
+           "property float z\nend_header\n"
+    (sfm / "points3d.ply").write_bytes(head.encode() + pts.tobytes())
+    assert np.allclose(read_ply_points(sfm / "points3d.ply"), pts)
+    cfg = config.resolve_config(_cfg(scene_dir, init="sfm", sfm_dir=str(sfm), n_init=100))
+    seed = seeding.make_seed(cfg, sc.load_scene(cfg), np.random.default_rng(0))
+    assert len(seed) == 100 and np.allclose(seed.means[:40], pts)
+
+
 # ------------------------------------------------------------------------------------------ poses: colmap
 CARM = {"camera": "cone", "orbit": "carm", "n_views": 12, "dso_mm": 120.0, "dsd_mm": 240.0, "detector_width": 24,
         "detector_height": 24, "wobble_deg": 10.0, "orbit_jitter_deg": 1.0, "device": "cpu"}
