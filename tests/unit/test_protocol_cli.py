@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -62,3 +63,50 @@ def test_protocol_tiny_run_writes_the_table(tmp_path):
     assert sum(v["split"] == "test" for v in views["views"]) == 100
     info = json.loads((out / "protocol.json").read_text())
     assert info["args"]["size"] == 16 and info["train"]["compositor"] == "radiative"
+
+
+def regions(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / "protocol_regions.py"), *map(str, args)],
+                          capture_output=True, text=True, env=env, cwd=cwd, timeout=120)
+
+
+def test_protocol_regions_splits_the_error_by_region(tmp_path):
+    """A reconstruction wrong only outside the object's box scores inf inside it, and the reverse."""
+    from ctsplat.formats.volume import Volume, save_volume
+
+    ref = np.zeros((10, 12, 8), np.float32)
+    ref[2:5, 3:9, 4:6] = 0.5  # the object's box: 3 x 6 x 2 of 960 voxels
+    ref[3, 4, 5] = 0.0  # a hole: inside the box, not object
+    box = np.zeros(ref.shape, bool)
+    box[2:5, 3:9, 4:6] = True
+    out = tmp_path / "p"
+    cache = out / "cache" / "slab-s10"
+    save_volume(Volume(ref, np.eye(4)), cache / "volume.nii.gz")
+    outside = ref + np.where(box, 0.0, 0.1).astype(np.float32)
+    save_volume(Volume(outside, np.eye(4)), cache / "baselines_radiographs_n004_v4" / "sart_n004.nii.gz")
+    inside = ref + np.where(ref > 0, 0.2, 0.0).astype(np.float32)
+    save_volume(Volume(inside, np.eye(4)), out / "runs" / "slab-s10" / "views004" / "model_volume.nii.gz")
+
+    res = regions(out, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    table = pd.read_csv(out / "regions.csv").set_index("method")
+    assert set(table.index) == {"sart", "gaussians"} and set(table["views"]) == {4}
+    n, n_box, n_obj = ref.size, 36, 35
+    assert table.loc["sart", "psnr3d_whole"] == pytest.approx(10 * np.log10(n / ((n - n_box) * 0.01)), abs=1e-3)
+    assert table.loc["sart", "psnr3d_outside_box"] == pytest.approx(20.0, abs=1e-3)
+    assert math.isinf(table.loc["sart", "psnr3d_object_box"]) and math.isinf(table.loc["sart", "psnr3d_object"])
+    assert table.loc["gaussians", "psnr3d_object"] == pytest.approx(10 * np.log10(1 / 0.04), abs=1e-3)
+    assert table.loc["gaussians", "psnr3d_object_box"] == pytest.approx(10 * np.log10(n_box / (n_obj * 0.04)),
+                                                                         abs=1e-3)
+    assert math.isinf(table.loc["gaussians", "psnr3d_outside_box"])
+    assert table.loc["gaussians", "object_box_fraction"] == pytest.approx(n_box / n, rel=1e-3)
+
+
+@pytest.mark.parametrize(("args", "needle"), [([], "no saved reconstructions under"),
+                                              (["--threshold", "1.5"], "--threshold must be in [0, 1)")])
+def test_protocol_regions_refuses_bad_input(tmp_path, args, needle):
+    res = regions(tmp_path / "empty", *args, cwd=tmp_path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert needle in res.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "empty").exists()
