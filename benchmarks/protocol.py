@@ -118,16 +118,30 @@ def r2_scores(volume_path: Path, reference: np.ndarray) -> tuple[float | None, f
     return psnr3d_r2(vol, reference), ssim3d_r2(vol, reference)
 
 
-def baseline_rows(name: str, vol: Path, rad: Path, views: list[int], out: Path) -> tuple[list[dict], str | None]:
-    """Every classical method at every view count (cached ``baselines.csv``), with R²'s metrics of its volume."""
+def baselines_folder(rad: Path, views: list[int], settings: dict[str, Any]) -> Path:
+    """The cache folder of one baseline suite: the radiographs, the view counts and (hashed) any ``--baseline-set``."""
+    from ctsplat.utils import config_hash
+
+    tag = f"_{config_hash(settings)[:8]}" if settings else ""
+    return rad.parent / f"baselines_{rad.name}_v{'-'.join(map(str, views))}{tag}"
+
+
+def baseline_rows(name: str, vol: Path, rad: Path, views: list[int], out: Path,
+                  settings: dict[str, Any] | None = None) -> tuple[list[dict], str | None]:
+    """Every classical method at every view count (cached ``baselines.csv``), with R²'s metrics of its volume.
+
+    ``settings`` are ``baselines`` keys (``--baseline-set``) over the library's defaults, e.g. a larger iteration
+    budget.
+    """
     from ctsplat.baselines import run_baselines
     from ctsplat.formats.volume import load_volume
     from ctsplat.utils import CtsplatError
 
-    bdir = rad.parent / f"baselines_{rad.name}_v{'-'.join(map(str, views))}"
+    settings = dict(settings or {})
+    bdir = baselines_folder(rad, views, settings)
     try:
         table = pd.read_csv(bdir / "baselines.csv") if (bdir / "baselines.csv").exists() else \
-            run_baselines(vol, rad, bdir, {"n_views": views, "save_volumes": True})
+            run_baselines(vol, rad, bdir, {**settings, "n_views": views, "save_volumes": True})
     except CtsplatError as exc:  # a baseline suite that cannot reconstruct this geometry: say so, keep going
         logging.getLogger("protocol").warning("baselines of %s: %s", name, exc)
         return [], str(exc)
@@ -171,6 +185,22 @@ def train_config(sets: list[str], iterations: int, n_init: int) -> dict:
     """The train settings every run shares: the protocol's, then ``--set`` (checked against the schema)."""
     return shared_train_config(sets, own_keys=OWN_KEYS, defaults={},
                                fixed={"init": "fbp", "iterations": iterations, "n_init": n_init})
+
+
+#: baselines keys this script sets per view count
+OWN_BASELINE_KEYS = {"n_views": "--views", "save_volumes": None}
+
+
+def baseline_config(sets: list[str]) -> dict[str, Any]:
+    """The ``--baseline-set KEY=VALUE`` overrides, checked against the ``baselines`` section of the schema."""
+    from ctsplat.cli._common import section_config
+    from ctsplat.utils import CtsplatError
+
+    user = section_config(None, sets, "baselines")
+    for key, option in OWN_BASELINE_KEYS.items():
+        if key in user:
+            raise CtsplatError(f"--baseline-set {key} is set by this benchmark" + (f"; use {option}" if option else ""))
+    return user
 
 
 def gaussian_row(name: str, vol: Path, rad: Path, n: int, shared: dict, run_dir: Path) -> dict:
@@ -220,6 +250,11 @@ def run(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="extra train config overrides (as `ctsplat train --set`), e.g. lambda_tv=0.05")
+    ap.add_argument("--baseline-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="classical-baseline overrides (keys of the config's `baselines` section), e.g. "
+                         "asd_pocs_iterations=30 or methods=[fdk,asd_pocs]")
+    ap.add_argument("--skip-gaussians", action="store_true",
+                    help="run the classical baselines only (e.g. to check them at a larger iteration budget)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "out" / "protocol"))
     args = ap.parse_args(argv)
     for name in ("views", "size", "iterations", "threads", "n_init"):
@@ -237,6 +272,7 @@ def run(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     shared = train_config(args.set, args.iterations, args.n_init)  # refused before any work
+    baseline_settings = baseline_config(args.baseline_set)  # likewise
     data = Path(args.data)
     for name in args.volumes:
         if name != "phantom" and not (data / name).exists():
@@ -260,11 +296,12 @@ def run(argv: list[str] | None = None) -> int:
     for name in args.volumes:
         for n_train, counts in angle_sets(args.views):
             vol, rad = prepare(name, data, out, args.size, n_train)
-            base, err = baseline_rows(name, vol, rad, counts, out)
+            base, err = baseline_rows(name, vol, rad, counts, out, baseline_settings)
             if err:
                 errors[name] = err
             rows.extend(base)
-            for n in counts:
+            write()
+            for n in counts if not args.skip_gaussians else []:
                 g = gaussian_row(name, vol, rad, n, shared, out / "runs" / f"{name}-s{args.size}" / f"views{n:03d}")
                 best, label = best_classical(base, name, n)
                 if best is not None:
@@ -275,6 +312,7 @@ def run(argv: list[str] | None = None) -> int:
                 write()
     table = write()
     (out / "protocol.json").write_text(json.dumps({"args": vars(args), "train": shared,
+                                                   "baselines": baseline_settings,
                                                    "geometry": protocol_geometry(0, args.size),
                                                    "baseline_errors": errors,
                                                    "total_seconds": time.perf_counter() - t_start}, indent=2))

@@ -31,6 +31,9 @@ def bench(*args: str, cwd: Path) -> subprocess.CompletedProcess:
         (["--volumes", "no_such_scan"], "--volumes no_such_scan:"),
         (["--views", "0"], "--views must be >= 1"),
         (["--size", "4"], "--size must be >= 8"),
+        (["--baseline-set", "asd_pocs_iterations=0"], "baselines.asd_pocs_iterations: 0 is less than the minimum"),
+        (["--baseline-set", "sart_budget=5"], "unknown config key baselines.sart_budget"),
+        (["--baseline-set", "n_views=3"], "--baseline-set n_views is set by this benchmark; use --views"),
     ],
 )
 def test_protocol_refuses_bad_options_before_any_work(tmp_path, args, needle):
@@ -63,6 +66,24 @@ def test_protocol_tiny_run_writes_the_table(tmp_path):
     assert sum(v["split"] == "test" for v in views["views"]) == 100
     info = json.loads((out / "protocol.json").read_text())
     assert info["args"]["size"] == 16 and info["train"]["compositor"] == "radiative"
+
+
+@pytest.mark.slow
+def test_protocol_baseline_budget_run_skips_the_gaussians_and_keeps_its_own_cache(tmp_path):
+    """``--baseline-set`` reaches the baselines (a one-iteration SART budget) in a cache folder of its own."""
+    out = tmp_path / "p"
+    common = ["--volumes", "phantom", "--views", "4", "--size", "16", "--skip-gaussians", "--out", out]
+    res = bench(*common, "--baseline-set", "methods=[sart]", "--baseline-set", "sart_max_iterations=1",
+                "--baseline-set", "sart_relaxation=0.5", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    table = pd.read_csv(out / "protocol.csv")
+    assert list(table["method"]) == ["sart"]  # no Gaussian row, no other method
+    folders = sorted((out / "cache" / "phantom-s16").glob("baselines_*"))
+    assert len(folders) == 1 and folders[0].name != "baselines_radiographs_n004_v4"
+    chosen = pd.read_csv(folders[0] / "baselines.csv")
+    assert json.loads(chosen["params"].iloc[0])["relaxation"] == 0.5
+    assert json.loads(chosen["params"].iloc[0])["iterations"] == 1
+    assert json.loads((out / "protocol.json").read_text())["baselines"]["sart_max_iterations"] == 1
 
 
 def regions(*args: str, cwd: Path) -> subprocess.CompletedProcess:
