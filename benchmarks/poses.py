@@ -13,6 +13,9 @@ One training run per beam and ``poses`` value (``init: fbp``, radiative):
 - ``colmap`` / ``colmap+refine``: ``--views`` of the C-arm views SfM registered at the recovered poses (cone-beam
   images whatever the beam; validated and tested on the beam's own held-out views, as the workflow does).
 
+Cone-beam refinement runs once per ``--cone-models`` entry (``train.pose_refine.cone_model``: ``rigid``, the
+6-DoF correction, and/or ``carm``, no shift along the central ray); the ``cone_model`` column names it.
+
 Reports per run: 3D PSNR/SSIM and 2D test PSNR (``ctsplat.evaluation.evaluate``), the median / p90 rotation error
 (degrees) and median isocentre error (mm) of the training poses before and after refinement, and the training wall
 time. Writes ``benchmarks/out/poses/poses.csv`` and the run folders; prints a table. Ingested volumes, radiographs and
@@ -49,7 +52,8 @@ CARM = {"camera": "cone", "orbit": "carm", "n_views": 90, "wobble_deg": 15.0, **
         "orbit_jitter_mm": 0.5}
 #: keys each run sets, and the option that sets them (refused in --set)
 OWN_KEYS = {"volume": "--data", "radiographs": "--views / --detector", "poses": "--poses", "views": "--views",
-            "sfm_dir": None, "iterations": "--iterations", "n_init": "--n-init", "progress": None}
+            "sfm_dir": None, "iterations": "--iterations", "n_init": "--n-init", "progress": None,
+            "pose_refine.cone_model": "--cone-models"}
 #: the C-arm SfM recipe of config/config.yaml (docs/sfm.md)
 SFM = {"pose_prior": "isocentric", "design_sigma_deg": 1.0, "highpass_frac": 0.03, "lowpass_px": 1.0,
        "percentile_low": 0.5, "percentile_high": 99.5, "silhouette_margin_frac": 0.05}
@@ -126,6 +130,8 @@ def run(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="extra train config overrides for every run (as `ctsplat train --set`)")
+    ap.add_argument("--cone-models", nargs="+", default=["rigid"], choices=["rigid", "carm"],
+                    help="cone-beam refinement models, one run each (train.pose_refine.cone_model)")
     args = ap.parse_args(argv)
     for name in ("views", "grid", "detector", "threads", "iterations", "n_init"):
         if getattr(args, name) < 1:
@@ -151,17 +157,23 @@ def run(argv: list[str] | None = None) -> int:
     rows: list[dict[str, Any]] = []
     for beam in args.beams:
         rad = training_views(vol, cache, beam, args.views, args.detector)
-        for poses in args.poses:
+        variants = [(p, m) for p in args.poses
+                    for m in (args.cone_models if beam == "cone" and p.endswith("+refine") else [None])]
+        for poses, cone_model in variants:
             cfg = {**shared, "volume": str(vol), "radiographs": str(rad), "poses": poses, "views": args.views}
+            if cone_model is not None:
+                cfg["pose_refine"] = {**cfg.get("pose_refine", {}), "cone_model": cone_model}
             if poses.startswith("colmap"):
                 cfg["sfm_dir"] = str(sfm_dir)
-            run_dir = out / f"run_{beam}_{poses.replace('+', '_')}_n{args.views:03d}"
+            tag = "_carm" if cone_model == "carm" else ""
+            run_dir = out / f"run_{beam}_{poses.replace('+', '_')}{tag}_n{args.views:03d}"
             t0 = time.perf_counter()
             train(cfg, run_dir)
             res = evaluate(run_dir, device=cfg["device"], write=False)
             trained = json.loads((run_dir / "training.json").read_text())
             rows.append({
-                "beam": beam, "poses": poses, "views": args.views, "psnr3d": res["psnr3d"], "ssim3d": res["ssim3d"],
+                "beam": beam, "poses": poses, "cone_model": cone_model or "", "views": args.views,
+                "psnr3d": res["psnr3d"], "ssim3d": res["ssim3d"],
                 "psnr2d_test": res["psnr2d"],
                 **{k: trained.get(f"pose_{k}") for k in (
                     "rot_err_median_deg_before", "rot_err_p90_deg_before", "rot_err_median_deg_after",

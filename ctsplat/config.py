@@ -619,6 +619,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("train", "densify.split_mass"): {"enum": ["conserve", "halve"]},
     ("train", "densify.strategy"): {"enum": ["gradient", "error", "both"]},
     ("train", "optimizer_preset"): {"enum": ["per_group", "method"]},
+    ("train", "pose_refine.cone_model"): {"enum": ["rigid", "carm"]},
     ("train", "model_selection"): {"enum": ["last", "best"]},
     # keys the workflow sets per run (not in the schema; checked by check_section for the command line)
     ("train", "device"): {"type": "string", "pattern": "^(auto|cpu|cuda(:[0-9]+)?)$"},

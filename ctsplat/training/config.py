@@ -20,13 +20,14 @@ from ctsplat.splat.render import COMPOSITORS
 from ctsplat.utils import CtsplatError, merge_config
 
 __all__ = ["TRAIN_DEFAULTS", "TRAIN_BOUNDS", "Bound", "INITS", "POSES", "SUPERVISIONS", "OPTIMIZER_PRESETS",
-           "DENSIFY_STRATEGIES", "MODEL_SELECTIONS", "resolve_config",
+           "DENSIFY_STRATEGIES", "MODEL_SELECTIONS", "CONE_POSE_MODELS", "resolve_config",
            "render_kwargs", "mip_filter"]
 
 INITS = ("volume", "uniform", "fbp", "sfm")
 OPTIMIZER_PRESETS = ("per_group", "method")
 DENSIFY_STRATEGIES = ("gradient", "error", "both")
 MODEL_SELECTIONS = ("last", "best")
+CONE_POSE_MODELS = ("rigid", "carm")
 POSES = ("gt", "perturbed", "colmap", "gt+refine", "perturbed+refine", "colmap+refine")
 SUPERVISIONS = ("line_integral", "transmission")
 
@@ -42,8 +43,10 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     # per-view rigid corrections of the training cameras about the designed isocentre (ctsplat.training.poses),
     # stepped from iteration `start` on by their own Adam (rates per step, same cosine as the Gaussians), with a
     # Gaussian prior of these standard deviations times `prior_weight` in the loss; held-out views are not refined
+    # cone_model: the cone-beam correction, `rigid` (6 DoF) or `carm` (turn about the isocentre at the designed
+    # source distance: 3 rotations and the 2 detector-plane shifts, as for parallel beam)
     "pose_refine": {"enabled": False, "start": 300, "lr_rot_deg": 0.05, "lr_trans_mm": 0.05, "prior_rot_deg": 2.0,
-                    "prior_trans_mm": 2.0, "prior_weight": 1e-4},
+                    "prior_trans_mm": 2.0, "prior_weight": 1e-4, "cone_model": "rigid"},
     "sfm_dir": "",  # folder of the sfm step (aligned_views.json, summary.json, points3d.ply)
     # poses: colmap: the radiographs folder of the view set SfM registered ("": the one its summary.json names)
     "sfm_radiographs": "",
@@ -328,7 +331,7 @@ def resolve_config(config: dict[str, Any] | None) -> dict[str, Any]:
         raise CtsplatError("supervision: transmission needs a radiative compositor (alpha images are not "
                            "line integrals)")
     for dotted, allowed in (("optimizer_preset", OPTIMIZER_PRESETS), ("densify.strategy", DENSIFY_STRATEGIES),
-                            ("model_selection", MODEL_SELECTIONS)):
+                            ("model_selection", MODEL_SELECTIONS), ("pose_refine.cone_model", CONE_POSE_MODELS)):
         if _get(cfg, dotted) not in allowed:
             raise CtsplatError(f"unknown train.{dotted} {_get(cfg, dotted)!r}; allowed: {', '.join(allowed)}")
     if cfg["densify"]["split_mass"] not in ("conserve", "halve"):

@@ -604,7 +604,8 @@ def _make_pose_refiner(cfg: dict[str, Any], scene: Scene, device: torch.device
         return None, None
     pr = cfg["pose_refine"]
     tr = scene.train
-    pose = PoseCorrection(tr.Rs, tr.ts, scene.isocenter_mm, tr.camera.model, prior_rot_deg=float(pr["prior_rot_deg"]),
+    pose = PoseCorrection(tr.Rs, tr.ts, scene.isocenter_mm, tr.camera.model, cone_model=str(pr["cone_model"]),
+                          prior_rot_deg=float(pr["prior_rot_deg"]),
                           prior_trans_mm=float(pr["prior_trans_mm"]), prior_weight=float(pr["prior_weight"]),
                           device=device)
     groups = [{"params": [pose.omega], "lr": math.radians(float(pr["lr_rot_deg"])), "name": "pose_rot"},

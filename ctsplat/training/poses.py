@@ -11,8 +11,12 @@ the *camera* frame, radians; ``τ`` mm) turns the camera about the isocentre and
 
 - ``parallel`` beam: 3 rotation DoF and the 2 in-plane detector shifts (``τ_z = 0``: a shift along the rays
   changes nothing in a parallel projection, so it is not a parameter);
-- ``cone`` beam: the full rigid correction (6 DoF) about the designed isocentre. A C-arm that turns about a
-  wobbling isocentre is a special case; the full model also absorbs source-distance errors.
+- ``cone`` beam, ``cone_model="rigid"``: the full rigid correction (6 DoF) about the designed isocentre. A C-arm
+  that turns about a wobbling isocentre is a special case; the full model also absorbs source-distance errors.
+- ``cone`` beam, ``cone_model="carm"``: the C-arm model of the isocentric bundle adjustment: the camera turns about
+  the designed isocentre at the designed source distance (3 rotations and the 2 detector-plane shifts, ``τ_z = 0``
+  as for parallel beam). A shift along the central ray only magnifies a cone-beam image by ``τ_z / DSO``, which the
+  radiographs constrain weakly; fixing it removes that poorly determined direction.
 
 Equivalent transform of the Gaussians (how gradients reach the pose)
 --------------------------------------------------------------------
@@ -191,6 +195,8 @@ class PoseCorrection(torch.nn.Module):
         Designed isocentre (world mm): the point the corrections turn the camera about.
     model : {"parallel", "cone"}
         The detector: parallel beam has no shift along the rays.
+    cone_model : {"rigid", "carm"}
+        Cone beam only: the full rigid correction, or no shift along the central ray (module docstring).
     prior_rot_deg, prior_trans_mm : float
         Standard deviations of the prior (> 0).
     prior_weight : float
@@ -198,11 +204,14 @@ class PoseCorrection(torch.nn.Module):
     device : torch.device, optional
     """
 
-    def __init__(self, Rs: np.ndarray, ts: np.ndarray, iso_mm: np.ndarray, model: str, *, prior_rot_deg: float = 1.0,
-                 prior_trans_mm: float = 1.0, prior_weight: float = 1e-3, device: Any = None) -> None:
+    def __init__(self, Rs: np.ndarray, ts: np.ndarray, iso_mm: np.ndarray, model: str, *, cone_model: str = "rigid",
+                 prior_rot_deg: float = 1.0, prior_trans_mm: float = 1.0, prior_weight: float = 1e-3,
+                 device: Any = None) -> None:
         super().__init__()
         if model not in ("parallel", "cone"):
             raise CtsplatError(f"pose refinement supports parallel and cone cameras, not {model!r}")
+        if cone_model not in ("rigid", "carm"):
+            raise CtsplatError(f"unknown train.pose_refine.cone_model {cone_model!r}; allowed: rigid, carm")
         if not (prior_rot_deg > 0 and prior_trans_mm > 0):
             raise CtsplatError("train.pose_refine.prior_rot_deg and prior_trans_mm must be > 0 (a zero prior would "
                                "freeze the poses; disable pose_refine instead)")
@@ -212,7 +221,8 @@ class PoseCorrection(torch.nn.Module):
         self.register_buffer("Rs", torch.as_tensor(np.asarray(Rs), dtype=f32, device=device))
         self.register_buffer("ts", torch.as_tensor(np.asarray(ts), dtype=f32, device=device))
         self.register_buffer("iso", torch.as_tensor(np.asarray(iso_mm, float), dtype=f32, device=device))
-        mask = [1.0, 1.0, 0.0] if model == "parallel" else [1.0, 1.0, 1.0]
+        along_ray = model == "cone" and cone_model == "rigid"
+        mask = [1.0, 1.0, 1.0 if along_ray else 0.0]
         self.register_buffer("mask", torch.tensor(mask, dtype=f32, device=device))
         self.omega = torch.nn.Parameter(torch.zeros(V, 3, dtype=f32, device=device))
         self.tau = torch.nn.Parameter(torch.zeros(V, 3, dtype=f32, device=device))
@@ -224,7 +234,8 @@ class PoseCorrection(torch.nn.Module):
         return int(self.omega.shape[0])
 
     def shift(self, i: int) -> torch.Tensor:
-        """The shift of view ``i`` (mm, camera frame), with the ray component removed for parallel beam."""
+        """The shift of view ``i`` (mm, camera frame), without the ray component for parallel beam and the C-arm
+        model."""
         return self.tau[i] * self.mask
 
     def transform(self, params: dict[str, torch.Tensor], i: int) -> dict[str, torch.Tensor]:

@@ -130,10 +130,10 @@ def _ring(n: int = 8, model: str = "parallel") -> tuple[np.ndarray, np.ndarray]:
     return np.stack([r for r, _ in out]), np.stack([t for _, t in out])
 
 
-@pytest.mark.parametrize("model", ["parallel", "cone"])
-def test_gauge_fix_removes_the_common_motion(model: str) -> None:
+@pytest.mark.parametrize(("model", "cone_model"), [("parallel", "rigid"), ("cone", "rigid"), ("cone", "carm")])
+def test_gauge_fix_removes_the_common_motion(model: str, cone_model: str) -> None:
     Rs, ts = _ring(model=model)
-    pc = PoseCorrection(Rs, ts, ISO, model)
+    pc = PoseCorrection(Rs, ts, ISO, model, cone_model=cone_model)
     Rt = torch.as_tensor(Rs, dtype=torch.float32)
     gen = torch.Generator().manual_seed(0)
     with torch.no_grad():
@@ -145,7 +145,7 @@ def test_gauge_fix_removes_the_common_motion(model: str) -> None:
     assert float(mean_w.abs().max()) < 1e-6
     PR = pc.mask[None, :, None] * Rt
     assert float(torch.einsum("vki,vk->i", PR, pc.tau.detach()).abs().max()) < 1e-4
-    if model == "parallel":
+    if model == "parallel" or cone_model == "carm":
         assert float(pc.tau.detach()[:, 2].abs().max()) == 0.0
     # idempotent, and a pure common motion is removed entirely
     before = pc.state()
@@ -237,6 +237,23 @@ def test_refinement_lowers_pose_error_and_raises_val_psnr(scene_dir: Path, tmp_p
     assert res["pose_rot_err_median_deg_after"] == refined["pose_rot_err_median_deg_after"]
 
 
+def test_carm_model_keeps_the_source_distance() -> None:
+    """Cone beam, ``cone_model: carm``: no view moves along its central ray; ``rigid`` moves them along it."""
+    Rs, ts = _ring(model="cone")
+    for cone_model, moves in (("carm", False), ("rigid", True)):
+        pc = PoseCorrection(Rs, ts, ISO, "cone", cone_model=cone_model)
+        with torch.no_grad():
+            pc.tau.copy_(torch.tensor([0.3, -0.2, 1.0]).expand(len(pc), 3))
+        R1, t1 = pc.corrected_poses()
+        # the isocentre's depth in each camera (its distance from the source plane) before and after
+        depth0 = np.einsum("vij,j->vi", Rs, ISO)[:, 2] + ts[:, 2]
+        depth1 = np.einsum("vij,j->vi", R1, ISO)[:, 2] + t1[:, 2]
+        assert bool(np.abs(depth1 - depth0).max() > 0.5) == moves, cone_model
+        # the prior sees only the free shifts
+        assert float(pc.prior()) == pytest.approx(0.5 * pc.prior_weight * (0.13 + (1.0 if moves else 0.0))
+                                                  / pc.sigma_trans ** 2, rel=1e-5)
+
+
 def test_resume_continues_the_corrections_exactly(scene_dir: Path, tmp_path: Path) -> None:
     cfg = _cfg(scene_dir, poses="perturbed+refine", iterations=60, eval_every=30, checkpoint_every=30,
                pose_refine={"start": 10, "lr_rot_deg": 0.05, "lr_trans_mm": 0.05})
@@ -268,6 +285,7 @@ def test_resume_continues_the_corrections_exactly(scene_dir: Path, tmp_path: Pat
     ({"pose_refine": {"start": -5}}, r"train\.pose_refine\.start must be an integer >= 0"),
     ({"pose_refine": {"enabled": "yes"}}, r"train\.pose_refine\.enabled must be true or false"),
     ({"pose_refine": {"warmup": 3}}, "warmup"),
+    ({"pose_refine": {"cone_model": "isocentric"}}, "unknown train.pose_refine.cone_model 'isocentric'"),
     ({"perturb_rot_deg": -1.0}, r"train\.perturb_rot_deg must be"),
     ({"poses": "colmap+refine"}, "sfm_dir is empty"),
 ])
