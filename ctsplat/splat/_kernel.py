@@ -32,9 +32,12 @@ compiler (``c++ -O3 -ffast-math -march=native``, without ``-march=native`` if th
 vectorise with glibc's libmvec ``exp``) into ``$CTSPLAT_CACHE`` (default ``~/.cache/ctsplat``), keyed by the
 sources, the CPU and the flags, and loaded with ``ctypes``; compiling takes a few seconds. Every C function is
 declared once in :data:`SIGNATURES` (argument and return types) and called through a wrapper that also checks the
-argument count. Threads: ``torch.get_num_threads()`` ``std::thread`` s over static blocks of Gaussians (no OpenMP
-runtime that would spin against torch's); the forward gives each thread its own image buffer and sums them in a
-fixed order, so results are deterministic for a fixed thread count. Without a compiler (or with
+argument count. Threads: ``torch.get_num_threads()`` ``std::thread`` s (no OpenMP runtime that would spin against
+torch's). Gradients: static blocks of Gaussians, each Gaussian's sums by one thread. Image forward: each thread
+scatters its block into its own image, and the images are summed in thread order (in parallel over pixels), so
+results are deterministic for a fixed thread count. Voxelizer forward: the grid is cut into slabs of its first
+axis, handed out to the threads, and each slab sums its Gaussians in index order (``banded_scatter`` in
+``csrc/common.h``): no per-thread grids, and the same bits for any thread count. Without a compiler (or with
 ``CTSPLAT_NO_KERNEL=1``) :func:`available` is False and the renderer uses the reference.
 
 References

@@ -4,6 +4,8 @@
 #pragma once
 
 #include <math.h>
+#include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
@@ -22,6 +24,120 @@ static void parallel_for(int64_t n, int nt, F fn) {
         pool.emplace_back([=]() { fn(n * k / nt, n * (k + 1) / nt, k); });
     fn((int64_t)0, n / nt, 0);
     for (auto& th : pool) th.join();
+}
+
+// tasks 0 .. ntasks-1 over nt std::threads, handed out one at a time (uneven tasks stay balanced)
+template <typename F>
+static void parallel_tasks(int64_t ntasks, int nt, F fn) {
+    if (nt < 1) nt = 1;
+    if (nt > ntasks) nt = (int)ntasks;
+    if (nt <= 1) { for (int64_t t = 0; t < ntasks; ++t) fn(t); return; }
+    std::atomic<int64_t> next(0);
+    auto worker = [&]() { for (int64_t t; (t = next.fetch_add(1)) < ntasks;) fn(t); };
+    std::vector<std::thread> pool;
+    for (int k = 1; k < nt; ++k) pool.emplace_back(worker);
+    worker();
+    for (auto& th : pool) th.join();
+}
+
+// Scatters partitioned by output band: the output's outer axis (image rows, voxel slabs) is cut into bands of
+// 2^shift indices, and every Gaussian is listed under each band its extent [first, last] (outer indices, inclusive)
+// meets. A band is written by one thread only, and within a band the Gaussians come in index order, so every output
+// element is summed in Gaussian order whatever the thread count: no per-thread copies of the output, no reduction,
+// results identical for 1 and many threads (one thread walks the Gaussians directly: banded_scatter).
+struct Bands {
+    int shift = 0;
+    int64_t count = 0;
+    std::vector<int64_t> offset;  // band b's Gaussians are ids[offset[b] .. offset[b + 1])
+    std::vector<int32_t> ids;
+    std::vector<int64_t> counts;  // scratch of the counting sort
+};
+
+// Builds the band lists with a two-pass counting sort over blocks of Gaussians (parallel, index order kept).
+// extent(i, &first, &last) returns false for a Gaussian that writes nothing. The lists live in storage of the
+// calling thread, reused by its next call (no fresh pages to fault in per call), valid until that thread calls again.
+template <typename E>
+static const Bands& band_lists(int64_t n, int64_t outer, int nt, E extent) {
+    thread_local Bands storage;
+    Bands& B = storage;  // a local reference: the worker lambdas below must see the caller's lists, not their own
+    // about 4 bands per thread: enough for a dense middle of the image not to leave threads idle, few enough that
+    // most Gaussians fall in one band (a Gaussian that spans two is set up twice)
+    const int64_t want = std::max<int64_t>(1, std::min<int64_t>(4 * (int64_t)std::max(nt, 1), outer));
+    int shift = 0;
+    while ((((outer + want - 1) / want) >> shift) > 1) ++shift;
+    if (((int64_t)1 << shift) < (outer + want - 1) / want) ++shift;
+    const int64_t count = (outer + ((int64_t)1 << shift) - 1) >> shift;
+    B.shift = shift;
+    B.count = count;
+    const int nb = (int)std::max<int64_t>(1, std::min<int64_t>(nt, n / 4096));
+    B.counts.assign((size_t)nb * (size_t)count, 0);
+    int64_t* counts = B.counts.data();
+    auto range = [=](int64_t i, int64_t& b0, int64_t& b1) {
+        int64_t f, l;
+        if (!extent(i, f, l) || l < f) return false;
+        b0 = std::max<int64_t>(0, f >> shift);
+        b1 = std::min<int64_t>(count - 1, l >> shift);
+        return b1 >= b0;
+    };
+    // each block counts into its own vector (blocks' counters side by side in one array would share cache lines)
+    parallel_tasks(nb, nb, [=](int64_t k) {
+        std::vector<int64_t> c((size_t)count, 0);
+        for (int64_t i = n * k / nb, e = n * (k + 1) / nb; i < e; ++i) {
+            int64_t b0, b1;
+            if (range(i, b0, b1))
+                for (int64_t b = b0; b <= b1; ++b) ++c[(size_t)b];
+        }
+        std::copy(c.begin(), c.end(), counts + k * count);
+    });
+    // positions: band-major, then block (blocks hold ascending Gaussian indices)
+    B.offset.assign((size_t)count + 1, 0);
+    int64_t pos = 0;
+    for (int64_t b = 0; b < count; ++b) {
+        B.offset[(size_t)b] = pos;
+        for (int k = 0; k < nb; ++k) {
+            const int64_t cnt = counts[k * count + b];
+            counts[k * count + b] = pos;
+            pos += cnt;
+        }
+    }
+    B.offset[(size_t)count] = pos;
+    if (B.ids.size() < (size_t)pos) B.ids.resize((size_t)pos);  // grows only: no refill of pages already touched
+    int32_t* ids = B.ids.data();
+    parallel_tasks(nb, nb, [=](int64_t k) {
+        std::vector<int64_t> c(counts + k * count, counts + (k + 1) * count);
+        for (int64_t i = n * k / nb, e = n * (k + 1) / nb; i < e; ++i) {
+            int64_t b0, b1;
+            if (range(i, b0, b1))
+                for (int64_t b = b0; b <= b1; ++b) ids[c[(size_t)b]++] = (int32_t)i;
+        }
+    });
+    return B;
+}
+
+// body(i, r0, r1) adds Gaussian i's values on outer indices [r0, r1) of the output. One thread: every Gaussian in
+// index order over the whole output; several: bands (band_lists) handed out to nt threads.
+template <typename E, typename F>
+static void banded_scatter(int64_t n, int64_t outer, int nt, E extent, F body_inline) {
+    // one out-of-line copy of the body for both paths: with -ffast-math, two inlined copies may be compiled to
+    // differently rounded code, and the sums must not depend on the thread count
+    auto body = [&body_inline](int64_t i, int64_t r0, int64_t r1) __attribute__((noinline)) {
+        body_inline(i, r0, r1);
+    };
+    if (nt <= 1) {
+        for (int64_t i = 0; i < n; ++i) {
+            int64_t f, l;
+            if (extent(i, f, l) && l >= f) body(i, (int64_t)0, outer);
+        }
+        return;
+    }
+    const Bands& bands = band_lists(n, outer, nt, extent);
+    const int64_t* off = bands.offset.data();
+    const int32_t* ids = bands.ids.data();
+    const int shift = bands.shift;
+    parallel_tasks(bands.count, nt, [=](int64_t b) {
+        const int64_t r0 = b << shift, r1 = std::min(outer, (b + 1) << shift);
+        for (int64_t q = off[b]; q < off[b + 1]; ++q) body((int64_t)ids[q], r0, r1);
+    });
 }
 
 // C exp/expf (not std::) so that -ffast-math can vectorise the pixel loops with glibc's libmvec

@@ -26,10 +26,12 @@ static void splat_fwd(int64_t n, const T* mean, const T* con, const T* amp, cons
             }
         }
     });
-    for (int k = 1; k < nt; ++k) {
-        const T* b = bufs.data() + (size_t)(k - 1) * (size_t)npx;
-        for (int64_t p = 0; p < npx; ++p) out[p] += b[p];
-    }
+    parallel_for(npx, nt, [&](int64_t p0, int64_t p1, int) {  // the per-thread images, summed in thread order
+        for (int k = 1; k < nt; ++k) {
+            const T* b = bufs.data() + (size_t)(k - 1) * (size_t)npx;
+            for (int64_t p = p0; p < p1; ++p) out[p] += b[p];
+        }
+    });
 }
 
 template <typename T>
@@ -124,11 +126,13 @@ static void splat_fwd(int64_t n, const float* mean, const float* con, const floa
             }
         }
     });
-    for (int64_t p = 0; p < npx; ++p) {
-        float s = bufs[(size_t)p];
-        for (int k = 1; k < nt; ++k) s += bufs[(size_t)k * (size_t)stride + (size_t)p];
-        out[p] = s;
-    }
+    parallel_for(npx, nt, [&](int64_t p0, int64_t p1, int) {  // the per-thread images, summed in thread order
+        for (int64_t p = p0; p < p1; ++p) {
+            float s = bufs[(size_t)p];
+            for (int k = 1; k < nt; ++k) s += bufs[(size_t)k * (size_t)stride + (size_t)p];
+            out[p] = s;
+        }
+    });
 }
 
 static void splat_bwd(int64_t n, const float* mean, const float* con, const float* amp, const int64_t* bb,

@@ -19,11 +19,12 @@ struct VoxAxis {
     }
 };
 
+// rows a0 <= a < a1 of the box along the first index axis (the backward walks them all, the forward one band's)
 template <typename T, typename F>
 static inline void vox_rows(int64_t i, const T* means, const T* P, const VoxAxis<T>& ax, const int64_t* lo,
                             const int64_t* ext, const double* aff, const int64_t* origin, const int64_t* shape,
-                            F&& row) {
-    for (int64_t a = 0; a < ext[3 * i]; ++a)
+                            int64_t a0, int64_t a1, F&& row) {
+    for (int64_t a = a0; a < a1; ++a)
         for (int64_t b = 0; b < ext[3 * i + 1]; ++b) {
             const int64_t ii = lo[3 * i] + a, jj = lo[3 * i + 1] + b, kk = lo[3 * i + 2];
             T d[3];
@@ -36,28 +37,27 @@ static inline void vox_rows(int64_t i, const T* means, const T* P, const VoxAxis
         }
 }
 
+// out (zeroed by the caller) += every Gaussian's values, cut into slabs of the first index axis (banded_scatter):
+// each voxel summed in Gaussian order whatever the thread count
 template <typename T>
 static void vox_fwd(int64_t n, const T* means, const T* p6, const T* dens, const int64_t* lo, const int64_t* ext,
                     const double* aff, const int64_t* origin, const int64_t* shape, T* out, int nthreads) {
-    int nt = nthreads < 1 ? 1 : nthreads;
-    const int64_t nvox = shape[0] * shape[1] * shape[2];
-    if (n < 4096 || nvox > ((int64_t)1 << 27)) nt = 1;  // per-thread grids only while they are small
-    std::vector<T> bufs(nt > 1 ? (size_t)(nt - 1) * (size_t)nvox : 0, (T)0);
-    parallel_for(n, nt, [&](int64_t i0, int64_t i1, int tid) {
-        T* grid = tid == 0 ? out : bufs.data() + (size_t)(tid - 1) * (size_t)nvox;
-        for (int64_t i = i0; i < i1; ++i) {
-            const T* P = p6 + 6 * i;
-            const VoxAxis<T> ax(P, aff);
-            vox_rows(i, means, P, ax, lo, ext, aff, origin, shape, [&](int64_t flat, const T*, T q0, T q1) {
-                // value = rho exp(-q/2)
-                row_fwd<T>(grid + flat, (int)ext[3 * i + 2], (T)0, ax.wPw, (T)(-0.5) * q1, (T)(-0.5) * q0, dens[i]);
-            });
-        }
+    banded_scatter(n, shape[0], n < 4096 || nthreads < 1 ? 1 : nthreads,
+                   [=](int64_t i, int64_t& first, int64_t& last) {
+                       first = lo[3 * i] - origin[0];
+                       last = first + ext[3 * i] - 1;
+                       return ext[3 * i + 1] > 0 && ext[3 * i + 2] > 0;
+                   },
+                   [=](int64_t i, int64_t r0, int64_t r1) {
+        const int64_t first = lo[3 * i] - origin[0];
+        const T* P = p6 + 6 * i;
+        const VoxAxis<T> ax(P, aff);
+        vox_rows(i, means, P, ax, lo, ext, aff, origin, shape, std::max<int64_t>(0, r0 - first),
+                 std::min<int64_t>(ext[3 * i], r1 - first), [&](int64_t flat, const T*, T q0, T q1) {
+            // value = rho exp(-q/2)
+            row_fwd<T>(out + flat, (int)ext[3 * i + 2], (T)0, ax.wPw, (T)(-0.5) * q1, (T)(-0.5) * q0, dens[i]);
+        });
     });
-    for (int k = 1; k < nt; ++k) {
-        const T* b = bufs.data() + (size_t)(k - 1) * (size_t)nvox;
-        for (int64_t p = 0; p < nvox; ++p) out[p] += b[p];
-    }
 }
 
 template <typename T>
@@ -70,7 +70,8 @@ static void vox_bwd(int64_t n, const T* means, const T* p6, const T* dens, const
             const VoxAxis<T> ax(P, aff);
             const T* w = ax.w;
             double S = 0, Sd[3] = {0, 0, 0}, Sdd[6] = {0, 0, 0, 0, 0, 0};  // sums of g e, g e d, g e d d^T
-            vox_rows(i, means, P, ax, lo, ext, aff, origin, shape, [&](int64_t flat, const T* d, T q0, T q1) {
+            vox_rows(i, means, P, ax, lo, ext, aff, origin, shape, 0, ext[3 * i], [&](int64_t flat, const T* d, T q0,
+                                                                                   T q1) {
                 T r3[3];  // sums over c of g e, g e c, g e c^2
                 row_bwd<T>(gout + flat, (int)ext[3 * i + 2], (T)0, ax.wPw, (T)(-0.5) * q1, (T)(-0.5) * q0, r3);
                 const double s0 = r3[0], s1 = r3[1], s2 = r3[2];
