@@ -26,7 +26,9 @@ static void splat_fwd(int64_t n, const T* mean, const T* con, const T* amp, cons
             }
         }
     });
-    parallel_for(npx, nt, [&](int64_t p0, int64_t p1, int) {  // the per-thread images, summed in thread order
+    // the per-thread images, summed in thread order; over pixel blocks in parallel once there are many of them (a
+    // serial sum of nt images would grow with nt; for a few, a thread start costs more than it saves)
+    parallel_for(npx, nt > 4 ? nt : 1, [&](int64_t p0, int64_t p1, int) {
         for (int k = 1; k < nt; ++k) {
             const T* b = bufs.data() + (size_t)(k - 1) * (size_t)npx;
             for (int64_t p = p0; p < p1; ++p) out[p] += b[p];
@@ -126,7 +128,9 @@ static void splat_fwd(int64_t n, const float* mean, const float* con, const floa
             }
         }
     });
-    parallel_for(npx, nt, [&](int64_t p0, int64_t p1, int) {  // the per-thread images, summed in thread order
+    // the per-thread images, summed in thread order; over pixel blocks in parallel once there are many of them (a
+    // serial sum of nt images would grow with nt; for a few, a thread start costs more than it saves)
+    parallel_for(npx, nt > 4 ? nt : 1, [&](int64_t p0, int64_t p1, int) {
         for (int64_t p = p0; p < p1; ++p) {
             float s = bufs[(size_t)p];
             for (int k = 1; k < nt; ++k) s += bufs[(size_t)k * (size_t)stride + (size_t)p];
