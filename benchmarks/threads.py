@@ -16,7 +16,8 @@ All thread counts run in this one process, interleaved repetition by repetition 
 the kernels follow), so a load change on a shared machine hits every thread count alike; the table gives the median
 time per configuration and thread count, the speed-up over 1 thread and the parallel efficiency. Set
 ``OMP_WAIT_POLICY=PASSIVE`` (the default here) so that torch's idle OpenMP workers do not spin against the kernel's
-threads. Writes ``benchmarks/out/threads.csv``.
+threads. Gradients are cleared before every step, as training's ``zero_grad(set_to_none=True)`` does (no
+accumulation into the previous step's gradients). Writes ``benchmarks/out/threads.csv``.
 """
 
 from __future__ import annotations
@@ -67,13 +68,21 @@ def _steps(n: int, size: int, grid: int) -> dict:
     affine[:3, :3] *= 160.0 / grid
     affine[:3, 3] = -80.0 + 80.0 / grid
 
+    params = [getattr(gs, name) for name in ("means", "log_scales", "quats", "density_raw")]
+
+    def clear() -> None:  # as training's zero_grad(set_to_none=True): no accumulation into old gradients
+        for p in params:
+            p.grad = None
+
     def fwd_bwd(cam, t):
         def step() -> None:
+            clear()
             out = render(gs, cam, R, t, compositor="radiative", backend="kernel")
             out.image.sum().backward()
         return step
 
     def vox() -> None:
+        clear()
         v = voxelize(gs, (grid, grid, grid), affine, backend="kernel")
         v.sum().backward()
 

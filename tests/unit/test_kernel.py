@@ -73,3 +73,49 @@ def test_wrong_argument_count_raises(lib):
     _kernel._fn("splat_fwd", torch.float32)(0, empty.data_ptr(), empty.data_ptr(), empty.data_ptr(), None, 2, 3,
                                              out.data_ptr(), 1)
     assert torch.equal(out, torch.zeros(2, 3))
+
+
+_POOL_SCRIPT = r"""
+import os, sys, threading
+import torch
+from ctsplat.geometry import ParallelCamera
+from ctsplat.splat.gaussians import Gaussians
+from ctsplat.splat.render import render
+
+torch.set_num_threads(3)
+g = torch.Generator().manual_seed(0)
+n = 8000
+gs = Gaussians.from_values((torch.rand(n, 3, generator=g) - 0.5) * 60, 0.5 + torch.rand(n, 3, generator=g),
+                           0.1 + torch.rand(n, generator=g), torch.randn(n, 4, generator=g))
+cam, R, t = ParallelCamera(64, 64, 1.0), torch.eye(3), torch.tensor([0.0, 0.0, 100.0])
+ref = render(gs, cam, R, t, backend="kernel").image
+# two Python threads in the kernels at once (ctypes releases the GIL): one uses the pool, the other its own threads
+out = [None] * 4
+def job(k):
+    out[k] = render(gs, cam, R, t, backend="kernel").image
+threads = [threading.Thread(target=job, args=(k,)) for k in range(4)]
+for th in threads: th.start()
+for th in threads: th.join()
+assert all(torch.equal(o, ref) for o in out)
+# a forked child gets a pool of its own (the parent's workers are not copied into it)
+pid = os.fork()
+if pid == 0:
+    ok = torch.equal(render(gs, cam, R, t, backend="kernel").image, ref)
+    os._exit(0 if ok else 3)
+_, status = os.waitpid(pid, 0)
+assert os.waitstatus_to_exitcode(status) == 0, status
+assert torch.equal(render(gs, cam, R, t, backend="kernel").image, ref)  # the parent's pool still works
+print("pool ok")
+"""
+
+
+def test_worker_pool_serves_concurrent_callers_and_forked_children(lib, tmp_path):
+    """The kernels' worker pool: concurrent Python threads and a forked child render the same bits, never hang."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "pool.py"
+    script.write_text(_POOL_SCRIPT)
+    res = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=240)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "pool ok" in res.stdout

@@ -1,43 +1,119 @@
-// Shared by every kernel: thread partition, scalar exp / finiteness helpers, the row loops of one Gaussian's
-// footprint and the 8-lane float vector type (GCC/Clang vector extensions: AVX2 on x86-64, SSE or NEON pairs
-// elsewhere).
+// Shared by every kernel: the worker pool and thread partitions, scalar exp / finiteness helpers, the row loops of
+// one Gaussian's footprint and the 8-lane float vector type (GCC/Clang vector extensions: AVX2 on x86-64, SSE or
+// NEON pairs elsewhere).
 #pragma once
 
 #include <math.h>
+#include <unistd.h>
+
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <condition_variable>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
+#include <mutex>
 #include <thread>
 #include <type_traits>
 #include <vector>
 
-// static block partition of [0, n) over nt std::threads (no OpenMP: it would spin against torch's own pool)
+// Worker threads kept between kernel calls: starting a std::thread costs tens of microseconds, which at one call per
+// kernel and 16-128 cores would cost more than a small kernel's work. Workers sleep on a condition variable between
+// parallel regions (no spinning against torch's own threads). One region at a time per process: a second caller (a
+// ctypes call releases the GIL, so two Python threads can be here at once) starts threads of its own instead. A
+// forked child (the workers are not copied into it) gets a new pool; the parent's is left untouched.
+class WorkerPool {
+  public:
+    // fn(k) for k = 0 .. nt - 1, k = 0 on the calling thread; false (nothing run) while another region runs
+    template <typename F>
+    bool run(int nt, F& fn) {
+        std::unique_lock<std::mutex> region(busy_, std::try_to_lock);
+        if (!region.owns_lock()) return false;
+        {
+            std::lock_guard<std::mutex> lk(m_);
+            while ((int)started_ < nt - 1) {
+                const int id = started_ + 1;
+                std::thread([this, id]() { work(id); }).detach();
+                ++started_;
+            }
+            call_ = [](void* f, int k) { (*static_cast<F*>(f))(k); };
+            fn_ = &fn;
+            active_ = nt - 1;
+            remaining_ = nt - 1;
+            ++generation_;
+        }
+        wake_.notify_all();
+        fn(0);
+        std::unique_lock<std::mutex> lk(m_);
+        done_.wait(lk, [this]() { return remaining_ == 0; });
+        return true;
+    }
+
+    static WorkerPool& instance() {
+        static std::mutex guard;
+        static WorkerPool* pool = nullptr;
+        static pid_t owner = 0;
+        std::lock_guard<std::mutex> lk(guard);
+        if (pool == nullptr || owner != getpid()) {  // never freed: its threads may still sleep in it
+            pool = new WorkerPool();
+            owner = getpid();
+        }
+        return *pool;
+    }
+
+  private:
+    void work(int id) {
+        int64_t seen = 0;
+        std::unique_lock<std::mutex> lk(m_);
+        for (;;) {
+            wake_.wait(lk, [&]() { return generation_ != seen; });
+            seen = generation_;
+            if (id > active_) continue;  // not needed in this region
+            void (*call)(void*, int) = call_;
+            void* fn = fn_;
+            lk.unlock();
+            call(fn, id);
+            lk.lock();
+            if (--remaining_ == 0) done_.notify_one();
+        }
+    }
+
+    std::mutex busy_, m_;
+    std::condition_variable wake_, done_;
+    int started_ = 0, active_ = 0, remaining_ = 0;
+    int64_t generation_ = 0;
+    void (*call_)(void*, int) = nullptr;
+    void* fn_ = nullptr;
+};
+
+// fn(k) for k = 0 .. nt - 1 on nt threads: the pool's workers, or fresh threads while the pool is busy
+template <typename F>
+static void run_threads(int nt, F fn) {
+    if (nt <= 1) { fn(0); return; }
+    if (WorkerPool::instance().run(nt, fn)) return;
+    std::vector<std::thread> extra;
+    for (int k = 1; k < nt; ++k) extra.emplace_back([&fn, k]() { fn(k); });
+    fn(0);
+    for (auto& th : extra) th.join();
+}
+
+// static block partition of [0, n) over nt threads (no OpenMP: it would spin against torch's own pool)
 template <typename F>
 static void parallel_for(int64_t n, int nt, F fn) {
     if (nt < 1) nt = 1;
     if (n < 4096 || nt == 1) { fn((int64_t)0, n, 0); return; }
-    std::vector<std::thread> pool;
-    for (int k = 1; k < nt; ++k)
-        pool.emplace_back([=]() { fn(n * k / nt, n * (k + 1) / nt, k); });
-    fn((int64_t)0, n / nt, 0);
-    for (auto& th : pool) th.join();
+    run_threads(nt, [&](int k) { fn(n * k / nt, n * (k + 1) / nt, k); });
 }
 
-// tasks 0 .. ntasks-1 over nt std::threads, handed out one at a time (uneven tasks stay balanced)
+// tasks 0 .. ntasks-1 over nt threads, handed out one at a time (uneven tasks stay balanced)
 template <typename F>
 static void parallel_tasks(int64_t ntasks, int nt, F fn) {
     if (nt < 1) nt = 1;
     if (nt > ntasks) nt = (int)ntasks;
     if (nt <= 1) { for (int64_t t = 0; t < ntasks; ++t) fn(t); return; }
     std::atomic<int64_t> next(0);
-    auto worker = [&]() { for (int64_t t; (t = next.fetch_add(1)) < ntasks;) fn(t); };
-    std::vector<std::thread> pool;
-    for (int k = 1; k < nt; ++k) pool.emplace_back(worker);
-    worker();
-    for (auto& th : pool) th.join();
+    run_threads(nt, [&](int) { for (int64_t t; (t = next.fetch_add(1)) < ntasks;) fn(t); });
 }
 
 // Scatters partitioned by output band: the output's outer axis (image rows, voxel slabs) is cut into bands of
