@@ -707,38 +707,43 @@ def voxelize(
         raise CtsplatError(f"voxelize region {region} is empty or outside the grid {shape}")
     out_shape = tuple(int(x) for x in (reg[:, 1] - reg[:, 0]))
     n_out = out_shape[0] * out_shape[1] * out_shape[2]
-    s2 = torch.exp(2 * gaussians.log_scales)
-    dens = gaussians.densities
-    if filter_3d_var is not None:
-        v = torch.as_tensor(filter_3d_var, dtype=dtype, device=dev).reshape(-1, 1)
-        s2f = s2 + v
-        dens = dens * torch.sqrt(torch.prod(s2 / s2f, -1))
-    else:
-        s2f = s2
-    rot = quat_to_rotmat(gaussians.quats)
-    inv_cov = (rot / s2f[:, None, :]) @ rot.transpose(-1, -2)
+    fvar = None if filter_3d_var is None else torch.as_tensor(filter_3d_var, dtype=dtype, device=dev).reshape(-1, 1)
+    # boxes first, without gradients, so that the differentiable terms below are built for the Gaussians that reach
+    # the output only (a small region, as the TV term's, keeps a small share of them)
     with torch.no_grad():
-        cov = (rot * s2f[:, None, :]) @ rot.transpose(-1, -2)
+        s2f = torch.exp(2 * gaussians.log_scales) + (0.0 if fvar is None else fvar)
         Ainv = torch.linalg.inv(A[:3, :3])
-        cov_idx = Ainv @ cov @ Ainv.T
+        # variance along index axis a: (A⁻¹ R diag(s²) Rᵀ A⁻ᵀ)_aa = Σ_k (A⁻¹ R)_ak² s²_k; one (3N, 3) @ (3, 3) product
+        rot_t = quat_to_rotmat(gaussians.quats).transpose(-1, -2).reshape(-1, 3)
+        ar_t = (rot_t @ Ainv.T).reshape(-1, 3, 3)  # (A⁻¹ R)ᵀ per Gaussian
+        var_idx = (ar_t.square() * s2f[:, :, None]).sum(1)
         centre = (means - A[:3, 3]) @ Ainv.T
-        half = sigma_cutoff * torch.sqrt(torch.diagonal(cov_idx, dim1=-2, dim2=-1).clamp_min(0))
+        half = sigma_cutoff * torch.sqrt(var_idx.clamp_min(0))
         lo = torch.ceil(centre - half).clamp(min=reg[:, 0].to(dtype), max=reg[:, 1].to(dtype)).to(torch.int64)
         hi = (torch.floor(centre + half) + 1).clamp(min=reg[:, 0].to(dtype), max=reg[:, 1].to(dtype)).to(torch.int64)
         ext = (hi - lo).clamp_min(0)
-        counts = ext.prod(-1)
-        keep = torch.nonzero(counts > 0).flatten()
+        keep = torch.nonzero(ext.prod(-1) > 0).flatten()
     if keep.numel() == 0:
-        return torch.zeros(n_out, dtype=dtype, device=dev).reshape(out_shape) + 0 * dens.sum()
-    prec6 = torch.stack([inv_cov[:, 0, 0], inv_cov[:, 1, 1], inv_cov[:, 2, 2], inv_cov[:, 0, 1], inv_cov[:, 0, 2],
-                         inv_cov[:, 1, 2]], -1)
+        return torch.zeros(n_out, dtype=dtype, device=dev).reshape(out_shape) + 0 * gaussians.densities.sum()
+    s2 = torch.exp(2 * gaussians.log_scales[keep])
+    dens = gaussians.densities[keep]
+    if fvar is not None:
+        s2f_k = s2 + fvar[keep]
+        dens = dens * torch.sqrt(torch.prod(s2 / s2f_k, -1))
+    else:
+        s2f_k = s2
+    # precision R diag(1/s²) Rᵀ, its 6 distinct entries as elementwise sums (cheaper than batched 3x3 products)
+    rot = quat_to_rotmat(gaussians.quats[keep])
+    rw = rot / s2f_k[:, None, :]
+    prec6 = torch.stack([(rw[:, a] * rot[:, b]).sum(-1) for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))],
+                        -1)
     _check_backend(backend, "voxelize")
     fused = _fused(backend, dev)
+    args = (means[keep], prec6, dens, lo[keep], ext[keep], A, reg[:, 0], out_shape)
     if fused is not None:
-        out = fused.Voxelize.apply(means[keep], prec6[keep], dens[keep], lo[keep], ext[keep], A, reg[:, 0], out_shape)
+        out = fused.Voxelize.apply(*args)
     else:
-        out = _reference.voxelize_reference(means[keep], prec6[keep], dens[keep], lo[keep], ext[keep], A, reg[:, 0],
-                                            out_shape, chunk)
+        out = _reference.voxelize_reference(*args, chunk)
     return out.reshape(out_shape)
 
 
