@@ -33,8 +33,9 @@ vectorise with glibc's libmvec ``exp``) into ``$CTSPLAT_CACHE`` (default ``~/.ca
 sources, the CPU and the flags, and loaded with ``ctypes``; compiling takes a few seconds. Every C function is
 declared once in :data:`SIGNATURES` (argument and return types) and called through a wrapper that also checks the
 argument count. Threads: ``torch.get_num_threads()`` threads of a pool kept between calls (``WorkerPool`` in
-``csrc/common.h``: workers sleep between kernels; no OpenMP runtime that would spin against torch's). Gradients: static blocks of Gaussians, each Gaussian's sums by one thread. Image forward: each thread
-scatters its block into its own image, and the images are summed in thread order (in parallel over pixels), so
+``csrc/common.h``: workers sleep between kernels; no OpenMP runtime that would spin against torch's). Gradients:
+static blocks of Gaussians, each Gaussian's sums by one thread. Image forward: each thread scatters its block into
+its own image, and the images are summed in thread order (over pixel blocks in parallel beyond 4 threads), so
 results are deterministic for a fixed thread count. Voxelizer forward: the grid is cut into slabs of its first
 axis, handed out to the threads, and each slab sums its Gaussians in index order (``banded_scatter`` in
 ``csrc/common.h``): no per-thread grids, and the same bits for any thread count. Without a compiler (or with
