@@ -26,6 +26,11 @@ Usage::
 
     python benchmarks/protocol.py                                  # the full CPU protocol (hours on 2 cores)
     python benchmarks/protocol.py --volumes phantom --views 25 --size 64 --iterations 300    # a quick point
+    python benchmarks/protocol.py --volumes ct0051_head --views 50 --skip-gaussians \
+        --baseline-set asd_pocs_iterations=60 --baseline-set 'asd_pocs_alpha=[0.05,0.1,0.2]'   # a larger budget
+
+``--baseline-set`` changes the classical methods' candidates or budgets (keys of the config's ``baselines``
+section); such a run caches its baselines apart from the default ones.
 """
 
 from __future__ import annotations
