@@ -52,7 +52,7 @@ from ctsplat.splat.gaussians import quat_to_rotmat
 from ctsplat.utils import CtsplatError
 
 __all__ = ["rotvec_to_quat", "quat_mul", "correct_pose", "transform_gaussians", "PoseCorrection",
-           "pose_errors", "perturb_poses", "pose_source", "refine_enabled"]
+           "pose_errors", "common_rotation", "gauge_motion", "perturb_poses", "pose_source", "refine_enabled"]
 
 
 def pose_source(poses: str) -> str:
@@ -337,9 +337,7 @@ def pose_errors(Rs: np.ndarray, ts: np.ndarray, Rs_true: np.ndarray, ts_true: np
     """
     Rs, Rs_true = np.asarray(Rs, float), np.asarray(Rs_true, float)
     rot = _angles_deg(np.einsum("vij,vkj->vik", Rs, Rs_true))
-    # the common world rotation G (chordal mean of R_iᵀ R_true_i, projected onto SO(3)) is the unobservable gauge
-    u, _, vt = np.linalg.svd(np.einsum("vji,vjk->ik", Rs, Rs_true))
-    G = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    G = common_rotation(Rs, Rs_true)
     rot_aligned = _angles_deg(np.einsum("vij,jl,vkl->vik", Rs, G, Rs_true))
     iso = np.asarray(iso_mm, float)
     d = (Rs @ iso + ts) - (Rs_true @ iso + ts_true)
@@ -350,6 +348,59 @@ def pose_errors(Rs: np.ndarray, ts: np.ndarray, Rs_true: np.ndarray, ts_true: np
             "rot_err_aligned_median_deg": float(np.median(rot_aligned)),
             "rot_err_aligned_p90_deg": float(np.percentile(rot_aligned, 90)),
             "iso_err_median_mm": float(np.median(dist)), "iso_err_p90_mm": float(np.percentile(dist, 90))}
+
+
+def common_rotation(Rs: np.ndarray, Rs_true: np.ndarray) -> np.ndarray:
+    """The world rotation ``G`` with ``R_i G ≈ R_true_i`` for all views: the chordal mean of ``R_iᵀ R_true_i``.
+
+    A rotation of every camera together with the model changes no image, so this common part of the pose errors
+    is the gauge that pose refinement cannot observe (:meth:`PoseCorrection.fix_gauge`).
+
+    Parameters
+    ----------
+    Rs, Rs_true : ndarray (V, 3, 3)
+        World-to-camera rotations: estimated (or refined) and true.
+
+    Returns
+    -------
+    ndarray (3, 3)
+        The rotation (SVD projection of ``Σ R_iᵀ R_true_i`` onto SO(3)).
+
+    References
+    ----------
+    Hartley, R., Trumpf, J., Dai, Y., Li, H. (2013). Rotation averaging. IJCV 103(3), 267–305.
+    """
+    u, _, vt = np.linalg.svd(np.einsum("vji,vjk->ik", np.asarray(Rs, float), np.asarray(Rs_true, float)))
+    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+
+
+def gauge_motion(Rs: np.ndarray, ts: np.ndarray, Rs_true: np.ndarray, ts_true: np.ndarray, model: str
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The rigid world motion ``m = G x + b`` between the true frame (``x``) and the frame of a model trained at
+    the poses ``(Rs, ts)`` (``m``): what the training images cannot tell apart from the truth.
+
+    Each view asks ``R_i (G x + b) + t_i = R_true_i x + t_true_i``: ``G`` is :func:`common_rotation` and ``b`` the
+    least-squares solution of ``P R_i b = P (t_true_i - t_i)`` (``P`` drops the ray component for parallel beam,
+    where a shift along the rays changes no image; directions no view constrains get 0).
+
+    Parameters
+    ----------
+    Rs, Rs_true : ndarray (V, 3, 3)
+    ts, ts_true : ndarray (V, 3)
+        World-to-camera poses (mm): those the model was trained at, and the true ones.
+    model : {"parallel", "cone"}
+
+    Returns
+    -------
+    G : ndarray (3, 3)
+    b : ndarray (3,), mm
+    """
+    Rs, ts = np.asarray(Rs, float), np.asarray(ts, float)
+    P = np.diag([1.0, 1.0, 0.0 if model == "parallel" else 1.0])
+    PR = np.einsum("ij,vjk->vik", P, Rs)
+    rhs = np.einsum("ij,vj->vi", P, np.asarray(ts_true, float) - ts)
+    b = np.linalg.pinv(np.einsum("vki,vkj->ij", PR, PR)) @ np.einsum("vki,vk->i", PR, rhs)
+    return common_rotation(Rs, Rs_true), b
 
 
 def _angles_deg(rel: np.ndarray) -> np.ndarray:
