@@ -19,8 +19,8 @@ Cone-beam refinement runs once per ``--cone-models`` entry (``train.pose_refine.
 Reports per run: 3D PSNR/SSIM (also after undoing the rigid motion of the training poses that no image can show:
 ``psnr3d_gauge_aligned``; equal to ``psnr3d`` at the true poses) and 2D test PSNR
 (``ctsplat.evaluation.evaluate``), the median / p90 rotation error (degrees) and median isocentre error (mm) of the
-training poses before and after refinement, and the training wall time. Writes ``benchmarks/out/poses/poses.csv`` and the run folders; prints a table. Ingested volumes, radiographs and
-the SfM result are cached under ``cache/``.
+training poses before and after refinement, and the training wall time. Writes ``benchmarks/out/poses/poses.csv``
+and the run folders; prints a table. Ingested volumes, radiographs and the SfM result are cached under ``cache/``.
 
 Usage::
 
