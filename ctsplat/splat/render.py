@@ -725,21 +725,24 @@ def voxelize(
         keep = torch.nonzero(ext.prod(-1) > 0).flatten()
     if keep.numel() == 0:
         return torch.zeros(n_out, dtype=dtype, device=dev).reshape(out_shape) + 0 * gaussians.densities.sum()
-    s2 = torch.exp(2 * gaussians.log_scales[keep])
-    dens = gaussians.densities[keep]
+
+    def kept(t: torch.Tensor) -> torch.Tensor:  # no copy when every Gaussian reaches the output
+        return t if keep.numel() == len(t) else t[keep]
+
+    s2 = torch.exp(2 * kept(gaussians.log_scales))
+    dens = kept(gaussians.densities)
     if fvar is not None:
-        s2f_k = s2 + fvar[keep]
+        s2f_k = s2 + kept(fvar)
         dens = dens * torch.sqrt(torch.prod(s2 / s2f_k, -1))
     else:
         s2f_k = s2
-    # precision R diag(1/s²) Rᵀ, its 6 distinct entries as elementwise sums (cheaper than batched 3x3 products)
-    rot = quat_to_rotmat(gaussians.quats[keep])
-    rw = rot / s2f_k[:, None, :]
-    prec6 = torch.stack([(rw[:, a] * rot[:, b]).sum(-1) for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))],
-                        -1)
+    # precision R diag(1/s²) Rᵀ: its 6 distinct entries
+    rot = quat_to_rotmat(kept(gaussians.quats))
+    prec = (rot / s2f_k[:, None, :]) @ rot.transpose(-1, -2)
+    prec6 = torch.stack([prec[:, 0, 0], prec[:, 1, 1], prec[:, 2, 2], prec[:, 0, 1], prec[:, 0, 2], prec[:, 1, 2]], -1)
     _check_backend(backend, "voxelize")
     fused = _fused(backend, dev)
-    args = (means[keep], prec6, dens, lo[keep], ext[keep], A, reg[:, 0], out_shape)
+    args = (kept(means), prec6, dens, kept(lo), kept(ext), A, reg[:, 0], out_shape)
     if fused is not None:
         out = fused.Voxelize.apply(*args)
     else:
