@@ -10,7 +10,9 @@ log-uniform scales 0.39..1.95 mm):
 
 * ``render parallel``: radiative forward+backward, 50k Gaussians, 256², parallel beam over 200 mm;
 * ``render cone``: the same through a cone-beam camera (source 500 mm from the centre, detector at 1000 mm);
-* ``voxelize``: forward+backward of the 50k Gaussians on a 128³ grid over the cube (the 3D TV term's read-out).
+* ``voxelize``: forward+backward of the 50k Gaussians on a 128³ grid over the cube (the evaluation's read-out);
+* ``voxelize region``: the same on a 32³ region in the middle of that grid (the 3D TV term's read-out, every
+  training iteration).
 
 All thread counts run in this one process, interleaved repetition by repetition (``torch.set_num_threads``, which
 the kernels follow), so a load change on a shared machine hits every thread count alike; the table gives the median
@@ -86,9 +88,17 @@ def _steps(n: int, size: int, grid: int) -> dict:
         v = voxelize(gs, (grid, grid, grid), affine, backend="kernel")
         v.sum().backward()
 
+    lo, hi = grid // 2 - grid // 8, grid // 2 + grid // 8
+    region = ((lo, hi),) * 3
+
+    def vox_region() -> None:
+        clear()
+        v = voxelize(gs, (grid, grid, grid), affine, region=region, backend="kernel")
+        v.square().sum().backward()
+
     return {f"render parallel {n // 1000}k {size}²": fwd_bwd(par, t_par),
             f"render cone {n // 1000}k {size}²": fwd_bwd(cone, t_cone),
-            f"voxelize {n // 1000}k {grid}³": vox}
+            f"voxelize {n // 1000}k {grid}³": vox, f"voxelize {n // 1000}k region {hi - lo}³": vox_region}
 
 
 def main(argv: list[str] | None = None) -> int:
