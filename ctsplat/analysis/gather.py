@@ -35,7 +35,7 @@ def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 # Test-split metrics of metrics.json, renamed so they cannot be mistaken for the validation values of the log.
 TEST_METRICS: tuple[str, ...] = ("psnr2d", "ssim2d", "psnr3d", "ssim3d", "psnr3d_r2", "ssim3d_r2", "lpips",
-                                 "lpips_reason")
+                                 "lpips_reason", "psnr3d_gauge_aligned", "ssim3d_gauge_aligned")
 # Pose-error columns of a poses: colmap run: summary.csv column -> key of the volume's sfm/summary.json.
 SFM_COLUMNS: dict[str, str] = {
     "sfm_rot_err_deg_median": "rot_err_deg_median",
@@ -193,7 +193,8 @@ def gather(
           run failed, with the reason in ``not_run_reason`` (its metric columns are empty);
         - the held-out test metrics of ``metrics.json`` as ``test_psnr2d``, ``test_ssim2d``, ``test_psnr3d``,
           ``test_ssim3d``, R²-Gaussian's ``test_psnr3d_r2``, ``test_ssim3d_r2`` (empty for runs evaluated before
-          they existed), ``test_lpips`` (``test_lpips_reason``), and its other keys flattened (nested keys
+          they existed), ``test_lpips`` (``test_lpips_reason``), ``test_psnr3d_gauge_aligned`` /
+          ``test_ssim3d_gauge_aligned`` (runs not at the true poses), and its other keys flattened (nested keys
           joined with ``.``);
         - from ``train_log.csv`` the last logged validation values ``val_{metric}_last`` and the iteration of the
           last row ``val_iteration_last``, the milestones ``iter_to_{metric}_{tag}`` / ``time_to_{metric}_{tag}_s``
