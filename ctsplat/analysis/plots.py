@@ -334,7 +334,9 @@ def plot_kde_conditions(per_views: pd.DataFrame, out: str | os.PathLike[str], *,
     per-view values of its seeds are pooled, never those of runs that differ in another axis. Each run contributes
     the evaluations in the last of ``n_windows`` equal iteration ranges of its training; that window (in
     iterations) is named in the title, or per curve when runs differ in length. Densities are confined to the
-    metric's range (SSIM ≤ 1).
+    metric's range (SSIM ≤ 1). When the compositor varies, each compositor gets its own column of panels (their
+    levels differ by many dB, and one panel of every condition is unreadable); the legend then names the other
+    axes, with one style per condition across the columns.
 
     Parameters
     ----------
@@ -350,8 +352,8 @@ def plot_kde_conditions(per_views: pd.DataFrame, out: str | os.PathLike[str], *,
     matplotlib.figure.Figure
         The figure written to ``out`` (closed).
     """
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     if per_views.empty:
+        fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
         for ax in axes:
             _empty(ax, "no per-view evaluations (per_view.csv)")
         return _save(fig, out)
@@ -361,21 +363,44 @@ def plot_kde_conditions(per_views: pd.DataFrame, out: str | os.PathLike[str], *,
         final = w[int(np.argmax(g["iteration"].to_numpy()))]
         last.append(g[w == final].assign(window=final))
     pv = pd.concat(last, ignore_index=True)
-    pv["condition"] = condition_labels(pv, CONDITION_AXES)
-    styles = condition_styles(pv)
+    facets = (sorted(pv["compositor"].astype(str).unique(), key=natural_value)
+              if "compositor" in pv and pv["compositor"].nunique() > 1 else [None])
+    in_panel = [a for a in CONDITION_AXES if facets == [None] or a != "compositor"]
+    pv["condition"] = condition_labels(pv, in_panel)
+    styles = condition_styles(pv, axes=in_panel)
     windows = pv.groupby("condition")["window"].agg(lambda w: ", ".join(sorted(set(w))))
     same_window = pv["window"].nunique() == 1
-    for ax, m in zip(axes, ("psnr2d", "ssim2d"), strict=True):
+    metric_names = ("psnr2d", "ssim2d")
+    if facets == [None]:
+        fig, grid = plt.subplots(1, 2, figsize=(12, 4.5), squeeze=False)
+        panels = [(grid[0, k], m, None) for k, m in enumerate(metric_names)]
+    else:
+        fig, grid = plt.subplots(2, len(facets), figsize=(4.6 * len(facets) + 3.0, 7.5), squeeze=False)
+        panels = [(grid[r, c], m, f) for r, m in enumerate(metric_names) for c, f in enumerate(facets)]
+    for ax, m, facet in panels:
+        sub = pv if facet is None else pv[pv["compositor"].astype(str) == facet]
         for cond, st in styles.items():
-            vals = pv.loc[pv["condition"] == cond, m].dropna().to_numpy()
+            vals = sub.loc[sub["condition"] == cond, m].dropna().to_numpy()
+            if facet is not None and not vals.size:
+                continue
             label = cond if same_window else f"{cond} (it {windows[cond]})"
             if not _draw_kde(ax, vals, m, lw=1.6, label=label, **st):
                 ax.plot([], [], label=label + ", no spread", **st)
         ax.set_xlabel(f"per-view {METRIC_LABELS[m]}")
         ax.set_ylabel("density")
-    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), handlelength=3.5)
+        if facet is not None:
+            ax.set_title(f"compositor={facet}", fontsize=9)
+    handles: dict[str, Any] = {}
+    for ax, _, _ in panels:
+        for h, lb in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(lb, h)
+    order = sorted(handles, key=_natural_key)
+    grid[0, -1].legend([handles[k] for k in order], order, fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0),
+                       handlelength=3.5)
     when = f"iterations {pv['window'].iloc[0]}" if same_window else f"the last 1/{n_windows} of each run"
     fig.suptitle(f"Per-view validation metrics by condition, {when} (seeds pooled)")
+    if facets != [None]:
+        fig.tight_layout()
     return _save(fig, out)
 
 

@@ -179,6 +179,31 @@ def test_kde_conditions_one_curve_per_condition_not_pooled_over_init(tmp_path):
     assert "iterations 750–1000" in fig.texts[0].get_text()
 
 
+def test_kde_conditions_one_column_of_panels_per_compositor(tmp_path):
+    frames = []
+    for comp, gap in (("radiative", 0.0), ("alpha", 0.1), ("radiative_unrectified", 0.3)):
+        for init in ("fbp", "uniform"):
+            cell = {"volume": "phantom", "init": init, "compositor": comp, "mip": "on", "poses": "gt", "views": 8,
+                    "seed": 0, "run_dir": f"r/{comp}/{init}"}
+            frames.append(_per_view_ssim(seed=len(frames), init_gap=gap).assign(**cell))
+    pv = pd.concat(frames, ignore_index=True)
+    fig = plots.plot_kde_conditions(pv, tmp_path / "kf.png", n_windows=4)
+    assert len(fig.axes) == 6  # PSNR and SSIM rows, one column per compositor
+    titles = [ax.get_title() for ax in fig.axes[:3]]
+    assert titles == ["compositor=alpha", "compositor=radiative", "compositor=radiative_unrectified"]
+    for ax in fig.axes:  # each panel: the two inits of its own compositor, named without it
+        assert sorted(ln.get_label() for ln in ax.get_lines() if not ln.get_label().startswith("_")) == \
+            ["init=fbp", "init=uniform"]
+    ssim_alpha = {ln.get_label(): ln for ln in fig.axes[3].get_lines()}
+    from ctsplat.analysis.stats import bounded_kde
+
+    last = pv[(pv["compositor"] == "alpha") & (pv["init"] == "uniform") & (pv["iteration"] >= 750)]["ssim2d"]
+    np.testing.assert_allclose(ssim_alpha["init=uniform"].get_ydata(), bounded_kde(last, -1.0, 1.0)[1])
+    legend = [t.get_text() for t in fig.axes[2].get_legend().get_texts()]
+    assert legend == ["init=fbp", "init=uniform"]
+    assert _is_png(tmp_path / "kf.png")
+
+
 def test_convergence_by_axis_colours_by_axis_and_tells_every_run_apart(tmp_path):
     runs = [_make_run(tmp_path, init=i, views=v) for i in ("fbp", "uniform") for v in (8, 16)]
     logs = load_runs(gather(runs, tmp_path / "summary.csv"))
