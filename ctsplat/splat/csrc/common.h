@@ -116,7 +116,7 @@ static void parallel_tasks(int64_t ntasks, int nt, F fn) {
     run_threads(nt, [&](int) { for (int64_t t; (t = next.fetch_add(1)) < ntasks;) fn(t); });
 }
 
-// Scatters partitioned by output band: the output's outer axis (image rows, voxel slabs) is cut into bands of
+// Scatters partitioned by output band (the voxelizer forward's slabs): the output's outer axis is cut into bands of
 // 2^shift indices, and every Gaussian is listed under each band its extent [first, last] (outer indices, inclusive)
 // meets. A band is written by one thread only, and within a band the Gaussians come in index order, so every output
 // element is summed in Gaussian order whatever the thread count: no per-thread copies of the output, no reduction,
@@ -139,9 +139,9 @@ static const Bands& band_lists(int64_t n, int64_t outer, int nt, E extent) {
     // about 4 bands per thread: enough for a dense middle of the image not to leave threads idle, few enough that
     // most Gaussians fall in one band (a Gaussian that spans two is set up twice)
     const int64_t want = std::max<int64_t>(1, std::min<int64_t>(4 * (int64_t)std::max(nt, 1), outer));
+    const int64_t rows = (outer + want - 1) / want;  // at least this many indices a band, rounded up to 2^shift
     int shift = 0;
-    while ((((outer + want - 1) / want) >> shift) > 1) ++shift;
-    if (((int64_t)1 << shift) < (outer + want - 1) / want) ++shift;
+    while (((int64_t)1 << shift) < rows) ++shift;
     const int64_t count = (outer + ((int64_t)1 << shift) - 1) >> shift;
     B.shift = shift;
     B.count = count;
