@@ -512,7 +512,7 @@ def _gauge_aligned_metrics(run_dir: Path, g: Any, scene: Any, rk: dict[str, Any]
     cannot observe (:func:`ctsplat.training.poses.gauge_motion` of its final training poses against the true ones)
     is undone: ``psnr3d_gauge_aligned``, ``ssim3d_gauge_aligned``, and that motion (``gauge_rotation_deg``,
     ``gauge_shift_mm``). Empty for runs at the true poses."""
-    from ctsplat.training.poses import gauge_motion
+    from ctsplat.training.poses import gauge_motion, rotation_angles_deg
 
     tr = scene.train
     Rs_true, ts_true = tr.truth()
@@ -528,9 +528,8 @@ def _gauge_aligned_metrics(run_dir: Path, g: Any, scene: Any, rk: dict[str, Any]
     moved = gauge_aligned_model(g, G, b)
     vol = voxelize_model(moved, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
     m = volume_metrics(vol, scene.volume.data)
-    angle = float(np.degrees(np.arccos(np.clip((np.trace(G) - 1.0) / 2.0, -1.0, 1.0))))
     return {"psnr3d_gauge_aligned": m["psnr3d"], "ssim3d_gauge_aligned": m["ssim3d"],
-            "gauge_rotation_deg": angle, "gauge_shift_mm": float(np.linalg.norm(b))}
+            "gauge_rotation_deg": float(rotation_angles_deg(G[None])[0]), "gauge_shift_mm": float(np.linalg.norm(b))}
 
 
 def model_size_bytes(*paths: str | Path) -> int:

@@ -49,10 +49,12 @@ import numpy as np
 import torch
 
 from ctsplat.splat.gaussians import quat_to_rotmat
+from ctsplat.training.config import CONE_POSE_MODELS
 from ctsplat.utils import CtsplatError
 
 __all__ = ["rotvec_to_quat", "quat_mul", "correct_pose", "transform_gaussians", "PoseCorrection",
-           "pose_errors", "common_rotation", "gauge_motion", "perturb_poses", "pose_source", "refine_enabled"]
+           "pose_errors", "rotation_angles_deg", "common_rotation", "gauge_motion", "perturb_poses", "pose_source",
+           "refine_enabled"]
 
 
 def pose_source(poses: str) -> str:
@@ -210,8 +212,9 @@ class PoseCorrection(torch.nn.Module):
         super().__init__()
         if model not in ("parallel", "cone"):
             raise CtsplatError(f"pose refinement supports parallel and cone cameras, not {model!r}")
-        if cone_model not in ("rigid", "carm"):
-            raise CtsplatError(f"unknown train.pose_refine.cone_model {cone_model!r}; allowed: rigid, carm")
+        if cone_model not in CONE_POSE_MODELS:
+            raise CtsplatError(f"unknown train.pose_refine.cone_model {cone_model!r}; allowed: "
+                               f"{', '.join(CONE_POSE_MODELS)}")
         if not (prior_rot_deg > 0 and prior_trans_mm > 0):
             raise CtsplatError("train.pose_refine.prior_rot_deg and prior_trans_mm must be > 0 (a zero prior would "
                                "freeze the poses; disable pose_refine instead)")
@@ -336,9 +339,9 @@ def pose_errors(Rs: np.ndarray, ts: np.ndarray, Rs_true: np.ndarray, ts_true: np
         common world rotation (the gauge refinement cannot observe, see :meth:`PoseCorrection.fix_gauge`).
     """
     Rs, Rs_true = np.asarray(Rs, float), np.asarray(Rs_true, float)
-    rot = _angles_deg(np.einsum("vij,vkj->vik", Rs, Rs_true))
+    rot = rotation_angles_deg(np.einsum("vij,vkj->vik", Rs, Rs_true))
     G = common_rotation(Rs, Rs_true)
-    rot_aligned = _angles_deg(np.einsum("vij,jl,vkl->vik", Rs, G, Rs_true))
+    rot_aligned = rotation_angles_deg(np.einsum("vij,jl,vkl->vik", Rs, G, Rs_true))
     iso = np.asarray(iso_mm, float)
     d = (Rs @ iso + ts) - (Rs_true @ iso + ts_true)
     if model == "parallel":
@@ -403,8 +406,19 @@ def gauge_motion(Rs: np.ndarray, ts: np.ndarray, Rs_true: np.ndarray, ts_true: n
     return common_rotation(Rs, Rs_true), b
 
 
-def _angles_deg(rel: np.ndarray) -> np.ndarray:
-    """Rotation angles (degrees) of matrices (V, 3, 3), from atan2 of sine and cosine (arccos loses small angles)."""
+def rotation_angles_deg(rel: np.ndarray) -> np.ndarray:
+    """Rotation angles (degrees) of matrices (V, 3, 3), from atan2 of sine and cosine (arccos loses small angles).
+
+    Parameters
+    ----------
+    rel : ndarray (V, 3, 3)
+        Rotation matrices.
+
+    Returns
+    -------
+    ndarray (V,)
+        Angles in degrees, in [0, 180].
+    """
     cos = (np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0
     skew = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
     return np.degrees(np.arctan2(0.5 * np.linalg.norm(skew, axis=-1), cos))
