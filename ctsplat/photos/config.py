@@ -42,6 +42,13 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
         "iterations": 7000,
         "downscale": 4,  # images and intrinsics divided by this (1, 2, 4, 8)
         "test_every": 8,  # every n-th image (sorted by name, from the first) is held out for testing
+        # test: monitor and evaluate on the test images | validation: leave the test images out entirely and hold
+        # out every test_every-th remaining one (offset test_every // 2) instead, to choose settings on
+        "holdout": "test",
+        # the colour behind the Gaussians: a fixed [r, g, b] in [0, 1] or "learned" (one RGB trained with the
+        # model, started at the median of the training photos' border pixels); black won on the skull set's
+        # validation photos (docs/results.md)
+        "background": [0.0, 0.0, 0.0],
         "sh_degree": 3,  # the highest SH degree
         "sh_interval": 1000,  # the SH degree rises by one every this many iterations
         "lambda_dssim": 0.2,  # loss = (1 - λ) L1 + λ (1 - SSIM)
@@ -55,6 +62,7 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
             "opacity": 5e-2,
             "colors": 2.5e-3,
             "sh_rest": 1.25e-4,
+            "background": 1e-2,
         },
         "densify": {
             "interval": 100,
@@ -63,7 +71,8 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
             "grad_threshold": 2e-4,  # mean view-space positional gradient (3DGS NDC units)
             "percent_dense": 0.01,  # clone below / split above this fraction of the scene extent
             "prune_opacity": 0.005,
-            "prune_scale_fraction": 0.1,  # prune Gaussians wider than this fraction of the scene extent
+            # prune Gaussians wider than this fraction of the scene extent, after the first opacity reset (3DGS)
+            "prune_scale_fraction": 0.1,
             "opacity_reset_interval": 3000,  # 0: never
             "max_gaussians": 300000,
         },

@@ -89,26 +89,35 @@ class PhotoScene:
     meta: dict[str, Any] = field(default_factory=dict)
 
     def split(self, name: str) -> list[PhotoView]:
-        """The views of split ``name`` (``train`` or ``test``)."""
+        """The views of split ``name`` (``train``, ``val`` or ``test``)."""
         return [v for v in self.views if v.split == name]
 
 
-def split_names(names: list[str], test_every: int) -> dict[str, str]:
-    """Name -> ``train`` / ``test``: every ``test_every``-th name in sorted order (from the first) is ``test``.
+def split_names(names: list[str], test_every: int, *, validation: bool = False) -> dict[str, str]:
+    """Name -> ``train`` / ``test`` (/ ``val``): every ``test_every``-th name in sorted order (from the first) is
+    ``test``; with ``validation``, every ``test_every``-th name from ``test_every // 2`` on is ``val``.
 
     Parameters
     ----------
     names : list of str
     test_every : int
         0 holds nothing out.
+    validation : bool
+        Also hold out validation names (between the test names, never one of them).
 
     Returns
     -------
     dict of str to str
     """
     out = {}
+    k = int(test_every)
     for i, n in enumerate(sorted(names)):
-        out[n] = "test" if test_every and i % int(test_every) == 0 else "train"
+        if k and i % k == 0:
+            out[n] = "test"
+        elif k and validation and i % k == k // 2:
+            out[n] = "val"
+        else:
+            out[n] = "train"
     return out
 
 
@@ -129,7 +138,7 @@ def scene_extent(Rs: list[np.ndarray], ts: list[np.ndarray]) -> float:
     return max(1.1 * float(np.linalg.norm(centres - centres.mean(0), axis=1).max()), 1e-6)
 
 
-def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8,
+def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, validation: bool = False,
                device: torch.device | str = "cpu") -> PhotoScene:
     """Read ``sfm_dir/sparse/0`` and ``sfm_dir/images`` into a :class:`PhotoScene`.
 
@@ -141,6 +150,8 @@ def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8,
         Images and intrinsics divided by this factor (>= 1).
     test_every : int
         Hold-out period (:func:`split_names`).
+    validation : bool
+        Also hold out validation views (:func:`split_names`).
     device : torch.device or str
         Where the image tensors live.
 
@@ -163,7 +174,7 @@ def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8,
         raise CtsplatError(f"downscale must be an integer >= 1, got {downscale}")
     rec = pycolmap.Reconstruction(str(sparse))
     images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
-    splits = split_names([im.name for im in images], test_every)
+    splits = split_names([im.name for im in images], test_every, validation=validation)
     views: list[PhotoView] = []
     for im in images:
         cam = rec.cameras[im.camera_id]

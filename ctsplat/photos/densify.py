@@ -4,8 +4,9 @@ The radiative strategy beside it (:class:`ctsplat.training.densify.GradientDensi
 density and by the CT volume's box; photographs have neither a density nor a box, so this strategy follows 3DGS
 itself: Gaussians whose mean view-space positional gradient exceeds ``grad_threshold`` are cloned (max scale at
 most ``percent_dense`` × the scene extent) or split in two (larger ones; samples from the Gaussian, scales / 1.6);
-Gaussians with opacity below ``prune_opacity`` or wider than ``prune_scale_fraction`` × the extent are pruned;
-every ``opacity_reset_interval`` iterations opacities are clamped to at most 0.01. The gradient statistics are
+Gaussians with opacity below ``prune_opacity`` are pruned, and after the first opacity reset also those wider
+than ``prune_scale_fraction`` × the extent (3DGS's schedule: the large Gaussians that fill a backdrop early on are
+kept until then); every ``opacity_reset_interval`` iterations opacities are clamped to at most 0.01. The gradient statistics are
 accumulated exactly as the radiative strategy does (:meth:`GradientDensify.accumulate`, 3DGS's NDC units).
 
 References
@@ -76,8 +77,8 @@ class AlphaDensify:
         k = int(self.settings["opacity_reset_interval"])
         return bool(k) and iteration % k == 0 and iteration <= self.stop and iteration < self.iterations
 
-    def step(self, params: dict[str, torch.Tensor], opt: torch.optim.Adam, gen: torch.Generator
-             ) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
+    def step(self, params: dict[str, torch.Tensor], opt: torch.optim.Adam, gen: torch.Generator, *,
+             iteration: int | None = None) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
         """One clone / split / prune step (Adam moments follow; statistics reset).
 
         Parameters
@@ -88,6 +89,9 @@ class AlphaDensify:
             Its groups are named after the parameters.
         gen : torch.Generator
             Source of the split samples.
+        iteration : int, optional
+            The completed iterations; the size prune applies once it exceeds ``opacity_reset_interval`` (None:
+            always).
 
         Returns
         -------
@@ -131,7 +135,8 @@ class AlphaDensify:
                                     {k: torch.cat(v) for k, v in new.items()})
             op = torch.sigmoid(params["opacity_raw"])
             bad = op < float(d["prune_opacity"])
-            bad |= torch.exp(params["log_scales"]).max(-1).values > float(d["prune_scale_fraction"]) * self.extent
+            if iteration is None or iteration > int(d["opacity_reset_interval"]):
+                bad |= torch.exp(params["log_scales"]).max(-1).values > float(d["prune_scale_fraction"]) * self.extent
             if bool(bad.all()):  # never prune everything
                 bad[:] = False
             params = replace_params(opt, params, torch.nonzero(~bad).flatten(), {})

@@ -6,6 +6,10 @@ it; :func:`ctsplat.training.losses.ssim`) averaged over RGB. LPIPS is ``null`` w
 package or its weights cannot be loaded (:func:`ctsplat.evaluation.metrics.lpips_status`). Every figure carries
 the photographs' attribution line (``photos.evaluate.attribution``).
 
+The held-out views are the test photos, or the validation photos of a run trained with ``holdout: validation``
+(``metrics.json``'s ``held_out`` and the per-view ``split`` say which). Renders composite over the model's
+background colour (``meta["background"]``).
+
 Outputs in the run folder: ``metrics.json``, ``per_view_test.csv`` (the CT runs' per-view columns, with the
 image name as ``view_id``), ``figures/gallery.png`` and ``figures/turntable.gif``.
 """
@@ -27,7 +31,7 @@ from ctsplat.formats.runlog import PER_VIEW_COLUMNS, CsvLog
 from ctsplat.geometry.cameras import look_at
 from ctsplat.photos.config import SFM_SUMMARY_KEYS, photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
-from ctsplat.photos.train import image_metrics, render_view
+from ctsplat.photos.train import held_out_split, image_metrics, render_view
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.utils import CtsplatError, atomic_path, json_safe, resolve_device, write_json_atomic
 
@@ -182,21 +186,23 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     device = resolve_device(t["device"])
     if scene is None:
         scene = load_scene(cfg["sfm_dir"], downscale=int(t["downscale"]), test_every=int(t["test_every"]),
-                           device=device)
-    test = scene.split("test")
+                           validation=held_out_split(t) == "val", device=device)
+    held = held_out_split(t)
+    test = scene.split(held)
     if not test:
         raise CtsplatError(f"{cfg['sfm_dir']} has no held-out view (test_every {t['test_every']}); nothing to "
                            "evaluate")
     g = Gaussians.load(run_dir / "model.pt", device=device)
+    bg = g.meta.get("background")
     rows, renders, times = [], [], []
     with torch.no_grad():
-        render_view(g, test[0])  # warm-up: kernel build and caches stay out of the timing
+        render_view(g, test[0], background=bg)  # warm-up: kernel build and caches stay out of the timing
         for v in test:
             t0 = time.perf_counter()
-            img = render_view(g, v).image
+            img = render_view(g, v, background=bg).image
             times.append(time.perf_counter() - t0)
             p, ss = image_metrics(img, v.image)
-            rows.append({"iteration": "final", "view_id": v.name, "split": "test", "psnr2d": p, "ssim2d": ss})
+            rows.append({"iteration": "final", "view_id": v.name, "split": held, "psnr2d": p, "ssim2d": ss})
             renders.append(img.clamp(0, 1).cpu().numpy())
     reason = lpips_status()
     lpips_reason = reason or "LPIPS is wired for grey CT projections only; not computed on RGB photographs"
@@ -213,7 +219,7 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     if n_frames and len(scene.views) >= 2:
         cam = scene.views[0].camera
         with torch.no_grad():
-            frames = [render_view(g, None, cam, R, tt).image.clamp(0, 1).cpu().numpy()
+            frames = [render_view(g, None, cam, R, tt, background=bg).image.clamp(0, 1).cpu().numpy()
                       for R, tt in turntable_poses(scene.views, n_frames)]
         save_turntable_gif(run_dir / "figures" / "turntable.gif", frames, s["attribution"])
     training = json.loads((run_dir / "training.json").read_text()) if (run_dir / "training.json").is_file() else {}
@@ -226,6 +232,7 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
         "lpips": None,
         "lpips_reason": lpips_reason,
         "per_view": {r["view_id"]: {"psnr": r["psnr2d"], "ssim": r["ssim2d"]} for r in rows},
+        "held_out": held,
         "n_test": len(test),
         "n_train": len(scene.split("train")),
         "test_views": [v.name for v in test],

@@ -10,7 +10,12 @@ are trained, and the first ``(d + 1)² - 1`` of them are passed while the degree
 - the SH degree starts at 0 and rises by one every ``sh_interval`` iterations up to ``sh_degree``;
 - loss ``(1 - λ) L1 + λ (1 - SSIM)``, Adam (eps 1e-15), the means' learning rate (× scene extent) decaying
   exponentially; density control by :class:`ctsplat.photos.densify.AlphaDensify`;
-- the composite lies over a black background (the renderer returns ``Σ c α T``).
+- the composite lies over a background colour, fixed (``background: [r, g, b]``, black by default) or learned with
+  the model (``background: learned``, started at the median of the training photos' border pixels); it is saved
+  in the model's ``meta["background"]``.
+
+``holdout: validation`` leaves the test photos out entirely and monitors and evaluates on validation photos taken
+from the training set (:func:`ctsplat.photos.dataset.split_names`): the split to choose settings on.
 
 Outputs (written under a temporary name, renamed into place when training ends): ``config.json``,
 ``train_log.csv`` (the CT runs' columns, :data:`ctsplat.formats.runlog.LOG_COLUMNS`; ``psnr2d``/``ssim2d`` on the
@@ -43,8 +48,8 @@ from ctsplat.splat.render import render
 from ctsplat.training.losses import ssim
 from ctsplat.utils import CtsplatError, atomic_dir, code_version, config_hash, resolve_device, write_json_atomic
 
-__all__ = ["PHOTO_LOG_EXTRAS", "train_photos", "train_scene", "init_params", "to_gaussians", "render_view",
-           "image_metrics"]
+__all__ = ["PHOTO_LOG_EXTRAS", "train_photos", "train_scene", "init_params", "border_colour",
+           "held_out_split", "to_gaussians", "render_view", "image_metrics"]
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +104,33 @@ def init_params(xyz: np.ndarray, rgb: np.ndarray, settings: dict[str, Any], gen:
     return {k: v.clone().requires_grad_(True) for k, v in params.items()}
 
 
+def border_colour(views: list[PhotoView], *, width_px: int = 4) -> np.ndarray:
+    """The median colour of the photos' border pixels (the start of a learned background colour).
+
+    Parameters
+    ----------
+    views : list of PhotoView
+    width_px : int
+        Border width, px.
+
+    Returns
+    -------
+    ndarray (3,) in [0, 1]
+    """
+    rims = []
+    for v in views:
+        img = v.image.detach().cpu()
+        k = max(1, min(width_px, img.shape[0] // 2, img.shape[1] // 2))
+        rims += [img[:k].reshape(-1, 3), img[-k:].reshape(-1, 3), img[:, :k].reshape(-1, 3),
+                 img[:, -k:].reshape(-1, 3)]
+    return torch.cat(rims).median(dim=0).values.double().numpy()
+
+
+def held_out_split(settings: dict[str, Any]) -> str:
+    """The split a run monitors and is evaluated on: ``val`` with ``holdout: validation``, else ``test``."""
+    return "val" if settings.get("holdout", "test") == "validation" else "test"
+
+
 def to_gaussians(params: dict[str, torch.Tensor], degree: int) -> Gaussians:
     """The :class:`Gaussians` the renderer sees at SH degree ``degree`` (0..3).
 
@@ -121,8 +153,8 @@ def to_gaussians(params: dict[str, torch.Tensor], degree: int) -> Gaussians:
                      sh_rest=params["sh_rest"][:, :k] if k else None)
 
 
-def render_view(g: Gaussians, view: PhotoView | Any, camera: Any = None, R: Any = None, t: Any = None
-                ) -> Any:
+def render_view(g: Gaussians, view: PhotoView | Any, camera: Any = None, R: Any = None, t: Any = None, *,
+                background: Any = None) -> Any:
     """Render ``g`` from a view (or from ``camera``, ``R``, ``t``) with the alpha compositor.
 
     Parameters
@@ -131,6 +163,8 @@ def render_view(g: Gaussians, view: PhotoView | Any, camera: Any = None, R: Any 
     view : PhotoView or None
     camera, R, t : optional
         Used instead of the view's.
+    background : Tensor (3,) or sequence of 3 floats, optional
+        The colour behind the Gaussians (None: black).
 
     Returns
     -------
@@ -140,7 +174,7 @@ def render_view(g: Gaussians, view: PhotoView | Any, camera: Any = None, R: Any 
     cam = camera if camera is not None else view.camera
     R = R if R is not None else view.R
     t = t if t is not None else view.t
-    return render(g, cam, R, t, compositor="alpha")
+    return render(g, cam, R, t, compositor="alpha", background=background)
 
 
 def image_metrics(img: torch.Tensor, ref: torch.Tensor) -> tuple[float, float]:
@@ -170,18 +204,20 @@ def _optimizer(params: dict[str, torch.Tensor], lr: dict[str, float], extent: fl
     return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
 
-def _eval_views(params: dict[str, torch.Tensor], degree: int, views: list[PhotoView]) -> tuple[float, float]:
+def _eval_views(params: dict[str, torch.Tensor], degree: int, views: list[PhotoView], background: torch.Tensor
+                ) -> tuple[float, float]:
     if not views:
         return float("nan"), float("nan")
     with torch.no_grad():
         g = to_gaussians(params, degree)
-        vals = [image_metrics(render_view(g, v).image, v.image) for v in views]
+        vals = [image_metrics(render_view(g, v, background=background.detach()).image, v.image) for v in views]
     return float(np.mean([a for a, _ in vals])), float(np.mean([b for _, b in vals]))
 
 
 def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | None = None,
                 device: torch.device | str = "cpu") -> tuple[Gaussians, dict[str, Any]]:
-    """Train on the ``train`` views of a scene (module docstring); held-out PSNR/SSIM every ``log_every``.
+    """Train on the ``train`` views of a scene (module docstring); held-out PSNR/SSIM every ``log_every`` (on the
+    :func:`held_out_split` views).
 
     Parameters
     ----------
@@ -195,10 +231,10 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     Returns
     -------
     model : Gaussians
-        Detached, at the final SH degree.
+        Detached, at the final SH degree; ``meta["background"]`` is its background colour (list of 3 floats).
     report : dict
         ``iterations``, ``seconds``, ``n_gaussians``, ``initial_test_psnr``, ``final_test_psnr``,
-        ``final_test_ssim``, ``sh_degree``.
+        ``final_test_ssim`` (on the held-out split, named by ``held_out``), ``sh_degree``, ``background``.
     """
     s = settings
     iters = int(s["iterations"])
@@ -206,17 +242,23 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     rng = np.random.default_rng(seed)
+    train, test = scene.split("train"), scene.split(held_out_split(s))
+    if not train:
+        raise CtsplatError("no training photo left after the held-out split; lower photos.train.test_every")
     params = init_params(scene.xyz, scene.rgb, s, rng, device)
     opt = _optimizer(params, s["lr"], scene.extent)
+    learned = s["background"] == "learned"
+    bg0 = border_colour(train) if learned else np.asarray(s["background"], float)
+    background = torch.tensor(bg0, dtype=torch.float32, device=device, requires_grad=learned)
+    bg_opt = torch.optim.Adam([background], lr=float(s["lr"]["background"]), eps=1e-15) if learned else None
     dens = AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, n=params["means"].shape[0])
-    train, test = scene.split("train"), scene.split("test")
     lam = float(s["lambda_dssim"])
     lr0 = float(s["lr"]["means"]) * scene.extent
     lr1 = float(s["lr"]["means_final"]) * scene.extent
     csv = CsvLog(log_path, [*LOG_COLUMNS, *PHOTO_LOG_EXTRAS]) if log_path is not None else None
     if csv is not None:
         csv.reset()
-    p0, s0 = _eval_views(params, 0, test)
+    p0, s0 = _eval_views(params, 0, test, background)
     if csv is not None:
         csv.append([{"iteration": 0, "timestamp": 0.0, "psnr2d": p0, "ssim2d": s0,
                      "n_gaussians": int(params["means"].shape[0]), "sh_degree": 0}])
@@ -232,7 +274,7 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
         view = train[order.pop()]
         lr_means = lr0 * (lr1 / lr0) ** ((it - 1) / max(iters - 1, 1)) if lr0 > 0 else 0.0
         opt.param_groups[0]["lr"] = lr_means
-        out = render_view(to_gaussians(params, degree), view)
+        out = render_view(to_gaussians(params, degree), view, background=background)
         img = out.image
         l1 = torch.mean(torch.abs(img - view.image))
         dssim = 1.0 - ssim(img.permute(2, 0, 1), view.image.permute(2, 0, 1), 1.0)
@@ -245,15 +287,20 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
             dens.accumulate(out.means2d.grad, out.visible, ndc)
         opt.step()
         opt.zero_grad(set_to_none=True)
+        if bg_opt is not None:
+            bg_opt.step()
+            bg_opt.zero_grad(set_to_none=True)
+            with torch.no_grad():
+                background.clamp_(0.0, 1.0)
         if dens.due(it):
-            params, st = dens.step(params, opt, gen)
+            params, st = dens.step(params, opt, gen, iteration=it)
             for k in counts:
                 counts[k] += st[k]
         if dens.reset_due(it):
             dens.reset_opacity(params, opt)
         if csv is not None and (it % int(s["log_every"]) == 0 or it == iters):
             now = time.perf_counter()
-            ps, ss = _eval_views(params, degree, test)
+            ps, ss = _eval_views(params, degree, test, background)
             csv.append([{"iteration": it, "timestamp": now - t_start, "psnr2d": ps, "ssim2d": ss,
                          "loss": float(loss.detach()), "l1": float(l1.detach()), "dssim": float(dssim.detach()),
                          "n_gaussians": int(params["means"].shape[0]), "lr_means": lr_means,
@@ -264,10 +311,13 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
             t_last, it_last = time.perf_counter(), it
     seconds = time.perf_counter() - t_start
     model = to_gaussians({k: v.detach() for k, v in params.items()}, degree)
-    pf, sf = _eval_views(params, degree, test)
+    bg = [float(c) for c in background.detach().cpu()]
+    model.meta["background"] = bg
+    pf, sf = _eval_views(params, degree, test, background)
     report = {"iterations": iters, "seconds": seconds, "n_gaussians": len(model), "sh_degree": degree,
-              "initial_test_psnr": p0, "initial_test_ssim": s0, "final_test_psnr": pf, "final_test_ssim": sf,
-              "n_train": len(train), "n_test": len(test)}
+              "held_out": held_out_split(s), "initial_test_psnr": p0, "initial_test_ssim": s0,
+              "final_test_psnr": pf, "final_test_ssim": sf, "n_train": len(train), "n_test": len(test),
+              "background": bg}
     return model, report
 
 
@@ -302,7 +352,8 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
     _check(s)
     device = resolve_device(s["device"])
     torch.set_num_threads(int(s["num_threads"]))
-    scene = load_scene(sfm_dir, downscale=int(s["downscale"]), test_every=int(s["test_every"]), device=device)
+    scene = load_scene(sfm_dir, downscale=int(s["downscale"]), test_every=int(s["test_every"]),
+                       validation=held_out_split(s) == "val", device=device)
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
         config = {"sfm_dir": str(sfm_dir), "train": s}

@@ -450,6 +450,7 @@ def render(
     transmission: bool = False,
     mu_scale: float = 1.0,
     sigma_cutoff: float = 3.0,
+    background: Any = None,
     backend: str = "auto",
 ) -> RenderOutput:
     """Render one view.
@@ -471,6 +472,11 @@ def render(
         Factor applied to densities (e.g. ``mu_scale_per_mm`` to get 1/mm line integrals).
     sigma_cutoff : float
         Footprint half-width in standard deviations (bounding box).
+    background : Tensor (C,) or sequence of C floats, optional
+        Alpha only: the colour behind the Gaussians, ``C = Σ_i c_i α_i T_i + b T_N`` with ``T_N = Π_i (1 - α_i)``
+        the transmittance left after the last Gaussian (None: black, ``b = 0``). Differentiable when it is a
+        tensor that requires grad. The kernels composite one extra colour channel of ones, which is the pixel's
+        opacity ``1 - T_N``.
     backend : "auto" | "reference" | "kernel" | "triton"
         "auto": fused C++ kernels on CPU when available, Triton kernels on CUDA when triton is installed, else the
         pure-PyTorch reference.
@@ -486,6 +492,8 @@ def render(
     _check_backend(backend, "render")
     if transmission and compositor == "alpha":
         raise CtsplatError("transmission=True only applies to the radiative compositors")
+    if background is not None and compositor != "alpha":
+        raise CtsplatError("background only applies to the alpha compositor (radiative images have no background)")
     if not sigma_cutoff > 0:
         raise CtsplatError(f"sigma_cutoff must be > 0, got {sigma_cutoff}")
     cam = camera_intrinsics(camera)
@@ -515,11 +523,19 @@ def render(
     if compositor == "alpha":
         R_t, t_t = _as_pose(R, t, gaussians.means)
         cols = _colors_for_view(gaussians, R_t, t_t, cam["model"])
+        bg = None
+        if background is not None:
+            bg = torch.as_tensor(background, dtype=proj.amps.dtype, device=cols.device).reshape(-1)
+            if bg.shape[0] != cols.shape[1]:
+                raise CtsplatError(f"background has {bg.shape[0]} channels, the colours {cols.shape[1]}")
+            cols = torch.cat([cols, torch.ones_like(cols[:, :1])], dim=1)
         if fused is not None:
             img = fused.AlphaComposite.apply(proj.means2d, proj.conics, proj.amps, cols.to(proj.amps.dtype),
                                              proj.bbox, proj.depths, H, W)
         else:
             img = _reference.splat_alpha_reference(proj, cols, H, W)
+        if bg is not None:
+            img = img[..., :-1] + (1.0 - img[..., -1:]) * bg
         if img.shape[-1] == 1:
             img = img[..., 0]
     else:

@@ -111,6 +111,9 @@ def test_every_eighth_image_is_held_out() -> None:
     split = split_names(list(reversed(names)), 8)
     assert [n for n in names if split[n] == "test"] == ["01.jpg", "09.jpg", "17.jpg"]
     assert set(split_names(names, 0).values()) == {"train"}
+    split = split_names(names, 8, validation=True)
+    assert [n for n in names if split[n] == "test"] == ["01.jpg", "09.jpg", "17.jpg"]  # the same test photos
+    assert [n for n in names if split[n] == "val"] == ["05.jpg", "13.jpg"]
 
 
 def test_pinhole_camera_scales_with_the_image() -> None:
@@ -129,8 +132,10 @@ def test_photo_settings_fill_defaults_and_refuse_unknown_keys() -> None:
 
 
 # ------------------------------------------------------------------------------------------------ training
-def _synthetic_scene(tmp: Path | None = None) -> tuple[PhotoScene, Gaussians]:
-    """24 coloured Gaussians seen by 16 cameras on a ring (64x48), rendered by the renderer itself."""
+def _synthetic_scene(tmp: Path | None = None, background: tuple[float, float, float] | None = None
+                     ) -> tuple[PhotoScene, Gaussians]:
+    """24 coloured Gaussians seen by 16 cameras on a ring (64x48), rendered by the renderer itself over
+    ``background`` (None: black)."""
     gen = torch.Generator().manual_seed(0)
     n = 24
     means = (torch.rand(n, 3, generator=gen) - 0.5) * 1.2
@@ -144,7 +149,7 @@ def _synthetic_scene(tmp: Path | None = None) -> tuple[PhotoScene, Gaussians]:
         centre = np.array([4 * np.cos(a), 4 * np.sin(a), 1.0 + 0.5 * np.sin(3 * a)])
         R, t = look_at(centre, np.zeros(3), (0, 0, 1))
         with torch.no_grad():
-            img = render_view(truth, None, cam, R, t).image.clamp(0, 1)
+            img = render_view(truth, None, cam, R, t, background=background).image.clamp(0, 1)
         views.append(PhotoView(f"{k:02d}.png", img, cam, R, t, "test" if k % 8 == 0 else "train"))
     rng = np.random.default_rng(1)
     xyz = means.numpy() + rng.normal(0, 0.15, (n, 3))  # noisy "SfM" points, random colours
@@ -171,6 +176,21 @@ def test_training_learns_a_synthetic_scene_from_known_cameras(tmp_path: Path) ->
     with torch.no_grad():
         p, ss = image_metrics(render_view(model, scene.split("test")[0]).image, scene.split("test")[0].image)
     assert p > 24 and 0.8 < ss <= 1
+
+
+def test_learned_background_recovers_the_backdrop_colour() -> None:
+    torch.set_num_threads(2)
+    bg = (0.2, 0.45, 0.7)
+    scene, _ = _synthetic_scene(background=bg)
+    base = {"iterations": 300, "log_every": 1000, "sh_degree": 0,
+            "densify": {"start": 100, "interval": 100, "opacity_reset_interval": 0}}
+    learned = photo_settings({"train": {**base, "background": "learned"}})["train"]
+    model, report = train_scene(scene, learned)
+    assert np.allclose(model.meta["background"], bg, atol=0.03) and report["background"] == model.meta["background"]
+    black = photo_settings({"train": {**base, "background": [0.0, 0.0, 0.0]}})["train"]
+    _, report_black = train_scene(scene, black)
+    assert report["final_test_psnr"] > report_black["final_test_psnr"] + 3
+    assert report["final_test_psnr"] > 22
 
 
 def test_sh_degree_slices_the_trained_coefficients() -> None:

@@ -170,8 +170,10 @@ def test_mixture_matches_projector_on_voxelised_field(model):
 
 
 # ------------------------------------------------------------------------------------------------ alpha
-def _brute_alpha(g: Gaussians, cam, R: torch.Tensor, t: torch.Tensor, mip_2d: bool = False) -> np.ndarray:
-    """Independent per-pixel loop (numpy): EWA 2D covariance, 0.3 px low-pass, depth-sorted front to back."""
+def _brute_alpha(g: Gaussians, cam, R: torch.Tensor, t: torch.Tensor, mip_2d: bool = False,
+                 background: float = 0.0) -> np.ndarray:
+    """Independent per-pixel loop (numpy): EWA 2D covariance, 0.3 px low-pass, depth-sorted front to back, then
+    ``background`` times the transmittance left."""
     m = g.means.detach().numpy()
     cov = g.covariances.detach().numpy()
     op = g.opacities.detach().numpy()
@@ -205,6 +207,7 @@ def _brute_alpha(g: Gaussians, cam, R: torch.Tensor, t: torch.Tensor, mip_2d: bo
                 a = min(0.99, o * math.exp(-0.5 * d @ P @ d))
                 img[v, u] += T * a * col[i]
                 T *= 1 - a
+            img[v, u] += T * background
     return img
 
 
@@ -218,6 +221,28 @@ def test_alpha_matches_bruteforce_loop(model, mip):
     ref = _brute_alpha(g, cam, R, t, mip_2d=mip)
     assert ref.max() > 0.3
     np.testing.assert_allclose(img, ref, atol=1e-10)
+
+
+@pytest.mark.parametrize("backend", ["reference", "auto"])
+def test_alpha_background_matches_bruteforce_loop_and_gradcheck(backend):
+    g = _mixture(5, seed=2, spread=3.0, smin=0.5, smax=2.0)
+    cam = ConeCamera(12, 10, 2.0, 100.0, 200.0)
+    R, t = _pose(30.0, -10.0, dist=100.0)
+    img = render(g, cam, R, t, compositor="alpha", sigma_cutoff=30.0, background=[0.7], backend=backend).image
+    ref = _brute_alpha(g, cam, R, t, background=0.7)
+    assert ref.min() < 0.6 < 0.69 < ref.max()  # both covered pixels and bare background
+    np.testing.assert_allclose(img.numpy(), ref, atol=1e-10)
+    with pytest.raises(CtsplatError, match="background has 3 channels"):
+        render(g, cam, R, t, compositor="alpha", background=[0.1, 0.2, 0.3], backend=backend)
+    with pytest.raises(CtsplatError, match="alpha compositor"):
+        render(g, cam, R, t, background=[0.1], backend=backend)
+
+    def f(bg, op):
+        h = Gaussians(**{**g.tensors(), "opacity_raw": op})
+        return render(h, cam, R, t, compositor="alpha", sigma_cutoff=12.0, background=bg, backend=backend).image
+
+    inputs = (torch.tensor([0.3], dtype=D64, requires_grad=True), g.opacity_raw.clone().requires_grad_(True))
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
 # ------------------------------------------------------------------------------------------------ gradients
