@@ -34,6 +34,7 @@ from pathlib import Path
 import torch
 
 from ctsplat.config import check_section
+from ctsplat.photos.config import PHOTOS_DEFAULTS
 from ctsplat.photos.evaluate import evaluate_photos
 from ctsplat.photos.sfm import run_photo_sfm
 from ctsplat.photos.train import train_photos
@@ -59,16 +60,19 @@ def run() -> None:
     """Parse the options, then SfM, training and evaluation (module docstring)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--images", default=str(SKULL), help="photo folder (default: the skull set)")
-    ap.add_argument("--iterations", type=int, default=7000)
-    ap.add_argument("--downscale", type=int, default=4)
+    ap.add_argument("--iterations", type=int, default=PHOTOS_DEFAULTS["train"]["iterations"])
+    ap.add_argument("--downscale", type=int, default=PHOTOS_DEFAULTS["train"]["downscale"])
+    ap.add_argument("--holdout", choices=("test", "validation"), default="test",
+                    help="validation: leave the test photos out and score photos between them (to choose settings)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="auto")
     ap.add_argument("--sfm-only", action="store_true")
     ap.add_argument("--reuse-sfm", action="store_true", help="train on the SfM folder of a previous run")
     ap.add_argument("--out", default=str(OUT / "photos"))
     args = ap.parse_args()
-    check_section("photos", {"train": {"iterations": args.iterations, "downscale": args.downscale,
-                                       "num_threads": args.threads, "device": args.device}})
+    train = {"iterations": args.iterations, "downscale": args.downscale, "holdout": args.holdout,
+             "num_threads": args.threads, "device": args.device}
+    check_section("photos", {"train": train})
     if not Path(args.images).is_dir():
         raise CtsplatError(f"photo folder {args.images} not found (expected ../shared/data/skull_photos)")
     torch.set_num_threads(args.threads)
@@ -86,11 +90,11 @@ def run() -> None:
            "n_points": sfm["n_points"], "sfm_seconds": sfm_s}
     if not args.sfm_only:
         t1 = time.perf_counter()
-        train_photos(out / "sfm", out / "run", {"iterations": args.iterations, "downscale": args.downscale,
-                                                "num_threads": args.threads, "device": args.device})
+        train_photos(out / "sfm", out / "run", train)
         train_s = time.perf_counter() - t1
         m = evaluate_photos(out / "run", {"attribution": ATTRIBUTION})
-        row.update({"iterations": args.iterations, "downscale": args.downscale, "resolution": m["resolution"],
+        row.update({"iterations": args.iterations, "downscale": args.downscale, "held_out": m["held_out"],
+                    "resolution": m["resolution"],
                     "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"], "lpips_reason": m["lpips_reason"],
                     "n_test": m["n_test"], "n_train": m["n_train"], "n_gaussians": m["n_gaussians"],
                     "fps": m["fps"], "peak_rss_mb": m["peak_rss_mb"], "train_seconds": train_s,
