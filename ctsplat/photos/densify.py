@@ -7,7 +7,8 @@ most ``percent_dense`` × the scene extent) or split in two (larger ones; sample
 Gaussians with opacity below ``prune_opacity`` are pruned, and after the first opacity reset also those wider
 than ``prune_scale_fraction`` × the extent (3DGS's schedule: the large Gaussians that fill a backdrop early on are
 kept until then); every ``opacity_reset_interval`` iterations opacities are clamped to at most 0.01. The gradient
-statistics are accumulated exactly as the radiative strategy does (:meth:`GradientDensify.accumulate`, 3DGS's NDC units).
+statistics are accumulated exactly as the radiative strategy does (:meth:`GradientDensify.accumulate`, 3DGS's NDC
+units).
 
 References
 ----------
