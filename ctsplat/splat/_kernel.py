@@ -70,12 +70,12 @@ from pathlib import Path
 import torch
 
 __all__ = ["available", "SIGNATURES", "CSRC", "Project", "SplatAdditive", "AlphaComposite", "Voxelize",
-           "camera_vector"]
+           "voxel_boxes", "camera_vector"]
 
 #: folder of the C++ sources (``render.cpp`` includes the headers next to it)
 CSRC = Path(__file__).resolve().parent / "csrc"
 
-_P, _I64, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+_P, _I64, _INT, _F64 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int, ctypes.c_double
 # (argument types, return type) of each per-dtype entry point; exported as NAME_f32 and NAME_f64 (buffers are
 # passed as untyped pointers, so both instances share one signature). Order and meaning: csrc/render.cpp.
 _PER_DTYPE: dict[str, tuple[tuple[type, ...], type | None]] = {
@@ -94,6 +94,9 @@ _PER_DTYPE: dict[str, tuple[tuple[type, ...], type | None]] = {
     # n, H, W, C, offsets, ids, alphas, means2d, conics, opacities, colours, grad_out, g_means2d, g_conics,
     # g_opacities, g_colours, threads
     "alpha_bwd": ((_I64, _I64, _I64, _INT, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _INT), None),
+    # n, means, log_scales, quats, fvar|NULL, inverse affine + translation (12 doubles), region (6), cutoff, lo, ext,
+    # threads
+    "vox_boxes": ((_I64, _P, _P, _P, _P, _P, _P, _F64, _P, _P, _INT), None),
     # n, means, prec6, dens, lo, ext, affine, origin, shape, out, threads
     "vox_fwd": ((_I64, _P, _P, _P, _P, _P, _P, _P, _P, _P, _INT), None),
     # n, means, prec6, dens, lo, ext, affine, origin, shape, grad_out, g_means, g_prec6, g_dens, threads
@@ -369,6 +372,44 @@ class AlphaComposite(torch.autograd.Function):
             _ptr(o), _ptr(col), _ptr(g), _ptr(gm), _ptr(gc), _ptr(go), _ptr(gcol), torch.get_num_threads(),
         )
         return gm, gc, go, gcol, None, None, None, None
+
+
+def voxel_boxes(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor, fvar: torch.Tensor | None,
+                ainv: torch.Tensor, shift: torch.Tensor, region: torch.Tensor, cutoff: float
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Index-space boxes of the Gaussians for :func:`ctsplat.splat.render.voxelize` (no gradients; csrc/voxelize.h).
+
+    Parameters
+    ----------
+    means, log_scales : Tensor (N, 3)
+    quats : Tensor (N, 4)
+    fvar : Tensor (N,) or None
+        3D filter variance, mm².
+    ainv : Tensor (3, 3)
+        Inverse of the grid's index-to-world linear part.
+    shift : Tensor (3,)
+        The grid's index-to-world translation, mm.
+    region : Tensor (3, 2) int64
+        ``[start, stop)`` per index axis.
+    cutoff : float
+        Half width in standard deviations.
+
+    Returns
+    -------
+    lo, ext : Tensor (N, 3) int64
+        First index and extent (0 when the Gaussian misses the region) per axis.
+    """
+    dt = means.dtype
+    m, ls, q = (t.detach().to(dt).contiguous() for t in (means, log_scales, quats))
+    fv = None if fvar is None else fvar.detach().to(dt).reshape(-1).contiguous()
+    aff = torch.cat([ainv.reshape(-1), shift.reshape(-1)]).to(torch.float64).contiguous()
+    reg = region.to(torch.int64).reshape(-1).contiguous()
+    lo = torch.empty(m.shape[0], 3, dtype=torch.int64)
+    ext = torch.empty_like(lo)
+    _fn("vox_boxes", dt)(m.shape[0], _ptr(m), _ptr(ls), _ptr(q), None if fv is None else _ptr(fv), _ptr(aff),
+                         _ptr(reg),
+                         float(cutoff), _ptr(lo), _ptr(ext), torch.get_num_threads())
+    return lo, ext
 
 
 class Voxelize(torch.autograd.Function):

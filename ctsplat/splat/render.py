@@ -727,17 +727,24 @@ def voxelize(
     # boxes first, without gradients, so that the differentiable terms below are built for the Gaussians that reach
     # the output only (a small region, as the TV term's, keeps a small share of them)
     with torch.no_grad():
-        s2f = torch.exp(2 * gaussians.log_scales) + (0.0 if fvar is None else fvar)
         Ainv = torch.linalg.inv(A[:3, :3])
-        # variance along index axis a: (A⁻¹ R diag(s²) Rᵀ A⁻ᵀ)_aa = Σ_k (A⁻¹ R)_ak² s²_k; one (3N, 3) @ (3, 3) product
-        rot_t = quat_to_rotmat(gaussians.quats).transpose(-1, -2).reshape(-1, 3)
-        ar_t = (rot_t @ Ainv.T).reshape(-1, 3, 3)  # (A⁻¹ R)ᵀ per Gaussian
-        var_idx = (ar_t.square() * s2f[:, :, None]).sum(1)
-        centre = (means - A[:3, 3]) @ Ainv.T
-        half = sigma_cutoff * torch.sqrt(var_idx.clamp_min(0))
-        lo = torch.ceil(centre - half).clamp(min=reg[:, 0].to(dtype), max=reg[:, 1].to(dtype)).to(torch.int64)
-        hi = (torch.floor(centre + half) + 1).clamp(min=reg[:, 0].to(dtype), max=reg[:, 1].to(dtype)).to(torch.int64)
-        ext = (hi - lo).clamp_min(0)
+        if dev.type == "cpu" and dtype in (torch.float32, torch.float64) and _kernel.available():
+            # the same arithmetic in one threaded C pass: on CPU the tensor version below costs more than the
+            # voxelizer itself for a small region (a dozen N-sized temporaries)
+            lo, ext = _kernel.voxel_boxes(means, gaussians.log_scales, gaussians.quats, fvar, Ainv, A[:3, 3], reg,
+                                          sigma_cutoff)
+        else:
+            s2f = torch.exp(2 * gaussians.log_scales) + (0.0 if fvar is None else fvar)
+            # variance along index axis a: (A⁻¹ R diag(s²) Rᵀ A⁻ᵀ)_aa = Σ_k (A⁻¹ R)_ak² s²_k
+            rot_t = quat_to_rotmat(gaussians.quats).transpose(-1, -2).reshape(-1, 3)
+            ar_t = (rot_t @ Ainv.T).reshape(-1, 3, 3)  # (A⁻¹ R)ᵀ per Gaussian
+            var_idx = (ar_t.square() * s2f[:, :, None]).sum(1)
+            centre = (means - A[:3, 3]) @ Ainv.T
+            half = sigma_cutoff * torch.sqrt(var_idx.clamp_min(0))
+            rlo, rhi = reg[:, 0].to(dtype), reg[:, 1].to(dtype)
+            lo = torch.ceil(centre - half).clamp(min=rlo, max=rhi).to(torch.int64)
+            hi = (torch.floor(centre + half) + 1).clamp(min=rlo, max=rhi).to(torch.int64)
+            ext = (hi - lo).clamp_min(0)
         keep = torch.nonzero(ext.prod(-1) > 0).flatten()
     if keep.numel() == 0:
         return torch.zeros(n_out, dtype=dtype, device=dev).reshape(out_shape) + 0 * gaussians.densities.sum()

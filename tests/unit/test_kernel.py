@@ -35,7 +35,7 @@ def test_signature_table_matches_the_cpp_exports_and_the_python_calls():
         assert all(w in _kernel.SIGNATURES for w in wanted), name
     for name, (argtypes, restype) in _kernel.SIGNATURES.items():
         assert restype is None, name  # all entry points return void
-        assert all(t in (ctypes.c_void_p, ctypes.c_int64, ctypes.c_int) for t in argtypes), name
+        assert all(t in (ctypes.c_void_p, ctypes.c_int64, ctypes.c_int, ctypes.c_double) for t in argtypes), name
 
 
 @pytest.fixture(scope="module")
@@ -119,3 +119,38 @@ def test_worker_pool_serves_concurrent_callers_and_forked_children(lib, tmp_path
     res = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=240)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "pool ok" in res.stdout
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_voxel_boxes_match_the_tensor_arithmetic(dtype, monkeypatch):
+    """The threaded C boxes and voxelize's PyTorch boxes (used where the kernel is off) give the same boxes, hence
+    the same volume through the same reference splat, with and without a 3D filter and a region."""
+    import importlib
+
+    if not _kernel.available():
+        pytest.skip(f"C kernel unavailable: {_kernel._failed}")
+    render_mod = importlib.import_module("ctsplat.splat.render")
+    from ctsplat.splat.gaussians import Gaussians
+
+    gen = torch.Generator().manual_seed(4)
+    n = 3000
+    means = (torch.rand(n, 3, generator=gen, dtype=dtype) - 0.5) * 40
+    scales = torch.exp(torch.empty(n, 3, dtype=dtype).uniform_(-1.0, 1.0, generator=gen))
+    g = Gaussians.from_values(means, scales, 0.5, torch.randn(n, 4, generator=gen, dtype=dtype))
+    A = torch.eye(4, dtype=torch.float64)
+    A[:3, :3] = torch.tensor([[1.1, 0.1, 0.0], [0.0, 0.9, 0.05], [0.0, 0.0, 1.3]], dtype=torch.float64)
+    A[:3, 3] = -20.0
+    fv = torch.rand(n, generator=gen, dtype=dtype)
+    for region in (None, ((10, 22), (5, 30), (12, 20))):
+        for filt in (None, fv):
+            kw = {"region": region, "filter_3d_var": filt, "backend": "reference"}
+            with_c = render_mod.voxelize(g, (32, 40, 28), A, **kw)
+            monkeypatch.setattr(_kernel, "available", lambda: False)
+            with_torch = render_mod.voxelize(g, (32, 40, 28), A, **kw)
+            monkeypatch.undo()
+            assert float(with_torch.abs().max()) > 0.1
+            assert torch.equal(with_c, with_torch), (region, filt is None)
+    lo, ext = _kernel.voxel_boxes(g.means, g.log_scales, g.quats, None, torch.linalg.inv(A[:3, :3]).to(dtype),
+                                  A[:3, 3], torch.tensor([[0, 32], [0, 40], [0, 28]]), 3.0)
+    assert lo.shape == ext.shape == (n, 3) and bool((ext >= 0).all()) and bool((lo >= 0).all())
+    assert bool(((lo + ext) <= torch.tensor([32, 40, 28])).all()) and bool((ext.prod(-1) == 0).any())

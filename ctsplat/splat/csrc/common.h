@@ -99,10 +99,11 @@ static void run_threads(int nt, F fn) {
 }
 
 // static block partition of [0, n) over nt threads (no OpenMP: it would spin against torch's own pool)
+// min_n: below this many items one thread does it all (thread hand-off costs more than small work)
 template <typename F>
-static void parallel_for(int64_t n, int nt, F fn) {
+static void parallel_for(int64_t n, int nt, F fn, int64_t min_n = 4096) {
     if (nt < 1) nt = 1;
-    if (n < 4096 || nt == 1) { fn((int64_t)0, n, 0); return; }
+    if (n < min_n || n < nt || nt == 1) { fn((int64_t)0, n, 0); return; }
     run_threads(nt, [&](int k) { fn(n * k / nt, n * (k + 1) / nt, k); });
 }
 

@@ -33,6 +33,9 @@ extern "C" void alpha_bwd_##SUF(int64_t n, int64_t H, int64_t W, int C, const in
                                 const T* al, const T* m, const T* con, const T* op, const T* col, const T* g,   \
                                 T* gm, T* gc, T* gop, T* gcol, int nt) {                                        \
     alpha_bwd<T>(n, H, W, C, off, ids, al, m, con, op, col, g, gm, gc, gop, gcol, nt); }                        \
+extern "C" void vox_boxes_##SUF(int64_t n, const T* m, const T* ls, const T* q, const T* fv, const double* aff12, \
+                                const int64_t* reg, double cut, int64_t* lo, int64_t* ext, int nt) {            \
+    vox_boxes<T>(n, m, ls, q, fv, aff12, reg, cut, lo, ext, nt); }                                             \
 extern "C" void vox_fwd_##SUF(int64_t n, const T* m, const T* p6, const T* d, const int64_t* lo, const int64_t* ext, \
                               const double* aff, const int64_t* org, const int64_t* shp, T* out, int nt) {      \
     vox_fwd<T>(n, m, p6, d, lo, ext, aff, org, shp, out, nt); }                                                 \

@@ -37,12 +37,61 @@ static inline void vox_rows(int64_t i, const T* means, const T* P, const VoxAxis
         }
 }
 
+// Threads for a voxelizer pass: by the voxels it touches, not the Gaussians' count (a small region's few
+// hundred Gaussians can cover a million voxels; many tiny boxes can be too little work to share out)
+static inline int vox_threads(int64_t n, const int64_t* ext, int nt) {
+    if (nt <= 1) return 1;
+    int64_t work = 0;
+    for (int64_t i = 0; i < n && work < ((int64_t)1 << 15); ++i) work += ext[3 * i] * ext[3 * i + 1] * ext[3 * i + 2];
+    return work < ((int64_t)1 << 15) ? 1 : nt;
+}
+
+// Index-space boxes of the Gaussians (no gradients): centre c = A⁻¹ (m - t_A), half widths cutoff sqrt(var_a) with
+// var_a = Σ_k (A⁻¹ R)_ak² (s_k² + fvar), lo = ceil(c - half), hi = floor(c + half) + 1, both clamped to the region
+// [reg_lo, reg_hi), ext = max(hi - lo, 0). The same arithmetic, in T, as the PyTorch path of voxelize() (render.py);
+// aff12 = A⁻¹ (row-major 3x3) then t_A; reg = lo0, hi0, lo1, hi1, lo2, hi2; fv may be NULL.
+template <typename T>
+static void vox_boxes(int64_t n, const T* means, const T* ls, const T* q, const T* fv, const double* aff12,
+                      const int64_t* reg, double cutoff, int64_t* lo, int64_t* ext, int nt) {
+    parallel_for(n, nt, [&](int64_t i0, int64_t i1, int) {
+        T Ai[9], tA[3];
+        for (int k = 0; k < 9; ++k) Ai[k] = (T)aff12[k];
+        for (int k = 0; k < 3; ++k) tA[k] = (T)aff12[9 + k];
+        for (int64_t i = i0; i < i1; ++i) {
+            const T* qi = q + 4 * i;
+            T nq = std::sqrt(qi[0] * qi[0] + qi[1] * qi[1] + qi[2] * qi[2] + qi[3] * qi[3]);
+            if (nq < (T)1e-12) nq = (T)1e-12;
+            const T qn[4] = {qi[0] / nq, qi[1] / nq, qi[2] / nq, qi[3] / nq};
+            T Rq[9];
+            rotmat(qn, Rq);
+            T s2[3];
+            for (int k = 0; k < 3; ++k) s2[k] = std::exp(2 * ls[3 * i + k]) + (fv ? fv[i] : (T)0);
+            T d[3];
+            for (int k = 0; k < 3; ++k) d[k] = means[3 * i + k] - tA[k];
+            for (int a = 0; a < 3; ++a) {
+                T var = 0, c = 0;
+                for (int k = 0; k < 3; ++k) {
+                    const T ar = Ai[3 * a] * Rq[k] + Ai[3 * a + 1] * Rq[3 + k] + Ai[3 * a + 2] * Rq[6 + k];
+                    var += ar * ar * s2[k];
+                    c += Ai[3 * a + k] * d[k];
+                }
+                const T half = (T)cutoff * std::sqrt(var > 0 ? var : (T)0);
+                const T rl = (T)reg[2 * a], rh = (T)reg[2 * a + 1];
+                const T l = std::min(std::max(std::ceil(c - half), rl), rh);
+                const T h = std::min(std::max(std::floor(c + half) + 1, rl), rh);
+                lo[3 * i + a] = (int64_t)l;
+                ext[3 * i + a] = std::max<int64_t>((int64_t)h - (int64_t)l, 0);
+            }
+        }
+    });
+}
+
 // out (zeroed by the caller) += every Gaussian's values, cut into slabs of the first index axis (banded_scatter):
 // each voxel summed in Gaussian order whatever the thread count
 template <typename T>
 static void vox_fwd(int64_t n, const T* means, const T* p6, const T* dens, const int64_t* lo, const int64_t* ext,
                     const double* aff, const int64_t* origin, const int64_t* shape, T* out, int nthreads) {
-    banded_scatter(n, shape[0], n < 4096 || nthreads < 1 ? 1 : nthreads,
+    banded_scatter(n, shape[0], vox_threads(n, ext, nthreads),
                    [=](int64_t i, int64_t& first, int64_t& last) {
                        first = lo[3 * i] - origin[0];
                        last = first + ext[3 * i] - 1;
@@ -64,7 +113,7 @@ template <typename T>
 static void vox_bwd(int64_t n, const T* means, const T* p6, const T* dens, const int64_t* lo, const int64_t* ext,
                     const double* aff, const int64_t* origin, const int64_t* shape, const T* gout, T* gmeans, T* gp6,
                     T* gdens, int nt) {
-    parallel_for(n, nt, [&](int64_t i0, int64_t i1, int) {
+    parallel_for(n, vox_threads(n, ext, nt), [&](int64_t i0, int64_t i1, int) {
         for (int64_t i = i0; i < i1; ++i) {
             const T* P = p6 + 6 * i;
             const VoxAxis<T> ax(P, aff);
@@ -91,5 +140,5 @@ static void vox_bwd(int64_t n, const T* means, const T* p6, const T* dens, const
             gmeans[3 * i + 2] = (T)(rho * (P[4] * Sd[0] + P[5] * Sd[1] + P[2] * Sd[2]));
             for (int e = 0; e < 6; ++e) gp6[6 * i + e] = (T)(-0.5 * rho * Sdd[e] * (e < 3 ? 1.0 : 2.0));
         }
-    });
+    }, 1);
 }
