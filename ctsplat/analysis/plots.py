@@ -625,6 +625,13 @@ def _bare_metric(col: str) -> str:
     return col.removeprefix("test_").removeprefix("val_").removesuffix("_last")
 
 
+def _level_label(axis: str, value: Any) -> str:
+    """A grid axis value as a tick label; inits that read the reference volume say so."""
+    from ctsplat.training.config import REFERENCE_INITS
+
+    return f"{value}\n(reads the reference)" if axis == "init" and value in REFERENCE_INITS else str(value)
+
+
 def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Figure:
     """Paired comparisons: each line is one cell of the grid with one axis changed (metrics × axes panels).
 
@@ -675,7 +682,7 @@ def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fig
                 handles, labels = ax.get_legend_handles_labels()
                 seen = dict(zip(labels, handles, strict=True))
                 ax.legend(seen.values(), seen.keys(), fontsize=6, loc="best")
-            ax.set_xticks(x, [str(c) for c in wide.columns])
+            ax.set_xticks(x, [_level_label(axis, c) for c in wide.columns])
             first, last = wide.columns[0], wide.columns[-1]
             delta = (wide[last] - wide[first]).median()
             unit = " dB" if m.startswith("psnr") else ""
@@ -761,6 +768,8 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
 def _plot_baseline_bars(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os.PathLike[str], *, col: str,
                         metric: str, views: int) -> plt.Figure:
     """One view count: every Gaussian run and classical method as a bar, best first (see :func:`plot_baselines`)."""
+    from ctsplat.training.config import REFERENCE_INITS as reference_inits
+
     bars: list[tuple[str, float, str]] = []  # (label, score, colour)
     if not baselines.empty and metric in baselines:
         for method, g in baselines.groupby("method"):
@@ -772,7 +781,7 @@ def _plot_baseline_bars(summary: pd.DataFrame, baselines: pd.DataFrame, out: str
         for _, g in s.groupby(named, sort=False):
             r = g.iloc[0]
             label = ", ".join(f"{a}={r[a]}" for a in named)
-            ref = r.get("init") == "volume"
+            ref = r.get("init") in reference_inits
             bars.append((label + (" [reads reference]" if ref else ""), float(g["score"].mean()),
                          "C1" if ref else ("C0" if r.get("compositor") == "radiative" else "C2")))
     fig, ax = plt.subplots(figsize=(8, 0.28 * max(len(bars), 4) + 1.4))

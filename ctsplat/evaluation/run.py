@@ -404,7 +404,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     from ctsplat.formats.volume import Volume, save_volume
     from ctsplat.scene import load_scene
     from ctsplat.splat.gaussians import Gaussians
-    from ctsplat.training.config import mip_filter, render_kwargs
+    from ctsplat.training.config import REFERENCE_INITS, mip_filter, render_kwargs
 
     run_dir = Path(run_dir)
     needed = [run_dir / n for n in ("config.json", "model.pt", "training.json")]
@@ -440,7 +440,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     times = milestone_times(read_train_log(log_path), targets) if log_path.exists() else {}
     fps = forward_fps(g, views.camera, views.Rs[0], views.ts[0], rk, width=int(cfg["fps_width"]),
                       height=int(cfg["fps_height"]))
-    uses_ref = cfg["init"] == "volume"
+    uses_ref = cfg["init"] in REFERENCE_INITS
     lpips_vals = vm["lpips"]
     result = {
         "psnr2d": float(np.mean(vm["psnr2d"])),

@@ -19,11 +19,14 @@ from ctsplat.baselines import FBP_FILTERS
 from ctsplat.splat.render import COMPOSITORS
 from ctsplat.utils import CtsplatError, merge_config
 
-__all__ = ["TRAIN_DEFAULTS", "TRAIN_BOUNDS", "Bound", "INITS", "POSES", "SUPERVISIONS", "OPTIMIZER_PRESETS",
+__all__ = ["TRAIN_DEFAULTS", "TRAIN_BOUNDS", "Bound", "INITS", "REFERENCE_INITS", "POSES", "SUPERVISIONS",
+           "OPTIMIZER_PRESETS",
            "DENSIFY_STRATEGIES", "MODEL_SELECTIONS", "CONE_POSE_MODELS", "resolve_config",
            "render_kwargs", "mip_filter"]
 
 INITS = ("volume", "uniform", "fbp", "sfm")
+#: the inits that read the reference volume's voxel values (their runs are labelled as such wherever shown)
+REFERENCE_INITS = ("volume",)
 OPTIMIZER_PRESETS = ("per_group", "method")
 DENSIFY_STRATEGIES = ("gradient", "error", "both")
 MODEL_SELECTIONS = ("last", "best")

@@ -85,7 +85,7 @@ from ctsplat.training.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from ctsplat.training.config import mip_filter, render_kwargs, resolve_config
+from ctsplat.training.config import REFERENCE_INITS, mip_filter, render_kwargs, resolve_config
 from ctsplat.training.densify import make_densify, reset_stats
 from ctsplat.training.features import Augmenter, density_lambda
 from ctsplat.training.poses import PoseCorrection, pose_errors, refine_enabled
@@ -340,7 +340,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     voxel_mm = float(np.mean(vol.spacing_mm))
     half_extent_mm = 0.5 * float(np.max(vol.extent_mm()))
     val = scene.val.take(even_subset(len(scene.val), int(cfg["eval_views"])))
-    uses_ref = cfg["init"] == "volume"
+    uses_ref = cfg["init"] in REFERENCE_INITS
 
     train_log = CsvLog(out_dir / "train_log.csv", LOG_COLUMNS + LOG_EXTRAS)
     view_log = CsvLog(out_dir / "per_view.csv", PER_VIEW_COLUMNS)
@@ -558,7 +558,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
 def _save_model(state: TrainState, cfg: dict[str, Any], path: Path, chash: str) -> Any:
     """Write the current model to ``path`` (``.pt``) with its provenance and iteration; returns the Gaussians."""
     g = as_gaussians({k: v.detach() for k, v in state.params.items()})
-    g.meta.update(config_hash=chash, uses_reference_volume=cfg["init"] == "volume", init=cfg["init"],
+    g.meta.update(config_hash=chash, uses_reference_volume=cfg["init"] in REFERENCE_INITS, init=cfg["init"],
                   compositor=cfg["compositor"], iteration=state.iteration)
     if "best_psnr" in state.health:
         g.meta.update(best_iteration=int(state.health["best_iteration"]), best_val_psnr=state.health["best_psnr"])

@@ -334,6 +334,14 @@ def test_ablation_colours_the_pairs_by_compositor(tmp_path):
                                                                         "median"}
 
 
+def test_ablation_labels_the_init_that_reads_the_reference(tmp_path):
+    summary = pd.DataFrame({"volume": "p", "init": ["fbp", "volume"], "compositor": "radiative", "mip": "on",
+                            "poses": "gt", "views": 8, "seed": 0, "test_psnr3d": [30.0, 33.0]})
+    fig = plots.plot_ablation(summary, tmp_path / "ab.png")
+    ticks = [t.get_text() for ax in fig.axes for t in ax.get_xticklabels()]
+    assert "fbp" in ticks and "volume\n(reads the reference)" in ticks
+
+
 def test_analyse_and_run_figures_write_every_output(tmp_path):
     runs = [_make_run(tmp_path, init=i, compositor=c) for i in ("fbp", "uniform") for c in ("radiative", "alpha")]
     gather(runs, tmp_path / "summary.csv")
