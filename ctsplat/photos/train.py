@@ -244,7 +244,7 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     rng = np.random.default_rng(seed)
     train, test = scene.split("train"), scene.split(held_out_split(s))
     if not train:
-        raise CtsplatError("no training photo left after the held-out split; lower photos.train.test_every")
+        raise CtsplatError("no training photo left after the held-out split; raise photos.train.test_every")
     params = init_params(scene.xyz, scene.rgb, s, rng, device)
     opt = _optimizer(params, s["lr"], scene.extent)
     learned = s["background"] == "learned"

@@ -268,3 +268,11 @@ def test_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: list[
     line = res.stderr.strip().splitlines()[-1]
     assert line.startswith("benchmarks/photos.py: error:") and needle in line, line
     assert not (tmp_path / "o").exists()
+
+
+def test_training_without_training_photos_fails_in_one_line() -> None:
+    scene, _ = _synthetic_scene()
+    for v in scene.views:
+        v.split = "test" if v.split == "test" else "val"
+    with pytest.raises(CtsplatError, match=r"no training photo left.*raise photos\.train\.test_every"):
+        train_scene(scene, photo_settings({"train": {"iterations": 1}})["train"])
