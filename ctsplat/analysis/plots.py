@@ -768,7 +768,7 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
 def _plot_baseline_bars(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os.PathLike[str], *, col: str,
                         metric: str, views: int) -> plt.Figure:
     """One view count: every Gaussian run and classical method as a bar, best first (see :func:`plot_baselines`)."""
-    from ctsplat.training.config import REFERENCE_INITS as reference_inits
+    from ctsplat.training.config import REFERENCE_INITS
 
     bars: list[tuple[str, float, str]] = []  # (label, score, colour)
     if not baselines.empty and metric in baselines:
@@ -781,7 +781,7 @@ def _plot_baseline_bars(summary: pd.DataFrame, baselines: pd.DataFrame, out: str
         for _, g in s.groupby(named, sort=False):
             r = g.iloc[0]
             label = ", ".join(f"{a}={r[a]}" for a in named)
-            ref = r.get("init") in reference_inits
+            ref = r.get("init") in REFERENCE_INITS
             bars.append((label + (" [reads reference]" if ref else ""), float(g["score"].mean()),
                          "C1" if ref else ("C0" if r.get("compositor") == "radiative" else "C2")))
     fig, ax = plt.subplots(figsize=(8, 0.28 * max(len(bars), 4) + 1.4))

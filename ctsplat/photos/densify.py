@@ -79,7 +79,7 @@ class AlphaDensify:
         return bool(k) and iteration % k == 0 and iteration <= self.stop and iteration < self.iterations
 
     def step(self, params: dict[str, torch.Tensor], opt: torch.optim.Adam, gen: torch.Generator, *,
-             iteration: int | None = None) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
+             iteration: int) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
         """One clone / split / prune step (Adam moments follow; statistics reset).
 
         Parameters
@@ -90,9 +90,8 @@ class AlphaDensify:
             Its groups are named after the parameters.
         gen : torch.Generator
             Source of the split samples.
-        iteration : int, optional
-            The completed iterations; the size prune applies once it exceeds ``opacity_reset_interval`` (None:
-            always).
+        iteration : int
+            The completed iterations; the size prune applies once it exceeds ``opacity_reset_interval``.
 
         Returns
         -------
@@ -136,7 +135,7 @@ class AlphaDensify:
                                     {k: torch.cat(v) for k, v in new.items()})
             op = torch.sigmoid(params["opacity_raw"])
             bad = op < float(d["prune_opacity"])
-            if iteration is None or iteration > int(d["opacity_reset_interval"]):
+            if iteration > int(d["opacity_reset_interval"]):
                 bad |= torch.exp(params["log_scales"]).max(-1).values > float(d["prune_scale_fraction"]) * self.extent
             if bool(bad.all()):  # never prune everything
                 bad[:] = False

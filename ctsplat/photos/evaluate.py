@@ -184,10 +184,10 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     cfg = json.loads(cfg_path.read_text())
     t = cfg["train"]
     device = resolve_device(t["device"])
+    held = held_out_split(t)
     if scene is None:
         scene = load_scene(cfg["sfm_dir"], downscale=int(t["downscale"]), test_every=int(t["test_every"]),
-                           validation=held_out_split(t) == "val", device=device)
-    held = held_out_split(t)
+                           validation=held == "val", device=device)
     test = scene.split(held)
     if not test:
         raise CtsplatError(f"{cfg['sfm_dir']} has no held-out view (test_every {t['test_every']}); nothing to "

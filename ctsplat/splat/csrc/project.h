@@ -27,6 +27,16 @@ static inline void rotmat(const T* qn, T* Rq) {
     Rq[6] = 2 * (x * z - w * y); Rq[7] = 2 * (y * z + w * x); Rq[8] = 1 - 2 * (x * x + y * y);
 }
 
+// the unit quaternion qn of q (norm floored at 1e-12) and its rotation matrix Rq; returns the norm used
+template <typename T>
+static inline T unit_rotmat(const T* q, T* qn, T* Rq) {
+    T nq = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    if (nq < (T)1e-12) nq = (T)1e-12;
+    for (int k = 0; k < 4; ++k) qn[k] = q[k] / nq;
+    rotmat(qn, Rq);
+    return nq;
+}
+
 // everything the forward computes for one Gaussian (also recomputed by the backward)
 template <typename T>
 struct PState {
@@ -37,11 +47,7 @@ struct PState {
 template <typename T>
 static inline void proj_one(const Cam<T>& cam, const T* m, const T* s2in, const T* q, T rho, T fv, int mode, int mip,
                             int has_f, PState<T>& S) {
-    T nq = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-    if (nq < (T)1e-12) nq = (T)1e-12;
-    S.qnorm = nq;
-    for (int k = 0; k < 4; ++k) S.qn[k] = q[k] / nq;
-    rotmat(S.qn, S.Rq);
+    S.qnorm = unit_rotmat(q, S.qn, S.Rq);
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j)
             S.M[3 * i + j] = cam.R[3 * i] * S.Rq[j] + cam.R[3 * i + 1] * S.Rq[3 + j] + cam.R[3 * i + 2] * S.Rq[6 + j];

@@ -2,6 +2,7 @@
 #pragma once
 
 #include "common.h"
+#include "project.h"  // unit_rotmat
 
 // affine: A (row-major 3x3) then b (3), voxel (i,j,k) -> A (i,j,k) + b; rows along k are contiguous in the output
 // one Gaussian's box, row by row along k (the k axis w = A[:, 2] in mm): for voxel row (i, j) with d = x(i, j, k0) - m
@@ -58,12 +59,8 @@ static void vox_boxes(int64_t n, const T* means, const T* ls, const T* q, const 
         for (int k = 0; k < 9; ++k) Ai[k] = (T)aff12[k];
         for (int k = 0; k < 3; ++k) tA[k] = (T)aff12[9 + k];
         for (int64_t i = i0; i < i1; ++i) {
-            const T* qi = q + 4 * i;
-            T nq = std::sqrt(qi[0] * qi[0] + qi[1] * qi[1] + qi[2] * qi[2] + qi[3] * qi[3]);
-            if (nq < (T)1e-12) nq = (T)1e-12;
-            const T qn[4] = {qi[0] / nq, qi[1] / nq, qi[2] / nq, qi[3] / nq};
-            T Rq[9];
-            rotmat(qn, Rq);
+            T qn[4], Rq[9];
+            unit_rotmat(q + 4 * i, qn, Rq);
             T s2[3];
             for (int k = 0; k < 3; ++k) s2[k] = std::exp(2 * ls[3 * i + k]) + (fv ? fv[i] : (T)0);
             T d[3];
