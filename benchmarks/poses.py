@@ -19,8 +19,9 @@ Cone-beam refinement runs once per ``--cone-models`` entry (``train.pose_refine.
 Reports per run: 3D PSNR/SSIM (also after undoing the rigid motion of the training poses that no image can show:
 ``psnr3d_gauge_aligned``; equal to ``psnr3d`` at the true poses) and 2D test PSNR
 (``ctsplat.evaluation.evaluate``), the median / p90 rotation error (degrees) and median isocentre error (mm) of the
-training poses before and after refinement, and the training wall time. Writes ``benchmarks/out/poses/poses.csv``
-and the run folders; prints a table. Ingested volumes, radiographs and the SfM result are cached under ``cache/``.
+training poses before and after refinement, the final and best validation PSNR (the criterion for choosing
+settings) and the training wall time. Writes ``benchmarks/out/poses/poses.csv`` and the run folders; prints a
+table. Ingested volumes, radiographs and the SfM result are cached under ``cache/``.
 
 Usage::
 
@@ -179,6 +180,9 @@ def run(argv: list[str] | None = None) -> int:
                 "psnr3d_gauge_aligned": res.get("psnr3d_gauge_aligned", res["psnr3d"]),
                 "ssim3d_gauge_aligned": res.get("ssim3d_gauge_aligned", res["ssim3d"]),
                 "psnr2d_test": res["psnr2d"],
+                # the criterion for choosing settings: the validation views at the end and at their best
+                "psnr2d_val": float(pd.read_csv(run_dir / "train_log.csv")["psnr2d"].iloc[-1]),
+                "best_val_psnr": trained.get("best_val_psnr"),
                 **{k: trained.get(f"pose_{k}") for k in (
                     "rot_err_median_deg_before", "rot_err_p90_deg_before", "rot_err_median_deg_after",
                     "rot_err_aligned_median_deg_before", "rot_err_aligned_median_deg_after",

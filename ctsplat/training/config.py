@@ -45,10 +45,11 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     "perturb_trans_mm": 0.5,  # poses: perturbed: isocentre shift, N(0, σ² I) (mm)
     # per-view rigid corrections of the training cameras about the designed isocentre (ctsplat.training.poses),
     # stepped from iteration `start` on by their own Adam (rates per step, same cosine as the Gaussians), with a
-    # Gaussian prior of these standard deviations times `prior_weight` in the loss; held-out views are not refined
+    # Gaussian prior of these standard deviations times `prior_weight` in the loss; held-out views are not refined.
+    # start 0: from the first step (the fbp seed is the warm-up; waiting lost on validation, docs/results.md)
     # cone_model: the cone-beam correction, `rigid` (6 DoF) or `carm` (turn about the isocentre at the designed
     # source distance: 3 rotations and the 2 detector-plane shifts, as for parallel beam)
-    "pose_refine": {"enabled": False, "start": 300, "lr_rot_deg": 0.05, "lr_trans_mm": 0.05, "prior_rot_deg": 2.0,
+    "pose_refine": {"enabled": False, "start": 0, "lr_rot_deg": 0.05, "lr_trans_mm": 0.05, "prior_rot_deg": 2.0,
                     "prior_trans_mm": 2.0, "prior_weight": 1e-4, "cone_model": "rigid"},
     "sfm_dir": "",  # folder of the sfm step (aligned_views.json, summary.json, points3d.ply)
     # poses: colmap: the radiographs folder of the view set SfM registered ("": the one its summary.json names)
