@@ -145,6 +145,7 @@ def run(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from ctsplat.evaluation import evaluate
+    from ctsplat.formats.runlog import read_train_log
     from ctsplat.training import train
 
     shared = train_config(args.set, args.iterations, args.n_init)  # refused before any work
@@ -181,7 +182,7 @@ def run(argv: list[str] | None = None) -> int:
                 "ssim3d_gauge_aligned": res.get("ssim3d_gauge_aligned", res["ssim3d"]),
                 "psnr2d_test": res["psnr2d"],
                 # the criterion for choosing settings: the validation views at the end and at their best
-                "psnr2d_val": float(pd.read_csv(run_dir / "train_log.csv")["psnr2d"].iloc[-1]),
+                "psnr2d_val": float(read_train_log(run_dir / "train_log.csv")["psnr2d"].iloc[-1]),
                 "best_val_psnr": trained.get("best_val_psnr"),
                 **{k: trained.get(f"pose_{k}") for k in (
                     "rot_err_median_deg_before", "rot_err_p90_deg_before", "rot_err_median_deg_after",

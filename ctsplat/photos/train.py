@@ -242,7 +242,8 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     rng = np.random.default_rng(seed)
-    train, test = scene.split("train"), scene.split(held_out_split(s))
+    held = held_out_split(s)
+    train, test = scene.split("train"), scene.split(held)
     if not train:
         raise CtsplatError("no training photo left after the held-out split; raise photos.train.test_every")
     params = init_params(scene.xyz, scene.rgb, s, rng, device)
@@ -315,7 +316,7 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     model.meta["background"] = bg
     pf, sf = _eval_views(params, degree, test, background)
     report = {"iterations": iters, "seconds": seconds, "n_gaussians": len(model), "sh_degree": degree,
-              "held_out": held_out_split(s), "initial_test_psnr": p0, "initial_test_ssim": s0,
+              "held_out": held, "initial_test_psnr": p0, "initial_test_ssim": s0,
               "final_test_psnr": pf, "final_test_ssim": sf, "n_train": len(train), "n_test": len(test),
               "background": bg}
     return model, report

@@ -407,8 +407,7 @@ def voxel_boxes(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tens
     lo = torch.empty(m.shape[0], 3, dtype=torch.int64)
     ext = torch.empty_like(lo)
     _fn("vox_boxes", dt)(m.shape[0], _ptr(m), _ptr(ls), _ptr(q), None if fv is None else _ptr(fv), _ptr(aff),
-                         _ptr(reg),
-                         float(cutoff), _ptr(lo), _ptr(ext), torch.get_num_threads())
+                         _ptr(reg), float(cutoff), _ptr(lo), _ptr(ext), torch.get_num_threads())
     return lo, ext
 
 

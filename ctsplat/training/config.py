@@ -20,8 +20,7 @@ from ctsplat.splat.render import COMPOSITORS
 from ctsplat.utils import CtsplatError, merge_config
 
 __all__ = ["TRAIN_DEFAULTS", "TRAIN_BOUNDS", "Bound", "INITS", "REFERENCE_INITS", "POSES", "SUPERVISIONS",
-           "OPTIMIZER_PRESETS",
-           "DENSIFY_STRATEGIES", "MODEL_SELECTIONS", "CONE_POSE_MODELS", "resolve_config",
+           "OPTIMIZER_PRESETS", "DENSIFY_STRATEGIES", "MODEL_SELECTIONS", "CONE_POSE_MODELS", "resolve_config",
            "render_kwargs", "mip_filter"]
 
 INITS = ("volume", "uniform", "fbp", "sfm")
