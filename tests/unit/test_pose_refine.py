@@ -332,6 +332,19 @@ def test_bad_keys_are_one_line_errors(override: dict, match: str) -> None:
     assert "\n" not in str(exc.value)
 
 
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"model": "pinhole"}, "pose refinement supports parallel and cone cameras, not 'pinhole'"),
+    ({"model": "cone", "cone_model": "isocentric"}, "unknown train.pose_refine.cone_model 'isocentric'"),
+    ({"model": "cone", "prior_rot_deg": 0.0}, "a zero prior would freeze the poses"),
+])
+def test_pose_correction_refuses_what_it_cannot_refine(kwargs: dict, match: str) -> None:
+    """A camera without a rigid-correction model, an unknown cone model or a zero prior: one-line errors."""
+    Rs, ts = _ring()
+    with pytest.raises(CtsplatError, match=match) as exc:
+        PoseCorrection(Rs, ts, ISO, **kwargs)
+    assert "\n" not in str(exc.value)
+
+
 def test_colmap_refine_needs_sfm() -> None:
     import pandas as pd
 
