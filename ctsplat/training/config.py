@@ -96,6 +96,9 @@ TRAIN_DEFAULTS: dict[str, Any] = {
         "prune_density": 1e-4,
         "prune_max_scale_fraction": 0.2,
         "max_gaussians": 200000,
+        # prune (without densifying) every `interval` after `stop` and at the last iteration: Gaussians that
+        # grow past the size limit late in training spread a haze (won on validation, docs/results.md)
+        "prune_until_end": True,
         "split_mass": "conserve",  # conserve | halve (radiative compositors; see densify_and_prune)
         # gradient: positional-gradient rule; error: Gaussians under large training residuals; both: either
         "strategy": "gradient",
@@ -280,7 +283,8 @@ TRAIN_BOUNDS: dict[str, Bound] = {
     "fps_height": _POS_INT,
 }
 
-_BOOL_KEYS = ("mip", "figures", "progress", "augment.enabled", "densify.prune_redundant.enabled", "pose_refine.enabled")
+_BOOL_KEYS = ("mip", "figures", "progress", "augment.enabled", "densify.prune_redundant.enabled",
+              "densify.prune_until_end", "pose_refine.enabled")
 
 
 def _get(cfg: dict[str, Any], dotted: str) -> Any:

@@ -9,6 +9,9 @@ children get ρ·1.6³/2 so the pair carries the parent's mass ``ρ (2π)^{3/2} 
 the literal ρ/2 rule, which removes 1 - 2/1.6³ ≈ 76 % of a split Gaussian's mass). Then Gaussians with
 ρ < ``prune_density``, oversized ones (max scale > ``prune_max_scale_fraction`` × volume extent) and those whose
 centre left the volume box are pruned; the total is capped at ``max_gaussians`` (largest gradients first).
+With ``prune_until_end`` (the default) the same pruning, without densification, goes on every ``interval`` after
+``stop`` and at the last iteration: a few Gaussians keep growing after densification stops (long, thin ones of up
+to 2/3 of the volume, fitting single views) and spread a haze over every view.
 With ``prune_redundant``, nearly coincident Gaussians are first merged in pairs
 (:func:`ctsplat.training.features.merge_redundant`); this step's clones, coincident by construction, are not
 merged before they have had an interval to separate.
@@ -121,9 +124,84 @@ class GradientDensify:
         dict or None
             ``cloned``, ``split``, ``pruned``, ``n`` (Gaussians after the step), or None when not due.
         """
-        if not self.due(iteration):
-            return None
-        return self.step(state, volume, gen)
+        if self.due(iteration):
+            return self.step(state, volume, gen)
+        if self.prune_due(iteration):
+            return self.prune(state, volume)
+        return None
+
+    def prune_due(self, iteration: int) -> bool:
+        """Whether :meth:`maybe_step` prunes (without densifying) after ``iteration``: with ``prune_until_end``,
+        every ``interval`` after ``stop`` and at the last iteration.
+
+        Parameters
+        ----------
+        iteration : int
+            Completed iterations.
+
+        Returns
+        -------
+        bool
+        """
+        d = self.settings
+        if not d.get("prune_until_end") or not d["interval"] or iteration <= self.stop:
+            return False
+        return iteration % int(d["interval"]) == 0 or iteration == self.iterations
+
+    def prune_mask(self, means: torch.Tensor, log_scales: torch.Tensor, density_raw: torch.Tensor,
+                   volume: Any) -> torch.Tensor:
+        """The Gaussians pruning removes: density < ``prune_density``, max scale > ``prune_max_scale_fraction`` ×
+        the volume's extent, or centre more than 2 voxels outside the volume box (never all of them).
+
+        Parameters
+        ----------
+        means : Tensor (N, 3)
+            Centres (mm).
+        log_scales : Tensor (N, 3)
+        density_raw : Tensor (N,)
+            Densities before the softplus.
+        volume : ctsplat.formats.volume.Volume
+
+        Returns
+        -------
+        Tensor (N,) bool
+        """
+        d = self.settings
+        voxel = float(np.mean(volume.spacing_mm))
+        lo, hi = grid_bounds_mm(volume.shape, volume.affine)
+        dev = means.device
+        lo_t = torch.as_tensor(lo - 2 * voxel, dtype=means.dtype, device=dev)
+        hi_t = torch.as_tensor(hi + 2 * voxel, dtype=means.dtype, device=dev)
+        extent = float(np.max(hi - lo))
+        bad = torch.nn.functional.softplus(density_raw) < float(d["prune_density"])
+        bad |= torch.exp(log_scales).max(-1).values > float(d["prune_max_scale_fraction"]) * extent
+        bad |= ((means < lo_t) | (means > hi_t)).any(-1)
+        if bool(bad.all()):  # never prune everything
+            bad[:] = False
+        return bad
+
+    def prune(self, state: TrainState, volume: Any) -> dict[str, int]:
+        """Prune only (:meth:`prune_mask`); the gradient statistics are reset.
+
+        Parameters
+        ----------
+        state : TrainState
+            Changed in place (parameters and Adam moments).
+        volume : ctsplat.formats.volume.Volume
+
+        Returns
+        -------
+        dict
+            ``cloned`` and ``split`` (0), ``pruned``, ``merged`` (0) and ``n``.
+        """
+        p = state.params
+        with torch.no_grad():
+            bad = self.prune_mask(p["means"].detach(), p["log_scales"].detach(), p["density_raw"].detach(), volume)
+        if bool(bad.any()):
+            state.params = replace_params(state.opt, p, torch.nonzero(~bad).flatten(), {})
+        reset_stats(state)
+        n = int(state.params["means"].shape[0])
+        return {"cloned": 0, "split": 0, "pruned": int(bad.sum()), "merged": 0, "n": n}
 
     def step(self, state: TrainState, volume: Any, gen: torch.Generator) -> dict[str, int]:
         """One densify-and-prune step on ``state`` (parameters and Adam moments follow).
@@ -209,15 +287,7 @@ class GradientDensify:
             all_means = torch.cat([p["means"].detach()[keep], new["means"]])
             all_ls = torch.cat([p["log_scales"].detach()[keep], new["log_scales"]])
             all_dr = torch.cat([p["density_raw"].detach()[keep], new["density_raw"]])
-            lo, hi = grid_bounds_mm(vol.shape, vol.affine)
-            lo_t = torch.as_tensor(lo - 2 * voxel, dtype=all_means.dtype, device=dev)
-            hi_t = torch.as_tensor(hi + 2 * voxel, dtype=all_means.dtype, device=dev)
-            extent = float(np.max(hi - lo))
-            bad = (torch.nn.functional.softplus(all_dr) < float(d["prune_density"]))
-            bad |= torch.exp(all_ls).max(-1).values > float(d["prune_max_scale_fraction"]) * extent
-            bad |= ((all_means < lo_t) | (all_means > hi_t)).any(-1)
-            if bool(bad.all()):  # never prune everything
-                bad[:] = False
+            bad = self.prune_mask(all_means, all_ls, all_dr, vol)
         # apply: first keep/append, then prune
         state.params = replace_params(state.opt, p, torch.nonzero(keep).flatten(), new)
         good = torch.nonzero(~bad).flatten()

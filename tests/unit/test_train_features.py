@@ -226,6 +226,52 @@ def test_redundant_pruning_removes_a_duplicate_and_keeps_the_image(offset):
     assert GradientDensify(settings, compositor="radiative", iterations=10).merge(st) == 0
 
 
+def _box_volume(side_mm: int = 40):
+    """An empty volume of 1 mm voxels centred on the origin (extent ``side_mm``)."""
+    from ctsplat.formats.volume import Volume
+
+    aff = np.diag([1.0, 1.0, 1.0, 1.0])
+    aff[:3, 3] = -side_mm / 2
+    return Volume(np.zeros((side_mm,) * 3, np.float32), aff, {})
+
+
+def _state_of(means, scales, dens) -> state.TrainState:
+    g = Gaussians.from_values(np.asarray(means, float), np.asarray(scales, float), np.asarray(dens, float))
+    params = {k: v.detach().clone().requires_grad_(True) for k, v in g.tensors().items() if k in state.PARAM_GROUPS}
+    st = state.TrainState(params=params, opt=state.make_optimizer(params, {"lr": config.TRAIN_DEFAULTS["lr"]}, 1.0))
+    reset_stats(st)
+    return st
+
+
+def test_prune_until_end_removes_what_grew_after_densification_stopped():
+    rng = np.random.default_rng(0)
+    means = rng.uniform(-10, 10, (12, 3))
+    scales = np.full((12, 3), 1.0)
+    scales[3] = [1.0, 9.0, 1.0]  # longer than 0.2 x the 40 mm extent
+    dens = np.full(12, 0.5)
+    dens[7] = 1e-6  # below prune_density
+    st = _state_of(means, scales, dens)
+    # an Adam step so that the moments exist and must follow the pruned rows
+    sum(v.sum() for v in st.params.values()).backward()
+    st.opt.step()
+    settings = {**config.TRAIN_DEFAULTS["densify"], "interval": 10, "start": 10, "stop": 20, "prune_until_end": True}
+    dens_rule = GradientDensify(settings, compositor="radiative", iterations=35)
+    assert [i for i in range(1, 36) if dens_rule.prune_due(i)] == [30, 35]
+    assert [i for i in range(1, 36) if dens_rule.due(i)] == [10, 20]
+    before = st.params["means"].detach().clone()
+    assert dens_rule.maybe_step(st, 25, _box_volume(), torch.Generator()) is None
+    counts = dens_rule.maybe_step(st, 30, _box_volume(), torch.Generator())
+    assert counts == {"cloned": 0, "split": 0, "pruned": 2, "merged": 0, "n": 10}
+    kept = [i for i in range(12) if i not in (3, 7)]
+    assert torch.equal(st.params["means"].detach(), before[kept])
+    for group in st.opt.param_groups:
+        for prm in group["params"]:
+            assert st.opt.state[prm]["exp_avg"].shape == prm.shape
+    # off: nothing after densification stops
+    off = GradientDensify({**settings, "prune_until_end": False}, compositor="radiative", iterations=35)
+    assert not any(off.prune_due(i) for i in range(1, 36))
+
+
 # --- 5. best-validation model ----------------------------------------------------------------------------------------
 
 def test_model_best_is_the_best_validation_checkpoint_and_evaluate_uses_it(scene_dir, tmp_path):
