@@ -9,7 +9,7 @@ held-out ones by :func:`ctsplat.photos.evaluate.evaluate_photos`. Prints one JSO
 
 Usage::
 
-    python benchmarks/photos.py                       # SfM + the default 3000 iterations at 1/4 resolution
+    python benchmarks/photos.py                       # SfM + the default 6000 iterations at 1/4 resolution
     python benchmarks/photos.py --iterations 3000 --downscale 2
     python benchmarks/photos.py --sfm-only
     python benchmarks/photos.py --reuse-sfm           # train again on benchmarks/out/photos/sfm

@@ -2,8 +2,8 @@
 
 One dict, :data:`PHOTOS_DEFAULTS`, with three subsections; the workflow schema's ``photos`` section is generated
 from it (``python -m ctsplat.config --sync-defaults``) and :func:`photo_settings` fills a user's values from it.
-The training defaults are 3DGS's (Kerbl et al. 2023) with the schedule shortened for CPU budgets (3000 iterations,
-densification until iteration 1000, a black background: chosen on the skull set's validation photos, see
+The training defaults are 3DGS's (Kerbl et al. 2023) with the schedule shortened for CPU budgets (6000 iterations,
+densification until iteration 1020, a black background: chosen on the skull set's validation photos, see
 docs/results.md).
 """
 
@@ -41,7 +41,7 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
         "seed": 0,
     },
     "train": {
-        "iterations": 3000,  # chosen on the skull set's validation photos with stop_fraction (docs/results.md)
+        "iterations": 6000,  # chosen on the skull set's validation photos with stop_fraction (docs/results.md)
         "downscale": 4,  # images and intrinsics divided by this (1, 2, 4, 8)
         "test_every": 8,  # every n-th image (sorted by name, from the first) is held out for testing
         # test: monitor and evaluate on the test images | validation: leave the test images out entirely and hold
@@ -69,7 +69,7 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
         "densify": {
             "interval": 100,
             "start": 500,
-            "stop_fraction": 0.34,  # densification stops at this fraction of the iterations (3000: after 1000)
+            "stop_fraction": 0.17,  # densification stops at this fraction of the iterations (6000: after 1020)
             "grad_threshold": 2e-4,  # mean view-space positional gradient (3DGS NDC units)
             "percent_dense": 0.01,  # clone below / split above this fraction of the scene extent
             "prune_opacity": 0.005,
