@@ -107,7 +107,7 @@ class GradientDensify:
 
     def maybe_step(self, state: TrainState, iteration: int, volume: Any, gen: torch.Generator
                    ) -> dict[str, int] | None:
-        """Densify and prune when due (:meth:`due`).
+        """Densify and prune when due (:meth:`due`), or prune only (:meth:`prune_due`).
 
         Parameters
         ----------
@@ -131,18 +131,8 @@ class GradientDensify:
         return None
 
     def prune_due(self, iteration: int) -> bool:
-        """Whether :meth:`maybe_step` prunes (without densifying) after ``iteration``: with ``prune_until_end``,
-        every ``interval`` after ``stop`` and at the last iteration.
-
-        Parameters
-        ----------
-        iteration : int
-            Completed iterations.
-
-        Returns
-        -------
-        bool
-        """
+        """Like :meth:`due`, for the prune-only steps: with ``prune_until_end``, every ``interval`` after ``stop``
+        and at the last iteration."""
         d = self.settings
         if not d.get("prune_until_end") or not d["interval"] or iteration <= self.stop:
             return False
