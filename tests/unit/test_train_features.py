@@ -140,6 +140,23 @@ def test_loop_uses_the_density_schedule(scene_dir, tmp_path, monkeypatch):
 
 # --- 3. error-driven densification ---------------------------------------------------------------------------------
 
+def _box_volume(side_mm: int = 40):
+    """An empty volume of 1 mm voxels centred on the origin (extent ``side_mm``)."""
+    from ctsplat.formats.volume import Volume
+
+    aff = np.diag([1.0, 1.0, 1.0, 1.0])
+    aff[:3, 3] = -side_mm / 2
+    return Volume(np.zeros((side_mm,) * 3, np.float32), aff, {})
+
+
+def _state_of(means, scales, dens) -> state.TrainState:
+    g = Gaussians.from_values(np.asarray(means, float), np.asarray(scales, float), np.asarray(dens, float))
+    params = {k: v.detach().clone().requires_grad_(True) for k, v in g.tensors().items() if k in state.PARAM_GROUPS}
+    st = state.TrainState(params=params, opt=state.make_optimizer(params, {"lr": config.TRAIN_DEFAULTS["lr"]}, 1.0))
+    reset_stats(st)
+    return st
+
+
 def _plane_scene() -> tuple[dict, ParallelCamera, torch.Tensor, torch.Tensor, np.ndarray]:
     """A 6 x 6 grid of Gaussians seen face-on by a parallel camera; returns params, camera, pose and pixel centres."""
     xs = np.linspace(-15, 15, 6)
@@ -175,11 +192,7 @@ def test_error_densify_selects_the_gaussians_under_a_planted_residual(strategy):
     # the graph is still usable for the loss's backward, and a step densifies exactly those Gaussians
     out.image.sum().backward()
     n0 = params["means"].shape[0]
-    from ctsplat.formats.volume import Volume
-
-    vol = Volume(np.zeros((40, 40, 40), np.float32), np.diag([1.0, 1.0, 1.0, 1.0]) + np.c_[np.zeros((4, 3)),
-                                                                                        [-20, -20, -20, 0]], {})
-    counts = dens.step(st, vol, torch.Generator().manual_seed(0))
+    counts = dens.step(st, _box_volume(), torch.Generator().manual_seed(0))
     assert counts["cloned"] + counts["split"] == int(inside.sum()) and counts["n"] == n0 + int(inside.sum())
 
 
@@ -207,12 +220,10 @@ def test_redundant_pruning_removes_a_duplicate_and_keeps_the_image(offset):
     scales = np.vstack([scales, scales[5]])
     dens = np.append(dens, dens[5] / 2)
     dens[5] /= 2
-    g = Gaussians.from_values(means, scales, dens)
-    params = {k: v.detach().clone().requires_grad_(True) for k, v in g.tensors().items() if k in state.PARAM_GROUPS}
+    st = _state_of(means, scales, dens)
     cam = ParallelCamera(40, 40, 1.0)
     poses = [look_at(200.0 * np.array([math.cos(a), math.sin(a), 0.1]), np.zeros(3)) for a in (0.0, 1.0, 2.2)]
-    before = [render(state.as_gaussians(params), cam, R, t).image.detach() for R, t in poses]
-    st = state.TrainState(params=params, opt=state.make_optimizer(params, {"lr": config.TRAIN_DEFAULTS["lr"]}, 1.0))
+    before = [render(state.as_gaussians(st.params), cam, R, t).image.detach() for R, t in poses]
     settings = {**config.TRAIN_DEFAULTS["densify"], "prune_redundant": {"enabled": True, "distance": 0.1,
                                                                         "scale_tol": 0.1, "cov_tol": 0.1}}
     removed = GradientDensify(settings, compositor="radiative", iterations=10).merge(st)
@@ -224,23 +235,6 @@ def test_redundant_pruning_removes_a_duplicate_and_keeps_the_image(offset):
     # disabled, or nothing coincident: nothing removed
     assert GradientDensify(config.TRAIN_DEFAULTS["densify"], compositor="radiative", iterations=10).merge(st) == 0
     assert GradientDensify(settings, compositor="radiative", iterations=10).merge(st) == 0
-
-
-def _box_volume(side_mm: int = 40):
-    """An empty volume of 1 mm voxels centred on the origin (extent ``side_mm``)."""
-    from ctsplat.formats.volume import Volume
-
-    aff = np.diag([1.0, 1.0, 1.0, 1.0])
-    aff[:3, 3] = -side_mm / 2
-    return Volume(np.zeros((side_mm,) * 3, np.float32), aff, {})
-
-
-def _state_of(means, scales, dens) -> state.TrainState:
-    g = Gaussians.from_values(np.asarray(means, float), np.asarray(scales, float), np.asarray(dens, float))
-    params = {k: v.detach().clone().requires_grad_(True) for k, v in g.tensors().items() if k in state.PARAM_GROUPS}
-    st = state.TrainState(params=params, opt=state.make_optimizer(params, {"lr": config.TRAIN_DEFAULTS["lr"]}, 1.0))
-    reset_stats(st)
-    return st
 
 
 def test_prune_until_end_removes_what_grew_after_densification_stopped():
@@ -374,6 +368,7 @@ def test_resume_with_features_continues_bit_for_bit(scene_dir, tmp_path):
     ({"lambda_density_warmup": {"ramp": 1}}, "unknown config key train.lambda_density_warmup.ramp"),
     ({"densify": {"strategy": "random"}}, "unknown train.densify.strategy 'random'; allowed: gradient, error, both"),
     ({"densify": {"prune_redundant": {"distance": -1}}}, "prune_redundant.distance must be a number in"),
+    ({"densify": {"prune_until_end": "yes"}}, "train.densify.prune_until_end must be true or false, got 'yes'"),
     ({"optimizer_preset": "sgd"}, "unknown train.optimizer_preset 'sgd'"),
     ({"model_selection": "median"}, "unknown train.model_selection 'median'"),
 ])
