@@ -46,7 +46,7 @@ def shared_train_config(sets: list[str], *, own_keys: Mapping[str, str | None], 
         Keys (dotted for nested ones) that the benchmark sets per run, each to the option that sets it (or
         ``None``): one in ``sets``, or under it, is a one-line error naming that option.
     defaults : mapping
-        The benchmark's defaults; ``sets`` override them.
+        The benchmark's defaults; ``sets`` override them (key by key inside nested sections).
     fixed : mapping
         Settings that override ``sets`` (the benchmark's own options).
 
@@ -58,15 +58,15 @@ def shared_train_config(sets: list[str], *, own_keys: Mapping[str, str | None], 
     """
     from ctsplat.cli.train import load_train_config
     from ctsplat.config import check_section
-    from ctsplat.utils import CtsplatError
+    from ctsplat.utils import CtsplatError, deep_update
 
     user = load_train_config(None, sets)
     own = [(key, p) for key in _dotted(user) for p in own_keys if key == p or key.startswith(p + ".")]
     if own:
         key, option = own[0][0], own_keys[own[0][1]]
         raise CtsplatError(f"--set {key} is set by this benchmark per run" + (f"; use {option}" if option else ""))
-    cfg = {"compositor": "radiative", "device": "cpu", **defaults, **user, **fixed, "progress": False}
-    return check_section("train", cfg)
+    cfg = deep_update({"compositor": "radiative", "device": "cpu", **defaults}, user)
+    return check_section("train", {**cfg, **fixed, "progress": False})
 
 
 def data_cache(out: Path, data: Path | str, suffix: str = "") -> Path:

@@ -61,6 +61,9 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     "init_density": 0.05,  # uniform / sfm seeds (normalised units)
     "sfm_fill_fraction": 0.5,
     "fbp_filter": "ramp",
+    # fbp: this many ASD-POCS iterations (TV weight alpha; the baselines' other settings) on the training views,
+    # started from the FBP/FDK volume, before the seeds are drawn; 0: the FBP/FDK volume itself
+    "init_asd_pocs": {"iterations": 0, "alpha": 0.1},
     "compositor": "radiative",  # radiative | radiative_unrectified | alpha
     "mip": False,
     "views": 0,  # training views used, spread evenly over the candidates (ctsplat.scene); 0 = all
@@ -239,6 +242,8 @@ TRAIN_BOUNDS: dict[str, Bound] = {
     "seed": _NONNEG_INT,
     "iterations": _POS_INT,
     "batch_views": _POS_INT,
+    "init_asd_pocs.iterations": _NONNEG_INT,
+    "init_asd_pocs.alpha": _POS,
     "lambda_l1": _NONNEG,
     "lambda_ssim": _NONNEG,
     "lambda_density": _NONNEG,

@@ -359,9 +359,14 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     else:
         shutil.rmtree(checkpoint_dir(out_dir), ignore_errors=True)
         _discard_outputs(out_dir)
+        t_seed = time.perf_counter()
         seed = make_seed(cfg, scene, rng)
         params = init_params(seed, cfg, device)
-        state = TrainState(params=params, opt=make_optimizer(params, cfg, voxel_mm, half_extent_mm))
+        # the seed's reconstruction (FDK, ASD-POCS iterations) is part of the method's time: the wall time and
+        # the log's timestamps start before it
+        state = TrainState(params=params, opt=make_optimizer(params, cfg, voxel_mm, half_extent_mm),
+                           elapsed_s=time.perf_counter() - t_seed)
+        log.info("seed: %s, %d Gaussians, %.1f s", seed.strategy, len(seed), state.elapsed_s)
         reset_stats(state)
         train_log.reset()
         view_log.reset()

@@ -200,7 +200,7 @@ class TrainState:
     nan_iters : list of int
         Iterations of the non-finite steps within the last ``nan_window`` iterations.
     elapsed_s : float
-        Training wall time so far (s), across resumes.
+        Wall time so far (s), the seed's reconstruction included, across resumes.
     queue : list of list of int
         Remaining view batches of the current epoch.
     filter_var : Tensor (N,) or None

@@ -253,5 +253,6 @@ def test_protocol_configs_validate_and_say_the_protocol(monkeypatch, name, grid,
     assert all(geo["n_views"] % v == 0 for v in cfg["grid"]["axes"]["views"]) and cfg["grid"]["axes"]["views"] == [
         25, 50, 75]
     assert cfg["grid"]["axes"]["compositor"] == ["radiative"] and cfg["grid"]["axes"]["init"] == ["fbp"]
+    assert cfg["train"]["init_asd_pocs"]["iterations"] > 0  # the FDK seed refined as the benchmark does
     assert set(cfg["volumes"]) == {"phantom", "ct0051_head", "totalseg_abdomen_j2k"}
     assert cfg["baselines"]["enabled"] and cfg["baselines"]["geometry"] == "cone"

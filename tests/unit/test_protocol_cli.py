@@ -28,6 +28,7 @@ def bench(*args: str, cwd: Path) -> subprocess.CompletedProcess:
         (["--set", "init=volume"], "--set init is set by this benchmark per run"),
         (["--set", "iterations=5"], "use --iterations"),
         (["--set", "compositor=radiative_rectified"], "train.compositor: 'radiative_rectified' is not one of"),
+        (["--set", "init_asd_pocs.iterations=-1"], "train.init_asd_pocs.iterations: -1 is less than the minimum"),
         (["--volumes", "no_such_scan"], "--volumes no_such_scan:"),
         (["--views", "0"], "--views must be >= 1"),
         (["--size", "4"], "--size must be >= 8"),
@@ -49,7 +50,7 @@ def test_protocol_tiny_run_writes_the_table(tmp_path):
     out = tmp_path / "p"
     res = bench("--volumes", "phantom", "--views", "4", "--size", "16", "--iterations", "4", "--n-init", "100",
                 "--threads", "1", "--set", "eval_every=2", "--set", "checkpoint_every=2", "--set", "figures=false",
-                "--out", out, cwd=tmp_path)
+                "--set", "init_asd_pocs.iterations=3", "--out", out, cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     table = pd.read_csv(out / "protocol.csv")
     g = table[table["method"].str.startswith("gaussians")]
@@ -66,6 +67,9 @@ def test_protocol_tiny_run_writes_the_table(tmp_path):
     assert sum(v["split"] == "test" for v in views["views"]) == 100
     info = json.loads((out / "protocol.json").read_text())
     assert info["args"]["size"] == 16 and info["train"]["compositor"] == "radiative"
+    # the protocol's seed: FDK refined by ASD-POCS, its alpha kept when --set changes only the iterations
+    assert info["train"]["init_asd_pocs"] == {"iterations": 3, "alpha": 0.1}
+    assert "seed: fbp (fdk) + asd_pocs x3" in res.stderr
 
 
 @pytest.mark.slow

@@ -574,3 +574,22 @@ def test_alpha_seeds_start_at_the_brightest_target_with_the_best_fitting_opacity
         assert opacity == min(errors, key=errors.get) and errors[opacity] < float((y ** 2).sum())
         chosen[init] = opacity
     assert chosen["uniform"] <= chosen["fbp"]  # dense uniform seeds start fainter
+
+
+def test_fbp_init_refined_by_asd_pocs_is_closer_to_the_object(scene_dir: Path, tmp_path: Path) -> None:
+    # noisy sparse cone-beam views: a few ASD-POCS iterations from the FDK volume remove streaks and noise (its
+    # error against the phantom falls); still from the training projections only
+    cfg, scene = _cone_scene(scene_dir, tmp_path,
+                             noise={"enabled": True, "i0": 1e4, "electronic_sigma": 0.0, "model": "tigre",
+                                    "splits": ["train"]})
+    truth = scene.volume.data.copy()
+    fdk_recon, _ = seeding.fbp_reconstruction(scene)
+    scene.volume.data = np.zeros_like(truth)
+    refined = seeding.asd_pocs_refinement(scene, fdk_recon, iterations=5, alpha=0.1)
+    assert refined.shape == truth.shape and refined.min() >= 0.0 and refined.max() <= 1.0
+    assert np.mean((refined - truth) ** 2) < 0.75 * np.mean((np.clip(fdk_recon, 0, 1) - truth) ** 2)  # 0.63 here
+    cfg["init_asd_pocs"] = {"iterations": 5, "alpha": 0.1}
+    seed = seeding.make_seed(cfg, scene, np.random.default_rng(0))
+    assert seed.strategy == "fbp (fdk) + asd_pocs x5" and not seed.uses_reference_volume
+    cfg["init_asd_pocs"] = {"iterations": 0, "alpha": 0.1}
+    assert seeding.make_seed(cfg, scene, np.random.default_rng(0)).strategy == "fbp (fdk)"

@@ -71,6 +71,8 @@ def test_bounds_named_in_the_issue(scene_dir: Path, tmp_path: Path) -> None:  # 
         ("nan_lr_decay", 2): r"train\.nan_lr_decay must be a number in \(0, 1\), got 2",
         ("lr.means", -0.01): r"train\.lr\.means must be a number > 0, got -0\.01",
         ("lambda_ssim", -0.2): r"train\.lambda_ssim must be a number >= 0",
+        ("init_asd_pocs.iterations", -1): r"train\.init_asd_pocs\.iterations must be an integer >= 0, got -1",
+        ("init_asd_pocs.alpha", 0): r"train\.init_asd_pocs\.alpha must be a number > 0, got 0",
         ("checkpoint_every", 0): r"train\.checkpoint_every must be an integer >= 1, got 0",
         ("eval_every", -5): r"train\.eval_every must be an integer >= 1, got -5",
         ("eval_every", "abc"): r"train\.eval_every must be an integer >= 1, got 'abc'",
