@@ -11,7 +11,7 @@ Per volume (``--volumes``: ``phantom`` — the built-in Shepp-Logan head, no bea
    least common multiple is small (150 angles for 25/50/75: every 6th / 3rd / 2nd), else one per count;
 3. ``ctsplat.baselines.run_baselines`` (every classical method the geometry allows, parameters chosen on the
    validation views), its saved volumes also scored by R²-Gaussian's 3D metrics;
-4. a Gaussian model per view count (``init: fbp``, i.e. FDK of the training views where available, refined by 40
+4. a Gaussian model per view count (``init: fbp``, i.e. FDK of the training views where available, refined by 20
    ASD-POCS iterations on the same views, ``PROTOCOL_TRAIN``; rectified radiative compositor), trained
    (``ctsplat.training.train``) and evaluated (``ctsplat.evaluation.evaluate``).
 
@@ -189,7 +189,7 @@ OWN_KEYS = {"volume": "--volumes", "radiographs": "--size", "init": None, "views
 
 #: the protocol's train settings beside the library defaults (``--set`` overrides them): the FDK seed refined by
 #: ASD-POCS iterations on the training views, chosen on the validation views (docs/results.md)
-PROTOCOL_TRAIN = {"init_asd_pocs": {"iterations": 40, "alpha": 0.1}}
+PROTOCOL_TRAIN = {"init_asd_pocs": {"iterations": 20, "alpha": 0.1}}
 
 
 def train_config(sets: list[str], iterations: int, n_init: int) -> dict:
