@@ -3,7 +3,8 @@
 Every strategy returns a :class:`Seed` of plain NumPy arrays in world millimetres (``docs/conventions.md``):
 isotropic scales, identity rotations, densities ρ in normalised-volume units. Only ``volume`` reads the
 reference volume's voxel values; its seed is flagged ``uses_reference_volume=True`` so every output of such a
-run can say so.
+run can say so. ``fbp`` seeds from a reconstruction of the training views (FBP, FDK or SIRT), optionally refined
+by ASD-POCS iterations on the same views (``init_asd_pocs``).
 
 Mass bookkeeping used by the grid-based seeds: a Gaussian ``ρ exp(-|x - m|² / 2σ²)`` carries
 ``ρ (2π)^{3/2} σ³`` (normalised units × mm³). Drawing ``n`` Gaussians uniformly among ``M`` candidate voxels
