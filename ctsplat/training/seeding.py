@@ -297,11 +297,11 @@ def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> Se
                                 density=cfg["init_density"])
     recon, method = fbp_reconstruction(scene, cfg.get("fbp_filter", "ramp"))
     strategy = "fbp" if method == "fbp" else f"fbp ({method})"
-    refine = cfg.get("init_asd_pocs") or {}
-    if int(refine.get("iterations", 0)) > 0:
-        recon = asd_pocs_refinement(scene, recon, iterations=int(refine["iterations"]),
-                                    alpha=float(refine["alpha"]), device=cfg.get("device", "cpu"))
-        strategy += f" + asd_pocs x{int(refine['iterations'])}"
+    refine_iterations = int(cfg["init_asd_pocs"]["iterations"])
+    if refine_iterations > 0:
+        recon = asd_pocs_refinement(scene, recon, iterations=refine_iterations,
+                                    alpha=float(cfg["init_asd_pocs"]["alpha"]), device=cfg["device"])
+        strategy += f" + asd_pocs x{refine_iterations}"
     return seed_from_grid(recon, vol.affine, n, rng, top_fraction=cfg["init_top_fraction"],
                           scale_voxels=1.5 if scale is None else float(scale), uses_reference_volume=False,
                           strategy=strategy)
