@@ -18,6 +18,7 @@ from ctsplat.splat.render import (
     random_region,
     render,
     render_to_folder,
+    resolved_backend,
     voxelize,
 )
 
@@ -37,6 +38,7 @@ __all__ = [
     "project",
     "random_region",
     "render",
+    "resolved_backend",
     "render_to_folder",
     "voxelize",
 ]

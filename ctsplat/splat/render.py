@@ -112,6 +112,7 @@ __all__ = [
     "camera_intrinsics",
     "project",
     "render",
+    "resolved_backend",
     "compute_3d_filter",
     "voxelize",
     "random_region",
@@ -404,6 +405,33 @@ def _use_triton(backend: str, device: torch.device) -> bool:
         _triton_fallback_logged = True
         _log.warning("rendering on CUDA with the slow pure-PyTorch reference: %s", reason)
     return reason is None
+
+
+def resolved_backend(backend: str = "auto", device: str | torch.device = "cpu") -> str:
+    """The implementation that :func:`render` and :func:`voxelize` run for ``backend`` on ``device``.
+
+    Parameters
+    ----------
+    backend : {"auto", "reference", "kernel", "triton"}
+        The requested backend.
+    device : str or torch.device
+        Where the Gaussians live.
+
+    Returns
+    -------
+    str
+        ``"triton"`` (GPU kernels), ``"kernel"`` (fused C++ CPU kernels) or ``"reference"`` (pure PyTorch).
+
+    Examples
+    --------
+    >>> resolved_backend("reference", "cpu")
+    'reference'
+    """
+    _check_backend(backend, "render")
+    device = torch.device(device)
+    if _use_triton(backend, device):
+        return "triton"
+    return "kernel" if _use_kernel(backend, device) else "reference"
 
 
 def _fused(backend: str, device: torch.device) -> ModuleType | None:

@@ -76,7 +76,7 @@ from ctsplat.evaluation.run import (
 )
 from ctsplat.formats.runlog import LOG_COLUMNS, LOG_EXTRAS, PER_VIEW_COLUMNS, CsvLog
 from ctsplat.scene import Scene, ViewData, even_subset, load_scene
-from ctsplat.splat.render import random_region, render, voxelize
+from ctsplat.splat.render import random_region, render, resolved_backend, voxelize
 from ctsplat.training import losses
 from ctsplat.training.checkpoint import (
     Checkpoint,
@@ -589,6 +589,7 @@ def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: 
         "n_train_views": len(scene.train),
         "eval_split_during_training": scene.eval_split,
         "device": str(device),
+        "renderer": resolved_backend("auto", device),
         "config_hash": chash,
         "code_version": code_version(),
     }

@@ -79,6 +79,9 @@ def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
     if m["lpips"] is None:
         assert m["lpips_reason"]
     assert m["model_size_bytes"] == os.path.getsize(out / "model.pt")
+    from ctsplat.splat.render import resolved_backend
+
+    assert json.loads((out / "training.json").read_text())["renderer"] == resolved_backend("auto", "cpu")
     for name in ("model.pt", "model.ply", "model_volume.nii.gz", "gallery.png", "slices.png", "turntable.gif",
                  "config.json", "training.json"):
         assert (out / name).stat().st_size > 0, name

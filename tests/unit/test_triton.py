@@ -343,8 +343,24 @@ def test_auto_on_cuda_without_triton_falls_back_with_one_warning(monkeypatch, ca
         assert render_mod._use_triton("auto", cuda) is False
     warnings = [r for r in caplog.records if "ctsplat[gpu]" in r.getMessage()]
     assert len(warnings) == 1
+    assert render_mod.resolved_backend("auto", cuda) == "reference"
     # CPU tensors keep the C++ kernel / reference under auto, whatever triton's state
     assert render_mod._use_triton("auto", torch.device("cpu")) is False
+
+
+def test_resolved_backend_names_what_runs(monkeypatch):
+    from ctsplat.splat import _kernel
+    from ctsplat.splat.render import resolved_backend
+    from ctsplat.utils import CtsplatError
+
+    assert resolved_backend("reference", "cpu") == "reference"
+    assert resolved_backend("kernel", "cpu") == "kernel"
+    monkeypatch.setattr(_kernel, "available", lambda: True)
+    assert resolved_backend("auto", "cpu") == "kernel"
+    monkeypatch.setattr(_kernel, "available", lambda: False)
+    assert resolved_backend("auto", "cpu") == "reference"
+    with pytest.raises(CtsplatError, match="expected auto, reference, kernel or triton"):
+        resolved_backend("cuda", "cpu")
 
 
 def test_unknown_backend_names_the_choices():
@@ -390,6 +406,7 @@ class TestCuda:
         R, t = _pose(0.0, 0.0, 200.0, F32, "cuda")
         render_mod.render(g, ParallelCamera(16, 16, 1.0), R, t)
         assert calls
+        assert render_mod.resolved_backend("auto", "cuda") == "triton"
 
 
 if __name__ == "__main__":  # a check group in a child process (TRITON_INTERPRET=1 set by the parent, but for compile)
