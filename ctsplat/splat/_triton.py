@@ -262,7 +262,7 @@ class Voxelize(torch.autograd.Function):
         lo_ = lo.to(torch.int64).contiguous()
         hi_ = (lo_ + ext.to(torch.int64)).contiguous()
         aff = torch.cat([affine[:3, :3].reshape(-1), affine[:3, 3]]).to(dt).contiguous()
-        org = origin.to(torch.int64)
+        org = origin.to(device=m.device, dtype=torch.int64).contiguous()
         n0, n1, n2 = (int(s) for s in out_shape)
         nb = [-(-s // BRICK) for s in (n0, n1, n2)]
         rel = lo_ - org
@@ -270,22 +270,21 @@ class Voxelize(torch.autograd.Function):
         count = [torch.where(ext[:, a] > 0, (rel[:, a] + ext[:, a] - 1) // BRICK + 1 - first[a], 0) for a in range(3)]
         ids, offsets, item = _ranges_to_pairs(first, count, nb, None)
         out = torch.zeros(n0 * n1 * n2, dtype=dt, device=m.device)
-        o = tuple(int(x) for x in org.tolist())
-        geom = (*o, n0, n1, n2, nb[1], nb[2])
+        geom = (n0, n1, n2, nb[1], nb[2])
         with _launch_ctx(out):
-            k.voxel_fwd[(offsets.numel() - 1,)](m, p, d, lo_, hi_, aff, offsets, ids, out, *geom, B=BRICK,
+            k.voxel_fwd[(offsets.numel() - 1,)](m, p, d, lo_, hi_, aff, offsets, ids, out, org, *geom, B=BRICK,
                                                 G=g_voxel(), num_warps=WARPS)
-        ctx.save_for_backward(m, p, d, lo_, hi_, aff, ids, offsets, item)
+        ctx.save_for_backward(m, p, d, lo_, hi_, aff, ids, offsets, item, org)
         ctx.geom = geom
         return out
 
     @staticmethod
     def backward(ctx, grad_out):  # noqa: ANN001
-        m, p, d, lo_, hi_, aff, ids, offsets, item = ctx.saved_tensors
+        m, p, d, lo_, hi_, aff, ids, offsets, item, org = ctx.saved_tensors
         g = grad_out.to(m.dtype).contiguous()
         rows = torch.empty(ids.numel(), 10, dtype=m.dtype, device=m.device)
         with _launch_ctx(m):
-            kernels().voxel_bwd[(offsets.numel() - 1,)](m, p, d, lo_, hi_, aff, offsets, ids, g, rows, *ctx.geom,
-                                                        B=BRICK, G=g_voxel(), num_warps=WARPS)
+            kernels().voxel_bwd[(offsets.numel() - 1,)](m, p, d, lo_, hi_, aff, offsets, ids, g, rows, org,
+                                                        *ctx.geom, B=BRICK, G=g_voxel(), num_warps=WARPS)
         grads = _split_grads(rows, item, m.shape[0])
         return grads[:, 0:3], grads[:, 3:9], grads[:, 9], None, None, None, None, None

@@ -194,15 +194,19 @@ def alpha_bwd(params_ptr, bbox_ptr, offsets_ptr, ids_ptr, col_ptr, logt_ptr, gra
 
 
 @triton.jit
-def _brick_voxels(aff_ptr, brick, o0, o1, o2, n0, n1, n2, nb1, nb2, B: tl.constexpr):
-    """The brick's voxels: absolute indices, centres in mm, flat output index and the inside-the-output mask."""
+def _brick_voxels(aff_ptr, org_ptr, brick, n0, n1, n2, nb1, nb2, B: tl.constexpr):
+    """The brick's voxels: absolute indices, centres in mm, flat output index and the inside-the-output mask.
+
+    ``org_ptr``: the output's first voxel index (3 int64), read from memory rather than passed as scalars: the 3D
+    TV term's region moves every iteration, and scalar arguments would be specialised (a compiled variant per
+    divisibility pattern) and read back from the GPU by the caller."""
     v = tl.arange(0, B * B * B)
     r0 = (brick // (nb1 * nb2)) * B + v // (B * B)
     r1 = ((brick // nb2) % nb1) * B + (v // B) % B
     r2 = (brick % nb2) * B + v % B
-    i0 = r0 + o0
-    i1 = r1 + o1
-    i2 = r2 + o2
+    i0 = r0 + tl.load(org_ptr + 0)
+    i1 = r1 + tl.load(org_ptr + 1)
+    i2 = r2 + tl.load(org_ptr + 2)
     dt = aff_ptr.dtype.element_ty
     f0, f1, f2 = i0.to(dt), i1.to(dt), i2.to(dt)
     x = tl.load(aff_ptr + 0) * f0 + tl.load(aff_ptr + 1) * f1 + tl.load(aff_ptr + 2) * f2 + tl.load(aff_ptr + 9)
@@ -240,10 +244,10 @@ def _voxel_block(means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, ids_ptr, kk, km,
 
 @triton.jit
 def voxel_fwd(means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, aff_ptr, offsets_ptr, ids_ptr, out_ptr,
-              o0, o1, o2, n0, n1, n2, nb1, nb2, B: tl.constexpr, G: tl.constexpr):
+              org_ptr, n0, n1, n2, nb1, nb2, B: tl.constexpr, G: tl.constexpr):
     """One ``B³`` brick of the output: ``μ(x) = Σ ρ_i exp(-½ dᵀ P_i d)`` over its Gaussians whose box holds x."""
     brick = tl.program_id(0)
-    i0, i1, i2, x, y, z, flat, inside = _brick_voxels(aff_ptr, brick, o0, o1, o2, n0, n1, n2, nb1, nb2, B)
+    i0, i1, i2, x, y, z, flat, inside = _brick_voxels(aff_ptr, org_ptr, brick, n0, n1, n2, nb1, nb2, B)
     start = tl.load(offsets_ptr + brick)
     end = tl.load(offsets_ptr + brick + 1)
     acc = tl.zeros([B * B * B], dtype=out_ptr.dtype.element_ty)
@@ -258,12 +262,12 @@ def voxel_fwd(means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, aff_ptr, offsets_pt
 
 @triton.jit
 def voxel_bwd(means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, aff_ptr, offsets_ptr, ids_ptr, grad_ptr, pair_ptr,
-              o0, o1, o2, n0, n1, n2, nb1, nb2, B: tl.constexpr, G: tl.constexpr):
+              org_ptr, n0, n1, n2, nb1, nb2, B: tl.constexpr, G: tl.constexpr):
     """Per (brick, Gaussian) pair, ``∂L/∂(m, P, ρ)`` summed over the brick's voxels (row of 10: means 3, P 6 as
     (P00, P11, P22, P01, P02, P12), ρ): ``∂μ/∂m = ρ e P d``, ``∂μ/∂P_aa = -½ ρ e d_a²``, ``∂μ/∂P_ab = -ρ e d_a d_b``,
     ``∂μ/∂ρ = e``."""
     brick = tl.program_id(0)
-    i0, i1, i2, x, y, z, flat, inside = _brick_voxels(aff_ptr, brick, o0, o1, o2, n0, n1, n2, nb1, nb2, B)
+    i0, i1, i2, x, y, z, flat, inside = _brick_voxels(aff_ptr, org_ptr, brick, n0, n1, n2, nb1, nb2, B)
     g = tl.load(grad_ptr + flat, mask=inside, other=0.0)
     start = tl.load(offsets_ptr + brick)
     end = tl.load(offsets_ptr + brick + 1)

@@ -329,15 +329,24 @@ class Gaussians:
         """
         n = len(self)
         shapes = {"means": (n, 3), "log_scales": (n, 3), "quats": (n, 4), "density_raw": (n,), "opacity_raw": (n,)}
+        checked = []
         for name, t in self.tensors().items():
             if name in shapes and tuple(t.shape) != shapes[name]:
                 raise CtsplatError(f"Gaussians.{name} has shape {tuple(t.shape)}, expected {shapes[name]}")
             if name in ("colors", "sh_rest") and t.shape[0] != n:
                 raise CtsplatError(f"Gaussians.{name} has {t.shape[0]} rows, expected {n}")
-            # fast path: a finite sum proves there is no NaN/Inf (both propagate); overflow falls through to the
-            # exact element-wise check
             check = check_finite if isinstance(check_finite, bool) else name in check_finite
-            if check and t.numel() and not bool(torch.isfinite(t.detach().sum())) and not bool(torch.isfinite(t).all()):
+            if check and t.numel():
+                checked.append((name, t))
+        if not checked:
+            return
+        # fast path: finite sums prove there is no NaN/Inf (both propagate), read with one host synchronisation
+        # (on a GPU every read waits for the queued work); an overflowing sum falls through to the exact check
+        sums = torch.stack([t.detach().sum().to(torch.float64) for _, t in checked])
+        if bool(torch.isfinite(sums).all()):
+            return
+        for name, t in checked:
+            if not bool(torch.isfinite(t).all()):
                 bad = int((~torch.isfinite(t)).reshape(t.shape[0], -1).any(-1).nonzero()[0, 0])
                 raise CtsplatError(
                     f"Gaussians.{name} contains NaN/Inf (first at index {bad}); "

@@ -446,9 +446,10 @@ def _check_inputs(gaussians: Gaussians, filter_3d_var: torch.Tensor | None) -> N
     gaussians.validate()
     if filter_3d_var is not None:
         fv = torch.as_tensor(filter_3d_var)
-        if fv.numel() and not bool(torch.isfinite(fv).all()):
-            raise CtsplatError("filter_3d_var contains NaN/Inf; recompute it with compute_3d_filter")
-        if fv.numel() and bool((fv < 0).any()):
+        # both conditions in one host synchronisation; the messages below tell them apart
+        if fv.numel() and not bool(((fv >= 0) & torch.isfinite(fv)).all()):
+            if not bool(torch.isfinite(fv).all()):
+                raise CtsplatError("filter_3d_var contains NaN/Inf; recompute it with compute_3d_filter")
             raise CtsplatError("filter_3d_var must be >= 0 (a variance in mm²)")
 
 
@@ -744,18 +745,18 @@ def voxelize(
     shape = tuple(int(s) for s in shape)
     if region is None:
         region = ((0, shape[0]), (0, shape[1]), (0, shape[2]))
-    reg = torch.tensor(region, dtype=torch.int64, device=dev).reshape(3, 2)
-    if bool((reg[:, 0] < 0).any()) or bool((reg[:, 1] > torch.tensor(shape, device=dev)).any()) or bool(
-        (reg[:, 1] <= reg[:, 0]).any()
-    ):
+    # checked on the host (the region is small integers): no device round trip per call
+    bounds = [(int(a), int(b)) for a, b in torch.as_tensor(region, dtype=torch.int64).cpu().reshape(3, 2).tolist()]
+    if any(a < 0 or b > s or b <= a for (a, b), s in zip(bounds, shape, strict=True)):
         raise CtsplatError(f"voxelize region {region} is empty or outside the grid {shape}")
-    out_shape = tuple(int(x) for x in (reg[:, 1] - reg[:, 0]))
+    reg = torch.tensor(bounds, dtype=torch.int64, device=dev)
+    out_shape = tuple(b - a for a, b in bounds)
     n_out = out_shape[0] * out_shape[1] * out_shape[2]
     fvar = None if filter_3d_var is None else torch.as_tensor(filter_3d_var, dtype=dtype, device=dev).reshape(-1, 1)
     # boxes first, without gradients, so that the differentiable terms below are built for the Gaussians that reach
     # the output only (a small region, as the TV term's, keeps a small share of them)
     with torch.no_grad():
-        Ainv = torch.linalg.inv(A[:3, :3])
+        Ainv = torch.linalg.inv_ex(A[:3, :3])[0]  # inv_ex: no host synchronisation for the error flag
         if dev.type == "cpu" and dtype in (torch.float32, torch.float64) and _kernel.available():
             # the same arithmetic in one threaded C pass: on CPU the tensor version below costs more than the
             # voxelizer itself for a small region (a dozen N-sized temporaries)

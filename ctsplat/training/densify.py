@@ -102,8 +102,11 @@ class GradientDensify:
         """
         if means2d_grad is None:
             return
-        state.grad_accum[visible] += (means2d_grad[visible] * ndc_half).norm(dim=-1)
-        state.grad_count[visible] += 1
+        # masked arithmetic rather than boolean indexing: the same sums, without the host synchronisation that
+        # indexing with a mask costs on a GPU (its result size must be read back)
+        norm = (means2d_grad * ndc_half).norm(dim=-1)
+        state.grad_accum += torch.where(visible, norm, 0.0)
+        state.grad_count += visible.to(state.grad_count.dtype)
 
     def maybe_step(self, state: TrainState, iteration: int, volume: Any, gen: torch.Generator
                    ) -> dict[str, int] | None:

@@ -93,6 +93,7 @@ from ctsplat.training.seeding import make_seed
 from ctsplat.training.state import (
     TrainState,
     ViewSampler,
+    all_finite,
     as_gaussians,
     cosine_factor,
     init_params,
@@ -413,8 +414,11 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     bar = tqdm(total=total, initial=state.iteration, disable=not show, desc="train", dynamic_ncols=True)
     t_start = time.perf_counter() - state.elapsed_s
     t_last, it_last = time.perf_counter(), state.iteration
-    last_terms: dict[str, float] = {}
+    last_terms: dict[str, torch.Tensor] = {}
     last_loss = float("nan")
+    # the finite losses since the last validation, summed on the device (float64, as the host sum it feeds) and
+    # read at validations and checkpoints only
+    loss_sum = torch.tensor(float(state.health.get("loss_sum", 0.0)), dtype=torch.float64, device=device)
     while state.iteration < total:
         it = state.iteration + 1
         f = cosine_factor(it - 1, total, float(cfg["lr_final_factor"])) * state.lr_factor
@@ -457,7 +461,6 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                                             tv_volume=tv_vol, **lam)
             if refining:
                 loss = loss + state.pose.prior(batch)
-            ok = bool(torch.isfinite(loss))
         err_ratios = []
         if ok and densify.wants_error and densify.collecting(it):
             err_ratios = [densify.error_ratios(state, pred[k], pred[k] - ref[k], out.visible)
@@ -466,10 +469,9 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
             state.opt.zero_grad(set_to_none=True)
             if refining:
                 state.pose_opt.zero_grad(set_to_none=True)
-            loss.backward()
-            ok = all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in state.params.values())
-            if ok and refining:
-                ok = all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in state.pose.parameters())
+            loss.backward()  # a non-finite loss is caught below with the gradients, in one host synchronisation
+            ok = all_finite([loss.detach(), *(p.grad for p in state.params.values()),
+                             *((p.grad for p in state.pose.parameters()) if refining else ())])
         if ok:
             with torch.no_grad():
                 for out in outs:
@@ -480,7 +482,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
             if refining:
                 state.pose_opt.step()
                 state.pose.fix_gauge()
-            ok = params_finite(state.params) and (not refining or params_finite(dict(state.pose.named_parameters())))
+            ok = all_finite([*state.params.values(), *(state.pose.parameters() if refining else ())])
         if not ok:
             state.nan_events += 1
             state.nan_consecutive += 1
@@ -506,8 +508,8 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                     f"lowering the learning rate to x{state.lr_factor:.3g}; lower train.lr or check the inputs")
         else:
             state.nan_consecutive = 0
-            last_terms, last_loss = terms, float(loss.detach())
-            state.health["loss_sum"] = float(state.health.get("loss_sum", 0.0)) + last_loss
+            last_terms, last_loss_t = terms, loss.detach()
+            loss_sum = loss_sum + last_loss_t.double()
             state.health["loss_n"] = int(state.health.get("loss_n", 0)) + 1
         state.iteration = it
 
@@ -523,15 +525,19 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
 
         bar.update(1)
         if it % int(cfg["eval_every"]) == 0 or it == total:
+            state.health["loss_sum"] = float(loss_sum)
+            if last_terms:
+                last_loss = float(last_loss_t)
             row, per_view = _evaluate_periodic(state, cfg, scene, val)
             now = time.perf_counter()
             ips = (it - it_last) / max(now - t_last, 1e-9)
             t_last, it_last = now, it
             state.elapsed_s = now - t_start
+            terms_now = {k: float(v) for k, v in last_terms.items()}
             row.update(iteration=it, timestamp=round(state.elapsed_s, 3), loss=last_loss,
-                       l1=last_terms.get("l1"), dssim=last_terms.get("dssim"),
-                       density_reg=last_terms.get("density"), scale_reg=last_terms.get("scale"),
-                       tv=last_terms.get("tv"), n_gaussians=int(state.params["means"].shape[0]),
+                       l1=terms_now.get("l1"), dssim=terms_now.get("dssim"),
+                       density_reg=terms_now.get("density"), scale_reg=terms_now.get("scale"),
+                       tv=terms_now.get("tv"), n_gaussians=int(state.params["means"].shape[0]),
                        lr_means=float(state.opt.param_groups[0]["lr"]), iters_per_s=round(ips, 3),
                        nan_events=state.nan_events, **state.densify_counts)
             train_log.append([row])
@@ -542,6 +548,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                 log.info("pose refinement at %d: median rotation error %.3f deg, isocentre %.3f mm", it,
                          err["pose_rot_err_median_deg_after"], err["pose_iso_err_median_mm_after"])
             reason = _collapse_reason(state, cfg, row, it == total, psnr_empty)
+            loss_sum = torch.tensor(float(state.health.get("loss_sum", 0.0)), dtype=torch.float64, device=device)
             if reason:
                 bar.close()
                 _discard_outputs(out_dir)
@@ -551,6 +558,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                 state.health.update(best_psnr=float(row["psnr2d"]), best_iteration=it)
                 _save_model(state, cfg, out_dir / "model_best.pt", chash)
         if it % int(cfg["checkpoint_every"]) == 0 or it == total:
+            state.health["loss_sum"] = float(loss_sum)
             state.elapsed_s = time.perf_counter() - t_start
             save_checkpoint(out_dir, state, rng, gen, chash, int(cfg["keep_checkpoints"]))
         if callback is not None:

@@ -197,8 +197,8 @@ def total_loss(
     lambda_scale: float = 1e-4,
     lambda_tv: float = 0.0,
     tv_volume: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, dict[str, float]]:
-    """Weighted training objective and its terms (floats, for logging).
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Weighted training objective and its terms (for logging).
 
     Parameters
     ----------
@@ -218,8 +218,9 @@ def total_loss(
     Returns
     -------
     loss : Tensor, 0-d
-    terms : dict
-        ``l1``, ``dssim`` (= 1 - SSIM), ``density``, ``scale``, ``tv`` (unweighted values).
+    terms : dict of str to Tensor
+        ``l1``, ``dssim`` (= 1 - SSIM), ``density``, ``scale``, ``tv``: unweighted values, 0-d and detached (``float``
+        them to log; a term with weight 0 is 0).
     """
     zero = img.new_zeros(())
     t_l1 = l1(img, ref)
@@ -235,11 +236,7 @@ def total_loss(
     loss = (
         lambda_l1 * t_l1 + lambda_ssim * t_dssim + lambda_density * t_rho + lambda_scale * t_scale + lambda_tv * t_tv
     )
-    terms = {
-        "l1": float(t_l1.detach()),
-        "dssim": float(t_dssim.detach()),
-        "density": float(t_rho.detach()),
-        "scale": float(t_scale.detach()),
-        "tv": float(t_tv.detach()),
-    }
+    # tensors, not floats: on a GPU each float() waits for the queued work; the caller reads them when it logs
+    terms = {"l1": t_l1.detach(), "dssim": t_dssim.detach(), "density": t_rho.detach(), "scale": t_scale.detach(),
+             "tv": t_tv.detach()}
     return loss, terms

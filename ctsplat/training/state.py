@@ -13,6 +13,7 @@ Loshchilov, I., Hutter, F. (2017). SGDR: stochastic gradient descent with warm r
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,7 +23,7 @@ import torch
 from ctsplat.training.seeding import Seed
 
 __all__ = ["PARAM_GROUPS", "METHOD_LR", "TrainState", "ViewSampler", "init_params", "as_gaussians", "make_optimizer",
-           "cosine_factor", "replace_params", "snapshot", "restore", "params_finite"]
+           "cosine_factor", "replace_params", "snapshot", "restore", "all_finite", "params_finite"]
 
 PARAM_GROUPS = {"means": "means", "log_scales": "scales", "quats": "quats", "density_raw": "density",
                 "opacity_raw": "opacity", "colors": "colors"}
@@ -340,8 +341,27 @@ def restore(state: TrainState, snap: dict[str, Any]) -> None:
         state.err_count = torch.zeros(m, device=dev)
 
 
+def all_finite(tensors: Iterable[torch.Tensor | None]) -> bool:
+    """Whether every element of every tensor (``None`` skipped) is finite, with one host synchronisation.
+
+    On a GPU each ``bool(tensor)`` waits for the queued work; the training step checks its parameters and gradients
+    every iteration, so the flags are combined on the device and read once.
+
+    Parameters
+    ----------
+    tensors : iterable of Tensor or None
+        Tensors on one device.
+
+    Returns
+    -------
+    bool
+    """
+    flags = [torch.isfinite(t).all() for t in tensors if t is not None]
+    return bool(torch.stack(flags).all()) if flags else True
+
+
 def params_finite(params: dict[str, torch.Tensor]) -> bool:
-    """Whether every parameter tensor is finite.
+    """Whether every parameter tensor is finite (one host synchronisation).
 
     Parameters
     ----------
@@ -351,4 +371,4 @@ def params_finite(params: dict[str, torch.Tensor]) -> bool:
     -------
     bool
     """
-    return all(bool(torch.isfinite(v).all()) for v in params.values())
+    return all_finite(params.values())

@@ -64,6 +64,8 @@ def test_total_loss_weights_terms() -> None:
         img, ref, density=rho, scales=s, lambda_l1=2.0, lambda_ssim=0.5, lambda_density=0.1,
         lambda_scale=0.01, lambda_tv=0.3, tv_volume=tv_vol,
     )
+    assert all(t.ndim == 0 and not t.requires_grad for t in terms.values())
+    terms = {k: float(v) for k, v in terms.items()}
     assert terms["density"] == pytest.approx(1.0)
     assert terms["scale"] == pytest.approx(3.0)  # (5 + 1) / 2
     assert terms["l1"] == pytest.approx(float((img - ref).abs().mean()))

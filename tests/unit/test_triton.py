@@ -243,7 +243,7 @@ def check_compile() -> None:
         p = f"*{dt}"
         rast = {"params_ptr": p, "bbox_ptr": "*i32", "offsets_ptr": "*i32", "ids_ptr": "*i32"}
         vox = {"means_ptr": p, "prec_ptr": p, "dens_ptr": p, "lo_ptr": "*i64", "hi_ptr": "*i64", "aff_ptr": p,
-               "offsets_ptr": "*i32", "ids_ptr": "*i32"}
+               "offsets_ptr": "*i32", "ids_ptr": "*i32", "org_ptr": "*i64"}
         kernels = [
             (K.additive_fwd, {**rast, "out_ptr": p}, {"TILE": 16, "G": 8}),
             (K.additive_bwd, {**rast, "grad_ptr": p, "pair_ptr": p}, {"TILE": 16, "G": 8}),
