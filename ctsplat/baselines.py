@@ -48,7 +48,15 @@ from typing import Any
 import numpy as np
 
 from ctsplat.formats.viewset import ViewSet
-from ctsplat.utils import CtsplatError, atomic_path, code_version, json_safe, merge_config, write_json_atomic
+from ctsplat.utils import (
+    CtsplatError,
+    atomic_path,
+    code_version,
+    json_safe,
+    merge_config,
+    resolve_device,
+    write_json_atomic,
+)
 
 __all__ = [
     "BASELINE_DEFAULTS",
@@ -543,7 +551,9 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
     rows: list[dict[str, Any]] = []
     trials: list[dict[str, Any]] = []
     volumes: dict[str, np.ndarray] = {}
-    test = Validator(p_all[test_rows], vs_all.subset("test"), volume) if test_rows.size else None
+    # the test views re-projected on the reconstructions' device (at 256³ and 512² detectors the CPU takes minutes)
+    test = (Validator(p_all[test_rows], vs_all.subset("test"), volume, device=resolve_device(cfg["device"]))
+            if test_rows.size else None)
     for requested, idx in zip(counts, subsets, strict=True):
         if requested and len(idx) < requested:
             log.warning("baselines: %d views requested but the %s split has %d; using all", requested,
