@@ -3,6 +3,7 @@
 Usage (on a machine with a CUDA GPU and the ``gpu`` extra, ``pip install -e '.[gpu]'``)::
 
     python benchmarks/gpu.py                 # every row, training included (needs ../shared/data/ct0051_head)
+    python benchmarks/gpu.py --train-sizes 128 256
     python benchmarks/gpu.py --no-train      # kernels only
     python benchmarks/gpu.py --reference     # also time the pure-PyTorch reference on the GPU
 
@@ -12,8 +13,9 @@ Rows (the issue's targets in brackets):
   and the alpha compositor [≤ 1 ms on a data-centre GPU];
 * ``fwd 1920x1080 200k``: forward only, no gradient [≥ 100 FPS];
 * ``voxelize 50k 128³``: forward+backward of the volume read-out (the 3D TV term's, on the whole grid);
-* ``train 128³ 50 views``: ``benchmarks/quality.py --views 50 --inits fbp --set device=cuda`` (the head protocol;
-  its time to final quality) [≤ 1 minute].
+* ``train S³ 50 views``: ``benchmarks/protocol.py --volumes ct0051_head --views 50 --size S --set device=cuda
+  --baseline-set methods=[fdk]`` (R²-Gaussian's cone-beam protocol on the head, the Gaussians' time to final
+  quality, seed included) [128³: ≤ 1 minute; 256³ with 512² detectors (``--train-sizes 256``): ≤ 5 minutes].
 
 Scene: :mod:`benchmarks.render`'s (N Gaussians uniform in a 160 mm cube, log-uniform scales 0.39..1.95 mm, 200 mm
 field of view). Times are medians over repetitions after a warm-up (Triton compiles each kernel on first use),
@@ -105,25 +107,27 @@ def kernel_rows(backends: list[str], reps: int, budget_s: float) -> list[dict]:
     return rows
 
 
-def train_row(data: str) -> dict | None:
-    """The 50-view head protocol on the GPU through benchmarks/quality.py; None (with a message) without data."""
-    if not Path(data).is_dir():
-        print(f"train row skipped: ct0051_head not found at {data}", file=sys.stderr)
+def train_row(data: str, size: int) -> dict | None:
+    """The 50-view head protocol at ``size``³ (detectors ``2 size`` px) on the GPU through benchmarks/protocol.py,
+    FDK as its only classical method (the Gaussians' time is the row); None (with a message) without the data."""
+    if not (Path(data) / "ct0051_head").is_dir():
+        print(f"train row skipped: ct0051_head not found in {data}", file=sys.stderr)
         return None
-    out = OUT / "gpu_quality"
-    cmd = [sys.executable, str(HERE / "quality.py"), "--views", "50", "--inits", "fbp", "--set", "device=cuda",
-           "--data", data, "--out", str(out)]
+    out = OUT / f"gpu_protocol_s{size}"
+    cmd = [sys.executable, str(HERE / "protocol.py"), "--volumes", "ct0051_head", "--views", "50", "--size",
+           str(size), "--threads", str(os.cpu_count() or 1), "--set", "device=cuda", "--baseline-set",
+           "methods=[fdk]", "--data", data, "--out", str(out)]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         print(proc.stdout[-2000:] + proc.stderr[-4000:], file=sys.stderr)
         raise SystemExit(f"train row failed (exit {proc.returncode}): {' '.join(cmd)}")
-    with open(out / "quality.csv") as fh:
-        gs = [r for r in csv.DictReader(fh) if r["method"] == "gs:fbp"][-1]
-    return {"row": "train 128³ 50 views (head, init fbp)", "backend": "auto(cuda)",
-            "time_to_final_s": gs.get("time_to_final_quality_s", ""), "train_wall_s": gs.get("wall_time_s", ""),
-            "psnr3d": gs.get("psnr3d", ""), "script_wall_s": round(wall, 1)}
+    with open(out / "protocol.csv") as fh:
+        gs = [r for r in csv.DictReader(fh) if r["method"].startswith("gaussians")][-1]
+    return {"row": f"train {size}³ 50 views (head protocol)", "backend": "auto(cuda)",
+            "time_to_final_s": gs["time_to_final_quality_s"], "train_wall_s": gs["wall_time_s"],
+            "psnr3d": gs["psnr3d_r2"], "script_wall_s": round(wall, 1)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -131,9 +135,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reps", type=int, default=20, help="minimum timed repetitions per row")
     p.add_argument("--budget-s", type=float, default=3.0, help="keep repeating a row for this long (<= 10x reps)")
     p.add_argument("--reference", action="store_true", help="also time the pure-PyTorch reference")
-    p.add_argument("--no-train", action="store_true", help="skip the training row")
-    p.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "ct0051_head"))
+    p.add_argument("--no-train", action="store_true", help="skip the training rows")
+    p.add_argument("--train-sizes", type=int, nargs="+", default=[128], metavar="S",
+                   help="volume grids of the training rows (default 128; 256 for the 256³ / 512² target)")
+    p.add_argument("--data", default=str(ROOT.parent / "shared" / "data"), help="folder holding ct0051_head")
     args = p.parse_args(argv)
+    if min(args.train_sizes) < 8:
+        p.error("--train-sizes must be >= 8")
     import torch
 
     if not torch.cuda.is_available():
@@ -149,12 +157,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'row':40s} {'backend':10s} {'median ms':>10s} {'FPS':>9s}")
     for r in rows:
         print(f"{r['row']:40s} {r['backend']:10s} {r['median_ms']:10.3f} {r['fps']:9.1f}")
-    if not args.no_train:
-        tr = train_row(args.data)
+    for size in [] if args.no_train else args.train_sizes:
+        tr = train_row(args.data, size)
         if tr is not None:
             rows.append(tr)
             print(f"{tr['row']}: time to final quality {tr['time_to_final_s']} s, training wall "
-                  f"{tr['train_wall_s']} s, 3D PSNR {tr['psnr3d']} dB")
+                  f"{tr['train_wall_s']} s, 3D PSNR (R²) {tr['psnr3d']} dB")
     OUT.mkdir(exist_ok=True)
     fields = sorted({k for r in rows for k in r}, key=lambda k: (k != "row", k))
     with open(OUT / "gpu.csv", "w", newline="") as fh:
