@@ -227,6 +227,70 @@ def check_train(device: str = "cpu") -> None:
         assert abs(a - b) < 0.05, f"{key}: triton {b:.3f} vs CPU path {a:.3f}"
 
 
+#: host reads of device values per training iteration on the Triton path (parameter, gradient and loss finite
+#: checks, one flag each; the render's and the TV read-out's input checks): each read waits for the GPU's queue
+HOST_READS_PER_ITERATION = 5
+
+
+def check_host_reads() -> None:
+    """A training iteration on the Triton path reads device values back to the host at most
+    ``HOST_READS_PER_ITERATION`` times from ctsplat code (``bool``/``int``/``float``/``item``/``tolist`` on a
+    tensor; a 20- minus a 5-iteration run, no validation or densification in between). Reads of values that live
+    on the CPU also on a GPU run are not counted: the TV region's draws from its CPU generator and its bounds."""
+    import collections
+    import importlib
+    import tempfile
+    import traceback
+
+    import numpy as np
+
+    from ctsplat.formats.volume import Volume, save_volume
+    from ctsplat.projector import render_radiographs
+    from ctsplat.training import loop
+
+    render_mod = importlib.import_module("ctsplat.splat.render")
+    render_mod._use_triton = lambda backend, dev: backend in ("auto", "triton")
+    render_mod._use_kernel = lambda backend, dev: False
+    root = Path(tempfile.mkdtemp(prefix="ctsplat_triton_reads_"))
+    n = 16
+    x = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).astype(float)
+    data = (np.linalg.norm((x - 7.5) / np.array([6.0, 5.0, 4.0]), axis=-1) < 1).astype(np.float32) * 0.8
+    aff = np.diag([2.0, 2.0, 2.0, 1.0])
+    aff[:3, 3] = -15.0
+    save_volume(Volume(data, aff, {"volume_id": "tiny_reads", "intensity": {"mu_scale_per_mm": 0.02}}),
+                root / "volume.nii.gz")
+    render_radiographs(root / "volume.nii.gz", root / "rad",
+                       {"detector_width": 16, "detector_height": 16, "n_views": 8, "device": "cpu"})
+    reads: collections.Counter = collections.Counter()
+    cpu_resident = {"random_region", "voxelize"}  # voxelize: only its region bounds are read directly
+
+    def wrap(name: str):
+        orig = getattr(torch.Tensor, name)
+
+        def read(self, *a, **k):  # noqa: ANN001, ANN002, ANN003
+            caller = traceback.extract_stack(limit=2)[0]
+            if "ctsplat" + os.sep in caller.filename and caller.name not in cpu_resident:
+                reads[f"{caller.filename.split('ctsplat' + os.sep)[-1]}:{caller.lineno} {name}"] += 1
+            return orig(self, *a, **k)
+        return read
+
+    for name in ("item", "__bool__", "__int__", "__float__", "__index__", "tolist"):
+        setattr(torch.Tensor, name, wrap(name))
+    counts = {}
+    for its in (5, 20):
+        reads.clear()
+        cfg = {"volume": str(root / "volume.nii.gz"), "radiographs": str(root / "rad"), "init": "volume",
+               "n_init": 100, "iterations": its, "eval_every": 100, "checkpoint_every": 100, "device": "cpu",
+               "densify": {"interval": 100, "start": 100}, "figures": False, "progress": False, "lambda_tv": 0.05}
+        loop.train(cfg, root / f"run{its}")
+        counts[its] = collections.Counter(reads)
+    per_iteration = {k: (counts[20][k] - counts[5].get(k, 0)) / 15 for k in counts[20]}
+    per_iteration = {k: v for k, v in per_iteration.items() if v}
+    total = sum(per_iteration.values())
+    assert total <= HOST_READS_PER_ITERATION, f"{total} host reads per iteration: {per_iteration}"
+    assert total > 0, "no read counted: the counting itself is broken"
+
+
 def check_compile() -> None:
     """Every kernel through Triton's real compiler for data-centre GPUs (float32: sm_80 and sm_90, float64: sm_80)
     down to a cubin: no GPU needed, and it catches what the interpreter lets through (e.g. a non-constexpr global)."""
@@ -268,6 +332,7 @@ GROUPS = {
     "raster-edges": check_raster_edges,
     "voxelize": check_voxelize,
     "train": check_train,
+    "host-reads": check_host_reads,
     "compile": check_compile,
 }
 
