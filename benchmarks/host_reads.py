@@ -95,6 +95,8 @@ def run(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     import protocol
 
+    protocol.train_config(["device=cpu", *args.set], 10, 3000)  # a bad --set is refused before any work
+
     render_mod = importlib.import_module("ctsplat.splat.render")  # the module (the package exports a function)
     # the Triton wrappers on CPU tensors, as ``auto`` picks them on CUDA
     render_mod._use_triton = lambda backend, device: backend in ("auto", "triton")

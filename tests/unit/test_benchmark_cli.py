@@ -96,6 +96,8 @@ def test_baselines_arc_takes_effect_and_bad_options_are_refused(tmp_path, phanto
         ("projector.py", ["--size", "4"], "--size must be >= 8"),
         ("projector.py", ["--device", "tpu"], "unknown device 'tpu'"),
         ("ingest.py", ["--repeats", "0"], "--repeats must be >= 1"),
+        ("gpu.py", ["--train-sizes", "4"], "--train-sizes must be >= 8"),
+        ("host_reads.py", ["--set", "nviews=3"], "unknown config key train.nviews"),
     ],
 )
 def test_benchmark_options_are_checked(tmp_path, script, args, needle):
