@@ -465,6 +465,7 @@ def camera_vector(cam: dict, R: torch.Tensor, t: torch.Tensor, k2: float, near: 
     Returns
     -------
     Tensor (26,) float64
+        On the device of ``R`` (built there: the pose is not read back to the host).
     """
     cone = cam["model"] == "cone"
     if cone:
@@ -474,6 +475,8 @@ def camera_vector(cam: dict, R: torch.Tensor, t: torch.Tensor, k2: float, near: 
         lim_x = lim_y = 0.0
     vals = [1.0 if cone else 0.0, cam.get("sx", 1.0), cam.get("sy", 1.0), cam.get("fx", 1.0), cam.get("fy", 1.0),
             cam["cx"], cam["cy"], cam["W"], cam["H"], lim_x, lim_y]
-    vals += [float(x) for x in R.detach().reshape(-1).tolist()] + [float(x) for x in t.detach().reshape(-1).tolist()]
-    vals += [k2, near, cutoff]
-    return torch.tensor(vals, dtype=torch.float64)
+    dev = R.device
+    head = torch.tensor(vals, dtype=torch.float64).to(dev)
+    tail = torch.tensor([k2, near, cutoff], dtype=torch.float64).to(dev)
+    pose = [R.detach().reshape(-1).to(torch.float64), t.detach().reshape(-1).to(device=dev, dtype=torch.float64)]
+    return torch.cat([head, *pose, tail])

@@ -1,9 +1,11 @@
-"""The GPU path: Triton rasterisers and voxelizer as autograd functions (same math as the reference and C++ kernels).
+"""The GPU path: Triton projection, rasterisers and voxelizer as autograd functions (math of the C++ kernels).
 
-Three ``torch.autograd.Function`` s with the inputs of their twins in :mod:`ctsplat.splat._kernel`, so that
-:func:`ctsplat.splat.render.render` swaps them in behind ``backend="triton"`` (and ``"auto"`` on CUDA); the
-projection stays the differentiable PyTorch :func:`ctsplat.splat.render.project` (O(N), cheap on a GPU):
+Four ``torch.autograd.Function`` s with the inputs of their twins in :mod:`ctsplat.splat._kernel`, so that
+:func:`ctsplat.splat.render.render` swaps them in behind ``backend="triton"`` (and ``"auto"`` on CUDA):
 
+* :class:`Project` -- the EWA projection (means, conics, amplitudes, depths, pixel boxes) with its hand-written
+  backward, one kernel each way (as PyTorch ops it is some 570 small operations per view, forward and backward,
+  each a kernel launch on a GPU);
 * :class:`SplatAdditive` -- ``img[p] = Σ_i a_i exp(q_i(p))`` over each Gaussian's bounding box (radiative modes);
 * :class:`AlphaComposite` -- front-to-back ``C = Σ_i c_i α_i T_i``, ``α = min(0.99, o e^q)``, in depth order;
 * :class:`Voxelize` -- ``μ`` on a voxel grid from per-Gaussian voxel boxes.
@@ -27,8 +29,8 @@ from typing import Any
 
 import torch
 
-__all__ = ["unavailable_reason", "kernels", "tile_lists", "SplatAdditive", "AlphaComposite", "Voxelize", "TILE",
-           "BRICK"]
+__all__ = ["unavailable_reason", "kernels", "tile_lists", "Project", "SplatAdditive", "AlphaComposite", "Voxelize",
+           "TILE", "BRICK"]
 
 TILE = 16  # pixels per tile side
 BRICK = 8  # voxels per brick side
@@ -180,6 +182,62 @@ def _params(means2d: torch.Tensor, conics: torch.Tensor, amps: torch.Tensor, dt:
 def _split_grads(rows: torch.Tensor, item: torch.Tensor, n: int) -> torch.Tensor:
     out = torch.zeros(n, rows.shape[1], dtype=rows.dtype, device=rows.device)
     return out.index_add_(0, item, rows)
+
+
+PROJECT_BLOCK = 128  # Gaussians per projection program
+
+
+class Project(torch.autograd.Function):
+    """Fused projection (inputs and outputs as :class:`ctsplat.splat._kernel.Project`; ``cam`` the float64 camera
+    vector on the Gaussians' device, its model read from ``cone``): one program per ``PROJECT_BLOCK`` Gaussians,
+    forward and hand-written backward (the chain of ``csrc/project.h``). ``nonfinite`` is a 0-d int32 tensor on the
+    device (1 when an input holds NaN/Inf or filter_3d_var < 0)."""
+
+    @staticmethod
+    def forward(ctx, means, log_scales, quats, density_raw, fvar, cam, mode: int, mip: bool, cone: bool):  # noqa: ANN001
+        k = kernels()
+        dt = means.dtype
+        dev = means.device
+        ins = [t.detach().to(dt).contiguous() for t in (means, log_scales, quats, density_raw)]
+        fv = None if fvar is None else fvar.detach().to(dt).reshape(-1).contiguous()
+        cam = cam.to(device=dev, dtype=torch.float64).contiguous()
+        n = ins[0].shape[0]
+        m2d = torch.empty(n, 2, dtype=dt, device=dev)
+        con = torch.empty(n, 3, dtype=dt, device=dev)
+        amp = torch.empty(n, dtype=dt, device=dev)
+        depth = torch.empty(n, dtype=dt, device=dev)
+        bb = torch.empty(n, 4, dtype=torch.int64, device=dev)
+        radii = torch.empty(n, dtype=torch.int32, device=dev)
+        flags = torch.empty(3, n, dtype=torch.int8, device=dev)  # valid, visible, bad
+        grid = (max(1, -(-n // PROJECT_BLOCK)),)
+        with _launch_ctx(m2d):
+            k.project_fwd[grid](cam, *ins, fv if fv is not None else ins[3], m2d, con, amp, depth, bb, radii, flags[0],
+                                flags[1], flags[2], n, MODE=int(mode), MIP=bool(mip), HAS_F=fv is not None,
+                                CONE=bool(cone), BLOCK=PROJECT_BLOCK)
+        valid, visible, bad = flags.view(torch.bool).unbind(0)
+        nonfinite = bad.any().to(torch.int32)
+        ctx.save_for_backward(*ins, cam, *([fv] if fv is not None else []))
+        ctx.flags = (int(mode), bool(mip), fv is not None, bool(cone))
+        ctx.mark_non_differentiable(depth, bb, radii, valid, visible, nonfinite)
+        ctx.set_materialize_grads(False)
+        return m2d, con, amp, depth, bb, radii, valid, visible, nonfinite
+
+    @staticmethod
+    def backward(ctx, g_m2d, g_con, g_amp, *_no_grad):  # noqa: ANN001
+        saved = ctx.saved_tensors
+        means, ls, q, d, cam = saved[:5]
+        mode, mip, has_f, cone = ctx.flags
+        fv = saved[5] if has_f else None
+        dt, n = means.dtype, means.shape[0]
+        gs = [g.to(dt).contiguous() if g is not None else torch.zeros((n, c) if c else (n,), dtype=dt,
+                                                                      device=means.device)
+              for g, c in zip((g_m2d, g_con, g_amp), (2, 3, 0), strict=True)]
+        gm, gl, gq, gd = torch.empty_like(means), torch.empty_like(ls), torch.empty_like(q), torch.empty_like(d)
+        with _launch_ctx(means):
+            kernels().project_bwd[(max(1, -(-n // PROJECT_BLOCK)),)](
+                cam, means, ls, q, d, fv if fv is not None else d, *gs, gm, gl, gq, gd, n, MODE=mode, MIP=mip,
+                HAS_F=has_f, CONE=cone, BLOCK=PROJECT_BLOCK)
+        return gm, gl, gq, gd, None, None, None, None, None
 
 
 class SplatAdditive(torch.autograd.Function):

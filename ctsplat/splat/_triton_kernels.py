@@ -1,4 +1,4 @@
-"""Triton kernels of the GPU path: tile rasterisers (additive and alpha, forward and backward) and the voxelizer.
+"""Triton kernels of the GPU path: projection, tile rasterisers (additive and alpha) and the voxelizer, each both ways.
 
 Imported only by :mod:`ctsplat.splat._triton` (lazily: importing this module imports ``triton`` and decorates the
 kernels; with ``TRITON_INTERPRET=1`` in the environment at that moment they run on CPU tensors through Triton's
@@ -288,6 +288,375 @@ def voxel_bwd(means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, aff_ptr, offsets_pt
         tl.store(row + 7, -rho * tl.sum(ge * d0 * d2, axis=1), mask=km)
         tl.store(row + 8, -rho * tl.sum(ge * d1 * d2, axis=1), mask=km)
         tl.store(row + 9, tl.sum(ge, axis=1), mask=km)
+
+
+# ------------------------------------------------------------------------------------------- projection
+# The EWA projection of csrc/project.h (proj8 / proj8_bwd), one Gaussian per lane of a BLOCK: forward writes
+# means2d, conics, amplitudes, depths and the pixel boxes; backward recomputes the state and writes the gradients
+# of means, log-scales, quaternions and the raw density (opacity). cam_ptr: the float64 vector of
+# ``ctsplat.splat._kernel.camera_vector`` (on the device: no read-back), its model a constexpr (CONE).
+
+
+@triton.jit
+def _finite(x):
+    return (x - x) == 0  # NaN and ±inf give NaN
+
+
+@triton.jit
+def _log1p(y):
+    """``log(1 + y)`` to full precision for small ``y`` (Goldberg's correction of the rounded ``1 + y``)."""
+    u = 1.0 + y
+    return tl.where(u == 1.0, y, tl.log(u) * (y / tl.where(u == 1.0, 1.0, u - 1.0)))
+
+
+@triton.jit
+def _proj_state(cam_ptr, means_ptr, ls_ptr, q_ptr, draw_ptr, fv_ptr, i, msk, MODE: tl.constexpr, MIP: tl.constexpr,
+                HAS_F: tl.constexpr, CONE: tl.constexpr):
+    dt = means_ptr.dtype.element_ty
+    # camera: [model, sx, sy, fx, fy, cx, cy, W, H, lim_x, lim_y, R (9), t (3), k2, near, cutoff]
+    sx = tl.load(cam_ptr + 1).to(dt)
+    sy = tl.load(cam_ptr + 2).to(dt)
+    fx = tl.load(cam_ptr + 3).to(dt)
+    fy = tl.load(cam_ptr + 4).to(dt)
+    limx = tl.load(cam_ptr + 9).to(dt)
+    limy = tl.load(cam_ptr + 10).to(dt)
+    r00 = tl.load(cam_ptr + 11).to(dt)
+    r01 = tl.load(cam_ptr + 12).to(dt)
+    r02 = tl.load(cam_ptr + 13).to(dt)
+    r10 = tl.load(cam_ptr + 14).to(dt)
+    r11 = tl.load(cam_ptr + 15).to(dt)
+    r12 = tl.load(cam_ptr + 16).to(dt)
+    r20 = tl.load(cam_ptr + 17).to(dt)
+    r21 = tl.load(cam_ptr + 18).to(dt)
+    r22 = tl.load(cam_ptr + 19).to(dt)
+    k2 = tl.load(cam_ptr + 23).to(dt)
+    near = tl.load(cam_ptr + 24).to(dt)
+    # activations
+    s2_0 = tl.exp(2.0 * tl.load(ls_ptr + i * 3 + 0, mask=msk, other=0.0))
+    s2_1 = tl.exp(2.0 * tl.load(ls_ptr + i * 3 + 1, mask=msk, other=0.0))
+    s2_2 = tl.exp(2.0 * tl.load(ls_ptr + i * 3 + 2, mask=msk, other=0.0))
+    raw = tl.load(draw_ptr + i, mask=msk, other=0.0)
+    if MODE == 2:
+        xr = tl.minimum(tl.maximum(raw, -80.0), 80.0)
+        rho = 1.0 / (1.0 + tl.exp(-xr))
+        drho = rho * (1.0 - rho)
+    else:
+        rho = tl.where(raw > 20.0, raw, _log1p(tl.exp(tl.minimum(raw, 20.0))))
+        drho = 1.0 / (1.0 + tl.exp(tl.minimum(-raw, 80.0)))
+    if HAS_F:
+        fv = tl.load(fv_ptr + i, mask=msk, other=0.0)
+    else:
+        fv = tl.zeros_like(raw)
+    s2f_0 = s2_0 + fv
+    s2f_1 = s2_1 + fv
+    s2f_2 = s2_2 + fv
+    # unit quaternion, rotation, M = R Rq
+    q0 = tl.load(q_ptr + i * 4 + 0, mask=msk, other=1.0)
+    q1 = tl.load(q_ptr + i * 4 + 1, mask=msk, other=0.0)
+    q2 = tl.load(q_ptr + i * 4 + 2, mask=msk, other=0.0)
+    q3 = tl.load(q_ptr + i * 4 + 3, mask=msk, other=0.0)
+    nq = tl.maximum(tl.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), 1e-12)
+    w = q0 / nq
+    x = q1 / nq
+    y = q2 / nq
+    z = q3 / nq
+    a00 = 1.0 - 2.0 * (y * y + z * z)
+    a01 = 2.0 * (x * y - w * z)
+    a02 = 2.0 * (x * z + w * y)
+    a10 = 2.0 * (x * y + w * z)
+    a11 = 1.0 - 2.0 * (x * x + z * z)
+    a12 = 2.0 * (y * z - w * x)
+    a20 = 2.0 * (x * z - w * y)
+    a21 = 2.0 * (y * z + w * x)
+    a22 = 1.0 - 2.0 * (x * x + y * y)
+    m00 = r00 * a00 + r01 * a10 + r02 * a20
+    m01 = r00 * a01 + r01 * a11 + r02 * a21
+    m02 = r00 * a02 + r01 * a12 + r02 * a22
+    m10 = r10 * a00 + r11 * a10 + r12 * a20
+    m11 = r10 * a01 + r11 * a11 + r12 * a21
+    m12 = r10 * a02 + r11 * a12 + r12 * a22
+    m20 = r20 * a00 + r21 * a10 + r22 * a20
+    m21 = r20 * a01 + r21 * a11 + r22 * a21
+    m22 = r20 * a02 + r21 * a12 + r22 * a22
+    mx = tl.load(means_ptr + i * 3 + 0, mask=msk, other=0.0)
+    my = tl.load(means_ptr + i * 3 + 1, mask=msk, other=0.0)
+    mz = tl.load(means_ptr + i * 3 + 2, mask=msk, other=0.0)
+    xc0 = r00 * mx + r01 * my + r02 * mz + tl.load(cam_ptr + 20).to(dt)
+    xc1 = r10 * mx + r11 * my + r12 * mz + tl.load(cam_ptr + 21).to(dt)
+    xc2 = r20 * mx + r21 * my + r22 * mz + tl.load(cam_ptr + 22).to(dt)
+    zero = tl.zeros_like(xc2)
+    if CONE:
+        valid = xc2 > near
+        zs = tl.where(valid, xc2, 1.0)
+        rx = xc0 / zs
+        ry = xc1 / zs
+        unclx = (rx >= -limx) & (rx <= limx)
+        uncly = (ry >= -limy) & (ry <= limy)
+        clx = tl.minimum(tl.maximum(rx, -limx), limx)
+        cly = tl.minimum(tl.maximum(ry, -limy), limy)
+        tx = zs * clx
+        ty = zs * cly
+        r = tl.sqrt(tx * tx + ty * ty + zs * zs)
+        j0 = fx / zs
+        j2 = -fx * tx / (zs * zs)
+        j4 = fy / zs
+        j5 = -fy * ty / (zs * zs)
+        detj = fx * fy * r / (zs * zs * zs)
+    else:
+        valid = xc2 == xc2
+        zs = xc2
+        unclx = valid
+        uncly = valid
+        clx = zero
+        cly = zero
+        tx = zero
+        ty = zero
+        r = zero + 1.0
+        j0 = zero + 1.0 / sx
+        j2 = zero
+        j4 = zero + 1.0 / sy
+        j5 = zero
+        detj = zero + 1.0 / (sx * sy)
+    # T = J2 M (J2 = [[j0, 0, j2], [0, j4, j5]])
+    t0 = j0 * m00 + j2 * m20
+    t1 = j0 * m01 + j2 * m21
+    t2 = j0 * m02 + j2 * m22
+    t3 = j4 * m10 + j5 * m20
+    t4 = j4 * m11 + j5 * m21
+    t5 = j4 * m12 + j5 * m22
+    c00 = t0 * t0 * s2f_0 + t1 * t1 * s2f_1 + t2 * t2 * s2f_2
+    c01 = t0 * t3 * s2f_0 + t1 * t4 * s2f_1 + t2 * t5 * s2f_2
+    c11 = t3 * t3 * s2f_0 + t4 * t4 * s2f_1 + t5 * t5 * s2f_2
+    f00 = c00 + k2
+    f11 = c11 + k2
+    dd = f00 * f11 - c01 * c01
+    dh_raw = c00 * c11 - c01 * c01
+    dh = tl.maximum(dh_raw, 1e-20)
+    if MODE == 0:
+        ampn = tl.sqrt(6.283185307179586 / dd * (s2_0 * s2_1 * s2_2)) * detj
+    else:
+        ampn = zero + 1.0
+        if HAS_F:
+            ampn = ampn * tl.sqrt((s2_0 / s2f_0) * (s2_1 / s2f_1) * (s2_2 / s2f_2))
+        if MIP:
+            ampn = ampn * tl.sqrt(dh / dd)
+    return (rho, drho, s2_0, s2_1, s2_2, s2f_0, s2f_1, s2f_2, nq, w, x, y, z,
+            m00, m01, m02, m10, m11, m12, m20, m21, m22, xc0, xc1, xc2, valid, zs, unclx, uncly, clx, cly, tx, ty, r,
+            j0, j2, j4, j5, t0, t1, t2, t3, t4, t5, c00, c01, c11, f00, f11, dd, dh_raw, dh, ampn)
+
+
+@triton.jit
+def project_fwd(cam_ptr, means_ptr, ls_ptr, q_ptr, draw_ptr, fv_ptr, m2d_ptr, con_ptr, amp_ptr, depth_ptr, bb_ptr,
+                radii_ptr, valid_ptr, visible_ptr, bad_ptr, n, MODE: tl.constexpr, MIP: tl.constexpr,
+                HAS_F: tl.constexpr, CONE: tl.constexpr, BLOCK: tl.constexpr):
+    """Project ``BLOCK`` Gaussians: ``means2d``, conic ``(f11, -f01, f00) / D``, amplitude, depth, valid, pixel box
+    (centres ``i + 0.5`` inside ``[m - h, m + h]``, ``h = cutoff sqrt(f_aa)``, clipped), radii, visible, and a flag
+    per Gaussian for NaN/Inf inputs (or a negative filter variance)."""
+    i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    msk = i < n
+    (rho, drho, s2_0, s2_1, s2_2, s2f_0, s2f_1, s2f_2, nq, w, x, y, z,
+     m00, m01, m02, m10, m11, m12, m20, m21, m22, xc0, xc1, xc2, valid, zs, unclx, uncly, clx, cly, tx, ty, r,
+     j0, j2, j4, j5, t0, t1, t2, t3, t4, t5, c00, c01, c11, f00, f11, dd, dh_raw, dh, ampn) = _proj_state(
+        cam_ptr, means_ptr, ls_ptr, q_ptr, draw_ptr, fv_ptr, i, msk, MODE, MIP, HAS_F, CONE)
+    dt = means_ptr.dtype.element_ty
+    cx = tl.load(cam_ptr + 5).to(dt)
+    cy = tl.load(cam_ptr + 6).to(dt)
+    wf = tl.load(cam_ptr + 7).to(dt)
+    hf = tl.load(cam_ptr + 8).to(dt)
+    cut = tl.load(cam_ptr + 25).to(dt)
+    if CONE:
+        u = tl.load(cam_ptr + 3).to(dt) * xc0 / zs + cx
+        v = tl.load(cam_ptr + 4).to(dt) * xc1 / zs + cy
+    else:
+        u = xc0 / tl.load(cam_ptr + 1).to(dt) + cx
+        v = xc1 / tl.load(cam_ptr + 2).to(dt) + cy
+    tl.store(m2d_ptr + i * 2 + 0, u, mask=msk)
+    tl.store(m2d_ptr + i * 2 + 1, v, mask=msk)
+    tl.store(con_ptr + i * 3 + 0, f11 / dd, mask=msk)
+    tl.store(con_ptr + i * 3 + 1, -c01 / dd, mask=msk)
+    tl.store(con_ptr + i * 3 + 2, f00 / dd, mask=msk)
+    tl.store(amp_ptr + i, rho * ampn, mask=msk)
+    tl.store(depth_ptr + i, xc2, mask=msk)
+    tl.store(valid_ptr + i, valid.to(tl.int8), mask=msk)
+    hx = cut * tl.sqrt(tl.maximum(f00, 0.0))
+    hy = cut * tl.sqrt(tl.maximum(f11, 0.0))
+    ok = valid & _finite(u) & _finite(v) & _finite(hx) & _finite(hy)
+    us = tl.where(ok, u, 0.0)
+    vs = tl.where(ok, v, 0.0)
+    hxs = tl.where(ok, hx, 0.0)
+    hys = tl.where(ok, hy, 0.0)
+    u0 = tl.minimum(tl.maximum(tl.ceil(tl.minimum(tl.maximum(us - hxs - 0.5, -2.0), wf + 2.0)), 0.0), wf)
+    u1 = tl.minimum(tl.maximum(tl.floor(tl.minimum(tl.maximum(us + hxs - 0.5, -2.0), wf + 2.0)) + 1.0, 0.0), wf)
+    v0 = tl.minimum(tl.maximum(tl.ceil(tl.minimum(tl.maximum(vs - hys - 0.5, -2.0), hf + 2.0)), 0.0), hf)
+    v1 = tl.minimum(tl.maximum(tl.floor(tl.minimum(tl.maximum(vs + hys - 0.5, -2.0), hf + 2.0)) + 1.0, 0.0), hf)
+    u0i = tl.where(ok, u0.to(tl.int64), 0)
+    u1i = tl.maximum(tl.where(ok, u1.to(tl.int64), 0), u0i)
+    v0i = tl.where(ok, v0.to(tl.int64), 0)
+    v1i = tl.maximum(tl.where(ok, v1.to(tl.int64), 0), v0i)
+    tl.store(bb_ptr + i * 4 + 0, u0i, mask=msk)
+    tl.store(bb_ptr + i * 4 + 1, u1i, mask=msk)
+    tl.store(bb_ptr + i * 4 + 2, v0i, mask=msk)
+    tl.store(bb_ptr + i * 4 + 3, v1i, mask=msk)
+    vis = (u1i > u0i) & (v1i > v0i)
+    tl.store(visible_ptr + i, vis.to(tl.int8), mask=msk)
+    tl.store(radii_ptr + i, tl.where(vis, tl.maximum(u1i - u0i, v1i - v0i) // 2 + 1, 0).to(tl.int32), mask=msk)
+    mx = tl.load(means_ptr + i * 3 + 0, mask=msk, other=0.0)
+    my = tl.load(means_ptr + i * 3 + 1, mask=msk, other=0.0)
+    mz = tl.load(means_ptr + i * 3 + 2, mask=msk, other=0.0)
+    good = _finite(mx) & _finite(my) & _finite(mz) & _finite(tl.load(draw_ptr + i, mask=msk, other=0.0))
+    for k in tl.static_range(3):
+        good = good & _finite(tl.load(ls_ptr + i * 3 + k, mask=msk, other=0.0))
+    for k in tl.static_range(4):
+        good = good & _finite(tl.load(q_ptr + i * 4 + k, mask=msk, other=0.0))
+    if HAS_F:
+        fvv = tl.load(fv_ptr + i, mask=msk, other=0.0)
+        good = good & _finite(fvv) & (fvv >= 0)
+    tl.store(bad_ptr + i, (~good).to(tl.int8), mask=msk)
+
+
+@triton.jit
+def project_bwd(cam_ptr, means_ptr, ls_ptr, q_ptr, draw_ptr, fv_ptr, gm2d_ptr, gcon_ptr, gamp_ptr, gmeans_ptr,
+                gls_ptr, gq_ptr, gdraw_ptr, n, MODE: tl.constexpr, MIP: tl.constexpr, HAS_F: tl.constexpr,
+                CONE: tl.constexpr, BLOCK: tl.constexpr):
+    """Gradients of ``project_fwd``'s means2d, conics and amplitudes with respect to means, log-scales,
+    quaternions and the raw density (the chain of csrc/project.h ``proj_bwd``)."""
+    i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    msk = i < n
+    (rho, drho, s2_0, s2_1, s2_2, s2f_0, s2f_1, s2f_2, nq, w, x, y, z,
+     m00, m01, m02, m10, m11, m12, m20, m21, m22, xc0, xc1, xc2, valid, zs, unclx, uncly, clx, cly, tx, ty, r,
+     j0, j2, j4, j5, t0, t1, t2, t3, t4, t5, c00, c01, c11, f00, f11, dd, dh_raw, dh, ampn) = _proj_state(
+        cam_ptr, means_ptr, ls_ptr, q_ptr, draw_ptr, fv_ptr, i, msk, MODE, MIP, HAS_F, CONE)
+    dt = means_ptr.dtype.element_ty
+    zero = tl.zeros_like(xc2)
+    amp = rho * ampn
+    ga = tl.load(gamp_ptr + i, mask=msk, other=0.0)
+    gaa = ga * amp
+    g_ls0 = zero
+    g_ls1 = zero
+    g_ls2 = zero
+    g_s2f0 = zero
+    g_s2f1 = zero
+    g_s2f2 = zero
+    g_logdetj = zero
+    gd = zero
+    gdh = zero
+    if MODE == 0:
+        g_ls0 += gaa
+        g_ls1 += gaa
+        g_ls2 += gaa
+        g_logdetj += gaa
+        gd += -0.5 * gaa / dd
+    else:
+        if HAS_F:
+            g_ls0 += gaa
+            g_ls1 += gaa
+            g_ls2 += gaa
+            g_s2f0 += -0.5 * gaa / s2f_0
+            g_s2f1 += -0.5 * gaa / s2f_1
+            g_s2f2 += -0.5 * gaa / s2f_2
+        if MIP:
+            gd += -0.5 * gaa / dd
+            gdh += tl.where(dh_raw >= 1e-20, 0.5 * gaa / dh, 0.0)
+    tl.store(gdraw_ptr + i, ga * ampn * drho, mask=msk)
+    g_a = tl.load(gcon_ptr + i * 3 + 0, mask=msk, other=0.0)
+    g_b = tl.load(gcon_ptr + i * 3 + 1, mask=msk, other=0.0)
+    g_c = tl.load(gcon_ptr + i * 3 + 2, mask=msk, other=0.0)
+    gd += -(g_a * f11 - g_b * c01 + g_c * f00) / (dd * dd)
+    g_f00 = g_c / dd + gd * f11
+    g_f11 = g_a / dd + gd * f00
+    g_f01 = -g_b / dd - 2.0 * gd * c01
+    g_c00 = g_f00 + gdh * c11
+    g_c11 = g_f11 + gdh * c00
+    g_c01 = g_f01 - 2.0 * gdh * c01
+    gt0 = (2.0 * g_c00 * t0 + g_c01 * t3) * s2f_0
+    gt1 = (2.0 * g_c00 * t1 + g_c01 * t4) * s2f_1
+    gt2 = (2.0 * g_c00 * t2 + g_c01 * t5) * s2f_2
+    gt3 = (2.0 * g_c11 * t3 + g_c01 * t0) * s2f_0
+    gt4 = (2.0 * g_c11 * t4 + g_c01 * t1) * s2f_1
+    gt5 = (2.0 * g_c11 * t5 + g_c01 * t2) * s2f_2
+    g_s2f0 += g_c00 * t0 * t0 + g_c01 * t0 * t3 + g_c11 * t3 * t3
+    g_s2f1 += g_c00 * t1 * t1 + g_c01 * t1 * t4 + g_c11 * t4 * t4
+    g_s2f2 += g_c00 * t2 * t2 + g_c01 * t2 * t5 + g_c11 * t5 * t5
+    g_ls0 += 2.0 * s2_0 * g_s2f0
+    g_ls1 += 2.0 * s2_1 * g_s2f1
+    g_ls2 += 2.0 * s2_2 * g_s2f2
+    # T = J2 M: gJ2 = gT Mᵀ (the entries J2 has), gM = J2ᵀ gT
+    gj0 = gt0 * m00 + gt1 * m01 + gt2 * m02
+    gj2 = gt0 * m20 + gt1 * m21 + gt2 * m22
+    gj4 = gt3 * m10 + gt4 * m11 + gt5 * m12
+    gj5 = gt3 * m20 + gt4 * m21 + gt5 * m22
+    gm00 = j0 * gt0
+    gm01 = j0 * gt1
+    gm02 = j0 * gt2
+    gm10 = j4 * gt3
+    gm11 = j4 * gt4
+    gm12 = j4 * gt5
+    gm20 = j2 * gt0 + j5 * gt3
+    gm21 = j2 * gt1 + j5 * gt4
+    gm22 = j2 * gt2 + j5 * gt5
+    r00 = tl.load(cam_ptr + 11).to(dt)
+    r01 = tl.load(cam_ptr + 12).to(dt)
+    r02 = tl.load(cam_ptr + 13).to(dt)
+    r10 = tl.load(cam_ptr + 14).to(dt)
+    r11 = tl.load(cam_ptr + 15).to(dt)
+    r12 = tl.load(cam_ptr + 16).to(dt)
+    r20 = tl.load(cam_ptr + 17).to(dt)
+    r21 = tl.load(cam_ptr + 18).to(dt)
+    r22 = tl.load(cam_ptr + 19).to(dt)
+    # M = R Rq: gRq = Rᵀ gM
+    ga00 = r00 * gm00 + r10 * gm10 + r20 * gm20
+    ga01 = r00 * gm01 + r10 * gm11 + r20 * gm21
+    ga02 = r00 * gm02 + r10 * gm12 + r20 * gm22
+    ga10 = r01 * gm00 + r11 * gm10 + r21 * gm20
+    ga11 = r01 * gm01 + r11 * gm11 + r21 * gm21
+    ga12 = r01 * gm02 + r11 * gm12 + r21 * gm22
+    ga20 = r02 * gm00 + r12 * gm10 + r22 * gm20
+    ga21 = r02 * gm01 + r12 * gm11 + r22 * gm21
+    ga22 = r02 * gm02 + r12 * gm12 + r22 * gm22
+    gw = 2.0 * (-z * ga01 + y * ga02 + z * ga10 - x * ga12 - y * ga20 + x * ga21)
+    gx = 2.0 * (y * ga01 + z * ga02 + y * ga10 - 2.0 * x * ga11 - w * ga12 + z * ga20 + w * ga21 - 2.0 * x * ga22)
+    gy = 2.0 * (-2.0 * y * ga00 + x * ga01 + w * ga02 + x * ga10 + z * ga12 - w * ga20 + z * ga21 - 2.0 * y * ga22)
+    gz_q = 2.0 * (-2.0 * z * ga00 - w * ga01 + x * ga02 + w * ga10 - 2.0 * z * ga11 + y * ga12 + x * ga20 + y * ga21)
+    dotq = gw * w + gx * x + gy * y + gz_q * z
+    tl.store(gq_ptr + i * 4 + 0, (gw - w * dotq) / nq, mask=msk)
+    tl.store(gq_ptr + i * 4 + 1, (gx - x * dotq) / nq, mask=msk)
+    tl.store(gq_ptr + i * 4 + 2, (gy - y * dotq) / nq, mask=msk)
+    tl.store(gq_ptr + i * 4 + 3, (gz_q - z * dotq) / nq, mask=msk)
+    gu = tl.load(gm2d_ptr + i * 2 + 0, mask=msk, other=0.0)
+    gv = tl.load(gm2d_ptr + i * 2 + 1, mask=msk, other=0.0)
+    if CONE:
+        fx = tl.load(cam_ptr + 3).to(dt)
+        fy = tl.load(cam_ptr + 4).to(dt)
+        z2 = zs * zs
+        z3 = z2 * zs
+        d0 = gu * fx / zs
+        d1 = gv * fy / zs
+        d2 = -gu * fx * xc0 / z2 - gv * fy * xc1 / z2
+        gzz = -gj0 * fx / z2 + 2.0 * gj2 * fx * tx / z3 - gj4 * fy / z2 + 2.0 * gj5 * fy * ty / z3
+        gtx = -gj2 * fx / z2
+        gty = -gj5 * fy / z2
+        r2 = r * r
+        gtx += g_logdetj * tx / r2
+        gty += g_logdetj * ty / r2
+        gzz += g_logdetj * (zs / r2 - 3.0 / zs)
+        d0 += tl.where(unclx, gtx, 0.0)
+        gzz += tl.where(unclx, 0.0, gtx * clx)
+        d1 += tl.where(uncly, gty, 0.0)
+        gzz += tl.where(uncly, 0.0, gty * cly)
+        d2 += gzz
+        g_xc0 = tl.where(valid, d0, 0.0)
+        g_xc1 = tl.where(valid, d1, 0.0)
+        g_xc2 = tl.where(valid, d2, 0.0)
+    else:
+        g_xc0 = gu / tl.load(cam_ptr + 1).to(dt)
+        g_xc1 = gv / tl.load(cam_ptr + 2).to(dt)
+        g_xc2 = zero
+    tl.store(gls_ptr + i * 3 + 0, g_ls0, mask=msk)
+    tl.store(gls_ptr + i * 3 + 1, g_ls1, mask=msk)
+    tl.store(gls_ptr + i * 3 + 2, g_ls2, mask=msk)
+    tl.store(gmeans_ptr + i * 3 + 0, r00 * g_xc0 + r10 * g_xc1 + r20 * g_xc2, mask=msk)
+    tl.store(gmeans_ptr + i * 3 + 1, r01 * g_xc0 + r11 * g_xc1 + r21 * g_xc2, mask=msk)
+    tl.store(gmeans_ptr + i * 3 + 2, r02 * g_xc0 + r12 * g_xc1 + r22 * g_xc2, mask=msk)
 
 
 #: whether the kernels were built for Triton's CPU interpreter (TRITON_INTERPRET=1 when this module was imported)

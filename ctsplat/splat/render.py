@@ -528,12 +528,12 @@ def render(
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
     fused = _fused(backend, gaussians.means.device)
-    if fused is _kernel:
-        # the kernel flags NaN/Inf in what it reads (one pass, no per-view torch reductions); the full check
-        # then names the parameter. Colours, which the kernel does not read, are checked here (alpha only).
+    if fused is not None:
+        # the fused projection flags NaN/Inf in what it reads (one pass, no per-view torch reductions); the full
+        # check then names the parameter. Colours, which it does not read, are checked here (alpha only).
         gaussians.validate(check_finite=("colors", "sh_rest") if compositor == "alpha" else False)
-        proj, radii, visible, nonfinite = _project_kernel(gaussians, cam, R, t, compositor, filter_3d_var, mip_2d,
-                                                          sigma_cutoff)
+        proj, radii, visible, nonfinite = _project_kernel(fused, gaussians, cam, R, t, compositor, filter_3d_var,
+                                                          mip_2d, sigma_cutoff)
         if nonfinite:
             _check_inputs(gaussians, filter_3d_var)
             raise CtsplatError("Gaussian parameters contain NaN/Inf; lower the learning rate or prune/reset them")
@@ -580,11 +580,12 @@ def render(
 
 
 def _project_kernel(
-    gaussians: Gaussians, cam: dict[str, Any], R: Any, t: Any, compositor: str, filter_3d_var: Any, mip_2d: bool,
-    sigma_cutoff: float,
+    fused: ModuleType, gaussians: Gaussians, cam: dict[str, Any], R: Any, t: Any, compositor: str, filter_3d_var: Any,
+    mip_2d: bool, sigma_cutoff: float,
 ) -> tuple[Projection, torch.Tensor, torch.Tensor, bool]:
-    """:func:`project` through the fused C kernel (CPU, float32/float64); also returns ``radii`` (N,) int32,
-    ``visible`` (N,) bool and whether an input held NaN/Inf (or a negative filter variance)."""
+    """:func:`project` through a fused projection (``fused``: the C kernel on CPU or the Triton kernel,
+    float32/float64); also returns ``radii`` (N,) int32, ``visible`` (N,) bool and whether an input held NaN/Inf
+    (or a negative filter variance)."""
     means = gaussians.means
     R_t, t_t = _as_pose(R, t, means)
     fv = None
@@ -598,8 +599,9 @@ def _project_kernel(
     if compositor == "alpha":
         # no opacity -> opacity 1 (sigmoid(40) == 1 in float32), as Gaussians.opacities says
         raw = gaussians.opacity_raw if gaussians.opacity_raw is not None else torch.full_like(raw.detach(), 40.0)
-    m2d, con, amp, depth, bb, radii, valid, visible, nonfinite = _kernel.Project.apply(
-        means, gaussians.log_scales, gaussians.quats, raw, fv, cam_vec, mode, bool(mip_2d)
+    extra = (cam["model"] == "cone",) if fused is _triton else ()  # the Triton kernel compiles per camera model
+    m2d, con, amp, depth, bb, radii, valid, visible, nonfinite = fused.Project.apply(
+        means, gaussians.log_scales, gaussians.quats, raw, fv, cam_vec, mode, bool(mip_2d), *extra
     )
     proj = Projection(means2d=m2d, conics=con, cov2d=torch.empty(0), amps=amp, depths=depth, valid=valid, bbox=bb)
     return proj, radii, visible, bool(nonfinite)

@@ -317,6 +317,14 @@ def check_compile() -> None:
             (K.voxel_fwd, {**vox, "out_ptr": p}, {"B": 8, "G": 8}),
             (K.voxel_bwd, {**vox, "grad_ptr": p, "pair_ptr": p}, {"B": 8, "G": 8}),
         ]
+        proj = {"cam_ptr": "*fp64", "means_ptr": p, "ls_ptr": p, "q_ptr": p, "draw_ptr": p, "fv_ptr": p}
+        for flags in ({"MODE": 0, "MIP": False, "HAS_F": True, "CONE": True, "BLOCK": 128},
+                      {"MODE": 2, "MIP": True, "HAS_F": False, "CONE": False, "BLOCK": 128}):
+            kernels.append((K.project_fwd, {**proj, "m2d_ptr": p, "con_ptr": p, "amp_ptr": p, "depth_ptr": p,
+                                            "bb_ptr": "*i64", "radii_ptr": "*i32", "valid_ptr": "*i8",
+                                            "visible_ptr": "*i8", "bad_ptr": "*i8"}, flags))
+            kernels.append((K.project_bwd, {**proj, **{f"g{k}_ptr": p for k in ("m2d", "con", "amp", "means", "ls",
+                                                                                  "q", "draw")}}, flags))
         for fn, types, consts in kernels:
             names = list(inspect.signature(fn.fn).parameters)
             sig = {n: "constexpr" if n in consts else types.get(n, "i32") for n in names}
