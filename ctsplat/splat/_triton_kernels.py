@@ -310,6 +310,14 @@ def _log1p(y):
 
 
 @triton.jit
+def _cam_rotation(cam_ptr, dt: tl.constexpr):
+    """The camera's world-to-camera rotation (row-major, entries 11..19 of the camera vector) in ``dt``."""
+    return (tl.load(cam_ptr + 11).to(dt), tl.load(cam_ptr + 12).to(dt), tl.load(cam_ptr + 13).to(dt),
+            tl.load(cam_ptr + 14).to(dt), tl.load(cam_ptr + 15).to(dt), tl.load(cam_ptr + 16).to(dt),
+            tl.load(cam_ptr + 17).to(dt), tl.load(cam_ptr + 18).to(dt), tl.load(cam_ptr + 19).to(dt))
+
+
+@triton.jit
 def _proj_state(cam_ptr, means_ptr, ls_ptr, q_ptr, draw_ptr, fv_ptr, i, msk, MODE: tl.constexpr, MIP: tl.constexpr,
                 HAS_F: tl.constexpr, CONE: tl.constexpr):
     dt = means_ptr.dtype.element_ty
@@ -320,15 +328,7 @@ def _proj_state(cam_ptr, means_ptr, ls_ptr, q_ptr, draw_ptr, fv_ptr, i, msk, MOD
     fy = tl.load(cam_ptr + 4).to(dt)
     limx = tl.load(cam_ptr + 9).to(dt)
     limy = tl.load(cam_ptr + 10).to(dt)
-    r00 = tl.load(cam_ptr + 11).to(dt)
-    r01 = tl.load(cam_ptr + 12).to(dt)
-    r02 = tl.load(cam_ptr + 13).to(dt)
-    r10 = tl.load(cam_ptr + 14).to(dt)
-    r11 = tl.load(cam_ptr + 15).to(dt)
-    r12 = tl.load(cam_ptr + 16).to(dt)
-    r20 = tl.load(cam_ptr + 17).to(dt)
-    r21 = tl.load(cam_ptr + 18).to(dt)
-    r22 = tl.load(cam_ptr + 19).to(dt)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = _cam_rotation(cam_ptr, dt)
     k2 = tl.load(cam_ptr + 23).to(dt)
     near = tl.load(cam_ptr + 24).to(dt)
     # activations
@@ -594,15 +594,7 @@ def project_bwd(cam_ptr, means_ptr, ls_ptr, q_ptr, draw_ptr, fv_ptr, gm2d_ptr, g
     gm20 = j2 * gt0 + j5 * gt3
     gm21 = j2 * gt1 + j5 * gt4
     gm22 = j2 * gt2 + j5 * gt5
-    r00 = tl.load(cam_ptr + 11).to(dt)
-    r01 = tl.load(cam_ptr + 12).to(dt)
-    r02 = tl.load(cam_ptr + 13).to(dt)
-    r10 = tl.load(cam_ptr + 14).to(dt)
-    r11 = tl.load(cam_ptr + 15).to(dt)
-    r12 = tl.load(cam_ptr + 16).to(dt)
-    r20 = tl.load(cam_ptr + 17).to(dt)
-    r21 = tl.load(cam_ptr + 18).to(dt)
-    r22 = tl.load(cam_ptr + 19).to(dt)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = _cam_rotation(cam_ptr, dt)
     # M = R Rq: gRq = Rᵀ gM
     ga00 = r00 * gm00 + r10 * gm10 + r20 * gm20
     ga01 = r00 * gm01 + r10 * gm11 + r20 * gm21

@@ -180,6 +180,28 @@ def check_voxelize(device: str = "cpu") -> None:
 PATHS = ("other", "triton")
 
 
+def _tiny_scene(prefix: str, volume_id: str) -> Path:
+    """A temporary folder with a 16³ ellipsoid (``volume.nii.gz``, 2 mm voxels) and 8 parallel 16² views (``rad``)."""
+    import tempfile
+
+    import numpy as np
+
+    from ctsplat.formats.volume import Volume, save_volume
+    from ctsplat.projector import render_radiographs
+
+    root = Path(tempfile.mkdtemp(prefix=prefix))
+    n = 16
+    x = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).astype(float)
+    data = (np.linalg.norm((x - 7.5) / np.array([6.0, 5.0, 4.0]), axis=-1) < 1).astype(np.float32) * 0.8
+    aff = np.diag([2.0, 2.0, 2.0, 1.0])
+    aff[:3, 3] = -15.0
+    save_volume(Volume(data, aff, {"volume_id": volume_id, "intensity": {"mu_scale_per_mm": 0.02}}),
+                root / "volume.nii.gz")
+    render_radiographs(root / "volume.nii.gz", root / "rad",
+                       {"detector_width": 16, "detector_height": 16, "n_views": 8, "device": "cpu"})
+    return root
+
+
 def check_train(device: str = "cpu") -> None:
     """Training and evaluation end to end through the Triton kernels (radiative compositor, TV term through the
     voxelizer, densification reading ``means2d.grad``): the run finishes, the model learns, and its metrics are
@@ -187,26 +209,12 @@ def check_train(device: str = "cpu") -> None:
     ``auto`` is pointed at the Triton kernels)."""
     import csv
     import importlib
-    import tempfile
-
-    import numpy as np
 
     from ctsplat.evaluation import evaluate
-    from ctsplat.formats.volume import Volume, save_volume
-    from ctsplat.projector import render_radiographs
     from ctsplat.training import loop
 
     render_mod = importlib.import_module("ctsplat.splat.render")
-    root = Path(tempfile.mkdtemp(prefix="ctsplat_triton_train_"))
-    n = 16
-    x = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).astype(float)
-    data = (np.linalg.norm((x - 7.5) / np.array([6.0, 5.0, 4.0]), axis=-1) < 1).astype(np.float32) * 0.8
-    aff = np.diag([2.0, 2.0, 2.0, 1.0])
-    aff[:3, 3] = -15.0
-    save_volume(Volume(data, aff, {"volume_id": "tiny_triton", "intensity": {"mu_scale_per_mm": 0.02}}),
-                root / "volume.nii.gz")
-    render_radiographs(root / "volume.nii.gz", root / "rad",
-                       {"detector_width": 16, "detector_height": 16, "n_views": 8, "device": "cpu"})
+    root = _tiny_scene("ctsplat_triton_train_", "tiny_triton")
     cfg = {"volume": str(root / "volume.nii.gz"), "radiographs": str(root / "rad"), "init": "volume", "n_init": 100,
            "iterations": 12, "eval_every": 6, "checkpoint_every": 6, "device": device,
            "densify": {"interval": 6, "start": 6}, "figures": False, "fps_width": 16, "fps_height": 16,
@@ -239,28 +247,14 @@ def check_host_reads() -> None:
     on the CPU also on a GPU run are not counted: the TV region's draws from its CPU generator and its bounds."""
     import collections
     import importlib
-    import tempfile
     import traceback
 
-    import numpy as np
-
-    from ctsplat.formats.volume import Volume, save_volume
-    from ctsplat.projector import render_radiographs
     from ctsplat.training import loop
 
     render_mod = importlib.import_module("ctsplat.splat.render")
     render_mod._use_triton = lambda backend, dev: backend in ("auto", "triton")
     render_mod._use_kernel = lambda backend, dev: False
-    root = Path(tempfile.mkdtemp(prefix="ctsplat_triton_reads_"))
-    n = 16
-    x = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).astype(float)
-    data = (np.linalg.norm((x - 7.5) / np.array([6.0, 5.0, 4.0]), axis=-1) < 1).astype(np.float32) * 0.8
-    aff = np.diag([2.0, 2.0, 2.0, 1.0])
-    aff[:3, 3] = -15.0
-    save_volume(Volume(data, aff, {"volume_id": "tiny_reads", "intensity": {"mu_scale_per_mm": 0.02}}),
-                root / "volume.nii.gz")
-    render_radiographs(root / "volume.nii.gz", root / "rad",
-                       {"detector_width": 16, "detector_height": 16, "n_views": 8, "device": "cpu"})
+    root = _tiny_scene("ctsplat_triton_reads_", "tiny_reads")
     reads: collections.Counter = collections.Counter()
     cpu_resident = {"random_region", "voxelize"}  # voxelize: only its region bounds are read directly
 
