@@ -32,7 +32,6 @@ import csv
 import importlib
 import os
 import sys
-import traceback
 from pathlib import Path
 
 os.environ["TRITON_INTERPRET"] = "1"  # before triton is imported
@@ -46,46 +45,23 @@ sys.path.insert(0, str(HERE))
 
 from _common import cli_main  # noqa: E402
 
-READS = ("item", "__bool__", "__int__", "__float__", "__index__", "tolist")
-
 
 def _count(its: int, sets: list[str], vol: Path, rad: Path, out: Path) -> tuple[collections.Counter, dict[str, int]]:
     import protocol
-    import torch
     from torch.profiler import ProfilerActivity, profile
 
     from ctsplat.training import train
-
-    counter: collections.Counter = collections.Counter()
-    originals = {name: getattr(torch.Tensor, name) for name in READS}
-
-    def wrap(name: str):
-        orig = originals[name]
-
-        def read(self, *a, **k):  # noqa: ANN001, ANN002, ANN003
-            caller = traceback.extract_stack(limit=2)[0]
-            if "ctsplat" + os.sep in caller.filename:
-                site = caller.filename.split("ctsplat" + os.sep)[-1]
-                counter[(name, f"{site}:{caller.lineno}", caller.line or "")] += 1
-            return orig(self, *a, **k)
-
-        return read
+    from ctsplat.utils import count_host_reads
 
     cfg = protocol.train_config(["device=cpu", "init_asd_pocs.iterations=0", *sets], its, 3000)
     cfg.update(volume=str(vol), radiographs=str(rad), views=50, eval_every=10 * its)
-    for name in READS:
-        setattr(torch.Tensor, name, wrap(name))
-    try:
-        with profile(activities=[ProfilerActivity.CPU]) as prof:
-            train(cfg, out / f"run{its}")
-    finally:
-        for name, orig in originals.items():
-            setattr(torch.Tensor, name, orig)
+    with count_host_reads() as reads, profile(activities=[ProfilerActivity.CPU]) as prof:
+        train(cfg, out / f"run{its}")
     # outermost events only: an overload that calls another of the same name is one call
     ops = collections.Counter(e.name for e in prof.events()
                               if e.name in ("aten::nonzero", "aten::repeat_interleave")
                               and (e.cpu_parent is None or e.cpu_parent.name != e.name))
-    return counter, ops
+    return reads, ops
 
 
 def run(argv: list[str] | None = None) -> int:
@@ -110,7 +86,7 @@ def run(argv: list[str] | None = None) -> int:
     for key in sorted(set(c30) | set(c10)):
         per_it = (c30[key] - c10[key]) / 20
         if per_it > 0:
-            rows.append({"read": key[0], "site": key[1], "code": key[2].strip(), "per_iteration": per_it})
+            rows.append({"read": key[0], "site": key[1], "code": key[3], "per_iteration": per_it})
     for op in sorted(set(o30) | set(o10)):
         per_it = (o30.get(op, 0) - o10.get(op, 0)) / 20
         if per_it > 0:

@@ -12,6 +12,8 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import traceback
+from collections import Counter
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -33,6 +35,8 @@ __all__ = [
     "seed_everything",
     "run_lock",
     "LOCK_NAME",
+    "HOST_READS",
+    "count_host_reads",
 ]
 
 
@@ -479,3 +483,55 @@ def merge_config(section: str, user: dict[str, Any] | None, defaults: dict[str, 
         else:
             out[key] = user.get(key, default)
     return out
+
+
+#: the tensor methods through which the host reads a tensor's values (on a GPU each waits for the queued work)
+HOST_READS = ("item", "__bool__", "__int__", "__float__", "__index__", "tolist")
+
+
+@contextlib.contextmanager
+def count_host_reads() -> Iterator[Counter]:
+    """Count the reads of tensor values made directly by ctsplat code while the context is open.
+
+    Wraps the :data:`HOST_READS` methods of ``torch.Tensor`` (restored on exit) and counts each call whose immediate
+    caller is a file under ``ctsplat/``; reads inside torch (e.g. Adam's step counters) are not counted. Keys are
+    ``(method, "path/in/ctsplat.py:line", function, source line)``. A diagnostic for the GPU path (each such read of
+    a device tensor is a host synchronisation); it counts reads of CPU tensors too, which the caller can tell apart
+    by the site.
+
+    Yields
+    ------
+    collections.Counter
+        Filled while the context is open.
+
+    Examples
+    --------
+    >>> import torch
+    >>> with count_host_reads() as reads:
+    ...     _ = float(torch.ones(()))  # this caller is not in ctsplat/
+    >>> sum(reads.values())
+    0
+    """
+    import torch
+
+    reads: Counter = Counter()
+    marker = "ctsplat" + os.sep
+    originals = {name: getattr(torch.Tensor, name) for name in HOST_READS}
+
+    def wrap(name: str, orig: Any) -> Any:
+        def read(self: Any, *args: Any, **kwargs: Any) -> Any:
+            caller = traceback.extract_stack(limit=2)[0]
+            if marker in caller.filename:
+                site = f"{caller.filename.split(marker)[-1]}:{caller.lineno}"
+                reads[(name, site, caller.name, (caller.line or "").strip())] += 1
+            return orig(self, *args, **kwargs)
+
+        return read
+
+    for name, orig in originals.items():
+        setattr(torch.Tensor, name, wrap(name, orig))
+    try:
+        yield reads
+    finally:
+        for name, orig in originals.items():
+            setattr(torch.Tensor, name, orig)

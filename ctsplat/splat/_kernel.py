@@ -476,7 +476,6 @@ def camera_vector(cam: dict, R: torch.Tensor, t: torch.Tensor, k2: float, near: 
     vals = [1.0 if cone else 0.0, cam.get("sx", 1.0), cam.get("sy", 1.0), cam.get("fx", 1.0), cam.get("fy", 1.0),
             cam["cx"], cam["cy"], cam["W"], cam["H"], lim_x, lim_y]
     dev = R.device
-    head = torch.tensor(vals, dtype=torch.float64).to(dev)
-    tail = torch.tensor([k2, near, cutoff], dtype=torch.float64).to(dev)
+    consts = torch.tensor([*vals, k2, near, cutoff], dtype=torch.float64).to(dev)  # one copy to the device
     pose = [R.detach().reshape(-1).to(torch.float64), t.detach().reshape(-1).to(device=dev, dtype=torch.float64)]
-    return torch.cat([head, *pose, tail])
+    return torch.cat([consts[: len(vals)], *pose, consts[len(vals) :]])

@@ -98,7 +98,6 @@ from ctsplat.training.state import (
     cosine_factor,
     init_params,
     make_optimizer,
-    params_finite,
     restore,
     snapshot,
 )
@@ -434,7 +433,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
         lam["lambda_density"] = density_lambda(lambda_density, it - 1, total, cfg["lambda_density_warmup"])
         tv_region = random_region(vol.shape, int(cfg["tv_size"]), generator=gen) if lam["lambda_tv"] > 0 else None
 
-        ok = params_finite(state.params)
+        ok = all_finite(state.params.values())
         loss = None
         outs = []
         if ok:

@@ -23,7 +23,7 @@ import torch
 from ctsplat.training.seeding import Seed
 
 __all__ = ["PARAM_GROUPS", "METHOD_LR", "TrainState", "ViewSampler", "init_params", "as_gaussians", "make_optimizer",
-           "cosine_factor", "replace_params", "snapshot", "restore", "all_finite", "params_finite"]
+           "cosine_factor", "replace_params", "snapshot", "restore", "all_finite"]
 
 PARAM_GROUPS = {"means": "means", "log_scales": "scales", "quats": "quats", "density_raw": "density",
                 "opacity_raw": "opacity", "colors": "colors"}
@@ -358,17 +358,3 @@ def all_finite(tensors: Iterable[torch.Tensor | None]) -> bool:
     """
     flags = [torch.isfinite(t).all() for t in tensors if t is not None]
     return bool(torch.stack(flags).all()) if flags else True
-
-
-def params_finite(params: dict[str, torch.Tensor]) -> bool:
-    """Whether every parameter tensor is finite (one host synchronisation).
-
-    Parameters
-    ----------
-    params : dict of str to Tensor
-
-    Returns
-    -------
-    bool
-    """
-    return all_finite(params.values())

@@ -245,41 +245,26 @@ def check_host_reads() -> None:
     ``HOST_READS_PER_ITERATION`` times from ctsplat code (``bool``/``int``/``float``/``item``/``tolist`` on a
     tensor; a 20- minus a 5-iteration run, no validation or densification in between). Reads of values that live
     on the CPU also on a GPU run are not counted: the TV region's draws from its CPU generator and its bounds."""
-    import collections
     import importlib
-    import traceback
 
     from ctsplat.training import loop
+    from ctsplat.utils import count_host_reads
 
     render_mod = importlib.import_module("ctsplat.splat.render")
     render_mod._use_triton = lambda backend, dev: backend in ("auto", "triton")
     render_mod._use_kernel = lambda backend, dev: False
     root = _tiny_scene("ctsplat_triton_reads_", "tiny_reads")
-    reads: collections.Counter = collections.Counter()
     cpu_resident = {"random_region", "voxelize"}  # voxelize: only its region bounds are read directly
-
-    def wrap(name: str):
-        orig = getattr(torch.Tensor, name)
-
-        def read(self, *a, **k):  # noqa: ANN001, ANN002, ANN003
-            caller = traceback.extract_stack(limit=2)[0]
-            if "ctsplat" + os.sep in caller.filename and caller.name not in cpu_resident:
-                reads[f"{caller.filename.split('ctsplat' + os.sep)[-1]}:{caller.lineno} {name}"] += 1
-            return orig(self, *a, **k)
-        return read
-
-    for name in ("item", "__bool__", "__int__", "__float__", "__index__", "tolist"):
-        setattr(torch.Tensor, name, wrap(name))
     counts = {}
     for its in (5, 20):
-        reads.clear()
         cfg = {"volume": str(root / "volume.nii.gz"), "radiographs": str(root / "rad"), "init": "volume",
                "n_init": 100, "iterations": its, "eval_every": 100, "checkpoint_every": 100, "device": "cpu",
                "densify": {"interval": 100, "start": 100}, "figures": False, "progress": False, "lambda_tv": 0.05}
-        loop.train(cfg, root / f"run{its}")
-        counts[its] = collections.Counter(reads)
+        with count_host_reads() as reads:
+            loop.train(cfg, root / f"run{its}")
+        counts[its] = {k: v for k, v in reads.items() if k[2] not in cpu_resident}
     per_iteration = {k: (counts[20][k] - counts[5].get(k, 0)) / 15 for k in counts[20]}
-    per_iteration = {k: v for k, v in per_iteration.items() if v}
+    per_iteration = {f"{k[1]} {k[0]}": v for k, v in per_iteration.items() if v}
     total = sum(per_iteration.values())
     assert total <= HOST_READS_PER_ITERATION, f"{total} host reads per iteration: {per_iteration}"
     assert total > 0, "no read counted: the counting itself is broken"
