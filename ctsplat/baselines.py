@@ -284,10 +284,10 @@ def fbp_volume(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *,
     --------
     >>> from ctsplat.formats.viewset import load_radiographs
     >>> from ctsplat.formats.volume import load_volume
-    >>> volume = load_volume("results/head/volume.nii.gz")
-    >>> p, vs = load_radiographs("results/head/radiographs/circular")
-    >>> rows = vs.indices("train")
-    >>> rec = fbp_volume(p[rows], vs.subset("train"), volume, filter_name="shepp-logan")
+    >>> volume = load_volume("results/head/volume.nii.gz")  # doctest: +SKIP
+    >>> p, vs = load_radiographs("results/head/radiographs/circular")  # doctest: +SKIP
+    >>> rows = vs.indices("train")  # doctest: +SKIP
+    >>> rec = fbp_volume(p[rows], vs.subset("train"), volume, filter_name="shepp-logan")  # doctest: +SKIP
     """
     from skimage.transform import iradon
 

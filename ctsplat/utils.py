@@ -81,8 +81,12 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
     Examples
     --------
-    >>> with atomic_path("out/table.csv") as tmp:
-    ...     tmp.write_text("view,psnr2d\n0,31.2\n")
+    >>> import pathlib, tempfile
+    >>> out = pathlib.Path(tempfile.mkdtemp()) / "table.csv"
+    >>> with atomic_path(out) as tmp:
+    ...     _ = tmp.write_text("view,psnr2d\\n0,31.2\\n")
+    >>> out.read_text().splitlines()
+    ['view,psnr2d', '0,31.2']
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -123,7 +127,7 @@ def atomic_dir(path: str | os.PathLike[str]) -> Iterator[Path]:
     Examples
     --------
     >>> with atomic_dir("out/views") as tmp:
-    ...     (tmp / "views.json").write_text("{}")
+    ...     _ = (tmp / "views.json").write_text("{}")
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -380,7 +380,7 @@ def pose_from_angles(azimuth_deg: float, elevation_deg: float, isocenter_mm: Seq
     Examples
     --------
     >>> R, t = pose_from_angles(0.0, 0.0, [0.0, 0.0, 0.0], 500.0)
-    >>> camera_center(R, t).round(6)
+    >>> camera_center(R, t).round(6) + 0.0  # + 0.0 turns -0.0 into 0.0
     array([500.,   0.,   0.])
     """
     if abs(elevation_deg) >= 90.0:

@@ -383,8 +383,9 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
 
     Examples
     --------
-    >>> summary = run_sfm("results/head/radiographs/carm", "results/head/sfm", {"pose_prior": "isocentric"})
-    >>> print(summary["ok"], summary["registration_rate"], summary["rot_err_deg_median"])
+    >>> settings = {"pose_prior": "isocentric"}
+    >>> summary = run_sfm("results/head/radiographs/carm", "results/head/sfm", settings)  # doctest: +SKIP
+    >>> print(summary["ok"], summary["registration_rate"], summary["rot_err_deg_median"])  # doctest: +SKIP
     """
     import pandas as pd
 
