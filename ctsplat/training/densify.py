@@ -87,7 +87,7 @@ class GradientDensify:
 
     @staticmethod
     def accumulate(state: TrainState, means2d_grad: torch.Tensor | None, visible: torch.Tensor,
-                   ndc_half: torch.Tensor) -> None:
+                   ndc_half: torch.Tensor, *, loss_views: int = 1) -> None:
         """Add one view's positional-gradient norms (NDC units) to the visible Gaussians' statistics.
 
         Parameters
@@ -99,12 +99,16 @@ class GradientDensify:
         visible : (N,) bool
         ndc_half : (2,)
             ``(W/2, H/2)``: pixels per NDC unit.
+        loss_views : int
+            Views the loss averages over (``batch_views``): each view's gradient is ``1 / loss_views`` of its own
+            loss's, so it is scaled back and ``grad_threshold`` keeps its meaning for any batch (as gsplat scales
+            by its number of cameras).
         """
         if means2d_grad is None:
             return
         # masked arithmetic rather than boolean indexing: the same sums, without the host synchronisation that
         # indexing with a mask costs on a GPU (its result size must be read back)
-        norm = (means2d_grad * ndc_half).norm(dim=-1)
+        norm = (means2d_grad * (ndc_half * loss_views)).norm(dim=-1)
         state.grad_accum += torch.where(visible, norm, 0.0)
         state.grad_count += visible.to(state.grad_count.dtype)
 

@@ -474,7 +474,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
         if ok:
             with torch.no_grad():
                 for out in outs:
-                    densify.accumulate(state, out.means2d.grad, out.visible, ndc_half)
+                    densify.accumulate(state, out.means2d.grad, out.visible, ndc_half, loss_views=len(outs))
                 for ratios in err_ratios:
                     densify.accumulate_error(state, ratios)
             state.opt.step()

@@ -196,6 +196,34 @@ def test_error_densify_selects_the_gaussians_under_a_planted_residual(strategy):
     assert counts["cloned"] + counts["split"] == int(inside.sum()) and counts["n"] == n0 + int(inside.sum())
 
 
+def test_gradient_statistic_does_not_depend_on_the_batch_size():
+    # a loss averaged over a batch of views gives each view 1/B of its own loss's gradient; `loss_views` scales it
+    # back, so a batch of two views adds the same statistic as the two views one at a time
+    params, cam, R, t, _ = _plane_scene()
+    side = [torch.as_tensor(a, dtype=torch.float32) for a in look_at(np.array([0.0, 200.0, 0.0]), np.zeros(3))]
+    poses = [(R, t), tuple(side)]
+    ndc = torch.tensor([cam.width / 2, cam.height / 2], dtype=torch.float32)
+    target = torch.zeros(cam.height, cam.width)
+
+    def statistic(batches: list[list[int]]) -> torch.Tensor:
+        st = state.TrainState(params=params, opt=state.make_optimizer(params, {"lr": config.TRAIN_DEFAULTS["lr"]},
+                                                                       1.0))
+        reset_stats(st)
+        for batch in batches:
+            outs = [render(state.as_gaussians(params), cam, *poses[k]) for k in batch]
+            loss = torch.stack([(o.image - target).abs().mean() for o in outs]).mean()
+            loss.backward()
+            for o in outs:
+                GradientDensify.accumulate(st, o.means2d.grad, o.visible, ndc, loss_views=len(outs))
+            for p in params.values():
+                p.grad = None
+        return st.grad_accum.clone()
+
+    one_at_a_time, batched = statistic([[0], [1]]), statistic([[0, 1]])
+    assert float(one_at_a_time.max()) > 0
+    torch.testing.assert_close(batched, one_at_a_time, rtol=1e-5, atol=1e-12)
+
+
 def test_gradient_strategy_is_the_default():
     d = make_densify(config.TRAIN_DEFAULTS["densify"], compositor="radiative", iterations=10)
     assert type(d) is GradientDensify and not d.wants_error
