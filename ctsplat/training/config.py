@@ -70,6 +70,7 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "device": "auto",  # auto | cpu | cuda
     "iterations": 3000,
+    # training views rendered per step; the loss averages over them (1 chosen on validation, docs/results.md)
     "batch_views": 1,
     "supervision": "line_integral",  # line_integral | transmission
     "lambda_l1": 1.0,
