@@ -147,9 +147,7 @@ def voxelize_model(gaussians: Any, shape: tuple[int, int, int], affine: np.ndarr
     from ctsplat.splat.render import voxelize
 
     with torch.no_grad():
-        vol = voxelize(gaussians, tuple(shape), torch.as_tensor(np.asarray(affine, float), dtype=gaussians.means.dtype,
-                                                               device=gaussians.means.device),
-                       filter_3d_var=filter_3d_var)
+        vol = voxelize(gaussians, tuple(shape), np.asarray(affine, float), filter_3d_var=filter_3d_var)
     return vol.float().cpu().numpy()
 
 

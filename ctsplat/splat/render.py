@@ -97,6 +97,7 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -722,7 +723,7 @@ def voxelize(
     shape : (I, J, K)
         Full grid size in voxels.
     affine : array_like (4, 4)
-        Voxel index -> world mm.
+        Voxel index -> world mm; a singular or non-finite one fails (checked unless it is a tensor on a GPU).
     chunk : int
         Reference path: (Gaussian, voxel) pairs per chunk.
     region : ((i0, i1), (j0, j1), (k0, k1)) or None
@@ -743,6 +744,14 @@ def voxelize(
     gaussians.validate()
     means = gaussians.means
     dtype, dev = means.dtype, means.device
+    if not (isinstance(affine, torch.Tensor) and affine.device.type != "cpu"):
+        # checked on the host when it is there (a device affine would cost a read-back per call): the inverse
+        # below is taken without an error flag
+        a3 = np.asarray(affine.detach() if isinstance(affine, torch.Tensor) else affine, float)
+        a3 = a3.reshape(4, 4)[:3, :3]
+        if not np.isfinite(a3).all() or np.linalg.matrix_rank(a3) < 3:
+            raise CtsplatError(f"voxelize affine {a3.tolist()} is singular or not finite; pass the volume's "
+                               "voxel-to-mm affine")
     A = torch.as_tensor(affine, dtype=dtype, device=dev).reshape(4, 4)
     shape = tuple(int(s) for s in shape)
     if region is None:

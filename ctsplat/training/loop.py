@@ -454,8 +454,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
             ref = augment.target(targets_loss[batch], gen)
             tv_vol = None
             if tv_region is not None:
-                tv_vol = voxelize(g, vol.shape, torch.as_tensor(vol.affine, dtype=torch.float32, device=device),
-                                  region=tv_region, filter_3d_var=rk.get("filter_3d_var"))
+                tv_vol = voxelize(g, vol.shape, vol.affine, region=tv_region, filter_3d_var=rk.get("filter_3d_var"))
             loss, terms = losses.total_loss(pred, ref, density=g.densities, scales=g.scales, data_range=1.0,
                                             tv_volume=tv_vol, **lam)
             if refining:

@@ -518,6 +518,11 @@ def test_voxelize_matches_dense_evaluation_and_chunks_and_regions(backend):
     assert float((ref - cut).detach().abs().max()) <= float(g.densities.detach().sum()) * math.exp(-4.5)
     with pytest.raises(CtsplatError, match="region"):
         voxelize(g, shape, affine, region=((0, 30), (0, 5), (0, 5)), backend=backend)
+    flat = affine.copy()
+    flat[2, :3] = 0.0  # every voxel on one plane
+    for bad in (flat, np.where(np.eye(4) > 0, np.nan, affine)):
+        with pytest.raises(CtsplatError, match="affine .* singular or not finite"):
+            voxelize(g, shape, torch.as_tensor(bad), backend=backend)
     # float32 kernel vs float64 reference
     g32 = g.detach().to(dtype=torch.float32)
     v32 = voxelize(g32, shape, affine, sigma_cutoff=8.0, backend=backend)
