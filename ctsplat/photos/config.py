@@ -55,6 +55,7 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
         "sh_interval": 1000,  # the SH degree rises by one every this many iterations
         "lambda_dssim": 0.2,  # loss = (1 - λ) L1 + λ (1 - SSIM)
         "init_opacity": 0.1,
+        "init_scale": 1.0,  # a seed's scale = this x the RMS distance to its 3 nearest SfM points
         "max_points": 100000,  # SfM points used as seeds (random subset above this)
         "lr": {
             "means": 1.6e-4,  # times the scene extent; decays exponentially to means_final at the last iteration
@@ -67,6 +68,9 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
             "background": 1e-2,
         },
         "densify": {
+            # default: 3DGS's clone / split / prune (ctsplat.photos.densify) | mcmc: relocation to a fixed budget
+            # (ctsplat.photos.mcmc, with the mcmc section below)
+            "strategy": "default",
             "interval": 100,
             "start": 500,
             "stop_fraction": 0.17,  # densification stops at this fraction of the iterations (6000: after 1020)
@@ -77,6 +81,15 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
             "prune_scale_fraction": 0.1,
             "opacity_reset_interval": 3000,  # 0: never
             "max_gaussians": 300000,
+        },
+        # densify.strategy: mcmc (Kheradmand et al. 2024; gsplat's values but cap_max, sized for CPU budgets)
+        "mcmc": {
+            "cap_max": 30000,  # the Gaussians grow to this count and stay there
+            "growth": 1.05,  # each step adds this factor - 1 of the current count, up to cap_max
+            "stop_fraction": 0.83,  # relocation and growth stop at this fraction of the iterations
+            "noise_lr": 5e5,  # position noise = covariance x this x the means' learning rate
+            "opacity_reg": 0.01,  # loss += this x mean opacity
+            "scale_reg": 0.01,  # loss += this x mean scale (world units)
         },
         "log_every": 250,  # held-out PSNR/SSIM rows of train_log.csv
         "num_threads": 2,

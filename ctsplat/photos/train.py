@@ -5,11 +5,13 @@ The model is :class:`ctsplat.splat.gaussians.Gaussians` rendered by :func:`ctspl
 terms of degrees 1..``d`` (the renderer reads ``d`` from the shape of ``sh_rest``: the full degree-3 coefficients
 are trained, and the first ``(d + 1)² - 1`` of them are passed while the degree is ``d``). As in 3DGS:
 
-- seeds: one Gaussian per SfM point, its colour, isotropic scale = RMS distance to the 3 nearest points,
-  opacity ``init_opacity``;
+- seeds: one Gaussian per SfM point, its colour, isotropic scale = ``init_scale`` × the RMS distance to the 3
+  nearest points, opacity ``init_opacity``;
 - the SH degree starts at 0 and rises by one every ``sh_interval`` iterations up to ``sh_degree``;
 - loss ``(1 - λ) L1 + λ (1 - SSIM)``, Adam (eps 1e-15), the means' learning rate (× scene extent) decaying
-  exponentially; density control by :class:`ctsplat.photos.densify.AlphaDensify`;
+  exponentially; density control by :class:`ctsplat.photos.densify.AlphaDensify` (``densify.strategy: default``)
+  or by relocation, :class:`ctsplat.photos.mcmc.MCMCDensify` (``mcmc``: its regulariser joins the loss and its
+  position noise follows each optimiser step);
 - the composite lies over a background colour, fixed (``background: [r, g, b]``, black by default) or learned with
   the model (``background: learned``, started at the median of the training photos' border pixels); it is saved
   in the model's ``meta["background"]``.
@@ -43,6 +45,7 @@ from ctsplat.formats.runlog import LOG_COLUMNS, CsvLog
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
 from ctsplat.photos.densify import AlphaDensify
+from ctsplat.photos.mcmc import MCMCDensify
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.splat.render import render
 from ctsplat.training.losses import ssim
@@ -68,7 +71,7 @@ def init_params(xyz: np.ndarray, rgb: np.ndarray, settings: dict[str, Any], gen:
     xyz : ndarray (P, 3)
     rgb : ndarray (P, 3) in [0, 1]
     settings : dict
-        The ``photos.train`` section (``max_points``, ``init_opacity``).
+        The ``photos.train`` section (``max_points``, ``init_opacity``, ``init_scale``).
     gen : numpy.random.Generator
         Picks the subset when there are more than ``max_points`` points.
     device : torch.device or str
@@ -87,7 +90,7 @@ def init_params(xyz: np.ndarray, rgb: np.ndarray, settings: dict[str, Any], gen:
         idx = np.sort(gen.choice(len(xyz), int(settings["max_points"]), replace=False))
         xyz, rgb = xyz[idx], rgb[idx]
     d, _ = cKDTree(xyz).query(xyz, k=4)
-    scale = np.sqrt(np.maximum(np.mean(d[:, 1:] ** 2, axis=1), 1e-14))
+    scale = float(settings["init_scale"]) * np.sqrt(np.maximum(np.mean(d[:, 1:] ** 2, axis=1), 1e-14))
     n = len(xyz)
     kw = {"dtype": torch.float32, "device": device}
     quats = torch.zeros(n, 4, **kw)
@@ -252,7 +255,10 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     bg0 = border_colour(train) if learned else np.asarray(s["background"], float)
     background = torch.tensor(bg0, dtype=torch.float32, device=device, requires_grad=learned)
     bg_opt = torch.optim.Adam([background], lr=float(s["lr"]["background"]), eps=1e-15) if learned else None
-    dens = AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, n=params["means"].shape[0])
+    n0 = params["means"].shape[0]
+    dens: AlphaDensify | MCMCDensify = (
+        MCMCDensify(s["densify"], s["mcmc"], iterations=iters) if s["densify"]["strategy"] == "mcmc"
+        else AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, n=n0))
     lam = float(s["lambda_dssim"])
     lr0 = float(s["lr"]["means"]) * scene.extent
     lr1 = float(s["lr"]["means_final"]) * scene.extent
@@ -280,6 +286,8 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
         l1 = torch.mean(torch.abs(img - view.image))
         dssim = 1.0 - ssim(img.permute(2, 0, 1), view.image.permute(2, 0, 1), 1.0)
         loss = (1 - lam) * l1 + lam * dssim
+        if isinstance(dens, MCMCDensify):
+            loss = loss + dens.regularisation(params)
         loss.backward()
         if not torch.isfinite(loss):
             raise CtsplatError(f"training diverged at iteration {it} (loss {float(loss)}); lower photos.train.lr")
@@ -288,6 +296,8 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
             dens.accumulate(out.means2d.grad, out.visible, ndc)
         opt.step()
         opt.zero_grad(set_to_none=True)
+        if isinstance(dens, MCMCDensify):
+            dens.perturb(params, gen, lr_means)
         if bg_opt is not None:
             bg_opt.step()
             bg_opt.zero_grad(set_to_none=True)
