@@ -30,6 +30,7 @@ from typing import Any
 
 import torch
 
+from ctsplat.photos.densify import AlphaDensify
 from ctsplat.splat.gaussians import covariance
 from ctsplat.training.state import replace_params
 
@@ -117,10 +118,9 @@ class MCMCDensify:
         """Nothing to accumulate: the moves are driven by opacity, not by gradients."""
 
     def due(self, iteration: int) -> bool:
-        """Whether :meth:`step` runs after ``iteration`` completed iterations."""
-        d = self.settings
-        return bool(d["interval"]) and int(d["start"]) <= iteration <= self.stop \
-            and iteration % int(d["interval"]) == 0 and iteration < self.iterations
+        """Whether :meth:`step` runs after ``iteration`` completed iterations (the clone / split schedule, with
+        this strategy's stop)."""
+        return AlphaDensify.due(self, iteration)  # type: ignore[arg-type]
 
     def reset_due(self, iteration: int) -> bool:
         """Never: the regulariser, not a reset, lets opacities fall."""
@@ -159,14 +159,10 @@ class MCMCDensify:
 
         Parameters
         ----------
-        params : dict of str to Tensor
-            ``means``, ``log_scales``, ``quats``, ``opacity_raw``, ``colors``, ``sh_rest`` (N rows each).
-        opt : torch.optim.Adam
-            Its groups are named after the parameters.
+        params, opt, iteration
+            As :meth:`ctsplat.photos.densify.AlphaDensify.step` (``iteration`` is unused here).
         gen : torch.Generator
             A CPU generator for the draws.
-        iteration : int
-            Completed iterations (unused: the schedule is :meth:`due`'s).
 
         Returns
         -------
