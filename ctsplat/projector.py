@@ -639,8 +639,9 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
         for name, val in (("dso_mm", dso), ("dsd_mm", dsd)):
             if not val > 0:
                 raise CtsplatError(f"{name} must be a positive distance in mm, got {val}")
-        if cfg["orbit"] == "carm" and dsd <= dso:
-            raise CtsplatError(f"dsd_mm ({dsd}) must exceed dso_mm ({dso}): the detector lies beyond the isocentre")
+        if dsd <= dso:  # checked before any warning below, so a bad geometry fails in one line
+            raise CtsplatError(f"dsd_mm ({dsd}) must be larger than dso_mm ({dso}): the detector lies beyond the "
+                               "isocentre")
         # every orbit: a source inside the object cannot image it (the rays start behind part of it)
         object_radius = support_radius_mm(volume.data, volume.affine, iso)
         if object_radius >= dso:
