@@ -255,10 +255,9 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     bg0 = border_colour(train) if learned else np.asarray(s["background"], float)
     background = torch.tensor(bg0, dtype=torch.float32, device=device, requires_grad=learned)
     bg_opt = torch.optim.Adam([background], lr=float(s["lr"]["background"]), eps=1e-15) if learned else None
-    n0 = params["means"].shape[0]
     dens: AlphaDensify | MCMCDensify = (
         MCMCDensify(s["densify"], s["mcmc"], iterations=iters) if s["densify"]["strategy"] == "mcmc"
-        else AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, n=n0))
+        else AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, n=params["means"].shape[0]))
     lam = float(s["lambda_dssim"])
     lr0 = float(s["lr"]["means"]) * scene.extent
     lr1 = float(s["lr"]["means_final"]) * scene.extent

@@ -287,7 +287,7 @@ def test_carm_model_keeps_the_source_distance() -> None:
         assert bool(np.abs(depth1 - depth0).max() > 0.5) == moves, cone_model
         # the prior sees only the free shifts
         assert float(pc.prior().detach()) == pytest.approx(0.5 * pc.prior_weight * (0.13 + (1.0 if moves else 0.0))
-                                                  / pc.sigma_trans ** 2, rel=1e-5)
+                                                           / pc.sigma_trans ** 2, rel=1e-5)
 
 
 def test_resume_continues_the_corrections_exactly(scene_dir: Path, tmp_path: Path) -> None:
