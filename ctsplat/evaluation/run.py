@@ -34,6 +34,8 @@ __all__ = [
     "per_view_rows",
     "voxelize_model",
     "volume_metrics",
+    "readout_sharpening",
+    "check_sharpen_views",
     "peak_memory_mb",
     "forward_fps",
     "orbit_poses",
@@ -432,7 +434,13 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     preds = render_views(g, views.camera, views.Rs, views.ts, rk)
     vm = view_metrics(preds, views.images, with_lpips=True)
     vol_model = voxelize_model(g, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
+    vol_raw, sharpening = vol_model, readout_sharpening(cfg, vol_model, scene, dev)
+    if sharpening:
+        vol_model = sharpening.pop("volume")
     m3 = volume_metrics(vol_model, scene.volume.data, r2=True)
+    if sharpening:
+        sharpening.update({f"{k}_unsharpened": v for k, v in volume_metrics(vol_raw, scene.volume.data,
+                                                                            r2=True).items()})
     m3.update(_gauge_aligned_metrics(run_dir, g, scene, rk))
     log_path = run_dir / "train_log.csv"
     targets = dict(milestones) if milestones else schema_defaults("analysis")["milestones"]
@@ -447,6 +455,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         "lpips": None if any(v is None for v in lpips_vals) else float(np.mean(lpips_vals)),
         "lpips_reason": vm["lpips_reason"],
         **m3,
+        **sharpening,
         "split": split,
         "n_views": len(views),
         "n_train_views": len(scene.train),
@@ -491,8 +500,14 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
                 "intensity": {"unit": "normalised", "mu_scale_per_mm": scene.mu_scale},
                 "reference_volume_id": scene.volume.volume_id, "uses_reference_volume": uses_ref,
                 "config_hash": run_cfg.get("config_hash"), "code_version": code_version()}
-        save_volume(Volume(vol_model.astype(np.float32), np.asarray(scene.volume.affine, float), meta),
+        save_volume(Volume(vol_model.astype(np.float32), np.asarray(scene.volume.affine, float),
+                           {**meta, "sharpen_amount": result.get("sharpen_amount", 0.0)}),
                     run_dir / "model_volume.nii.gz")
+        unsharpened = run_dir / "model_volume_unsharpened.nii.gz"
+        if sharpening:
+            save_volume(Volume(vol_raw.astype(np.float32), np.asarray(scene.volume.affine, float), meta), unsharpened)
+        else:  # an earlier evaluation's would sit beside a read-out that is not sharpened
+            unsharpened.unlink(missing_ok=True)
         if cfg["figures"]:
             figures.save_gallery(run_dir / "gallery.png", views.images, preds, [int(i) for i in views.ids],
                                  vm["psnr2d"])
@@ -504,6 +519,43 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
                 (run_dir / name).unlink(missing_ok=True)
     write_json_atomic(run_dir / ("metrics.json" if split == "test" else f"metrics_{split}.json"), json_safe(result))
     return result
+
+
+def readout_sharpening(cfg: dict[str, Any], volume: np.ndarray, scene: Any, device: Any) -> dict[str, Any]:
+    """The run's ``sharpen`` step on its voxel read-out (:mod:`ctsplat.evaluation.readout`), amount chosen on the
+    scene's validation views: ``{}`` when the step is off (``sharpen.amounts`` all 0, or a run config written
+    before the key existed), else :func:`~ctsplat.evaluation.readout.choose_sharpening`'s info plus ``volume``
+    (the chosen read-out)."""
+    from ctsplat.evaluation.readout import choose_sharpening
+    from ctsplat.recon.select import Validator
+
+    amounts, radius = sharpen_settings(cfg)
+    if not any(amounts):
+        return {}
+    check_sharpen_views(scene, cfg)
+    val = scene.val
+    validator = Validator.from_views(val.images, val.camera, val.Rs, val.ts, np.asarray(scene.volume.affine, float),
+                                     device=device)
+    vol, info = choose_sharpening(volume, validator, amounts=amounts, radius_voxels=radius)
+    return {**info, "volume": vol}
+
+
+def sharpen_settings(cfg: dict[str, Any]) -> tuple[list[float], float]:
+    """``(amounts, radius_voxels)`` of a run config's ``sharpen`` section (off for configs without one)."""
+    from ctsplat.evaluation.readout import check_sharpen_config
+    from ctsplat.training.config import TRAIN_DEFAULTS
+
+    return check_sharpen_config(cfg.get("sharpen") or TRAIN_DEFAULTS["sharpen"])
+
+
+def check_sharpen_views(scene: Any, cfg: dict[str, Any]) -> None:
+    """Fail in one line when ``sharpen`` has amounts to choose from but the scene has no validation views (its
+    ``val`` split would be the test views, which never choose anything)."""
+    amounts, _ = sharpen_settings(cfg)
+    if any(amounts) and scene.eval_split != "val":
+        raise CtsplatError(f"train.sharpen.amounts {amounts} is chosen on validation views, but the radiographs in "
+                           f"{cfg['radiographs']} have none; render them with a validation split "
+                           "(radiographs.<geometry>.n_val or split.val) or set train.sharpen.amounts: [0]")
 
 
 def _gauge_aligned_metrics(run_dir: Path, g: Any, scene: Any, rk: dict[str, Any]) -> dict[str, Any]:

@@ -60,10 +60,43 @@ class Validator:
         affine, _, scale = reference_grid(reference)
         self.scale = scale if mu_scale_per_mm is None else float(mu_scale_per_mm)
         self.target = check_stack(line_integrals, view_set).astype(np.float64) / self.scale
-        self.view_set, self.affine = view_set, affine
+        self.camera, self.Rs, self.ts = view_set.camera, view_set.Rs(), view_set.ts()
+        self.affine = affine
         self.device = torch.device(device) if device else torch.device("cpu")
         self.step_voxels = float(step_voxels)
         self.data_range = float(self.target.max() - self.target.min()) or 1.0
+
+    @classmethod
+    def from_views(cls, line_integrals: np.ndarray, camera: Any, Rs: np.ndarray, ts: np.ndarray, affine: np.ndarray,
+                   *, device: str | torch.device | None = None, step_voxels: float = 0.5) -> Validator:
+        """A validator of views given as arrays (a :class:`ctsplat.scene.ViewData`'s ``images``, ``camera``,
+        ``Rs``, ``ts``), their line integrals already in normalised units.
+
+        Parameters
+        ----------
+        line_integrals : ndarray, shape (V, H, W)
+            Line integrals of the normalised volume (mm).
+        camera : ParallelCamera or ConeCamera
+        Rs : ndarray, shape (V, 3, 3)
+        ts : ndarray, shape (V, 3)
+            World-to-camera poses (mm).
+        affine : ndarray, shape (4, 4)
+            Voxel index -> world mm of the reconstruction grid.
+        device, step_voxels
+            As for the constructor.
+        """
+        p = np.asarray(line_integrals, np.float64)
+        if p.ndim != 3 or p.shape[0] == 0 or p.shape != (len(Rs), camera.height, camera.width):
+            raise CtsplatError(f"validation line integrals of shape {p.shape} do not match {len(Rs)} views of "
+                               f"{camera.height}x{camera.width} pixels")
+        self = cls.__new__(cls)
+        self.scale, self.target = 1.0, p
+        self.camera, self.Rs, self.ts = camera, np.asarray(Rs, float), np.asarray(ts, float)
+        self.affine = np.asarray(affine, float)
+        self.device = torch.device(device) if device else torch.device("cpu")
+        self.step_voxels = float(step_voxels)
+        self.data_range = float(p.max() - p.min()) or 1.0
+        return self
 
     def render(self, volume: np.ndarray | torch.Tensor) -> np.ndarray:
         """Line integrals (normalised units) of ``volume`` at the validation poses, (V, H, W) float64."""
@@ -71,8 +104,8 @@ class Validator:
 
         with torch.no_grad():
             x = torch.as_tensor(volume, dtype=torch.float32, device=self.device).detach()
-            p = line_integrals(x, self.affine, self.view_set.camera, self.view_set.Rs(), self.view_set.ts(),
-                               step_voxels=self.step_voxels, device=self.device)
+            p = line_integrals(x, self.affine, self.camera, self.Rs, self.ts, step_voxels=self.step_voxels,
+                               device=self.device)
         return p.cpu().numpy().astype(np.float64)
 
     def score(self, volume: np.ndarray | torch.Tensor) -> float:

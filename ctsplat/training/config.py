@@ -117,6 +117,10 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     # the model `ctsplat evaluate` measures by default: last (model.pt) or best (model_best.pt, the highest
     # validation PSNR at the periodic evaluations; always written)
     "model_selection": "last",
+    # the voxel read-out's unsharp masking (ctsplat.evaluation.readout): the amount among `amounts` whose
+    # re-projection scores best on the validation views, blur radius in voxels; [0.0] is off (the library default;
+    # the cone-beam protocol offers 0-1, chosen there on validation, docs/results.md)
+    "sharpen": {"amounts": [0.0], "radius_voxels": 1.0},
     "eval_views": 8,  # validation views per periodic evaluation (evenly spaced); 0 = all
     "checkpoint_every": 500,
     "keep_checkpoints": 2,
@@ -350,6 +354,9 @@ def resolve_config(config: dict[str, Any] | None) -> dict[str, Any]:
     if cfg["densify"]["split_mass"] not in ("conserve", "halve"):
         raise CtsplatError(f"unknown train.densify.split_mass {cfg['densify']['split_mass']!r}; allowed: conserve, "
                            "halve")
+    from ctsplat.evaluation.readout import check_sharpen_config
+
+    check_sharpen_config(cfg["sharpen"])
     if not cfg["volume"]:
         raise CtsplatError("train.volume is empty: give the preprocessed reference volume (.nii.gz)")
     if not cfg["radiographs"]:

@@ -67,6 +67,7 @@ import numpy as np
 import torch
 
 from ctsplat.evaluation.run import (
+    check_sharpen_views,
     peak_memory_mb,
     per_view_rows,
     render_views,
@@ -336,6 +337,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     gen = torch.Generator(device="cpu")
     gen.manual_seed(int(cfg["seed"]))
     scene = load_scene(cfg)
+    check_sharpen_views(scene, cfg)  # before any work: the read-out's amount needs validation views
     vol = scene.volume
     voxel_mm = float(np.mean(vol.spacing_mm))
     half_extent_mm = 0.5 * float(np.max(vol.extent_mm()))
