@@ -67,7 +67,7 @@ def check_sharpen_config(section: dict[str, Any], key: str = "train.sharpen") ->
         raise CtsplatError(f"{key}.amounts must be a non-empty list of numbers in [0, 4] (e.g. [0, 0.2, 0.4]), "
                            f"got {amounts!r}")
     if not isinstance(radius, (int, float)) or isinstance(radius, bool) or not 0 < radius <= 10:
-        raise CtsplatError(f"{key}.radius_voxels must be a number in (0, 10] (voxels), got {radius!r}")
+        raise CtsplatError(f"{key}.radius_voxels must be a number in (0, 10], got {radius!r}")
     return [float(a) for a in amounts], float(radius)
 
 

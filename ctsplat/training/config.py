@@ -249,6 +249,7 @@ TRAIN_BOUNDS: dict[str, Bound] = {
     "batch_views": _POS_INT,
     "init_asd_pocs.iterations": _NONNEG_INT,
     "init_asd_pocs.alpha": _POS,
+    "sharpen.radius_voxels": Bound("number", 0, 10, low_open=True),
     "lambda_l1": _NONNEG,
     "lambda_ssim": _NONNEG,
     "lambda_density": _NONNEG,
