@@ -522,10 +522,30 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
 
 
 def readout_sharpening(cfg: dict[str, Any], volume: np.ndarray, scene: Any, device: Any) -> dict[str, Any]:
-    """The run's ``sharpen`` step on its voxel read-out (:mod:`ctsplat.evaluation.readout`), amount chosen on the
-    scene's validation views: ``{}`` when the step is off (``sharpen.amounts`` all 0, or a run config written
-    before the key existed), else :func:`~ctsplat.evaluation.readout.choose_sharpening`'s info plus ``volume``
-    (the chosen read-out)."""
+    """The run's ``sharpen`` step on its voxel read-out (:mod:`ctsplat.evaluation.readout`).
+
+    Parameters
+    ----------
+    cfg : dict
+        The run's resolved ``train`` config (``sharpen``; a config without the key has the step off).
+    volume : ndarray, shape (I, J, K)
+        The voxel read-out on the reference grid (normalised units).
+    scene : ctsplat.scene.Scene
+        The run's scene; only its validation views are read.
+    device : torch.device
+        Where the candidates are re-projected.
+
+    Returns
+    -------
+    dict
+        ``{}`` when the step is off (every amount 0); else
+        :func:`~ctsplat.evaluation.readout.choose_sharpening`'s info plus ``volume``, the chosen read-out.
+
+    Raises
+    ------
+    CtsplatError
+        When the step is on and the scene has no validation views.
+    """
     from ctsplat.evaluation.readout import choose_sharpening
     from ctsplat.recon.select import Validator
 
