@@ -59,15 +59,17 @@ def sharpen(volume: np.ndarray, *, amount: float, radius_voxels: float = 1.0) ->
     return np.clip(out, 0.0, None).astype(np.float32)
 
 
-def check_sharpen_config(section: dict[str, Any], key: str = "train.sharpen") -> tuple[list[float], float]:
-    """The checked ``amounts`` and ``radius_voxels`` of a ``sharpen`` section, or a one-line error naming the key."""
+def check_sharpen_config(section: dict[str, Any]) -> tuple[list[float], float]:
+    """The checked ``amounts`` and ``radius_voxels`` of a ``train.sharpen`` section, or a one-line error naming the
+    key (the radius by its bound in :data:`ctsplat.training.config.TRAIN_BOUNDS`)."""
+    from ctsplat.training.config import TRAIN_BOUNDS
+
     amounts, radius = section.get("amounts"), section.get("radius_voxels")
     if (not isinstance(amounts, (list, tuple)) or not amounts
             or not all(isinstance(a, (int, float)) and not isinstance(a, bool) and 0 <= a <= 4 for a in amounts)):
-        raise CtsplatError(f"{key}.amounts must be a non-empty list of numbers in [0, 4] (e.g. [0, 0.2, 0.4]), "
+        raise CtsplatError("train.sharpen.amounts must be a non-empty list of numbers in [0, 4] (e.g. [0, 0.2, 0.4]), "
                            f"got {amounts!r}")
-    if not isinstance(radius, (int, float)) or isinstance(radius, bool) or not 0 < radius <= 10:
-        raise CtsplatError(f"{key}.radius_voxels must be a number in (0, 10], got {radius!r}")
+    TRAIN_BOUNDS["sharpen.radius_voxels"].check("sharpen.radius_voxels", radius)
     return [float(a) for a in amounts], float(radius)
 
 

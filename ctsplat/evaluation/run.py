@@ -437,10 +437,9 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     vol_raw, sharpening = vol_model, readout_sharpening(cfg, vol_model, scene, dev)
     if sharpening:
         vol_model = sharpening.pop("volume")
+        raw = volume_metrics(vol_raw, scene.volume.data, r2=True)
+        sharpening.update({f"{k}_unsharpened": v for k, v in raw.items()})
     m3 = volume_metrics(vol_model, scene.volume.data, r2=True)
-    if sharpening:
-        sharpening.update({f"{k}_unsharpened": v for k, v in volume_metrics(vol_raw, scene.volume.data,
-                                                                            r2=True).items()})
     m3.update(_gauge_aligned_metrics(run_dir, g, scene, rk))
     log_path = run_dir / "train_log.csv"
     targets = dict(milestones) if milestones else schema_defaults("analysis")["milestones"]

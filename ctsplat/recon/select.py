@@ -58,13 +58,18 @@ class Validator:
             raise CtsplatError("the view set has no validation views to choose baseline parameters on; render it "
                                "with a non-zero val fraction (radiographs.<geometry>.split.val)")
         affine, _, scale = reference_grid(reference)
-        self.scale = scale if mu_scale_per_mm is None else float(mu_scale_per_mm)
-        self.target = check_stack(line_integrals, view_set).astype(np.float64) / self.scale
-        self.camera, self.Rs, self.ts = view_set.camera, view_set.Rs(), view_set.ts()
-        self.affine = affine
+        scale = scale if mu_scale_per_mm is None else float(mu_scale_per_mm)
+        self._set(check_stack(line_integrals, view_set).astype(np.float64) / scale, scale, view_set.camera,
+                  view_set.Rs(), view_set.ts(), affine, device, step_voxels)
+
+    def _set(self, target: np.ndarray, scale: float, camera: Any, Rs: np.ndarray, ts: np.ndarray, affine: np.ndarray,
+             device: str | torch.device | None, step_voxels: float) -> None:
+        self.scale, self.target = scale, target
+        self.camera, self.Rs, self.ts = camera, np.asarray(Rs, float), np.asarray(ts, float)
+        self.affine = np.asarray(affine, float)
         self.device = torch.device(device) if device else torch.device("cpu")
         self.step_voxels = float(step_voxels)
-        self.data_range = float(self.target.max() - self.target.min()) or 1.0
+        self.data_range = float(target.max() - target.min()) or 1.0
 
     @classmethod
     def from_views(cls, line_integrals: np.ndarray, camera: Any, Rs: np.ndarray, ts: np.ndarray, affine: np.ndarray,
@@ -90,12 +95,7 @@ class Validator:
             raise CtsplatError(f"validation line integrals of shape {p.shape} do not match {len(Rs)} views of "
                                f"{camera.height}x{camera.width} pixels")
         self = cls.__new__(cls)
-        self.scale, self.target = 1.0, p
-        self.camera, self.Rs, self.ts = camera, np.asarray(Rs, float), np.asarray(ts, float)
-        self.affine = np.asarray(affine, float)
-        self.device = torch.device(device) if device else torch.device("cpu")
-        self.step_voxels = float(step_voxels)
-        self.data_range = float(p.max() - p.min()) or 1.0
+        self._set(p, 1.0, camera, Rs, ts, affine, device, step_voxels)
         return self
 
     def render(self, volume: np.ndarray | torch.Tensor) -> np.ndarray:
