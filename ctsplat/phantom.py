@@ -45,7 +45,6 @@ import logging
 import os
 import re
 import shutil
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,7 +53,7 @@ from typing import Any
 import numpy as np
 
 from ctsplat.formats.sources import LPS_TO_RAS, write_dicom_series
-from ctsplat.utils import CtsplatError, code_version
+from ctsplat.utils import CtsplatError, code_version, scratch_dir
 
 __all__ = [
     "Ellipsoid",
@@ -491,11 +490,11 @@ def write_phantom_dicom(
     }
     absolute = Path(os.path.abspath(out_dir))
     if absolute.exists():
-        tmp = Path(tempfile.mkdtemp(prefix=_STAGING_PREFIX, suffix=".tmp", dir=absolute))
+        staging = scratch_dir(absolute, prefix=_STAGING_PREFIX, suffix=".tmp")
     else:
         absolute.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{absolute.name}.", suffix=".tmp", dir=absolute.parent))
-    try:
+        staging = scratch_dir(absolute.parent, prefix=f".{absolute.name}.", suffix=".tmp")
+    with staging as tmp:
         write_dicom_series(
             hu, tmp, spacing_mm=(h, h, h), origin_lps=origin_lps, uid_seed=f"ctsplat-phantom-{seed}-{size}-{variant}",
             series_description=series_description, filename=_SLICE_NAME,
@@ -511,8 +510,6 @@ def write_phantom_dicom(
                 os.replace(tmp / name, absolute / name)
             for name in sorted(set(stale) - set(new)):
                 (absolute / name).unlink(missing_ok=True)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     log.info("wrote Shepp-Logan phantom %d^3 (%.3f mm voxels, %d ellipsoids) to %s", size, h, len(ellipsoids), out_dir)
     return out_dir
 

@@ -9,9 +9,11 @@ import math
 import os
 import random
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import traceback
 from collections import Counter
 from collections.abc import Iterator, Mapping
@@ -26,6 +28,7 @@ if TYPE_CHECKING:
 __all__ = [
     "CtsplatError",
     "atomic_path",
+    "scratch_dir",
     "write_json_atomic",
     "json_safe",
     "code_version",
@@ -61,6 +64,28 @@ os.umask(_UMASK)
 
 
 @contextlib.contextmanager
+def _interrupts_held() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) for the block and raise it when the block ends.
+
+    Creating a temporary file and recording its name are two steps; an interrupt between them would leave a file
+    that no cleanup knows of. Python runs signal handlers in the main thread only, so elsewhere this does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, _frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught and callable(previous):
+        previous(signal.SIGINT, None)
+    elif caught and previous == signal.SIG_DFL:
+        signal.raise_signal(signal.SIGINT)
+
+
+@contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` only if the block succeeds.
 
@@ -92,17 +117,20 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = "".join(path.suffixes) if path.suffixes else ""
     stem = path.name[: len(path.name) - len(suffix)] if suffix else path.name
-    fd, tmp = tempfile.mkstemp(prefix=f".{stem}.", suffix=f".tmp{suffix}", dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
+    tmp_path: Path | None = None
     try:
+        with _interrupts_held():
+            fd, tmp = tempfile.mkstemp(prefix=f".{stem}.", suffix=f".tmp{suffix}", dir=path.parent)
+            tmp_path = Path(tmp)
+            os.close(fd)
         yield tmp_path
         if tmp_path.is_file():  # mkstemp creates 0600; give the output the permissions a plain open() would
             os.chmod(tmp_path, 0o666 & ~_UMASK)
         os.replace(tmp_path, path)
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp_path.unlink()
+        if tmp_path is not None:
+            with contextlib.suppress(FileNotFoundError):
+                tmp_path.unlink()
         raise
 
 
@@ -131,16 +159,48 @@ def atomic_dir(path: str | os.PathLike[str]) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
-    try:
+    with scratch_dir(path.parent, prefix=f".{path.name}.") as tmp:
         os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp creates 0700
         yield tmp
         if path.exists():
             shutil.rmtree(path)
         os.replace(tmp, path)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+
+
+@contextlib.contextmanager
+def scratch_dir(parent: str | os.PathLike[str] | None, *, prefix: str, suffix: str = "") -> Iterator[Path]:
+    """Yield a new empty folder in ``parent``; it is removed, with all it holds, when the block ends.
+
+    The folder is removed whether the block succeeds, fails or is interrupted (Ctrl-C included, even one that lands
+    while the folder is being created); what the block moved out of it beforehand stays.
+
+    Parameters
+    ----------
+    parent : str, os.PathLike or None
+        Where to create the folder (must exist); None for the system's temporary folder.
+    prefix, suffix : str
+        Start and end of the folder's random name.
+
+    Yields
+    ------
+    pathlib.Path
+        The folder (mode 0o700, as ``tempfile.mkdtemp`` makes it).
+
+    Examples
+    --------
+    >>> with scratch_dir(None, prefix="ctsplat-") as work:
+    ...     _ = (work / "part.bin").write_bytes(b"x")
+    >>> work.exists()
+    False
+    """
+    tmp: Path | None = None
+    try:
+        with _interrupts_held():
+            tmp = Path(tempfile.mkdtemp(prefix=prefix, suffix=suffix, dir=parent))
+        yield tmp
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _json_default(o: Any) -> Any:

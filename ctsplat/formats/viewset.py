@@ -19,7 +19,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from ctsplat.geometry.cameras import Camera, camera_center, camera_from_dict, rotmat_to_qvec
-from ctsplat.utils import CtsplatError, atomic_dir, code_version, write_json_atomic
+from ctsplat.utils import CtsplatError, atomic_dir, code_version, scratch_dir, write_json_atomic
 
 __all__ = [
     "VIEWSET_FORMAT",
@@ -264,8 +263,7 @@ def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, pro
                            f"({len(view_set)}, {cam.height}, {cam.width})")
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with scratch_dir(out_dir.parent, prefix=f".{out_dir.name}.") as stage:
         tifffile.imwrite(stage / "line_integrals.tif", p, photometric="minisblack", metadata={"axes": "QYX"})
         write_png_stack(transmission_png16(p), stage / "png", [f"view_{v.id:04d}.png" for v in view_set.views])
         view_set.save(stage / "views.json")
@@ -287,8 +285,6 @@ def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, pro
             if name == "png" and (out_dir / name).exists():
                 shutil.rmtree(out_dir / name)
             os.replace(stage / name, out_dir / name)
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
 
 
 def load_radiographs(out_dir: str | Path) -> tuple[np.ndarray, ViewSet]:

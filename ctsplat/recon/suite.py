@@ -18,8 +18,6 @@ with the highest validation score.
 from __future__ import annotations
 
 import logging
-import shutil
-import tempfile
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -29,7 +27,7 @@ import numpy as np
 from ctsplat.formats.viewset import ViewSet
 from ctsplat.recon.fdk import is_circular_cone
 from ctsplat.recon.select import Choice, Validator, choose, choose_iterative
-from ctsplat.utils import CtsplatError
+from ctsplat.utils import CtsplatError, scratch_dir
 
 __all__ = ["METHODS", "applicable_methods", "bin_detector", "auto_binning", "classical_reconstructions",
            "best_choice"]
@@ -215,16 +213,13 @@ def classical_reconstructions(train_p: np.ndarray, train_vs: ViewSet, val_p: np.
                 continue
             if work_dir is not None:
                 Path(work_dir).mkdir(parents=True, exist_ok=True)
-            tmp = Path(tempfile.mkdtemp(prefix="svmbir-", dir=work_dir))
-            try:
+            with scratch_dir(work_dir, prefix="svmbir-") as tmp:
                 grid = [{"sharpness": float(s), "snr_db": float(q)} for s in _as_list(cfg["mbir_sharpness"])
                         for q in _as_list(cfg["mbir_snr_db"])]
                 c = choose("mbir", grid, lambda sharpness, snr_db, cache=tmp: mbir_volume(
                     train_p, train_vs, reference, sharpness=sharpness, snr_db=snr_db, clip=clip, lib_path=cache,
                     max_iterations=int(cfg["mbir_max_iterations"]), num_threads=int(cfg["mbir_threads"])),
                     validator, clip=clip)
-            finally:
-                shutil.rmtree(tmp, ignore_errors=True)
         log.info("baselines: %s chose %s (validation PSNR %.2f dB, %.1f s)", c.method, c.params, c.val_psnr,
                  c.seconds)
         out.append(c)

@@ -35,7 +35,6 @@ import logging
 import math
 import os
 import shutil
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -64,7 +63,15 @@ from ctsplat.sfm.colmap import (
     write_model,
 )
 from ctsplat.sfm.features import enhance_for_features, feature_masks, write_pngs
-from ctsplat.utils import CtsplatError, atomic_path, code_version, json_safe, merge_config, write_json_atomic
+from ctsplat.utils import (
+    CtsplatError,
+    atomic_path,
+    code_version,
+    json_safe,
+    merge_config,
+    scratch_dir,
+    write_json_atomic,
+)
 
 __all__ = ["SFM_DEFAULTS", "run_sfm", "run_sfm_on_images", "naive_slices_sfm", "summarize", "sfm_failure"]
 
@@ -425,27 +432,26 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
                                 background_frac=cfg["background_frac"])
     margin = float(cfg["silhouette_margin_frac"]) * W
     masks = feature_masks(p, float(cfg["background_frac"]) or 0.02, margin) if margin > 0 else None
-    work = Path(tempfile.mkdtemp(prefix=".sfm_work.", dir=out_dir))
-    try:
-        summary, rows, (main, align) = run_sfm_on_images(
-            imgs, (cam.fx, cam.fy, cam.cx, cam.cy), Rs_true, ts_true, work, cfg, seed=seed, ids=ids,
-            scale_mm=float(cam.dso_mm),
-            prior_centres=design_centres if cfg["pose_prior"] == "position" else None,
-            prior_poses=(design_Rs, design_ts) if cfg["pose_prior"] in REFINE_MODES else None,
-            masks=masks, design=(design_Rs, design_ts), design_azimuth_deg=design_az)
-        if main is not None:
-            write_model(main, out_dir / "sparse" / "0")
-            if align["ok"]:
-                xyz = np.array([pt.xyz for pt in main.points3D.values()]).reshape(-1, 3)
-                write_points_ply(out_dir / "points3d.ply", align["scale"] * xyz @ align["R"].T + align["t"])
-        if (out_dir / "images").exists():
-            shutil.rmtree(out_dir / "images")
-        (work / "images").rename(out_dir / "images")
-    finally:
-        if cfg["keep_work"] and (work / "colmap").exists():
-            shutil.rmtree(out_dir / "colmap", ignore_errors=True)
-            (work / "colmap").rename(out_dir / "colmap")
-        shutil.rmtree(work, ignore_errors=True)
+    with scratch_dir(out_dir, prefix=".sfm_work.") as work:
+        try:
+            summary, rows, (main, align) = run_sfm_on_images(
+                imgs, (cam.fx, cam.fy, cam.cx, cam.cy), Rs_true, ts_true, work, cfg, seed=seed, ids=ids,
+                scale_mm=float(cam.dso_mm),
+                prior_centres=design_centres if cfg["pose_prior"] == "position" else None,
+                prior_poses=(design_Rs, design_ts) if cfg["pose_prior"] in REFINE_MODES else None,
+                masks=masks, design=(design_Rs, design_ts), design_azimuth_deg=design_az)
+            if main is not None:
+                write_model(main, out_dir / "sparse" / "0")
+                if align["ok"]:
+                    xyz = np.array([pt.xyz for pt in main.points3D.values()]).reshape(-1, 3)
+                    write_points_ply(out_dir / "points3d.ply", align["scale"] * xyz @ align["R"].T + align["t"])
+            if (out_dir / "images").exists():
+                shutil.rmtree(out_dir / "images")
+            (work / "images").rename(out_dir / "images")
+        finally:
+            if cfg["keep_work"] and (work / "colmap").exists():
+                shutil.rmtree(out_dir / "colmap", ignore_errors=True)
+                (work / "colmap").rename(out_dir / "colmap")
 
     # physical plausibility: a view whose optical axis misses the isocentre by more than the detector's
     # half field of view atan((W/2) / fx) cannot have imaged the object; such poses are not exported

@@ -437,6 +437,31 @@ def test_atomic_dir_replaces_whole_folders_or_leaves_the_old_one(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["views"]
 
 
+
+@pytest.mark.parametrize("kind", ["file", "folder"])
+def test_ctrl_c_while_the_temporary_is_created_leaves_nothing(tmp_path, monkeypatch, kind):
+    # Ctrl-C lands just after the temporary exists on disk and before the writer has its name: the moment a
+    # signal can otherwise leave a stray file
+    import signal
+    import tempfile
+
+    from ctsplat.utils import atomic_dir, atomic_path
+
+    name = "mkstemp" if kind == "file" else "mkdtemp"
+    create = getattr(tempfile, name)
+
+    def create_then_interrupt(*args, **kwargs):
+        made = create(*args, **kwargs)
+        signal.raise_signal(signal.SIGINT)
+        return made
+
+    monkeypatch.setattr(tempfile, name, create_then_interrupt)
+    writer = atomic_path(tmp_path / "ckpt.pt") if kind == "file" else atomic_dir(tmp_path / "views")
+    with pytest.raises(KeyboardInterrupt), writer:
+        pass
+    assert list(tmp_path.iterdir()) == []
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Ctrl-C handled as before
+
 # ------------------------------------------------------------------------------------------ rescale
 
 
