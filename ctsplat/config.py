@@ -621,8 +621,6 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("train", "optimizer_preset"): {"enum": ["per_group", "method"]},
     ("train", "pose_refine.cone_model"): {"enum": ["rigid", "carm"]},
     ("train", "model_selection"): {"enum": ["last", "best"]},
-    ("train", "sharpen.amounts"): {"type": "array", "minItems": 1,
-                                   "items": {"type": "number", "minimum": 0, "maximum": 4}},
     # keys the workflow sets per run (not in the schema; checked by check_section for the command line)
     ("train", "device"): {"type": "string", "pattern": "^(auto|cpu|cuda(:[0-9]+)?)$"},
     ("train", "init"): {"enum": ["volume", "uniform", "fbp", "sfm"]},

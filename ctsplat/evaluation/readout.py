@@ -22,8 +22,6 @@ from typing import Any
 
 import numpy as np
 
-from ctsplat.utils import CtsplatError
-
 __all__ = ["sharpen", "choose_sharpening", "check_sharpen_config"]
 
 
@@ -61,14 +59,11 @@ def sharpen(volume: np.ndarray, *, amount: float, radius_voxels: float = 1.0) ->
 
 def check_sharpen_config(section: dict[str, Any]) -> tuple[list[float], float]:
     """The checked ``amounts`` and ``radius_voxels`` of a ``train.sharpen`` section, or a one-line error naming the
-    key (the radius by its bound in :data:`ctsplat.training.config.TRAIN_BOUNDS`)."""
+    key (their bounds are in :data:`ctsplat.training.config.TRAIN_BOUNDS`)."""
     from ctsplat.training.config import TRAIN_BOUNDS
 
     amounts, radius = section.get("amounts"), section.get("radius_voxels")
-    if (not isinstance(amounts, (list, tuple)) or not amounts
-            or not all(isinstance(a, (int, float)) and not isinstance(a, bool) and 0 <= a <= 4 for a in amounts)):
-        raise CtsplatError("train.sharpen.amounts must be a non-empty list of numbers in [0, 4] (e.g. [0, 0.2, 0.4]), "
-                           f"got {amounts!r}")
+    TRAIN_BOUNDS["sharpen.amounts"].check("sharpen.amounts", amounts)
     TRAIN_BOUNDS["sharpen.radius_voxels"].check("sharpen.radius_voxels", radius)
     return [float(a) for a in amounts], float(radius)
 

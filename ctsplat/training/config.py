@@ -161,6 +161,8 @@ class Bound:
         Whether the limit itself is excluded.
     nullable : bool
         Whether ``null`` (None) is allowed.
+    array : bool
+        The key holds a non-empty list of such values (a grid of candidates) instead of one.
     """
 
     kind: str
@@ -169,10 +171,15 @@ class Bound:
     low_open: bool = False
     high_open: bool = False
     nullable: bool = False
+    array: bool = False
 
     def describe(self) -> str:
-        """``an integer >= 1``, ``a number in (0, 1)``, ... (the error messages' wording)."""
-        what = "an integer" if self.kind == "integer" else "a number"
+        """``an integer >= 1``, ``a number in (0, 1)``, ``a non-empty list of numbers in [0, 4]``, ... (the error
+        messages' wording)."""
+        if self.array:
+            what = "a non-empty list of integers" if self.kind == "integer" else "a non-empty list of numbers"
+        else:
+            what = "an integer" if self.kind == "integer" else "a number"
         fmt = _fmt_limit
         if self.low is not None and self.high is not None:
             rng = f"in {'(' if self.low_open else '['}{fmt(self.low)}, {fmt(self.high)}{')' if self.high_open else ']'}"
@@ -186,26 +193,24 @@ class Bound:
 
     def json_schema(self) -> dict[str, Any]:
         """The same bound as a JSON-schema fragment (``type``, ``minimum`` / ``exclusiveMinimum``, ...)."""
-        out: dict[str, Any] = {"type": [self.kind, "null"] if self.nullable else self.kind}
+        item: dict[str, Any] = {"type": self.kind}
         if self.low is not None:
-            out["exclusiveMinimum" if self.low_open else "minimum"] = self.low
+            item["exclusiveMinimum" if self.low_open else "minimum"] = self.low
         if self.high is not None:
-            out["exclusiveMaximum" if self.high_open else "maximum"] = self.high
+            item["exclusiveMaximum" if self.high_open else "maximum"] = self.high
+        out = {"type": "array", "minItems": 1, "items": item} if self.array else item
+        if self.nullable:
+            out["type"] = [out["type"], "null"]
         return out
 
     def check(self, key: str, value: Any) -> None:
         """Raise a one-line ``CtsplatError`` naming ``train.{key}`` when ``value`` is outside the bound."""
         if value is None and self.nullable:
             return
-        number = isinstance(value, int | float) and not isinstance(value, bool)
-        ok = number and math.isfinite(value)
-        if ok and self.kind == "integer":
-            ok = float(value).is_integer()
-        if ok and self.low is not None:
-            ok = value > self.low if self.low_open else value >= self.low
-        if ok and self.high is not None:
-            ok = value < self.high if self.high_open else value <= self.high
-        if ok:
+        if self.array:
+            if isinstance(value, list | tuple) and value and all(self._holds(v) for v in value):
+                return
+        elif self._holds(value):
             return
         hint = ""
         if isinstance(value, str) and "e" in value.lower():
@@ -214,6 +219,18 @@ class Bound:
                 float(value)
                 hint = f" (text: YAML reads {value} as a string; write {mant if '.' in mant else mant + '.0'}e{exp})"
         raise CtsplatError(f"train.{key} must be {self.describe()}, got {value!r}{hint}")
+
+    def _holds(self, value: Any) -> bool:
+        """Whether one value (not a list) is of the kind and within the limits."""
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        ok = number and math.isfinite(value)
+        if ok and self.kind == "integer":
+            ok = float(value).is_integer()
+        if ok and self.low is not None:
+            ok = value > self.low if self.low_open else value >= self.low
+        if ok and self.high is not None:
+            ok = value < self.high if self.high_open else value <= self.high
+        return ok
 
 
 def _fmt_limit(x: float) -> str:
@@ -249,6 +266,7 @@ TRAIN_BOUNDS: dict[str, Bound] = {
     "batch_views": _POS_INT,
     "init_asd_pocs.iterations": _NONNEG_INT,
     "init_asd_pocs.alpha": _POS,
+    "sharpen.amounts": Bound("number", 0, 4, array=True),
     "sharpen.radius_voxels": Bound("number", 0, 10, low_open=True),
     "lambda_l1": _NONNEG,
     "lambda_ssim": _NONNEG,

@@ -99,14 +99,19 @@ def test_bounds_have_a_json_schema_form() -> None:
     assert config.TRAIN_BOUNDS["init_scale_voxels"].json_schema() == {"type": ["number", "null"],
                                                                      "exclusiveMinimum": 0}
     assert config.TRAIN_BOUNDS["eval_every"].json_schema() == {"type": "integer", "minimum": 1}
-    # every numeric default has a bound, and nothing else does
+    assert config.TRAIN_BOUNDS["sharpen.amounts"].json_schema() == {
+        "type": "array", "minItems": 1, "items": {"type": "number", "minimum": 0, "maximum": 4}}
+    # every numeric default (or list of numbers) has a bound, and nothing else does
     numeric = set()
+
+    def is_number(v: object) -> bool:
+        return isinstance(v, int | float) and not isinstance(v, bool)
 
     def walk(d: dict, prefix: str = "") -> None:
         for k, v in d.items():
             if isinstance(v, dict):
                 walk(v, f"{prefix}{k}.")
-            elif (isinstance(v, int | float) and not isinstance(v, bool)) or v is None:
+            elif is_number(v) or v is None or (isinstance(v, list) and v and all(map(is_number, v))):
                 numeric.add(prefix + k)
 
     walk(config.TRAIN_DEFAULTS)
