@@ -490,11 +490,11 @@ def write_phantom_dicom(
     }
     absolute = Path(os.path.abspath(out_dir))
     if absolute.exists():
-        staging = scratch_dir(absolute, prefix=_STAGING_PREFIX, suffix=".tmp")
+        parent, prefix = absolute, _STAGING_PREFIX
     else:
         absolute.parent.mkdir(parents=True, exist_ok=True)
-        staging = scratch_dir(absolute.parent, prefix=f".{absolute.name}.", suffix=".tmp")
-    with staging as tmp:
+        parent, prefix = absolute.parent, f".{absolute.name}."
+    with scratch_dir(parent, prefix=prefix, suffix=".tmp") as tmp:
         write_dicom_series(
             hu, tmp, spacing_mm=(h, h, h), origin_lps=origin_lps, uid_seed=f"ctsplat-phantom-{seed}-{size}-{variant}",
             series_description=series_description, filename=_SLICE_NAME,

@@ -373,9 +373,6 @@ def resolve_config(config: dict[str, Any] | None) -> dict[str, Any]:
     if cfg["densify"]["split_mass"] not in ("conserve", "halve"):
         raise CtsplatError(f"unknown train.densify.split_mass {cfg['densify']['split_mass']!r}; allowed: conserve, "
                            "halve")
-    from ctsplat.evaluation.readout import check_sharpen_config
-
-    check_sharpen_config(cfg["sharpen"])
     if not cfg["volume"]:
         raise CtsplatError("train.volume is empty: give the preprocessed reference volume (.nii.gz)")
     if not cfg["radiographs"]:

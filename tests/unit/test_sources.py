@@ -437,7 +437,6 @@ def test_atomic_dir_replaces_whole_folders_or_leaves_the_old_one(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["views"]
 
 
-
 @pytest.mark.parametrize("kind", ["file", "folder"])
 def test_ctrl_c_while_the_temporary_is_created_leaves_nothing(tmp_path, monkeypatch, kind):
     # Ctrl-C lands just after the temporary exists on disk and before the writer has its name: the moment a
@@ -461,6 +460,7 @@ def test_ctrl_c_while_the_temporary_is_created_leaves_nothing(tmp_path, monkeypa
         pass
     assert list(tmp_path.iterdir()) == []
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Ctrl-C handled as before
+
 
 # ------------------------------------------------------------------------------------------ rescale
 
