@@ -63,6 +63,8 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
             "log_scales": 5e-3,
             "quats": 1e-3,
             "opacity": 5e-2,
+            # the base colour is trained in RGB units; 3DGS's 2.5e-3 acts on its SH DC coefficient, a step of
+            # 2.5e-3 x C0 = 7e-4 in colour: 3.5x smaller than this one, which tied on validation (docs/results.md)
             "colors": 2.5e-3,
             "sh_rest": 1.25e-4,
             "background": 1e-2,
