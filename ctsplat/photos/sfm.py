@@ -61,7 +61,9 @@ def matching_mode(settings: dict[str, Any], n_images: int) -> str:
 
 def _extract_and_match(db: Path, image_dir: Path, names: list[str], s: dict[str, Any]) -> str:
     ext = pycolmap.FeatureExtractionOptions()
-    ext.num_threads = int(s["num_threads"])
+    # one thread: COLMAP numbers the images in the order its extraction threads finish them, and the numbers steer
+    # matching and mapping, so parallel extraction makes the model differ between runs of the same photos
+    ext.num_threads = 1
     ext.use_gpu = False
     ext.max_image_size = int(s["max_image_size"])
     ext.sift.max_num_features = int(s["max_num_features"])

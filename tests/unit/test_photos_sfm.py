@@ -63,6 +63,19 @@ def test_ten_neighbouring_skull_photos_register_in_one_model(skull_subset: Path,
     assert scene.rgb.min() >= 0 and scene.rgb.max() <= 1 and scene.rgb.std() > 0.02  # coloured points
 
 
+def test_the_same_photos_give_the_same_model(skull_subset: Path, tmp_path: Path) -> None:
+    """Two runs on the same photos write identical models, and COLMAP's image ids follow the names (with parallel
+    extraction they follow the threads' finishing order, and the model changes from run to run)."""
+    import pycolmap
+
+    for name in ("a", "b"):
+        run_photo_sfm(skull_subset, tmp_path / name, {"num_threads": 2})
+    for f in ("cameras.bin", "images.bin", "points3D.bin"):
+        assert (tmp_path / "a/sparse/0" / f).read_bytes() == (tmp_path / "b/sparse/0" / f).read_bytes(), f
+    rec = pycolmap.Reconstruction(str(tmp_path / "a/sparse/0"))
+    assert all(NEIGHBOURS[img.image_id - 1] == img.name for img in rec.images.values())
+
+
 def test_workflow_runs_a_photo_volume_beside_the_ct_grid(skull_subset: Path, tmp_path: Path) -> None:
     """The photo rules (real Snakemake process) pose, train and evaluate a photo volume; the CT grid never
     schedules a job for it."""
