@@ -30,7 +30,7 @@ import pycolmap
 
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.images import check_photos, list_photos
-from ctsplat.sfm.colmap import write_model
+from ctsplat.sfm.colmap import extraction_options, write_model
 from ctsplat.utils import CtsplatError, atomic_dir, code_version, write_json_atomic
 
 __all__ = ["run_photo_sfm", "matching_mode"]
@@ -60,11 +60,7 @@ def matching_mode(settings: dict[str, Any], n_images: int) -> str:
 
 
 def _extract_and_match(db: Path, image_dir: Path, names: list[str], s: dict[str, Any]) -> str:
-    ext = pycolmap.FeatureExtractionOptions()
-    # one thread: COLMAP numbers the images in the order its extraction threads finish them, and the numbers steer
-    # matching and mapping, so parallel extraction makes the model differ between runs of the same photos
-    ext.num_threads = 1
-    ext.use_gpu = False
+    ext = extraction_options()
     ext.max_image_size = int(s["max_image_size"])
     ext.sift.max_num_features = int(s["max_num_features"])
     reader = pycolmap.ImageReaderOptions()

@@ -30,8 +30,9 @@ import pycolmap
 from ctsplat.sfm.align import evaluate_poses, umeyama
 from ctsplat.utils import CtsplatError, atomic_dir
 
-__all__ = ["REFINE_MODES", "colmap_reconstruct", "colmap_map", "reverse_depth", "fix_reversal", "merge_models",
-           "model_poses", "set_poses_and_triangulate", "isocentric_adjust", "per_image_reproj", "write_model"]
+__all__ = ["REFINE_MODES", "colmap_reconstruct", "extraction_options", "colmap_map", "reverse_depth", "fix_reversal",
+           "merge_models", "model_poses", "set_poses_and_triangulate", "isocentric_adjust", "per_image_reproj",
+           "write_model"]
 
 log = logging.getLogger(__name__)
 
@@ -39,11 +40,26 @@ log = logging.getLogger(__name__)
 REFINE_MODES = ("refine", "refine_prior", "isocentric")
 
 
+def extraction_options() -> Any:
+    """SIFT extraction options for the CPU, on one thread (the caller sets the SIFT parameters).
+
+    COLMAP numbers the images in the order its extraction threads finish them, and the numbers steer matching and
+    mapping, so parallel extraction makes the model differ between runs on the same images; on one thread the
+    numbers follow the order of the names given.
+
+    Returns
+    -------
+    pycolmap.FeatureExtractionOptions
+    """
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.num_threads = 1
+    ext.use_gpu = False
+    return ext
+
+
 def _options(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
     nt = int(cfg["num_threads"])
-    ext = pycolmap.FeatureExtractionOptions()
-    ext.num_threads = nt
-    ext.use_gpu = False
+    ext = extraction_options()
     ext.sift.max_num_features = int(cfg["max_num_features"])
     ext.sift.peak_threshold = float(cfg["peak_threshold"])
     ext.sift.edge_threshold = float(cfg["edge_threshold"])

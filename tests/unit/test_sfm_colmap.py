@@ -80,6 +80,24 @@ def test_bead_views_register_in_one_model_with_accurate_poses(bead_run) -> None:
     assert on_disk["config"]["pose_prior"] == CFG["pose_prior"]
 
 
+def test_the_same_views_give_the_same_poses(bead_run, tmp_path: Path) -> None:
+    """Two runs on the same radiographs with two threads recover the same poses and points (COLMAP numbers the
+    images in name order, whatever the threads)."""
+    out, _, _ = bead_run
+    recs = []
+    for name in ("a", "b"):
+        run_sfm(out.parent / "carm", tmp_path / name, {**CFG, "num_threads": 2}, seed=0)
+        recs.append(pycolmap.Reconstruction(str(tmp_path / name / "sparse" / "0")))
+    first, again = recs
+    ids = {img.name: img.image_id for img in first.images.values()}
+    assert ids == {img.name: img.image_id for img in again.images.values()}
+    assert list(ids) and sorted(ids, key=ids.get) == sorted(ids)
+    for img in again.images.values():
+        pose = first.image(img.image_id).cam_from_world().matrix()
+        np.testing.assert_array_equal(img.cam_from_world().matrix(), pose)
+    assert first.num_points3D() == again.num_points3D()
+
+
 def test_colmap_export_is_readable_and_keeps_the_known_intrinsics(bead_run) -> None:
     out, s, _ = bead_run
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
