@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 REFINE_MODES = ("refine", "refine_prior", "isocentric")
 
 
-def extraction_options() -> Any:
+def extraction_options() -> pycolmap.FeatureExtractionOptions:
     """SIFT extraction options for the CPU, on one thread (the caller sets the SIFT parameters).
 
     COLMAP numbers the images in the order its extraction threads finish them, and the numbers steer matching and
