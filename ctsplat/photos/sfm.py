@@ -30,7 +30,7 @@ import pycolmap
 
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.images import check_photos, list_photos
-from ctsplat.sfm.colmap import extraction_options, write_model
+from ctsplat.sfm.colmap import MAPPING_THREADS, extraction_options, write_model
 from ctsplat.utils import CtsplatError, atomic_dir, code_version, write_json_atomic
 
 __all__ = ["run_photo_sfm", "matching_mode"]
@@ -90,22 +90,22 @@ def _map(db: Path, image_dir: Path, out: Path, s: dict[str, Any]) -> dict[int, A
     out.mkdir(parents=True, exist_ok=True)
     if s["mapper"] == "global":
         g = pycolmap.GlobalPipelineOptions()
-        g.num_threads = int(s["num_threads"])
+        g.num_threads = MAPPING_THREADS
         g.random_seed = int(s["seed"])
         g.min_num_matches = int(s["min_num_inliers"])
-        g.mapper.num_threads = int(s["num_threads"])
+        g.mapper.num_threads = MAPPING_THREADS
         g.mapper.random_seed = int(s["seed"])
         g.mapper.bundle_adjustment.ceres.use_gpu = False
         g.mapper.global_positioning.use_gpu = False
         return dict(pycolmap.global_mapping(db, image_dir, out, options=g))
     o = pycolmap.IncrementalPipelineOptions()
-    o.num_threads = int(s["num_threads"])
+    o.num_threads = MAPPING_THREADS
     o.random_seed = int(s["seed"])
     o.min_num_matches = int(s["min_num_inliers"])
     o.min_model_size = 3
     o.multiple_models = True  # all models are counted in the summary; the largest is kept
     o.extract_colors = True  # point colours seed the Gaussians' colours
-    o.mapper.num_threads = int(s["num_threads"])
+    o.mapper.num_threads = MAPPING_THREADS
     o.mapper.random_seed = int(s["seed"])
     o.mapper.init_min_num_inliers = int(s["init_min_num_inliers"])
     o.mapper.abs_pose_min_num_inliers = int(s["abs_pose_min_num_inliers"])

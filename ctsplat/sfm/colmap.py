@@ -30,14 +30,20 @@ import pycolmap
 from ctsplat.sfm.align import evaluate_poses, umeyama
 from ctsplat.utils import CtsplatError, atomic_dir
 
-__all__ = ["REFINE_MODES", "colmap_reconstruct", "extraction_options", "colmap_map", "reverse_depth", "fix_reversal",
-           "merge_models", "model_poses", "set_poses_and_triangulate", "isocentric_adjust", "per_image_reproj",
-           "write_model"]
+__all__ = ["MAPPING_THREADS", "REFINE_MODES", "colmap_reconstruct", "extraction_options", "colmap_map",
+           "reverse_depth", "fix_reversal", "merge_models", "model_poses", "set_poses_and_triangulate",
+           "isocentric_adjust", "per_image_reproj", "write_model"]
 
 log = logging.getLogger(__name__)
 
 #: ``pose_prior`` modes that triangulate from the designed poses and refine them (:func:`colmap_map`).
 REFINE_MODES = ("refine", "refine_prior", "isocentric")
+
+MAPPING_THREADS = 1
+"""Threads for COLMAP's mapping and every bundle adjustment. Ceres and the parallel triangulation add their parts
+in the order the threads finish, so on more threads the poses differ in the last bits from run to run and the
+incremental mapper grows the difference into different models; feature matching and verification give the same
+result on any number of threads and keep the configured ``num_threads``."""
 
 
 def extraction_options() -> pycolmap.FeatureExtractionOptions:
@@ -82,7 +88,7 @@ def _options(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
 
 def _incremental_options(cfg: dict[str, Any]):  # noqa: ANN202
     o = pycolmap.IncrementalPipelineOptions()
-    o.num_threads = int(cfg["num_threads"])
+    o.num_threads = MAPPING_THREADS
     o.random_seed = int(cfg.get("_seed", 0))
     o.min_num_matches = int(cfg["min_num_inliers"])
     o.min_model_size = int(cfg["min_model_size"])
@@ -100,7 +106,7 @@ def _incremental_options(cfg: dict[str, Any]):  # noqa: ANN202
     m.abs_pose_refine_extra_params = False
     m.filter_min_tri_angle = float(cfg["filter_min_tri_angle_deg"])
     m.random_seed = int(cfg.get("_seed", 0))
-    m.num_threads = int(cfg["num_threads"])
+    m.num_threads = MAPPING_THREADS
     o.triangulation.min_angle = float(cfg["triangulation_min_angle_deg"])
     o.triangulation.random_seed = int(cfg.get("_seed", 0))
     return o
@@ -108,12 +114,12 @@ def _incremental_options(cfg: dict[str, Any]):  # noqa: ANN202
 
 def _global_options(cfg: dict[str, Any]):  # noqa: ANN202
     o = pycolmap.GlobalPipelineOptions()
-    o.num_threads = int(cfg["num_threads"])
+    o.num_threads = MAPPING_THREADS
     o.random_seed = int(cfg.get("_seed", 0))
     o.min_num_matches = int(cfg["min_num_inliers"])
     o.min_model_size = int(cfg["min_model_size"])
     m = o.mapper
-    m.num_threads = int(cfg["num_threads"])
+    m.num_threads = MAPPING_THREADS
     m.random_seed = int(cfg.get("_seed", 0))
     m.bundle_adjustment.refine_focal_length = False
     m.bundle_adjustment.refine_principal_point = False
@@ -430,7 +436,7 @@ def _ba_options(cfg: dict[str, Any]):  # noqa: ANN202
     ba.print_summary = False
     ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     ba.ceres.loss_function_scale = 1.0
-    ba.ceres.solver_options.num_threads = int(cfg["num_threads"])
+    ba.ceres.solver_options.num_threads = MAPPING_THREADS
     ba.ceres.solver_options.max_num_iterations = 100
     return ba
 
