@@ -14,7 +14,10 @@ are trained, and the first ``(d + 1)² - 1`` of them are passed while the degree
   position noise follows each optimiser step);
 - the composite lies over a background colour, fixed (``background: [r, g, b]``, black by default) or learned with
   the model (``background: learned``, started at the median of the training photos' border pixels); it is saved
-  in the model's ``meta["background"]``.
+  in the model's ``meta["background"]``;
+- with ``flash.enabled``, a flash on the camera (:mod:`ctsplat.photos.light`): colours × ``(r_ref / r)^p``, the
+  exponent ``p`` trained with the model (Adam) from ``flash.exponent``; ``meta["flash"]`` keeps ``exponent`` and
+  ``r_ref``, and :func:`render_view` applies it. ``model.ply`` holds the colours seen from ``r_ref``.
 
 ``holdout: validation`` leaves the test photos out entirely and monitors and evaluates on validation photos taken
 from the training set (:func:`ctsplat.photos.dataset.split_names`): the split to choose settings on.
@@ -45,6 +48,7 @@ from ctsplat.formats.runlog import LOG_COLUMNS, CsvLog
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
 from ctsplat.photos.densify import AlphaDensify
+from ctsplat.photos.light import flash_falloff, reference_distance
 from ctsplat.photos.mcmc import MCMCDensify
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.splat.render import render
@@ -157,7 +161,7 @@ def to_gaussians(params: dict[str, torch.Tensor], degree: int) -> Gaussians:
 
 
 def render_view(g: Gaussians, view: PhotoView | Any, camera: Any = None, R: Any = None, t: Any = None, *,
-                background: Any = None) -> Any:
+                background: Any = None, flash: dict[str, Any] | None = None) -> Any:
     """Render ``g`` from a view (or from ``camera``, ``R``, ``t``) with the alpha compositor.
 
     Parameters
@@ -168,6 +172,9 @@ def render_view(g: Gaussians, view: PhotoView | Any, camera: Any = None, R: Any 
         Used instead of the view's.
     background : Tensor (3,) or sequence of 3 floats, optional
         The colour behind the Gaussians (None: black).
+    flash : dict, optional
+        ``{"exponent": p, "r_ref": r}`` (p a float or a tensor being trained): the flash falloff of
+        :func:`ctsplat.photos.light.flash_falloff` on the colours. None: ``g.meta.get("flash")`` (none: no falloff).
 
     Returns
     -------
@@ -177,7 +184,13 @@ def render_view(g: Gaussians, view: PhotoView | Any, camera: Any = None, R: Any 
     cam = camera if camera is not None else view.camera
     R = R if R is not None else view.R
     t = t if t is not None else view.t
-    return render(g, cam, R, t, compositor="alpha", background=background)
+    flash = flash if flash is not None else g.meta.get("flash")
+    scale = None
+    if flash is not None:
+        R_t = torch.as_tensor(np.asarray(R, float), dtype=g.means.dtype, device=g.means.device)
+        t_t = torch.as_tensor(np.asarray(t, float), dtype=g.means.dtype, device=g.means.device)
+        scale = flash_falloff(g.means, -R_t.T @ t_t, exponent=flash["exponent"], r_ref=float(flash["r_ref"]))
+    return render(g, cam, R, t, compositor="alpha", background=background, color_scale=scale)
 
 
 def image_metrics(img: torch.Tensor, ref: torch.Tensor) -> tuple[float, float]:
@@ -207,13 +220,14 @@ def _optimizer(params: dict[str, torch.Tensor], lr: dict[str, float], extent: fl
     return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
 
-def _eval_views(params: dict[str, torch.Tensor], degree: int, views: list[PhotoView], background: torch.Tensor
-                ) -> tuple[float, float]:
+def _eval_views(params: dict[str, torch.Tensor], degree: int, views: list[PhotoView], background: torch.Tensor,
+                flash: dict[str, Any] | None) -> tuple[float, float]:
     if not views:
         return float("nan"), float("nan")
     with torch.no_grad():
         g = to_gaussians(params, degree)
-        vals = [image_metrics(render_view(g, v, background=background.detach()).image, v.image) for v in views]
+        vals = [image_metrics(render_view(g, v, background=background.detach(), flash=flash).image, v.image)
+                for v in views]
     return float(np.mean([a for a, _ in vals])), float(np.mean([b for _, b in vals]))
 
 
@@ -234,10 +248,12 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     Returns
     -------
     model : Gaussians
-        Detached, at the final SH degree; ``meta["background"]`` is its background colour (list of 3 floats).
+        Detached, at the final SH degree; ``meta["background"]`` is its background colour (list of 3 floats),
+        ``meta["flash"]`` its flash (``exponent``, ``r_ref``; only with ``flash.enabled``).
     report : dict
         ``iterations``, ``seconds``, ``n_gaussians``, ``initial_test_psnr``, ``final_test_psnr``,
-        ``final_test_ssim`` (on the held-out split, named by ``held_out``), ``sh_degree``, ``background``.
+        ``final_test_ssim`` (on the held-out split, named by ``held_out``), ``sh_degree``, ``background``,
+        ``flash`` (None without).
     """
     s = settings
     iters = int(s["iterations"])
@@ -255,6 +271,13 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     bg0 = border_colour(train) if learned else np.asarray(s["background"], float)
     background = torch.tensor(bg0, dtype=torch.float32, device=device, requires_grad=learned)
     bg_opt = torch.optim.Adam([background], lr=float(s["lr"]["background"]), eps=1e-15) if learned else None
+    flash, flash_opt = None, None
+    if s["flash"]["enabled"]:
+        centres = [-v.R.T @ v.t for v in train]
+        exponent = torch.tensor(float(s["flash"]["exponent"]), dtype=torch.float32, device=device,
+                                requires_grad=True)
+        flash = {"exponent": exponent, "r_ref": reference_distance(centres, scene.xyz)}
+        flash_opt = torch.optim.Adam([exponent], lr=float(s["flash"]["lr"]), eps=1e-15)
     dens: AlphaDensify | MCMCDensify = (
         MCMCDensify(s["densify"], s["mcmc"], iterations=iters) if s["densify"]["strategy"] == "mcmc"
         else AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, n=params["means"].shape[0]))
@@ -264,7 +287,7 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     csv = CsvLog(log_path, [*LOG_COLUMNS, *PHOTO_LOG_EXTRAS]) if log_path is not None else None
     if csv is not None:
         csv.reset()
-    p0, s0 = _eval_views(params, 0, test, background)
+    p0, s0 = _eval_views(params, 0, test, background, flash)
     if csv is not None:
         csv.append([{"iteration": 0, "timestamp": 0.0, "psnr2d": p0, "ssim2d": s0,
                      "n_gaussians": int(params["means"].shape[0]), "sh_degree": 0}])
@@ -280,7 +303,7 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
         view = train[order.pop()]
         lr_means = lr0 * (lr1 / lr0) ** ((it - 1) / max(iters - 1, 1)) if lr0 > 0 else 0.0
         opt.param_groups[0]["lr"] = lr_means
-        out = render_view(to_gaussians(params, degree), view, background=background)
+        out = render_view(to_gaussians(params, degree), view, background=background, flash=flash)
         img = out.image
         l1 = torch.mean(torch.abs(img - view.image))
         dssim = 1.0 - ssim(img.permute(2, 0, 1), view.image.permute(2, 0, 1), 1.0)
@@ -297,6 +320,9 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
         opt.zero_grad(set_to_none=True)
         if isinstance(dens, MCMCDensify):
             dens.perturb(params, gen, lr_means)
+        if flash_opt is not None:
+            flash_opt.step()
+            flash_opt.zero_grad(set_to_none=True)
         if bg_opt is not None:
             bg_opt.step()
             bg_opt.zero_grad(set_to_none=True)
@@ -310,24 +336,27 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
             dens.reset_opacity(params, opt)
         if csv is not None and (it % int(s["log_every"]) == 0 or it == iters):
             now = time.perf_counter()
-            ps, ss = _eval_views(params, degree, test, background)
+            ps, ss = _eval_views(params, degree, test, background, flash)
             csv.append([{"iteration": it, "timestamp": now - t_start, "psnr2d": ps, "ssim2d": ss,
                          "loss": float(loss.detach()), "l1": float(l1.detach()), "dssim": float(dssim.detach()),
                          "n_gaussians": int(params["means"].shape[0]), "lr_means": lr_means,
                          "iters_per_s": (it - it_last) / max(now - t_last, 1e-9), **counts, "sh_degree": degree}])
-            log.info("photos train %d/%d: held-out PSNR %.2f dB SSIM %.3f, %d Gaussians", it, iters, ps, ss,
-                     params["means"].shape[0])
+            log.info("photos train %d/%d: held-out PSNR %.2f dB SSIM %.3f, %d Gaussians%s", it, iters, ps, ss,
+                     params["means"].shape[0], f", flash p {float(flash['exponent'].detach()):.3f}" if flash else "")
             counts = dict.fromkeys(counts, 0)
             t_last, it_last = time.perf_counter(), it
     seconds = time.perf_counter() - t_start
     model = to_gaussians({k: v.detach() for k, v in params.items()}, degree)
     bg = [float(c) for c in background.detach().cpu()]
     model.meta["background"] = bg
-    pf, sf = _eval_views(params, degree, test, background)
+    if flash is not None:
+        flash = {"exponent": float(flash["exponent"].detach()), "r_ref": flash["r_ref"]}
+        model.meta["flash"] = flash
+    pf, sf = _eval_views(params, degree, test, background, flash)
     report = {"iterations": iters, "seconds": seconds, "n_gaussians": len(model), "sh_degree": degree,
               "held_out": held, "initial_test_psnr": p0, "initial_test_ssim": s0,
               "final_test_psnr": pf, "final_test_ssim": sf, "n_train": len(train), "n_test": len(test),
-              "background": bg}
+              "background": bg, "flash": flash}
     return model, report
 
 

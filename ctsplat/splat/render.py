@@ -481,6 +481,7 @@ def render(
     mu_scale: float = 1.0,
     sigma_cutoff: float = 3.0,
     background: Any = None,
+    color_scale: torch.Tensor | None = None,
     backend: str = "auto",
 ) -> RenderOutput:
     """Render one view.
@@ -507,6 +508,9 @@ def render(
         the transmittance left after the last Gaussian (None: black, ``b = 0``). Differentiable when it is a
         tensor that requires grad. The kernels composite one extra colour channel of ones, which is the pixel's
         opacity ``1 - T_N``.
+    color_scale : Tensor (N,), optional
+        Alpha only: a factor on each Gaussian's colour after its view-dependent SH colour (e.g. a light's falloff
+        with distance, :func:`ctsplat.photos.light.flash_falloff`); differentiable.
     backend : "auto" | "reference" | "kernel" | "triton"
         "auto": fused C++ kernels on CPU when available, Triton kernels on CUDA when triton is installed, else the
         pure-PyTorch reference.
@@ -524,6 +528,8 @@ def render(
         raise CtsplatError("transmission=True only applies to the radiative compositors")
     if background is not None and compositor != "alpha":
         raise CtsplatError("background only applies to the alpha compositor (radiative images have no background)")
+    if color_scale is not None and compositor != "alpha":
+        raise CtsplatError("color_scale only applies to the alpha compositor (radiative Gaussians have no colour)")
     if not sigma_cutoff > 0:
         raise CtsplatError(f"sigma_cutoff must be > 0, got {sigma_cutoff}")
     cam = camera_intrinsics(camera)
@@ -553,6 +559,11 @@ def render(
     if compositor == "alpha":
         R_t, t_t = _as_pose(R, t, gaussians.means)
         cols = _colors_for_view(gaussians, R_t, t_t, cam["model"])
+        if color_scale is not None:
+            if color_scale.shape != (cols.shape[0],):
+                raise CtsplatError(f"color_scale has shape {tuple(color_scale.shape)}; expected ({cols.shape[0]},), "
+                                   "one factor per Gaussian")
+            cols = cols * color_scale.to(cols)[:, None]
         bg = None
         if background is not None:
             bg = torch.as_tensor(background, dtype=proj.amps.dtype, device=cols.device).reshape(-1)
