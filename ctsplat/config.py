@@ -675,6 +675,8 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
                                                 {"type": "array", "items": {"type": "number", "minimum": 0,
                                                                             "maximum": 1},
                                                  "minItems": 3, "maxItems": 3}]},
+    ("photos", "train.flash.exponent"): {"type": "number", "minimum": 0, "maximum": 4},  # 2: inverse square
+    ("photos", "train.flash.lr"): _NON_NEGATIVE,
     ("photos", "train.sh_degree"): {"type": "integer", "minimum": 0, "maximum": 3},
     ("photos", "train.sh_interval"): _COUNT,
     ("photos", "train.lambda_dssim"): _FRACTION,
