@@ -45,6 +45,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from ctsplat.formats.runlog import LOG_COLUMNS, CsvLog
+from ctsplat.geometry.cameras import camera_center
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
 from ctsplat.photos.densify import AlphaDensify
@@ -187,9 +188,9 @@ def render_view(g: Gaussians, view: PhotoView | Any, camera: Any = None, R: Any 
     flash = flash if flash is not None else g.meta.get("flash")
     scale = None
     if flash is not None:
-        R_t = torch.as_tensor(np.asarray(R, float), dtype=g.means.dtype, device=g.means.device)
-        t_t = torch.as_tensor(np.asarray(t, float), dtype=g.means.dtype, device=g.means.device)
-        scale = flash_falloff(g.means, -R_t.T @ t_t, exponent=flash["exponent"], r_ref=float(flash["r_ref"]))
+        centre = torch.as_tensor(camera_center(np.asarray(R, float), np.asarray(t, float)), dtype=g.means.dtype,
+                                 device=g.means.device)
+        scale = flash_falloff(g.means, centre, exponent=flash["exponent"], r_ref=float(flash["r_ref"]))
     return render(g, cam, R, t, compositor="alpha", background=background, color_scale=scale)
 
 
@@ -273,7 +274,7 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     bg_opt = torch.optim.Adam([background], lr=float(s["lr"]["background"]), eps=1e-15) if learned else None
     flash, flash_opt = None, None
     if s["flash"]["enabled"]:
-        centres = [-v.R.T @ v.t for v in train]
+        centres = camera_center(np.stack([v.R for v in train]), np.stack([v.t for v in train]))
         exponent = torch.tensor(float(s["flash"]["exponent"]), dtype=torch.float32, device=device,
                                 requires_grad=True)
         flash = {"exponent": exponent, "r_ref": reference_distance(centres, scene.xyz)}
