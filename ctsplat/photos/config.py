@@ -52,8 +52,9 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
         # validation photos (docs/results.md)
         "background": [0.0, 0.0, 0.0],
         # a flash on the camera (ctsplat.photos.light): colours x (r_ref / r)^p, r the distance from the camera,
-        # p trained from `exponent` at step `lr`; a tie on the skull set's validation photos (docs/results.md)
-        "flash": {"enabled": False, "exponent": 0.0, "lr": 0.01},
+        # p trained from `exponent` at step `lr`; `bounded`: r clamped below at the nearest SfM point's distance
+        # from a training camera, so a floater in front of a camera is not lit more than any surface (docs/results.md)
+        "flash": {"enabled": False, "exponent": 0.0, "lr": 0.01, "bounded": True},
         "sh_degree": 3,  # the highest SH degree
         "sh_interval": 1000,  # the SH degree rises by one every this many iterations
         "lambda_dssim": 0.2,  # loss = (1 - λ) L1 + λ (1 - SSIM)

@@ -8,6 +8,11 @@ distance from the scene's middle, so the colours are those seen from there) and 
 model (``p = 0``: plain 3DGS colour; ``p = 2``: a point light's inverse square with no ambient light). It predicts
 a held-out photo's brightness from its pose alone, with no parameter per photo.
 
+The falloff grows without bound as ``r → 0``, so a faint floater just in front of a camera would be lit many
+times over and wash the photo out. With a near bound ``r_min`` (:func:`nearest_point_distance`: the smallest
+distance from a training camera to an SfM point, the nearest surface any training photo is known to see), ``r`` is
+clamped below at ``r_min``: nothing is lit more than that surface.
+
 Examples
 --------
 >>> import torch
@@ -22,14 +27,14 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["flash_falloff", "reference_distance"]
+__all__ = ["flash_falloff", "nearest_point_distance", "reference_distance"]
 
 #: Distances are clamped below at this fraction of ``r_ref`` (a Gaussian at the camera centre is never drawn).
 _MIN_DISTANCE_FRACTION = 1e-3
 
 
 def flash_falloff(means: torch.Tensor, centre: torch.Tensor, *, exponent: torch.Tensor | float,
-                  r_ref: float) -> torch.Tensor:
+                  r_ref: float, r_min: float | None = None) -> torch.Tensor:
     """The factor ``(r_ref / r)^p`` on each Gaussian's colour for a flash at ``centre``.
 
     Parameters
@@ -42,13 +47,17 @@ def flash_falloff(means: torch.Tensor, centre: torch.Tensor, *, exponent: torch.
         ``p``; differentiable when a tensor that requires grad.
     r_ref : float
         The distance at which the factor is 1, same units (> 0).
+    r_min : float, optional
+        Distances below this are raised to it (the near bound; same units). None: no bound.
 
     Returns
     -------
     Tensor (N,)
-        Positive factors, differentiable in ``means``, ``centre`` and ``exponent``.
+        Positive factors, at most ``(r_ref / r_min)^p``; differentiable in ``means`` and ``centre`` (where
+        ``r > r_min``) and in ``exponent``.
     """
-    r = torch.linalg.norm(means - centre.to(means), dim=-1).clamp_min(_MIN_DISTANCE_FRACTION * r_ref)
+    floor = max(_MIN_DISTANCE_FRACTION * r_ref, float(r_min) if r_min is not None else 0.0)
+    r = torch.linalg.norm(means - centre.to(means), dim=-1).clamp_min(floor)
     return (r_ref / r).pow(torch.as_tensor(exponent, dtype=means.dtype, device=means.device))
 
 
@@ -68,3 +77,24 @@ def reference_distance(camera_centres: Any, points: Any) -> float:
     """
     mid = np.median(np.asarray(points, float), axis=0)
     return float(np.mean(np.linalg.norm(np.asarray(camera_centres, float) - mid, axis=1)))
+
+
+def nearest_point_distance(camera_centres: Any, points: Any) -> float:
+    """The smallest distance from any of ``camera_centres`` to any of ``points``: the ``r_min`` of
+    :func:`flash_falloff`.
+
+    Parameters
+    ----------
+    camera_centres : array (V, 3)
+        The training cameras' centres.
+    points : array (P, 3)
+        The SfM points, same units.
+
+    Returns
+    -------
+    float
+        In the scene's units.
+    """
+    c = torch.as_tensor(np.asarray(camera_centres, float))
+    p = torch.as_tensor(np.asarray(points, float))
+    return float(torch.cdist(c, p).min())

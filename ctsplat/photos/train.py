@@ -16,8 +16,10 @@ are trained, and the first ``(d + 1)² - 1`` of them are passed while the degree
   the model (``background: learned``, started at the median of the training photos' border pixels); it is saved
   in the model's ``meta["background"]``;
 - with ``flash.enabled``, a flash on the camera (:mod:`ctsplat.photos.light`): colours × ``(r_ref / r)^p``, the
-  exponent ``p`` trained with the model (Adam) from ``flash.exponent``; ``meta["flash"]`` keeps ``exponent`` and
-  ``r_ref``, and :func:`render_view` applies it. ``model.ply`` holds the colours seen from ``r_ref``.
+  exponent ``p`` trained with the model (Adam) from ``flash.exponent``, ``r`` clamped below at the nearest SfM
+  point's distance from a training camera with ``flash.bounded``; ``meta["flash"]`` keeps ``exponent``, ``r_ref``
+  and ``r_min`` (None: unbounded), and :func:`render_view` applies it. ``model.ply`` holds the colours seen from
+  ``r_ref``.
 
 ``holdout: validation`` leaves the test photos out entirely and monitors and evaluates on validation photos taken
 from the training set (:func:`ctsplat.photos.dataset.split_names`): the split to choose settings on.
@@ -49,7 +51,7 @@ from ctsplat.geometry.cameras import camera_center
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
 from ctsplat.photos.densify import AlphaDensify
-from ctsplat.photos.light import flash_falloff, reference_distance
+from ctsplat.photos.light import flash_falloff, nearest_point_distance, reference_distance
 from ctsplat.photos.mcmc import MCMCDensify
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.splat.render import render
@@ -174,8 +176,9 @@ def render_view(g: Gaussians, view: PhotoView | Any, camera: Any = None, R: Any 
     background : Tensor (3,) or sequence of 3 floats, optional
         The colour behind the Gaussians (None: black).
     flash : dict, optional
-        ``{"exponent": p, "r_ref": r}`` (p a float or a tensor being trained): the flash falloff of
-        :func:`ctsplat.photos.light.flash_falloff` on the colours. None: ``g.meta.get("flash")`` (none: no falloff).
+        ``{"exponent": p, "r_ref": r, "r_min": r_min or None}`` (p a float or a tensor being trained): the
+        flash falloff of :func:`ctsplat.photos.light.flash_falloff` on the colours. None: ``g.meta.get("flash")``
+        (none: no falloff).
 
     Returns
     -------
@@ -190,7 +193,8 @@ def render_view(g: Gaussians, view: PhotoView | Any, camera: Any = None, R: Any 
     if flash is not None:
         centre = torch.as_tensor(camera_center(np.asarray(R, float), np.asarray(t, float)), dtype=g.means.dtype,
                                  device=g.means.device)
-        scale = flash_falloff(g.means, centre, exponent=flash["exponent"], r_ref=float(flash["r_ref"]))
+        scale = flash_falloff(g.means, centre, exponent=flash["exponent"], r_ref=float(flash["r_ref"]),
+                              r_min=flash.get("r_min"))
     return render(g, cam, R, t, compositor="alpha", background=background, color_scale=scale)
 
 
@@ -250,7 +254,7 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     -------
     model : Gaussians
         Detached, at the final SH degree; ``meta["background"]`` is its background colour (list of 3 floats),
-        ``meta["flash"]`` its flash (``exponent``, ``r_ref``; only with ``flash.enabled``).
+        ``meta["flash"]`` its flash (``exponent``, ``r_ref``, ``r_min``; only with ``flash.enabled``).
     report : dict
         ``iterations``, ``seconds``, ``n_gaussians``, ``initial_test_psnr``, ``final_test_psnr``,
         ``final_test_ssim`` (on the held-out split, named by ``held_out``), ``sh_degree``, ``background``,
@@ -277,7 +281,8 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
         centres = camera_center(np.stack([v.R for v in train]), np.stack([v.t for v in train]))
         exponent = torch.tensor(float(s["flash"]["exponent"]), dtype=torch.float32, device=device,
                                 requires_grad=True)
-        flash = {"exponent": exponent, "r_ref": reference_distance(centres, scene.xyz)}
+        flash = {"exponent": exponent, "r_ref": reference_distance(centres, scene.xyz),
+                 "r_min": nearest_point_distance(centres, scene.xyz) if s["flash"]["bounded"] else None}
         flash_opt = torch.optim.Adam([exponent], lr=float(s["flash"]["lr"]), eps=1e-15)
     dens: AlphaDensify | MCMCDensify = (
         MCMCDensify(s["densify"], s["mcmc"], iterations=iters) if s["densify"]["strategy"] == "mcmc"
@@ -351,7 +356,7 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     bg = [float(c) for c in background.detach().cpu()]
     model.meta["background"] = bg
     if flash is not None:
-        flash = {"exponent": float(flash["exponent"].detach()), "r_ref": flash["r_ref"]}
+        flash = {**flash, "exponent": float(flash["exponent"].detach())}
         model.meta["flash"] = flash
     pf, sf = _eval_views(params, degree, test, background, flash)
     report = {"iterations": iters, "seconds": seconds, "n_gaussians": len(model), "sh_degree": degree,

@@ -14,7 +14,7 @@ from ctsplat.geometry.cameras import look_at
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, PinholeCamera, scene_extent
 from ctsplat.photos.evaluate import evaluate_photos
-from ctsplat.photos.light import flash_falloff, reference_distance
+from ctsplat.photos.light import flash_falloff, nearest_point_distance, reference_distance
 from ctsplat.photos.train import render_view, train_scene
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.splat.render import render
@@ -31,6 +31,20 @@ def test_falloff_is_the_reference_distance_over_the_distance_to_the_power_p() ->
     pts = rng.normal(size=(200, 3)) + [1.0, 2.0, 3.0]
     cams = np.array([[1.0, 2.0, 7.0], [1.0, 2.0, -1.0]]) + np.median(pts, axis=0) - [1.0, 2.0, 3.0]
     assert reference_distance(cams, pts) == pytest.approx(4.0)
+
+
+def test_near_bound_lights_nothing_more_than_the_nearest_point() -> None:
+    rng = np.random.default_rng(3)
+    centre = np.array([0.5, -2.0, 1.0])
+    means = centre + rng.normal(size=(400, 3)) * 1.5  # some within r_min of the camera, most beyond
+    r = np.linalg.norm(means - centre, axis=1)
+    assert (r < 1.2).sum() > 20 and (r > 1.2).sum() > 100
+    got = flash_falloff(torch.tensor(means), torch.tensor(centre), exponent=1.5, r_ref=3.0, r_min=1.2).numpy()
+    np.testing.assert_allclose(got, (3.0 / np.maximum(r, 1.2)) ** 1.5, rtol=1e-12)
+    assert got.max() == pytest.approx((3.0 / 1.2) ** 1.5)
+    cams, pts = rng.normal(size=(7, 3)) * 4, rng.normal(size=(300, 3))
+    brute = min(float(np.linalg.norm(c - q)) for c in cams for q in pts)
+    assert nearest_point_distance(cams, pts) == pytest.approx(brute, rel=1e-12)
 
 
 def test_falloff_gradients_match_finite_differences() -> None:
@@ -106,6 +120,8 @@ def test_training_learns_the_flash_and_evaluation_applies_it(tmp_path: Path) -> 
     assert 1.5 < report["flash"]["exponent"] < 2.5  # from 0 towards the true 2
     assert report["flash"]["r_ref"] == pytest.approx(reference_distance([-v.R.T @ v.t for v in scene.split("train")],
                                                                         scene.xyz))
+    train_centres = [-v.R.T @ v.t for v in scene.split("train")]
+    assert report["flash"]["r_min"] == pytest.approx(nearest_point_distance(train_centres, scene.xyz))
     assert report["final_test_psnr"] > report_off["final_test_psnr"] + 3
     # the saved model carries its flash into evaluation; without it the same model renders other brightnesses
     run = tmp_path / "run"
