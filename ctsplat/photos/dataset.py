@@ -16,6 +16,7 @@ import numpy as np
 import pycolmap
 import torch
 
+from ctsplat.geometry.cameras import camera_center
 from ctsplat.photos.images import load_rgb
 from ctsplat.utils import CtsplatError
 
@@ -134,7 +135,7 @@ def scene_extent(Rs: list[np.ndarray], ts: list[np.ndarray]) -> float:
     float
         At least 1e-6 (a single camera).
     """
-    centres = np.stack([-R.T @ t for R, t in zip(Rs, ts, strict=True)])
+    centres = camera_center(np.stack(Rs), np.stack(ts))
     return max(1.1 * float(np.linalg.norm(centres - centres.mean(0), axis=1).max()), 1e-6)
 
 

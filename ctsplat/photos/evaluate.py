@@ -28,7 +28,7 @@ import torch
 
 from ctsplat.evaluation.metrics import lpips_status
 from ctsplat.formats.runlog import PER_VIEW_COLUMNS, CsvLog
-from ctsplat.geometry.cameras import look_at
+from ctsplat.geometry.cameras import camera_center, look_at
 from ctsplat.photos.config import SFM_SUMMARY_KEYS, photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
 from ctsplat.photos.train import held_out_split, image_metrics, render_view
@@ -56,7 +56,7 @@ def turntable_poses(views: list[PhotoView], n: int) -> list[tuple[np.ndarray, np
     list of (ndarray (3, 3), ndarray (3,))
     """
     Rs = np.stack([v.R for v in views])
-    C = np.stack([-v.R.T @ v.t for v in views])
+    C = camera_center(Rs, np.stack([v.t for v in views]))
     up = -Rs[:, 1].mean(0)
     up /= np.linalg.norm(up)
     d = Rs[:, 2]
