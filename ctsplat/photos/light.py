@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 __all__ = ["flash_falloff", "nearest_point_distance", "reference_distance"]
 
@@ -95,6 +96,6 @@ def nearest_point_distance(camera_centres: Any, points: Any) -> float:
     float
         In the scene's units.
     """
-    c = torch.as_tensor(np.asarray(camera_centres, float))
-    p = torch.as_tensor(np.asarray(points, float))
-    return float(torch.cdist(c, p).min())
+    # a k-d tree: the full (V, P) distance matrix would not fit for large SfM models
+    dist, _ = cKDTree(np.asarray(points, float)).query(np.asarray(camera_centres, float))
+    return float(np.min(dist))

@@ -118,9 +118,8 @@ def test_training_learns_the_flash_and_evaluation_applies_it(tmp_path: Path) -> 
     _, report_off = train_scene(scene, off)
     assert model.meta["flash"] == report["flash"] and report_off["flash"] is None
     assert 1.5 < report["flash"]["exponent"] < 2.5  # from 0 towards the true 2
-    assert report["flash"]["r_ref"] == pytest.approx(reference_distance([-v.R.T @ v.t for v in scene.split("train")],
-                                                                        scene.xyz))
     train_centres = [-v.R.T @ v.t for v in scene.split("train")]
+    assert report["flash"]["r_ref"] == pytest.approx(reference_distance(train_centres, scene.xyz))
     assert report["flash"]["r_min"] == pytest.approx(nearest_point_distance(train_centres, scene.xyz))
     assert report["final_test_psnr"] > report_off["final_test_psnr"] + 3
     # the saved model carries its flash into evaluation; without it the same model renders other brightnesses
