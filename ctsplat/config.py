@@ -671,6 +671,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("photos", "train.downscale"): {"enum": [1, 2, 4, 8]},
     ("photos", "train.test_every"): {"type": "integer", "minimum": 0},
     ("photos", "train.holdout"): {"enum": ["test", "validation"]},
+    ("photos", "train.validation_offset"): {"type": ["integer", "null"], "minimum": 1},
     ("photos", "train.background"): {"anyOf": [{"enum": ["learned"]},
                                                 {"type": "array", "items": {"type": "number", "minimum": 0,
                                                                             "maximum": 1},

@@ -45,8 +45,10 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
         "downscale": 4,  # images and intrinsics divided by this (1, 2, 4, 8)
         "test_every": 8,  # every n-th image (sorted by name, from the first) is held out for testing
         # test: monitor and evaluate on the test images | validation: leave the test images out entirely and hold
-        # out every test_every-th remaining one (offset test_every // 2) instead, to choose settings on
+        # out every test_every-th remaining one (from validation_offset) instead, to choose settings on
         "holdout": "test",
+        # which validation fold (the position of the first validation photo, 1 .. test_every - 1); null: midway
+        "validation_offset": None,
         # the colour behind the Gaussians: a fixed [r, g, b] in [0, 1] or "learned" (one RGB trained with the
         # model, started at the median of the training photos' border pixels); black won on the skull set's
         # validation photos (docs/results.md)

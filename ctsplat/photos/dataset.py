@@ -94,9 +94,10 @@ class PhotoScene:
         return [v for v in self.views if v.split == name]
 
 
-def split_names(names: list[str], test_every: int, *, validation: bool = False) -> dict[str, str]:
+def split_names(names: list[str], test_every: int, *, validation: bool = False,
+                validation_offset: int | None = None) -> dict[str, str]:
     """Name -> ``train`` / ``test`` (/ ``val``): every ``test_every``-th name in sorted order (from the first) is
-    ``test``; with ``validation``, every ``test_every``-th name from ``test_every // 2`` on is ``val``.
+    ``test``; with ``validation``, every ``test_every``-th name from ``validation_offset`` on is ``val``.
 
     Parameters
     ----------
@@ -105,17 +106,28 @@ def split_names(names: list[str], test_every: int, *, validation: bool = False) 
         0 holds nothing out.
     validation : bool
         Also hold out validation names (between the test names, never one of them).
+    validation_offset : int, optional
+        Position of the first validation name, 1 .. ``test_every`` - 1; ``None`` takes ``test_every // 2`` (midway
+        between two test names). Different offsets give disjoint validation folds of the same training photos.
 
     Returns
     -------
     dict of str to str
+
+    Raises
+    ------
+    CtsplatError
+        For an offset outside 1 .. ``test_every`` - 1 with ``validation``.
     """
     out = {}
     k = int(test_every)
+    off = k // 2 if validation_offset is None else int(validation_offset)
+    if validation and k and not 1 <= off < k:
+        raise CtsplatError(f"photos.train.validation_offset must be 1..{k - 1} (test_every {k}), got {off}")
     for i, n in enumerate(sorted(names)):
         if k and i % k == 0:
             out[n] = "test"
-        elif k and validation and i % k == k // 2:
+        elif k and validation and i % k == off:
             out[n] = "val"
         else:
             out[n] = "train"
@@ -140,7 +152,7 @@ def scene_extent(Rs: list[np.ndarray], ts: list[np.ndarray]) -> float:
 
 
 def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, validation: bool = False,
-               device: torch.device | str = "cpu") -> PhotoScene:
+               validation_offset: int | None = None, device: torch.device | str = "cpu") -> PhotoScene:
     """Read ``sfm_dir/sparse/0`` and ``sfm_dir/images`` into a :class:`PhotoScene`.
 
     Parameters
@@ -153,6 +165,8 @@ def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, 
         Hold-out period (:func:`split_names`).
     validation : bool
         Also hold out validation views (:func:`split_names`).
+    validation_offset : int, optional
+        The validation fold (:func:`split_names`).
     device : torch.device or str
         Where the image tensors live.
 
@@ -175,7 +189,8 @@ def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, 
         raise CtsplatError(f"downscale must be an integer >= 1, got {downscale}")
     rec = pycolmap.Reconstruction(str(sparse))
     images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
-    splits = split_names([im.name for im in images], test_every, validation=validation)
+    splits = split_names([im.name for im in images], test_every, validation=validation,
+                         validation_offset=validation_offset)
     views: list[PhotoView] = []
     for im in images:
         cam = rec.cameras[im.camera_id]
@@ -201,4 +216,5 @@ def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, 
     rgb = np.array([p.color for p in pts], float).reshape(-1, 3) / 255.0
     extent = scene_extent([v.R for v in views], [v.t for v in views])
     return PhotoScene(views, xyz, rgb, extent, {"sfm_dir": str(sfm_dir), "downscale": int(downscale),
-                                                "test_every": int(test_every)})
+                                                "test_every": int(test_every),
+                                                "validation_offset": validation_offset})

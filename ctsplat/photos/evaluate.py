@@ -187,7 +187,8 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     held = held_out_split(t)
     if scene is None:
         scene = load_scene(cfg["sfm_dir"], downscale=int(t["downscale"]), test_every=int(t["test_every"]),
-                           validation=held == "val", device=device)
+                           validation=held == "val", validation_offset=t.get("validation_offset"),
+                           device=device)
     test = scene.split(held)
     if not test:
         raise CtsplatError(f"{cfg['sfm_dir']} has no held-out view (test_every {t['test_every']}); nothing to "

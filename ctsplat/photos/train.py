@@ -23,6 +23,8 @@ are trained, and the first ``(d + 1)² - 1`` of them are passed while the degree
 
 ``holdout: validation`` leaves the test photos out entirely and monitors and evaluates on validation photos taken
 from the training set (:func:`ctsplat.photos.dataset.split_names`): the split to choose settings on.
+``validation_offset`` picks one of the ``test_every`` - 1 disjoint folds, so a choice can be checked on more photos
+than one fold holds.
 
 Outputs (written under a temporary name, renamed into place when training ends): ``config.json``,
 ``train_log.csv`` (the CT runs' columns, :data:`ctsplat.formats.runlog.LOG_COLUMNS`; ``psnr2d``/``ssim2d`` on the
@@ -398,7 +400,8 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
     device = resolve_device(s["device"])
     torch.set_num_threads(int(s["num_threads"]))
     scene = load_scene(sfm_dir, downscale=int(s["downscale"]), test_every=int(s["test_every"]),
-                       validation=held_out_split(s) == "val", device=device)
+                       validation=held_out_split(s) == "val",
+                       validation_offset=s.get("validation_offset"), device=device)
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
         config = {"sfm_dir": str(sfm_dir), "train": s}

@@ -116,6 +116,20 @@ def test_every_eighth_image_is_held_out() -> None:
     assert [n for n in names if split[n] == "val"] == ["05.jpg", "13.jpg"]
 
 
+def test_validation_folds_are_disjoint_and_never_touch_the_test_photos() -> None:
+    names = [f"{i:02d}.jpg" for i in range(1, 67)]
+    folds = {o: {n for n, s in split_names(names, 8, validation=True, validation_offset=o).items() if s == "val"}
+             for o in range(1, 8)}
+    test = {n for n, s in split_names(names, 8).items() if s == "test"}
+    assert folds[2] == {f"{i:02d}.jpg" for i in range(3, 67, 8)}
+    assert set().union(*folds.values()) == set(names) - test  # every training photo is in exactly one fold
+    assert sum(map(len, folds.values())) == len(names) - len(test)
+    assert split_names(names, 8, validation=True, validation_offset=4) == split_names(names, 8, validation=True)
+    for bad in (0, 8, -1):
+        with pytest.raises(CtsplatError, match=r"validation_offset must be 1\.\.7 \(test_every 8\), got"):
+            split_names(names, 8, validation=True, validation_offset=bad)
+
+
 def test_pinhole_camera_scales_with_the_image() -> None:
     cam = PinholeCamera(1061, 707, 2400.0, 2400.0, 530.5, 353.5)
     q = cam.scaled(4)

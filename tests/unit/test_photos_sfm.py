@@ -51,6 +51,9 @@ def test_ten_neighbouring_skull_photos_register_in_one_model(skull_subset: Path,
 
     scene = load_scene(out, downscale=4, test_every=8)
     assert [v.name for v in scene.split("test")] == [v.name for v in scene.views[::8]]
+    fold = load_scene(out, downscale=8, test_every=4, validation=True, validation_offset=3)
+    assert [v.name for v in fold.split("val")] == [v.name for v in fold.views[3::4]]
+    assert [v.name for v in fold.split("test")] == [v.name for v in fold.views[::4]]
     v = scene.views[0]
     assert tuple(v.image.shape) == (v.camera.height, v.camera.width, 3)
     assert 0.8 * 1068 / 4 < v.camera.width <= 1068 / 4 + 1
