@@ -290,3 +290,61 @@ def test_training_without_training_photos_fails_in_one_line() -> None:
         v.split = "test" if v.split == "test" else "val"
     with pytest.raises(CtsplatError, match=r"no training photo left.*raise photos\.train\.test_every"):
         train_scene(scene, photo_settings({"train": {"iterations": 1}})["train"])
+
+
+# ------------------------------------------------------------------------------------------------ choosing settings
+def test_paired_comparison_is_the_paired_t_statistic() -> None:
+    from scipy import stats
+
+    from ctsplat.photos.select import paired_comparison
+
+    default = [24.44, 23.66, 23.46, 23.77, 24.93]
+    candidate = [24.03, 24.43, 24.39, 23.85, 24.53]
+    r = paired_comparison(default, candidate)
+    assert r["n"] == 5 and r["differences"] == pytest.approx(np.subtract(candidate, default).tolist())
+    assert r["mean"] == pytest.approx(np.mean(np.subtract(candidate, default)))
+    assert r["z_score"] == pytest.approx(stats.ttest_rel(candidate, default).statistic)
+    assert r["verdict"] == "tie"
+    assert paired_comparison(default, [d + 0.5 + 0.01 * i for i, d in enumerate(default)])["verdict"] == "candidate"
+    assert paired_comparison(default, [d - 0.5 - 0.01 * i for i, d in enumerate(default)])["verdict"] == "default"
+    one = paired_comparison([24.0], [25.0])
+    assert one["standard_error"] is None and one["verdict"] == "tie"  # one pair says nothing about the spread
+
+
+@pytest.mark.parametrize(("a", "b"), [([1.0, 2.0], [1.0]), ([], []), ([1.0, float("nan")], [1.0, 2.0])])
+def test_paired_comparison_refuses_unpaired_or_missing_scores(a: list[float], b: list[float]) -> None:
+    from ctsplat.photos.select import paired_comparison
+
+    with pytest.raises(CtsplatError, match=r"paired comparison"):
+        paired_comparison(a, b)
+
+
+def test_reading_an_unfinished_run_names_what_is_missing(tmp_path: Path) -> None:
+    from ctsplat.photos.select import read_validation_run
+
+    (tmp_path / "config.json").write_text("{}")
+    with pytest.raises(CtsplatError, match=r"not a finished photo run \(missing training\.json, per_view_test\.csv\)"):
+        read_validation_run(tmp_path)
+
+
+@pytest.mark.parametrize(("args", "needle"), [
+    (["--candidate", "train.flash.enabled=true", "--folds", "0"], "--folds: 0 is not a validation fold (1 .. 7)"),
+    (["--candidate", "train.nonsense=1"], "nonsense"),
+    (["--candidate", "train.iterations=0"], "photos.train.iterations: 0 is less than the minimum of 1"),
+])
+def test_fold_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: list[str], needle: str) -> None:
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    sfm = tmp_path / "sfm" / "sparse" / "0"
+    sfm.mkdir(parents=True)
+    (sfm / "cameras.bin").write_bytes(b"")
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    res = subprocess.run([sys.executable, str(root / "benchmarks" / "photo_folds.py"), "--sfm", str(tmp_path / "sfm"),
+                          *args, "--out", str(tmp_path / "o")], capture_output=True, text=True, env=env, timeout=120)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    line = res.stderr.strip().splitlines()[-1]
+    assert line.startswith("benchmarks/photo_folds.py: error:") and needle in line, line
+    assert not (tmp_path / "o").exists()

@@ -114,3 +114,46 @@ def test_workflow_runs_a_photo_volume_beside_the_ct_grid(skull_subset: Path, tmp
     for f in ("figures/gallery.png", "figures/turntable.gif", "train_log.csv", "model.ply"):
         assert (tmp_path / "results/skull/photos/run" / f).is_file()
     assert not (tmp_path / "results/phantom").exists()  # only the photo target was asked for
+
+
+def test_fold_benchmark_pairs_real_runs_and_reuses_them(skull_subset: Path, tmp_path: Path) -> None:
+    """``benchmarks/photo_folds.py`` trains default and candidate on each fold (real ``photos-train`` processes),
+    scores only that fold's photos, and a second call with one more fold trains only the new pair."""
+    import subprocess
+    import sys
+
+    import pandas as pd
+
+    from ctsplat.photos.dataset import split_names
+
+    sfm = tmp_path / "sfm"
+    run_photo_sfm(skull_subset, sfm, {"num_threads": 2})
+    out = tmp_path / "folds"
+    base = ["--base", "train.iterations=20", "--base", "train.log_every=10", "--base", "train.downscale=8",
+            "--base", "train.test_every=4", "--base", "evaluate.turntable_frames=2",
+            "--base", "evaluate.gallery_views=1"]
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "photo_folds.py"), "--sfm", str(sfm), "--out", str(out), *base,
+           "--candidate", "train.sh_degree=0", "--seeds", "0"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    first = subprocess.run([*cmd, "--folds", "1"], capture_output=True, text=True, env=env, timeout=600)
+    assert first.returncode == 0, first.stderr[-3000:]
+    stamp = (out / "fold1_seed0_default" / "training.json").stat().st_mtime_ns
+    second = subprocess.run([*cmd, "--folds", "1", "3"], capture_output=True, text=True, env=env, timeout=600)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert (out / "fold1_seed0_default" / "training.json").stat().st_mtime_ns == stamp  # kept, not retrained
+    summary = json.loads(second.stdout.strip().splitlines()[-1])
+    assert summary == json.loads((out / "summary.json").read_text())
+    assert summary["psnr"]["n"] == 2 and summary["psnr"]["verdict"] in ("tie", "candidate", "default")
+    pairs = pd.read_csv(out / "pairs.csv")
+    assert pairs["difference_db"].tolist() == pytest.approx(summary["psnr"]["differences"])
+    names = sorted(p.name for p in (sfm / "images").iterdir())
+    photos = pd.read_csv(out / "per_photo.csv")
+    for fold in (1, 3):
+        val = sorted(n for n, s in split_names(names, 4, validation=True, validation_offset=fold).items()
+                     if s == "val")
+        assert sorted(photos.loc[photos["fold"] == fold, "photo"]) == val
+    cfg = json.loads((out / "fold3_seed0_candidate" / "config.json").read_text())["train"]
+    assert cfg["validation_offset"] == 3 and cfg["sh_degree"] == 0 and cfg["num_threads"] == 1
+    clash = subprocess.run([*cmd[:-4], "--candidate", "train.sh_degree=1", "--seeds", "0", "--folds", "1"],
+                           capture_output=True, text=True, env=env, timeout=600)
+    assert clash.returncode == 2 and "holds a run with other settings" in clash.stderr.strip().splitlines()[-1]

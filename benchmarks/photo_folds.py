@@ -1,0 +1,143 @@
+"""A photo-training setting against the default on validation folds: paired runs, mean difference and verdict.
+
+Every pair trains the default and the candidate (the default plus ``--candidate KEY=VALUE`` overrides of the
+``photos`` section) with ``ctsplat photos-train`` on one SfM folder, on the same validation fold
+(``train.validation_offset``; the test photos are never trained on or scored) with the same seed, one thread per
+run and ``--jobs`` runs at a time. :func:`ctsplat.photos.select.paired_comparison` then gives the mean PSNR
+difference, its standard error and the verdict (the candidate wins only at two standard errors or more). Finished
+runs are kept and reused, so a comparison can be extended by more folds or seeds. Writes ``OUT/pairs.csv`` (one row
+per pair), ``OUT/per_photo.csv`` and ``OUT/summary.json``, and prints the summary as one JSON line.
+
+Usage::
+
+    python benchmarks/photos.py --sfm-only             # the SfM folder, benchmarks/out/photos/sfm
+    python benchmarks/photo_folds.py --candidate train.flash.enabled=true --folds 2 4 6 --seeds 0
+    python benchmarks/photo_folds.py --candidate train.lambda_dssim=0.3 --folds 4 --seeds 0 1 2 3 --out DIR
+
+A pair of 6000-iteration runs at 1/4 resolution takes about 30 minutes on 2 cores (docs/results.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+from _common import cli_main
+
+from ctsplat.cli._common import apply_sets
+from ctsplat.config import check_section
+from ctsplat.photos.config import photo_settings
+from ctsplat.photos.select import paired_comparison, read_validation_run
+from ctsplat.utils import CtsplatError, atomic_path, code_version, write_json_atomic
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = ROOT / "benchmarks" / "out"
+
+
+def run_sets(fold: int, seed: int, extra: list[str]) -> list[str]:
+    """The ``--set`` items of one run: the validation fold, the seed, one thread, then ``extra``."""
+    return ["train.holdout=validation", f"train.validation_offset={fold}", f"train.seed={seed}",
+            "train.num_threads=1", *extra]
+
+
+def _train(sfm: Path, run_dir: Path, sets: list[str]) -> None:
+    """One ``ctsplat photos-train`` process (its log beside the run folder); a finished run with the same settings
+    is kept."""
+    if (run_dir / "training.json").is_file():
+        have = _flat(json.loads((run_dir / "config.json").read_text())["train"])
+        wanted = _flat(apply_sets({}, sets)["train"])
+        if any(have.get(k) != v for k, v in wanted.items()):
+            raise CtsplatError(f"{run_dir} holds a run with other settings; remove it or choose another --out")
+        return
+    cmd = [sys.executable, "-c", "import sys; from ctsplat.cli import main; sys.exit(main())", "photos-train",
+           str(sfm), str(run_dir)]
+    for item in sets:
+        cmd += ["--set", item]
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
+    with open(run_dir.with_suffix(".log"), "w") as log:
+        res = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, check=False)
+    if res.returncode != 0:
+        raise CtsplatError(f"photos-train into {run_dir} failed (exit {res.returncode}); see "
+                           f"{run_dir.with_suffix('.log')}")
+
+
+def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested section as dotted keys (``flash.enabled``)."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def run(argv: list[str] | None = None) -> int:
+    """Parse the options, train the missing runs, write and print the comparison (module docstring)."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sfm", default=str(OUT / "photos" / "sfm"), help="output folder of `ctsplat photos-sfm`")
+    ap.add_argument("--candidate", action="append", required=True, metavar="KEY=VALUE",
+                    help="a photos key the candidate sets, e.g. train.flash.enabled=true (repeatable)")
+    ap.add_argument("--base", action="append", default=[], metavar="KEY=VALUE",
+                    help="a photos key both arms set (repeatable), e.g. train.iterations=3000")
+    ap.add_argument("--folds", type=int, nargs="+", default=[4], help="validation offsets, 1 .. test_every - 1")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--jobs", type=int, default=2, help="runs at a time (one thread each)")
+    ap.add_argument("--out", default=str(OUT / "photo_folds"))
+    args = ap.parse_args(argv)
+    sfm, out = Path(args.sfm), Path(args.out)
+    if args.jobs < 1:
+        raise CtsplatError(f"--jobs must be >= 1, got {args.jobs}")
+    if not (sfm / "sparse" / "0" / "cameras.bin").is_file():
+        raise CtsplatError(f"{sfm} is not a photo SfM folder; run `python benchmarks/photos.py --sfm-only` first")
+    pairs = list(itertools.product(sorted(set(args.folds)), sorted(set(args.seeds))))
+    arms = {"default": args.base, "candidate": [*args.base, *args.candidate]}
+    test_every = photo_settings(check_section("photos", apply_sets({}, args.base)))["train"]["test_every"]
+    for fold, seed in pairs:  # every run's settings are checked before the first one starts
+        if not 1 <= fold < test_every:
+            raise CtsplatError(f"--folds: {fold} is not a validation fold (1 .. {test_every - 1})")
+        for extra in arms.values():
+            check_section("photos", apply_sets({}, run_sets(fold, seed, extra)))
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(out / f"fold{fold}_seed{seed}_{arm}", run_sets(fold, seed, extra))
+            for fold, seed in pairs for arm, extra in arms.items()]
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        for f in [pool.submit(_train, sfm, d, sets) for d, sets in jobs]:
+            f.result()
+    runs = {(fold, seed, arm): read_validation_run(out / f"fold{fold}_seed{seed}_{arm}")
+            for fold, seed in pairs for arm in arms}
+    result = paired_comparison([runs[p + ("default",)]["psnr"] for p in pairs],
+                               [runs[p + ("candidate",)]["psnr"] for p in pairs])
+    _write_tables(out, pairs, runs)
+    summary = {"candidate": args.candidate, "base": args.base, "folds": sorted(set(args.folds)),
+               "seeds": sorted(set(args.seeds)), "sfm": str(sfm), "psnr": result,
+               "ssim": paired_comparison([runs[p + ("default",)]["ssim"] for p in pairs],
+                                         [runs[p + ("candidate",)]["ssim"] for p in pairs]),
+               "code_version": code_version()}
+    write_json_atomic(out / "summary.json", summary)
+    print(json.dumps(summary))
+    return 0
+
+
+def _write_tables(out: Path, pairs: list[tuple[int, int]], runs: dict[tuple[int, int, str], dict[str, Any]]) -> None:
+    """``pairs.csv`` (one row per fold and seed) and ``per_photo.csv`` (one row per validation photo)."""
+    rows = [{"fold": fold, "seed": seed, "default_psnr": runs[(fold, seed, "default")]["psnr"],
+             "candidate_psnr": runs[(fold, seed, "candidate")]["psnr"],
+             "difference_db": runs[(fold, seed, "candidate")]["psnr"] - runs[(fold, seed, "default")]["psnr"],
+             "default_ssim": runs[(fold, seed, "default")]["ssim"],
+             "candidate_ssim": runs[(fold, seed, "candidate")]["ssim"]} for fold, seed in pairs]
+    photos = [{"fold": fold, "seed": seed, "photo": name, "default_psnr": psnr,
+               "candidate_psnr": runs[(fold, seed, "candidate")]["per_photo"][name]}
+              for fold, seed in pairs for name, psnr in runs[(fold, seed, "default")]["per_photo"].items()]
+    for name, table in (("pairs.csv", rows), ("per_photo.csv", photos)):
+        with atomic_path(out / name) as tmp:
+            pd.DataFrame(table).to_csv(tmp, index=False)
+
+
+if __name__ == "__main__":
+    raise SystemExit(cli_main(run, None, "benchmarks/photo_folds.py"))
