@@ -113,7 +113,7 @@ def run(argv: list[str] | None = None) -> int:
             for fold, seed in pairs for arm in arms}
     result = paired_comparison([runs[p + ("default",)]["psnr"] for p in pairs],
                                [runs[p + ("candidate",)]["psnr"] for p in pairs])
-    _write_tables(out, pairs, runs)
+    _write_tables(out, pairs, runs, result["differences"])
     summary = {"candidate": args.candidate, "base": args.base, "folds": sorted(set(args.folds)),
                "seeds": sorted(set(args.seeds)), "sfm": str(sfm), "psnr": result,
                "ssim": paired_comparison([runs[p + ("default",)]["ssim"] for p in pairs],
@@ -124,13 +124,14 @@ def run(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _write_tables(out: Path, pairs: list[tuple[int, int]], runs: dict[tuple[int, int, str], dict[str, Any]]) -> None:
+def _write_tables(out: Path, pairs: list[tuple[int, int]], runs: dict[tuple[int, int, str], dict[str, Any]],
+                  differences: list[float]) -> None:
     """``pairs.csv`` (one row per fold and seed) and ``per_photo.csv`` (one row per validation photo)."""
     rows = [{"fold": fold, "seed": seed, "default_psnr": runs[(fold, seed, "default")]["psnr"],
              "candidate_psnr": runs[(fold, seed, "candidate")]["psnr"],
-             "difference_db": runs[(fold, seed, "candidate")]["psnr"] - runs[(fold, seed, "default")]["psnr"],
-             "default_ssim": runs[(fold, seed, "default")]["ssim"],
-             "candidate_ssim": runs[(fold, seed, "candidate")]["ssim"]} for fold, seed in pairs]
+             "difference_db": diff, "default_ssim": runs[(fold, seed, "default")]["ssim"],
+             "candidate_ssim": runs[(fold, seed, "candidate")]["ssim"]}
+            for (fold, seed), diff in zip(pairs, differences, strict=True)]
     photos = [{"fold": fold, "seed": seed, "photo": name, "default_psnr": psnr,
                "candidate_psnr": runs[(fold, seed, "candidate")]["per_photo"][name]}
               for fold, seed in pairs for name, psnr in runs[(fold, seed, "default")]["per_photo"].items()]
