@@ -26,14 +26,6 @@ def cli_main(run: Callable[[list[str] | None], int], argv: list[str] | None, scr
         return 2
 
 
-def _dotted(d: Mapping[str, Any], prefix: str = "") -> list[str]:
-    """The leaf key paths of a nested dict, dotted (``densify.strategy``)."""
-    out = []
-    for k, v in d.items():
-        out += _dotted(v, f"{prefix}{k}.") if isinstance(v, Mapping) else [f"{prefix}{k}"]
-    return out
-
-
 def shared_train_config(sets: list[str], *, own_keys: Mapping[str, str | None], defaults: Mapping[str, Any],
                         fixed: Mapping[str, Any]) -> dict[str, Any]:
     """The train settings every run of a benchmark shares, checked against the schema.
@@ -58,10 +50,10 @@ def shared_train_config(sets: list[str], *, own_keys: Mapping[str, str | None], 
     """
     from ctsplat.cli.train import load_train_config
     from ctsplat.config import check_section
-    from ctsplat.utils import CtsplatError, deep_update
+    from ctsplat.utils import CtsplatError, deep_update, dotted_items
 
     user = load_train_config(None, sets)
-    own = [(key, p) for key in _dotted(user) for p in own_keys if key == p or key.startswith(p + ".")]
+    own = [(key, p) for key in dotted_items(user) for p in own_keys if key == p or key.startswith(p + ".")]
     if own:
         key, option = own[0][0], own_keys[own[0][1]]
         raise CtsplatError(f"--set {key} is set by this benchmark per run" + (f"; use {option}" if option else ""))

@@ -36,7 +36,7 @@ from ctsplat.cli._common import apply_sets
 from ctsplat.config import check_section
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.select import paired_comparison, read_validation_run
-from ctsplat.utils import CtsplatError, atomic_path, code_version, write_json_atomic
+from ctsplat.utils import CtsplatError, atomic_path, code_version, dotted_items, write_json_atomic
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "out"
@@ -52,8 +52,8 @@ def _train(sfm: Path, run_dir: Path, sets: list[str]) -> None:
     """One ``ctsplat photos-train`` process (its log beside the run folder); a finished run with the same settings
     is kept."""
     if (run_dir / "training.json").is_file():
-        have = _flat(json.loads((run_dir / "config.json").read_text())["train"])
-        wanted = _flat(apply_sets({}, sets)["train"])
+        have = dotted_items(json.loads((run_dir / "config.json").read_text())["train"])
+        wanted = dotted_items(apply_sets({}, sets)["train"])
         if any(have.get(k) != v for k, v in wanted.items()):
             raise CtsplatError(f"{run_dir} holds a run with other settings; remove it or choose another --out")
         return
@@ -67,14 +67,6 @@ def _train(sfm: Path, run_dir: Path, sets: list[str]) -> None:
     if res.returncode != 0:
         raise CtsplatError(f"photos-train into {run_dir} failed (exit {res.returncode}); see "
                            f"{run_dir.with_suffix('.log')}")
-
-
-def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """A nested section as dotted keys (``flash.enabled``)."""
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
-    return out
 
 
 def run(argv: list[str] | None = None) -> int:

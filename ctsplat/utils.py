@@ -34,6 +34,7 @@ __all__ = [
     "code_version",
     "config_hash",
     "deep_update",
+    "dotted_items",
     "resolve_device",
     "seed_everything",
     "run_lock",
@@ -504,6 +505,37 @@ def deep_update(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, A
     out = dict(base)
     for k, v in over.items():
         out[k] = deep_update(out.get(k) or {}, v) if isinstance(v, dict) else v
+    return out
+
+
+def dotted_items(d: Mapping[str, Any], *, lists_as_json: bool = False) -> dict[str, Any]:
+    """The leaves of a nested mapping under dotted keys (``densify.strategy``), in the mapping's order.
+
+    Parameters
+    ----------
+    d : mapping
+        Nested sections (mappings); any other value is a leaf.
+    lists_as_json : bool
+        Write list and tuple leaves as JSON text, so that each value fits one CSV cell.
+
+    Returns
+    -------
+    dict
+        Dotted key -> leaf value.
+
+    Examples
+    --------
+    >>> dotted_items({"iterations": 6000, "densify": {"strategy": "mcmc", "steps": [1, 2]}}, lists_as_json=True)
+    {'iterations': 6000, 'densify.strategy': 'mcmc', 'densify.steps': '[1, 2]'}
+    """
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, Mapping):
+            out.update({f"{k}.{sub}": leaf for sub, leaf in dotted_items(v, lists_as_json=lists_as_json).items()})
+        elif lists_as_json and isinstance(v, list | tuple):
+            out[str(k)] = json.dumps(v)
+        else:
+            out[str(k)] = v
     return out
 
 

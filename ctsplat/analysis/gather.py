@@ -13,24 +13,10 @@ import pandas as pd
 from ctsplat.analysis.stats import convergence_velocity, mean_iters_per_s, milestones
 from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, PER_VIEW_COLUMNS, read_per_view, read_train_log
 from ctsplat.grid import GRID_AXES, cell_needs_sfm, parse_run_dir, run_axes, uses_colmap
-from ctsplat.utils import CtsplatError, atomic_path
+from ctsplat.utils import CtsplatError, atomic_path, dotted_items
 
 __all__ = ["TEST_METRICS", "SFM_COLUMNS", "BASELINE_SUMMARY_COLUMNS", "NOT_RUN", "velocity_column",
            "sfm_summary_path", "read_baselines", "gather", "load_runs", "load_per_view"]
-
-
-def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """Nested keys joined with ``.``; lists as JSON text, so each value fits one CSV cell."""
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, Mapping):
-            out.update(_flatten(v, f"{key}."))
-        elif isinstance(v, list | tuple):
-            out[key] = json.dumps(v)
-        else:
-            out[key] = v
-    return out
 
 
 # Test-split metrics of metrics.json, renamed so they cannot be mistaken for the validation values of the log.
@@ -235,7 +221,7 @@ def gather(
                 metrics = json.load(fh)
             for m in TEST_METRICS:
                 row[f"test_{m}"] = metrics.pop(m, None)
-            for k, v in _flatten(metrics).items():
+            for k, v in dotted_items(metrics, lists_as_json=True).items():
                 # milestones come from the log with this gather's thresholds; pose errors from sfm/summary.json
                 if k not in row and k not in SFM_COLUMNS and not k.startswith(("iter_to_", "time_to_")):
                     row[k] = v
