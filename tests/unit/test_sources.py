@@ -455,11 +455,17 @@ def test_ctrl_c_while_the_temporary_is_created_leaves_nothing(tmp_path, monkeypa
         return made
 
     monkeypatch.setattr(tempfile, name, create_then_interrupt)
-    writer = atomic_path(tmp_path / "ckpt.pt") if kind == "file" else atomic_dir(tmp_path / "views")
-    with pytest.raises(KeyboardInterrupt), writer:
-        pass
-    assert list(tmp_path.iterdir()) == []
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Ctrl-C handled as before
+    # Python's own Ctrl-C handler, whatever the suite inherited: a shell without job control starts background
+    # jobs with SIGINT ignored, and then there is no interrupt to deliver
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        writer = atomic_path(tmp_path / "ckpt.pt") if kind == "file" else atomic_dir(tmp_path / "views")
+        with pytest.raises(KeyboardInterrupt), writer:
+            pass
+        assert list(tmp_path.iterdir()) == []
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Ctrl-C handled as before
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 # ------------------------------------------------------------------------------------------ rescale
