@@ -299,7 +299,10 @@ def voxel_bwd(means_ptr, prec_ptr, dens_ptr, lo_ptr, hi_ptr, aff_ptr, offsets_pt
 
 @triton.jit
 def _finite(x):
-    return (x - x) == 0  # NaN and ±inf give NaN
+    # |x| < inf is false for NaN and ±inf. (x - x) == 0 is not safe here: with floating-point contraction (on by
+    # default when compiling for a GPU) a product's x * y - x * y becomes fma(x, y, -(x * y)), the product's rounding
+    # error, which is not 0, so finite values would read as non-finite (the interpreter never contracts)
+    return tl.abs(x) < float("inf")
 
 
 @triton.jit

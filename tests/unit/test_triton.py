@@ -311,6 +311,15 @@ def check_compile() -> None:
             for arch in (80, 90) if dt == "fp32" else (80,):  # one arch for float64 keeps the test short
                 compiled = triton.compile(src, target=GPUTarget("cuda", arch, 32), options={"num_warps": 8})
                 assert len(compiled.asm["cubin"]) > 1000, (fn.__name__, dt, arch)
+    # Compiled for a GPU, floating-point contraction is on: a finiteness test written as (x - x) == 0 turns, for a
+    # product x, into an FMA computing the product's rounding error (not 0), and every pixel box came out empty on
+    # an H100/H200 while the interpreter, which never contracts, agreed with the reference.
+    from _triton_probe import finite_of_product
+
+    for dt in ("fp32", "fp64"):
+        src = ASTSource(fn=finite_of_product, signature={"a_ptr": f"*{dt}", "b_ptr": f"*{dt}", "out_ptr": "*i8"})
+        ptx = triton.compile(src, target=GPUTarget("cuda", 90, 32)).asm["ptx"]
+        assert "fma." not in ptx, f"the finiteness test of a {dt} product compiles to an FMA:\n{ptx}"
 
 
 GROUPS = {
