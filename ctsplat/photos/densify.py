@@ -44,15 +44,18 @@ class AlphaDensify:
         Scene extent (:func:`ctsplat.photos.dataset.scene_extent`), world units.
     n : int
         Initial number of Gaussians.
+    device : torch.device or str
+        Where the Gaussians live (the gradient statistics are kept beside them).
     """
 
-    def __init__(self, settings: dict[str, Any], *, iterations: int, extent: float, n: int) -> None:
+    def __init__(self, settings: dict[str, Any], *, iterations: int, extent: float, n: int,
+                 device: torch.device | str = "cpu") -> None:
         self.settings = dict(settings)
         self.iterations = int(iterations)
         self.extent = float(extent)
         self.stop = int(float(settings["stop_fraction"]) * self.iterations)
-        self.grad_accum = torch.zeros(n)
-        self.grad_count = torch.zeros(n)
+        self.grad_accum = torch.zeros(n, device=device)
+        self.grad_count = torch.zeros(n, device=device)
 
     def accumulate(self, means2d_grad: torch.Tensor | None, visible: torch.Tensor, ndc_half: torch.Tensor) -> None:
         """Add one view's positional-gradient norms to the visible Gaussians' statistics.

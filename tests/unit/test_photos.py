@@ -267,6 +267,7 @@ def test_photo_volumes_stay_out_of_the_ct_grid(tmp_path: Path) -> None:
     (["--downscale", "3"], "photos.train.downscale: 3 is not one of [1, 2, 4, 8]"),
     (["--iterations", "0"], "photos.train.iterations: 0 is less than the minimum of 1"),
     (["--images", "/nonexistent/photos"], "photo folder /nonexistent/photos not found"),
+    (["--reuse-sfm"], "sfm/summary.json not found; run once without --reuse-sfm"),
 ])
 def test_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: list[str], needle: str) -> None:
     import os
@@ -282,6 +283,15 @@ def test_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: list[
     line = res.stderr.strip().splitlines()[-1]
     assert line.startswith("benchmarks/photos.py: error:") and needle in line, line
     assert not (tmp_path / "o").exists()
+
+
+def test_densify_statistics_are_kept_beside_the_gaussians() -> None:
+    from ctsplat.photos.densify import AlphaDensify
+
+    # "meta" stands in for a GPU here: a statistic left on the CPU would meet CUDA gradients in accumulate()
+    dens = AlphaDensify(photo_settings()["train"]["densify"], iterations=100, extent=1.0, n=5, device="meta")
+    assert dens.grad_accum.device.type == dens.grad_count.device.type == "meta"
+    assert dens.grad_accum.shape == dens.grad_count.shape == (5,)
 
 
 def test_training_without_training_photos_fails_in_one_line() -> None:
