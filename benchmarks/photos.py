@@ -74,10 +74,12 @@ def run() -> None:
     train = {"iterations": args.iterations, "downscale": args.downscale, "holdout": args.holdout,
              "num_threads": args.threads, "device": args.device}
     check_section("photos", {"train": train})
-    if not Path(args.images).is_dir():
+    out = Path(args.out)
+    if args.reuse_sfm and not (out / "sfm" / "summary.json").is_file():
+        raise CtsplatError(f"--reuse-sfm: {out / 'sfm' / 'summary.json'} not found; run once without --reuse-sfm")
+    if not args.reuse_sfm and not Path(args.images).is_dir():
         raise CtsplatError(f"photo folder {args.images} not found (expected ../shared/data/skull_photos)")
     torch.set_num_threads(args.threads)
-    out = Path(args.out)
     t0 = time.perf_counter()
     if args.reuse_sfm:
         sfm = json.loads((out / "sfm" / "summary.json").read_text())
