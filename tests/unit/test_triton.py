@@ -312,8 +312,8 @@ def check_compile() -> None:
                 compiled = triton.compile(src, target=GPUTarget("cuda", arch, 32), options={"num_warps": 8})
                 assert len(compiled.asm["cubin"]) > 1000, (fn.__name__, dt, arch)
     # Compiled for a GPU, floating-point contraction is on: a finiteness test written as (x - x) == 0 turns, for a
-    # product x, into an FMA computing the product's rounding error (not 0), and every pixel box came out empty on
-    # an H100/H200 while the interpreter, which never contracts, agreed with the reference.
+    # product x, into an FMA computing the product's rounding error (not 0), so the projection's pixel boxes would
+    # all be empty on a GPU while the interpreter, which never contracts, agrees with the reference.
     from _triton_probe import finite_of_product
 
     for dt in ("fp32", "fp64"):
