@@ -75,14 +75,15 @@ def run() -> None:
              "num_threads": args.threads, "device": args.device}
     check_section("photos", {"train": train})
     out = Path(args.out)
-    if args.reuse_sfm and not (out / "sfm" / "summary.json").is_file():
-        raise CtsplatError(f"--reuse-sfm: {out / 'sfm' / 'summary.json'} not found; run once without --reuse-sfm")
+    summary = out / "sfm" / "summary.json"
+    if args.reuse_sfm and not summary.is_file():
+        raise CtsplatError(f"--reuse-sfm: {summary} not found; run once without --reuse-sfm")
     if not args.reuse_sfm and not Path(args.images).is_dir():
         raise CtsplatError(f"photo folder {args.images} not found (expected ../shared/data/skull_photos)")
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     if args.reuse_sfm:
-        sfm = json.loads((out / "sfm" / "summary.json").read_text())
+        sfm = json.loads(summary.read_text())
         sfm_s = 0.0
     else:
         sfm = run_photo_sfm(args.images, out / "sfm", {"num_threads": args.threads})
