@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from ctsplat.geometry import camera_center
 from ctsplat.utils import CtsplatError
 
 __all__ = ["orbit_basis", "fuse_with_design", "umeyama", "robust_sim3", "rotation_error_deg", "evaluate_poses"]
@@ -317,7 +318,7 @@ def evaluate_poses(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: list[
                                "centre_err_mm": np.nan, "R": None, "t": None}
         if n in poses and align["ok"]:
             R, t = poses[n]
-            c = -R.T @ t
+            c = camera_center(R, t)
             Rw = R @ align["R"].T
             cw = align["scale"] * align["R"] @ c + align["t"]
             row.update(rot_err_deg=float(rotation_error_deg(Rw, Rs_true[i])),

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import pycolmap
 
+from ctsplat.geometry import camera_center
 from ctsplat.sfm.align import evaluate_poses, umeyama
 from ctsplat.utils import CtsplatError, atomic_dir
 
@@ -468,7 +469,7 @@ def reverse_depth(rec: Any) -> Any:
             continue
         m = frame.rig_from_world.matrix()
         R, t = m[:, :3], m[:, 3]
-        c = -R.T @ t
+        c = camera_center(R, t)
         R2 = M @ R @ M  # D = M numerically
         c2 = M @ O - np.linalg.norm(c - O) * R2[2]
         frame.rig_from_world = pycolmap.Rigid3d(np.hstack([R2, (-R2 @ c2)[:, None]]))
@@ -653,7 +654,7 @@ def merge_models(models: dict[int, Any], min_shared: int = 3) -> tuple[Any, dict
             for n, (R, t) in other.items():
                 if n in poses:
                     continue
-                c = -R.T @ t
+                c = camera_center(R, t)
                 c2 = s * Rg @ c + tg
                 R2 = R @ Rg.T
                 poses[n] = (R2, -R2 @ c2)

@@ -459,7 +459,7 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
     for r in rows:
         r["plausible"] = False
         if r["R"] is not None:
-            c = -r["R"].T @ r["t"]
+            c = camera_center(r["R"], r["t"])
             d = (iso - c) / max(float(np.linalg.norm(iso - c)), 1e-9)
             r["plausible"] = bool(math.degrees(math.acos(float(np.clip(r["R"][2] @ d, -1, 1)))) <= half_fov)
     summary["n_plausible"] = int(sum(r["plausible"] for r in rows))
