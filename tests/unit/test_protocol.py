@@ -3,6 +3,7 @@ volume sides with explicit held-out counts, and default detectors that cover the
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import warnings
 
@@ -249,6 +250,14 @@ def test_protocol_configs_validate_and_say_the_protocol(monkeypatch, name, grid,
     assert (geo["dso_factor"], geo["dsd_factor"], geo["detector_size_factor"]) == (2.5, 3.5, 2.0)
     assert geo["noise"] == {"enabled": True, "model": "tigre", "i0": 1e4, "electronic_sigma": 10.0,
                             "splits": ["train"]}
+    # the workflow's configs and benchmarks/protocol.py each spell the protocol out: they must agree
+    monkeypatch.syspath_prepend(str(root / "benchmarks"))
+    spec = importlib.util.spec_from_file_location("protocol_benchmark", root / "benchmarks" / "protocol.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    expected = bench.protocol_geometry(geo["n_views"], grid)
+    assert {k: geo[k] for k in expected} == expected
+    assert {k: cfg["train"][k] for k in bench.PROTOCOL_TRAIN} == bench.PROTOCOL_TRAIN
     assert geo["n_test"] == 100 and geo["n_val"] > 0
     assert all(geo["n_views"] % v == 0 for v in cfg["grid"]["axes"]["views"]) and cfg["grid"]["axes"]["views"] == [
         25, 50, 75]
