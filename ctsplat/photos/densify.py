@@ -42,20 +42,17 @@ class AlphaDensify:
         Total training iterations.
     extent : float
         Scene extent (:func:`ctsplat.photos.dataset.scene_extent`), world units.
-    n : int
-        Initial number of Gaussians.
-    device : torch.device or str
-        Where the Gaussians live (the gradient statistics are kept beside them).
+    means : Tensor (N, 3)
+        The initial means: the gradient statistics take their count and device.
     """
 
-    def __init__(self, settings: dict[str, Any], *, iterations: int, extent: float, n: int,
-                 device: torch.device | str = "cpu") -> None:
+    def __init__(self, settings: dict[str, Any], *, iterations: int, extent: float, means: torch.Tensor) -> None:
         self.settings = dict(settings)
         self.iterations = int(iterations)
         self.extent = float(extent)
         self.stop = int(float(settings["stop_fraction"]) * self.iterations)
-        self.grad_accum = torch.zeros(n, device=device)
-        self.grad_count = torch.zeros(n, device=device)
+        self.grad_accum = torch.zeros(means.shape[0], device=means.device)
+        self.grad_count = torch.zeros(means.shape[0], device=means.device)
 
     def accumulate(self, means2d_grad: torch.Tensor | None, visible: torch.Tensor, ndc_half: torch.Tensor) -> None:
         """Add one view's positional-gradient norms to the visible Gaussians' statistics.
@@ -107,7 +104,7 @@ class AlphaDensify:
         n = params["means"].shape[0]
         dev = params["means"].device
         with torch.no_grad():
-            avg = self.grad_accum.to(dev) / self.grad_count.to(dev).clamp_min(1)
+            avg = self.grad_accum / self.grad_count.clamp_min(1)
             scales = torch.exp(params["log_scales"])
             smax = scales.max(-1).values
             cand = avg >= float(d["grad_threshold"])

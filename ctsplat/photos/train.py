@@ -288,8 +288,7 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
         flash_opt = torch.optim.Adam([exponent], lr=float(s["flash"]["lr"]), eps=1e-15)
     dens: AlphaDensify | MCMCDensify = (
         MCMCDensify(s["densify"], s["mcmc"], iterations=iters) if s["densify"]["strategy"] == "mcmc"
-        else AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, n=params["means"].shape[0],
-                          device=device))
+        else AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, means=params["means"]))
     lam = float(s["lambda_dssim"])
     lr0 = float(s["lr"]["means"]) * scene.extent
     lr1 = float(s["lr"]["means_final"]) * scene.extent

@@ -289,7 +289,8 @@ def test_densify_statistics_are_kept_beside_the_gaussians() -> None:
     from ctsplat.photos.densify import AlphaDensify
 
     # "meta" stands in for a GPU here: a statistic left on the CPU would meet CUDA gradients in accumulate()
-    dens = AlphaDensify(photo_settings()["train"]["densify"], iterations=100, extent=1.0, n=5, device="meta")
+    dens = AlphaDensify(photo_settings()["train"]["densify"], iterations=100, extent=1.0,
+                        means=torch.empty(5, 3, device="meta"))
     assert dens.grad_accum.device.type == dens.grad_count.device.type == "meta"
     assert dens.grad_accum.shape == dens.grad_count.shape == (5,)
 
