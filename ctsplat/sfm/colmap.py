@@ -317,7 +317,7 @@ def _refine_from_design(db_path: Path, image_dir: Path, out: Path, image_names: 
         rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(np.hstack([Rs[i], ts[i][:, None]])))
     centres = None
     if cfg.get("pose_prior") in ("refine_prior", "isocentric"):
-        centres = {n: -Rs[i].T @ ts[i] for n, i in index.items()}
+        centres = {n: camera_center(Rs[i], ts[i]) for n, i in index.items()}
     rec = _retriangulate_and_adjust(rec, db_path, image_dir, out, cfg, prior_centres=centres)
     stats: dict[str, Any] = {}
     if cfg.get("pose_prior") == "isocentric" and rec.num_points3D() > 0:
