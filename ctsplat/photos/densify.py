@@ -6,7 +6,10 @@ itself: Gaussians whose mean view-space positional gradient exceeds ``grad_thres
 most ``percent_dense`` × the scene extent) or split in two (larger ones; samples from the Gaussian, scales / 1.6);
 Gaussians with opacity below ``prune_opacity`` are pruned, and after the first opacity reset also those wider
 than ``prune_scale_fraction`` × the extent (3DGS's schedule: the large Gaussians that fill a backdrop early on are
-kept until then); every ``opacity_reset_interval`` iterations opacities are clamped to at most 0.01. The gradient
+kept until then); every ``opacity_reset_interval`` iterations opacities are clamped to at most 0.01. With
+``size_prune: always`` the size rule applies from the first densification step, and prune-only steps (both rules,
+no clone or split) follow every ``interval`` iterations after densification stops, to the end of training: a
+schedule that stops densifying before the first reset would otherwise never prune by size. The gradient
 statistics are accumulated exactly as the radiative strategy does (:meth:`GradientDensify.accumulate`, 3DGS's NDC
 units).
 
@@ -70,7 +73,8 @@ class AlphaDensify:
     def due(self, iteration: int) -> bool:
         """Whether densification runs after ``iteration`` completed iterations."""
         d = self.settings
-        return bool(d["interval"]) and int(d["start"]) <= iteration <= self.stop \
+        until = self.iterations if d["size_prune"] == "always" else self.stop
+        return bool(d["interval"]) and int(d["start"]) <= iteration <= until \
             and iteration % int(d["interval"]) == 0 and iteration < self.iterations
 
     def reset_due(self, iteration: int) -> bool:
@@ -107,7 +111,7 @@ class AlphaDensify:
             avg = self.grad_accum / self.grad_count.clamp_min(1)
             scales = torch.exp(params["log_scales"])
             smax = scales.max(-1).values
-            cand = avg >= float(d["grad_threshold"])
+            cand = (avg >= float(d["grad_threshold"])) & (iteration <= self.stop)
             small = smax <= float(d["percent_dense"]) * self.extent
             budget = max(int(d["max_gaussians"]) - n, 0)
             if int(cand.sum()) > budget:  # keep the largest gradients within the cap
@@ -135,7 +139,7 @@ class AlphaDensify:
                                     {k: torch.cat(v) for k, v in new.items()})
             op = torch.sigmoid(params["opacity_raw"])
             bad = op < float(d["prune_opacity"])
-            if iteration > int(d["opacity_reset_interval"]):
+            if d["size_prune"] == "always" or iteration > int(d["opacity_reset_interval"]):
                 bad |= torch.exp(params["log_scales"]).max(-1).values > float(d["prune_scale_fraction"]) * self.extent
             if bool(bad.all()):  # never prune everything
                 bad[:] = False

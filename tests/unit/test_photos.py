@@ -5,6 +5,7 @@ out of the CT grid."""
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -293,6 +294,44 @@ def test_densify_statistics_are_kept_beside_the_gaussians() -> None:
                         means=torch.empty(5, 3, device="meta"))
     assert dens.grad_accum.device.type == dens.grad_count.device.type == "meta"
     assert dens.grad_accum.shape == dens.grad_count.shape == (5,)
+
+
+def _three_gaussians() -> dict[str, torch.Tensor]:
+    """A wide opaque Gaussian (0.5 x the extent of 1), a small opaque one and a small transparent one."""
+    from ctsplat.photos.train import init_params
+
+    params = init_params(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]), np.full((4, 3), 0.5),
+                         photo_settings()["train"], np.random.default_rng(0))
+    with torch.no_grad():
+        params["log_scales"][:] = math.log(0.01)
+        params["log_scales"][0] = math.log(0.5)
+        params["opacity_raw"][:] = 2.0
+        params["opacity_raw"][2] = -8.0  # opacity 3e-4, below prune_opacity
+    return params
+
+
+@pytest.mark.parametrize("size_prune", ["after_reset", "always"])
+def test_size_prune_always_prunes_wide_gaussians_to_the_end_of_training(size_prune: str) -> None:
+    from ctsplat.photos.densify import AlphaDensify
+    from ctsplat.photos.train import _optimizer
+
+    settings = {**photo_settings()["train"]["densify"], "size_prune": size_prune}
+    params = _three_gaussians()
+    opt = _optimizer(params, photo_settings()["train"]["lr"], 1.0)
+    settings["start"] = 100
+    dens = AlphaDensify(settings, iterations=1000, extent=1.0, means=params["means"])  # densifies 100..170
+    assert dens.due(100) and not dens.due(150) and not dens.due(1000)
+    assert dens.due(300) == dens.due(900) == (size_prune == "always")  # prune-only steps after densification
+    dens.grad_accum[:] = 1.0  # every Gaussian above grad_threshold
+    dens.grad_count[:] = 1.0
+    params, st = dens.step(params, opt, torch.Generator().manual_seed(0), iteration=300)
+    # after densification stops nothing is cloned or split; the transparent Gaussian goes either way, and the wide
+    # one only under "always" (3DGS's size prune otherwise waits for the first opacity reset, at 3000)
+    assert st["cloned"] == st["split"] == 0
+    widths = torch.exp(params["log_scales"]).max(-1).values
+    assert st["pruned"] == (2 if size_prune == "always" else 1)
+    assert bool((widths > 0.1).any()) == (size_prune == "after_reset")
+    assert params["means"].shape[0] == st["n"] == len(opt.param_groups[0]["params"][0])
 
 
 def test_training_without_training_photos_fails_in_one_line() -> None:
