@@ -35,7 +35,7 @@ from ctsplat.photos.train import held_out_split, image_metrics, render_view
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.utils import CtsplatError, atomic_path, json_safe, resolve_device, write_json_atomic
 
-__all__ = ["evaluate_photos", "turntable_poses", "save_photo_gallery", "save_turntable_gif"]
+__all__ = ["evaluate_photos", "run_scene", "turntable_poses", "save_photo_gallery", "save_turntable_gif"]
 
 
 def turntable_poses(views: list[PhotoView], n: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -156,6 +156,25 @@ def _peak_memory_mb(device: torch.device) -> dict[str, float | None]:
     return {"peak_rss_mb": rss_mb, "peak_gpu_mb": gpu}
 
 
+def run_scene(config: dict[str, Any], device: torch.device | str = "cpu") -> PhotoScene:
+    """The scene a photo run was trained on, with its split, from the run's ``config.json`` contents.
+
+    Parameters
+    ----------
+    config : dict
+        ``sfm_dir`` and the ``train`` settings, as :func:`ctsplat.photos.train.train_photos` writes them.
+    device : torch.device or str
+
+    Returns
+    -------
+    PhotoScene
+    """
+    t = config["train"]
+    return load_scene(config["sfm_dir"], downscale=int(t["downscale"]), test_every=int(t["test_every"]),
+                      validation=held_out_split(t) == "val", validation_offset=t.get("validation_offset"),
+                      device=device)
+
+
 def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
                     scene: PhotoScene | None = None) -> dict[str, Any]:
     """Evaluate a photo run on its held-out views and write the metrics and figures (module docstring).
@@ -186,9 +205,7 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     device = resolve_device(t["device"])
     held = held_out_split(t)
     if scene is None:
-        scene = load_scene(cfg["sfm_dir"], downscale=int(t["downscale"]), test_every=int(t["test_every"]),
-                           validation=held == "val", validation_offset=t.get("validation_offset"),
-                           device=device)
+        scene = run_scene(cfg, device)
     test = scene.split(held)
     if not test:
         raise CtsplatError(f"{cfg['sfm_dir']} has no held-out view (test_every {t['test_every']}); nothing to "

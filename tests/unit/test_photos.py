@@ -15,7 +15,7 @@ from PIL import Image
 
 from ctsplat.cli import main
 from ctsplat.config import prepare_config
-from ctsplat.geometry.cameras import look_at
+from ctsplat.geometry.cameras import camera_center, look_at
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, PinholeCamera, load_scene, scene_extent, split_names
 from ctsplat.photos.evaluate import evaluate_photos, turntable_poses
@@ -286,6 +286,26 @@ def test_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: list[
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize(("args", "needle"), [
+    (["RUN", "--top", "0"], "--top must be >= 1, got 0"),
+    (["RUN"], "is not a photo run (config.json and model.pt); run `ctsplat photos-train`"),
+])
+def test_blame_benchmark_refuses_bad_input_with_one_line(tmp_path: Path, args: list[str], needle: str) -> None:
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    args = [str(tmp_path / "not_a_run") if a == "RUN" else a for a in args]
+    res = subprocess.run([sys.executable, str(root / "benchmarks" / "photo_blame.py"), *args],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    line = res.stderr.strip().splitlines()[-1]
+    assert line.startswith("benchmarks/photo_blame.py: error:") and needle in line, line
+    assert not (tmp_path / "not_a_run").exists()
+
+
 def test_densify_statistics_are_kept_beside_the_gaussians() -> None:
     from ctsplat.photos.densify import AlphaDensify
 
@@ -398,3 +418,35 @@ def test_fold_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: 
     line = res.stderr.strip().splitlines()[-1]
     assert line.startswith("benchmarks/photo_folds.py: error:") and needle in line, line
     assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------------------------------------ blame
+def test_blame_names_a_planted_floater_and_its_gain_is_the_opacity_derivative() -> None:
+    from dataclasses import replace
+
+    from ctsplat.photos.blame import blame_view, removal_gain
+
+    torch.set_num_threads(1)
+    scene, truth = _synthetic_scene()
+    view = scene.views[0]  # its photo is the truth's render
+    centre = camera_center(view.R, view.t)
+    floater = Gaussians.from_values(torch.as_tensor(0.6 * centre[None], dtype=torch.float32), 0.3, 1.0,
+                                    opacities=0.9, colors=torch.tensor([[0.9, 0.9, 0.9]]), sh_degree=1)
+    model = Gaussians(**{k: torch.cat([getattr(truth, k), getattr(floater, k)]) for k in
+                         ("means", "log_scales", "quats", "density_raw", "opacity_raw", "colors", "sh_rest")})
+    r = blame_view(model, view, top=2)
+    assert r["index"][0] == len(truth)  # the floater, appended last
+    assert r["psnr"] < 25 and r["psnr_without"][0] > 60  # without it the render is the photo again
+    # the gain is (dE/dx) / (1 - o); dE/dx against central differences of the summed squared error
+    gain = removal_gain(model, view)
+    x0 = model.opacity_raw.clone()
+    for i in (r["index"][1], 3):
+        err = []
+        for h in (1e-2, -1e-2):
+            x = x0.clone()
+            x[i] += h
+            with torch.no_grad():
+                img = render_view(replace(model, opacity_raw=x), view).image
+            err.append(float(((img.double() - view.image.double()) ** 2).sum()))
+        fd = (err[0] - err[1]) / 2e-2
+        assert float(gain[i]) * (1 - float(torch.sigmoid(x0[i]))) == pytest.approx(fd, rel=0.05, abs=1e-3)

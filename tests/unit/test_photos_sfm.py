@@ -157,3 +157,15 @@ def test_fold_benchmark_pairs_real_runs_and_reuses_them(skull_subset: Path, tmp_
     clash = subprocess.run([*cmd[:-4], "--candidate", "train.sh_degree=1", "--seeds", "0", "--folds", "1"],
                            capture_output=True, text=True, env=env, timeout=600)
     assert clash.returncode == 2 and "holds a run with other settings" in clash.stderr.strip().splitlines()[-1]
+    # which Gaussians the held-out photos fail on, for one of these runs: every validation photo, its PSNR as the
+    # evaluation scored it, and the named Gaussians in order of their removal gain
+    run = out / "fold1_seed0_default"
+    blame = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "photo_blame.py"), str(run), "--top", "2"],
+                           capture_output=True, text=True, env=env, timeout=600)
+    assert blame.returncode == 0, blame.stderr[-3000:]
+    table = pd.read_csv(run / "blame.csv")
+    scored = pd.read_csv(run / "per_view_test.csv").set_index("view_id")["psnr2d"]
+    assert sorted(set(table["photo"])) == sorted(scored.index)
+    for photo, rows in table.groupby("photo"):
+        assert rows["rank"].tolist() == [1, 2] and rows["gain"].is_monotonic_decreasing
+        assert rows["psnr"].iloc[0] == pytest.approx(scored[photo], abs=1e-4)
