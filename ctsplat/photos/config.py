@@ -87,7 +87,7 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
             "prune_opacity": 0.005,
             # prune Gaussians wider than this fraction of the scene extent, after the first opacity reset (3DGS)
             "prune_scale_fraction": 0.1,
-            "size_prune": "after_reset",
+            "size_prune": "after_reset",  # "always": from the first densification step to the end of training
             "opacity_reset_interval": 3000,  # 0: never
             "max_gaussians": 300000,
         },

@@ -71,7 +71,8 @@ class AlphaDensify:
         GradientDensify.accumulate(self, means2d_grad, visible, ndc_half)
 
     def due(self, iteration: int) -> bool:
-        """Whether densification runs after ``iteration`` completed iterations."""
+        """Whether a densification step (after the stop, with ``size_prune: always``, a prune-only step) runs after
+        ``iteration`` completed iterations."""
         d = self.settings
         until = self.iterations if d["size_prune"] == "always" else self.stop
         return bool(d["interval"]) and int(d["start"]) <= iteration <= until \
