@@ -14,7 +14,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from _common import cli_main
 
 from ctsplat.geometry.cameras import camera_center
 from ctsplat.photos.blame import blame_view
-from ctsplat.photos.evaluate import run_scene
+from ctsplat.photos.evaluate import run_config, run_scene
 from ctsplat.photos.train import held_out_split
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.utils import CtsplatError, atomic_path, resolve_device
@@ -40,10 +39,8 @@ def run(argv: list[str] | None = None) -> int:
     if a.top < 1:
         raise CtsplatError(f"--top must be >= 1, got {a.top}")
     run_dir = Path(a.run_dir)
-    if not (run_dir / "config.json").is_file() or not (run_dir / "model.pt").is_file():
-        raise CtsplatError(f"{run_dir} is not a photo run (config.json and model.pt); run `ctsplat photos-train`")
+    cfg = run_config(run_dir)
     torch.set_num_threads(a.threads)
-    cfg = json.loads((run_dir / "config.json").read_text())
     device = resolve_device(cfg["train"]["device"])
     scene = run_scene(cfg, device)
     g = Gaussians.load(run_dir / "model.pt", device=device)

@@ -35,7 +35,7 @@ from ctsplat.photos.train import held_out_split, image_metrics, render_view
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.utils import CtsplatError, atomic_path, json_safe, resolve_device, write_json_atomic
 
-__all__ = ["evaluate_photos", "run_scene", "turntable_poses", "save_photo_gallery", "save_turntable_gif"]
+__all__ = ["evaluate_photos", "run_config", "run_scene", "turntable_poses", "save_photo_gallery", "save_turntable_gif"]
 
 
 def turntable_poses(views: list[PhotoView], n: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -156,6 +156,30 @@ def _peak_memory_mb(device: torch.device) -> dict[str, float | None]:
     return {"peak_rss_mb": rss_mb, "peak_gpu_mb": gpu}
 
 
+def run_config(run_dir: str | Path) -> dict[str, Any]:
+    """The ``config.json`` contents of a photo run folder (one that also holds ``model.pt``).
+
+    Parameters
+    ----------
+    run_dir : str or Path
+        Output of :func:`ctsplat.photos.train.train_photos`.
+
+    Returns
+    -------
+    dict
+        ``sfm_dir``, ``train`` (the settings), ``config_hash``, ``code_version``.
+
+    Raises
+    ------
+    CtsplatError
+        When either file is missing (one line naming the folder).
+    """
+    run_dir = Path(run_dir)
+    if not (run_dir / "config.json").is_file() or not (run_dir / "model.pt").is_file():
+        raise CtsplatError(f"{run_dir} is not a photo run (config.json and model.pt); run `ctsplat photos-train`")
+    return json.loads((run_dir / "config.json").read_text())
+
+
 def run_scene(config: dict[str, Any], device: torch.device | str = "cpu") -> PhotoScene:
     """The scene a photo run was trained on, with its split, from the run's ``config.json`` contents.
 
@@ -197,10 +221,7 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     """
     s = photo_settings({"evaluate": dict(settings or {})})["evaluate"]
     run_dir = Path(run_dir)
-    cfg_path = run_dir / "config.json"
-    if not cfg_path.is_file() or not (run_dir / "model.pt").is_file():
-        raise CtsplatError(f"{run_dir} is not a photo run (config.json and model.pt); run `ctsplat photos-train`")
-    cfg = json.loads(cfg_path.read_text())
+    cfg = run_config(run_dir)
     t = cfg["train"]
     device = resolve_device(t["device"])
     held = held_out_split(t)
