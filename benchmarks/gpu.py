@@ -118,7 +118,9 @@ def train_row(data: str, size: int) -> dict | None:
            str(size), "--threads", str(os.cpu_count() or 1), "--set", "device=cuda", "--baseline-set",
            "methods=[fdk]", "--data", data, "--out", str(out)]
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True)
+    # ROOT first, the caller's PYTHONPATH kept: a machine may hold the dependencies in a folder named there
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    proc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": path}, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         print(proc.stdout[-2000:] + proc.stderr[-4000:], file=sys.stderr)
