@@ -88,6 +88,8 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
             # prune Gaussians wider than this fraction of the scene extent, after the first opacity reset (3DGS)
             "prune_scale_fraction": 0.1,
             "size_prune": "after_reset",  # "always": from the first densification step to the end of training
+            # > 0: prune Gaussians wider (largest sigma) than this x their distance to the nearest training camera
+            "near_prune": 0.0,
             "opacity_reset_interval": 3000,  # 0: never
             "max_gaussians": 300000,
         },

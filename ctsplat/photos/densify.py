@@ -9,7 +9,11 @@ than ``prune_scale_fraction`` × the extent (3DGS's schedule: the large Gaussian
 kept until then); every ``opacity_reset_interval`` iterations opacities are clamped to at most 0.01. With
 ``size_prune: always`` the size rule applies from the first densification step, and prune-only steps (both rules,
 no clone or split) follow every ``interval`` iterations after densification stops, to the end of training: a
-schedule that stops densifying before the first reset would otherwise never prune by size. The gradient
+schedule that stops densifying before the first reset would otherwise never prune by size. With ``near_prune``
+> 0, Gaussians whose largest standard deviation exceeds ``near_prune`` × their distance to the nearest training
+camera centre are pruned at every densification step and in prune-only steps to the end of training: such a
+Gaussian fills more than a photo's field of view of that camera, so it is no surface that camera saw, yet a
+held-out camera near it looks through it. The gradient
 statistics are accumulated exactly as the radiative strategy does (:meth:`GradientDensify.accumulate`, 3DGS's NDC
 units).
 
@@ -47,10 +51,17 @@ class AlphaDensify:
         Scene extent (:func:`ctsplat.photos.dataset.scene_extent`), world units.
     means : Tensor (N, 3)
         The initial means: the gradient statistics take their count and device.
+    camera_centers : Tensor (C, 3), optional
+        The training cameras' centres, world units; needed when ``near_prune`` > 0.
     """
 
-    def __init__(self, settings: dict[str, Any], *, iterations: int, extent: float, means: torch.Tensor) -> None:
+    def __init__(self, settings: dict[str, Any], *, iterations: int, extent: float, means: torch.Tensor,
+                 camera_centers: torch.Tensor | None = None) -> None:
         self.settings = dict(settings)
+        self.near = float(settings.get("near_prune", 0.0))
+        if self.near > 0 and (camera_centers is None or camera_centers.shape[0] == 0):
+            raise ValueError("densify.near_prune > 0 needs the training cameras' centres")
+        self.camera_centers = camera_centers
         self.iterations = int(iterations)
         self.extent = float(extent)
         self.stop = int(float(settings["stop_fraction"]) * self.iterations)
@@ -74,7 +85,7 @@ class AlphaDensify:
         """Whether a densification step (after the stop, with ``size_prune: always``, a prune-only step) runs after
         ``iteration`` completed iterations."""
         d = self.settings
-        until = self.iterations if d["size_prune"] == "always" else self.stop
+        until = self.iterations if d["size_prune"] == "always" or self.near > 0 else self.stop
         return bool(d["interval"]) and int(d["start"]) <= iteration <= until \
             and iteration % int(d["interval"]) == 0 and iteration < self.iterations
 
@@ -142,6 +153,9 @@ class AlphaDensify:
             bad = op < float(d["prune_opacity"])
             if d["size_prune"] == "always" or iteration > int(d["opacity_reset_interval"]):
                 bad |= torch.exp(params["log_scales"]).max(-1).values > float(d["prune_scale_fraction"]) * self.extent
+            if self.near > 0:
+                dist = torch.cdist(params["means"], self.camera_centers.to(params["means"])).min(-1).values
+                bad |= torch.exp(params["log_scales"]).max(-1).values > self.near * dist
             if bool(bad.all()):  # never prune everything
                 bad[:] = False
             params = replace_params(opt, params, torch.nonzero(~bad).flatten(), {})

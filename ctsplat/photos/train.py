@@ -288,7 +288,10 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
         flash_opt = torch.optim.Adam([exponent], lr=float(s["flash"]["lr"]), eps=1e-15)
     dens: AlphaDensify | MCMCDensify = (
         MCMCDensify(s["densify"], s["mcmc"], iterations=iters) if s["densify"]["strategy"] == "mcmc"
-        else AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, means=params["means"]))
+        else AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, means=params["means"],
+                          camera_centers=torch.as_tensor(
+                              camera_center(np.stack([v.R for v in train]), np.stack([v.t for v in train])),
+                              dtype=torch.float32, device=device)))
     lam = float(s["lambda_dssim"])
     lr0 = float(s["lr"]["means"]) * scene.extent
     lr1 = float(s["lr"]["means_final"]) * scene.extent

@@ -354,6 +354,44 @@ def test_size_prune_always_prunes_wide_gaussians_to_the_end_of_training(size_pru
     assert params["means"].shape[0] == st["n"] == len(opt.param_groups[0]["params"][0])
 
 
+@pytest.mark.parametrize(("camera_z", "wide_pruned"), [(0.4, True), (-3.0, False)])
+def test_near_prune_removes_gaussians_wider_than_their_distance_to_a_training_camera(
+        camera_z: float, wide_pruned: bool) -> None:
+    from ctsplat.photos.densify import AlphaDensify
+    from ctsplat.photos.train import _optimizer
+
+    settings = {**photo_settings()["train"]["densify"], "near_prune": 1.0, "start": 100}
+    params = _three_gaussians()  # the wide one (sigma 0.5) at the origin, a small one at (0, 0, 1)
+    opt = _optimizer(params, photo_settings()["train"]["lr"], 1.0)
+    centres = torch.tensor([[0.0, 0.0, camera_z], [5.0, 5.0, 5.0]])
+    dens = AlphaDensify(settings, iterations=1000, extent=1.0, means=params["means"], camera_centers=centres)
+    assert dens.due(300) and dens.due(900)  # prune-only steps to the end of training
+    params, st = dens.step(params, opt, torch.Generator().manual_seed(0), iteration=300)
+    # 0.4 from the camera a sigma of 0.5 is pruned; 3 away it is not (the size rule waits for the reset at 3000);
+    # the small Gaussian 0.6 or 4 from the camera stays either way, the transparent one goes either way
+    widths = torch.exp(params["log_scales"]).max(-1).values
+    assert bool((widths > 0.1).any()) != wide_pruned
+    assert st["pruned"] == (2 if wide_pruned else 1) and params["means"].shape[0] == 2 + (not wide_pruned)
+    with pytest.raises(ValueError, match="near_prune > 0 needs the training cameras' centres"):
+        AlphaDensify(settings, iterations=1000, extent=1.0, means=params["means"])
+
+
+def test_near_prune_in_training_removes_a_gaussian_planted_next_to_a_training_camera() -> None:
+    torch.set_num_threads(2)
+    scene, _ = _synthetic_scene()
+    train = scene.split("train")
+    centre = torch.as_tensor(camera_center(train[0].R, train[0].t), dtype=torch.float32)
+    scene.xyz = np.vstack([scene.xyz, centre.numpy() + [0.0, 0.0, 0.1]])
+    scene.rgb = np.vstack([scene.rgb, [0.5, 0.5, 0.5]])
+    nearest = []
+    for near in (0.0, 1.0):
+        s = photo_settings({"train": {"iterations": 150, "log_every": 1000, "densify": {
+            "start": 100, "interval": 100, "opacity_reset_interval": 0, "near_prune": near}}})["train"]
+        model, _ = train_scene(scene, s)
+        nearest.append(float(torch.cdist(model.means, centre[None]).min()))
+    assert nearest[0] < 0.5 < 1.0 < nearest[1]
+
+
 def test_training_without_training_photos_fails_in_one_line() -> None:
     scene, _ = _synthetic_scene()
     for v in scene.views:
