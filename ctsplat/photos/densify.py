@@ -85,7 +85,8 @@ class AlphaDensify:
         """Whether a densification step (after the stop, with ``size_prune: always``, a prune-only step) runs after
         ``iteration`` completed iterations."""
         d = self.settings
-        until = self.iterations if d["size_prune"] == "always" or self.near > 0 else self.stop
+        # from the settings, not attributes: MCMCDensify borrows this method
+        until = self.iterations if d["size_prune"] == "always" or float(d.get("near_prune", 0.0)) > 0 else self.stop
         return bool(d["interval"]) and int(d["start"]) <= iteration <= until \
             and iteration % int(d["interval"]) == 0 and iteration < self.iterations
 
