@@ -58,8 +58,7 @@ class AlphaDensify:
     def __init__(self, settings: dict[str, Any], *, iterations: int, extent: float, means: torch.Tensor,
                  camera_centers: torch.Tensor | None = None) -> None:
         self.settings = dict(settings)
-        self.near = float(settings.get("near_prune", 0.0))
-        if self.near > 0 and (camera_centers is None or camera_centers.shape[0] == 0):
+        if float(settings["near_prune"]) > 0 and (camera_centers is None or camera_centers.shape[0] == 0):
             raise ValueError("densify.near_prune > 0 needs the training cameras' centres")
         self.camera_centers = camera_centers
         self.iterations = int(iterations)
@@ -86,7 +85,7 @@ class AlphaDensify:
         ``iteration`` completed iterations."""
         d = self.settings
         # from the settings, not attributes: MCMCDensify borrows this method
-        until = self.iterations if d["size_prune"] == "always" or float(d.get("near_prune", 0.0)) > 0 else self.stop
+        until = self.iterations if d["size_prune"] == "always" or float(d["near_prune"]) > 0 else self.stop
         return bool(d["interval"]) and int(d["start"]) <= iteration <= until \
             and iteration % int(d["interval"]) == 0 and iteration < self.iterations
 
@@ -154,9 +153,9 @@ class AlphaDensify:
             bad = op < float(d["prune_opacity"])
             if d["size_prune"] == "always" or iteration > int(d["opacity_reset_interval"]):
                 bad |= torch.exp(params["log_scales"]).max(-1).values > float(d["prune_scale_fraction"]) * self.extent
-            if self.near > 0:
+            if float(d["near_prune"]) > 0:
                 dist = torch.cdist(params["means"], self.camera_centers.to(params["means"])).min(-1).values
-                bad |= torch.exp(params["log_scales"]).max(-1).values > self.near * dist
+                bad |= torch.exp(params["log_scales"]).max(-1).values > float(d["near_prune"]) * dist
             if bool(bad.all()):  # never prune everything
                 bad[:] = False
             params = replace_params(opt, params, torch.nonzero(~bad).flatten(), {})

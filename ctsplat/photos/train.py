@@ -278,9 +278,9 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     bg0 = border_colour(train) if learned else np.asarray(s["background"], float)
     background = torch.tensor(bg0, dtype=torch.float32, device=device, requires_grad=learned)
     bg_opt = torch.optim.Adam([background], lr=float(s["lr"]["background"]), eps=1e-15) if learned else None
+    centres = camera_center(np.stack([v.R for v in train]), np.stack([v.t for v in train]))  # (C, 3)
     flash, flash_opt = None, None
     if s["flash"]["enabled"]:
-        centres = camera_center(np.stack([v.R for v in train]), np.stack([v.t for v in train]))
         exponent = torch.tensor(float(s["flash"]["exponent"]), dtype=torch.float32, device=device,
                                 requires_grad=True)
         flash = {"exponent": exponent, "r_ref": reference_distance(centres, scene.xyz),
@@ -289,9 +289,7 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     dens: AlphaDensify | MCMCDensify = (
         MCMCDensify(s["densify"], s["mcmc"], iterations=iters) if s["densify"]["strategy"] == "mcmc"
         else AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, means=params["means"],
-                          camera_centers=torch.as_tensor(
-                              camera_center(np.stack([v.R for v in train]), np.stack([v.t for v in train])),
-                              dtype=torch.float32, device=device)))
+                          camera_centers=torch.as_tensor(centres, dtype=torch.float32, device=device)))
     lam = float(s["lambda_dssim"])
     lr0 = float(s["lr"]["means"]) * scene.extent
     lr1 = float(s["lr"]["means_final"]) * scene.extent
