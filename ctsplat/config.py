@@ -681,6 +681,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("photos", "train.sh_degree"): {"type": "integer", "minimum": 0, "maximum": 3},
     ("photos", "train.sh_interval"): _COUNT,
     ("photos", "train.lambda_dssim"): _FRACTION,
+    ("photos", "train.drop_rate"): {"type": "number", "minimum": 0, "exclusiveMaximum": 1},
     ("photos", "train.init_opacity"): {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
     ("photos", "train.init_scale"): _POSITIVE,
     ("photos", "train.max_points"): _COUNT,

@@ -60,6 +60,9 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
         "sh_degree": 3,  # the highest SH degree
         "sh_interval": 1000,  # the SH degree rises by one every this many iterations
         "lambda_dssim": 0.2,  # loss = (1 - λ) L1 + λ (1 - SSIM)
+        # DropGaussian (Park et al. 2025): each training render leaves every Gaussian out with probability
+        # drop_rate x iteration / iterations, the others' opacities / (1 - that); 0: off
+        "drop_rate": 0.0,
         "init_opacity": 0.1,
         "init_scale": 1.0,  # a seed's scale = this x the RMS distance to its 3 nearest SfM points
         "max_points": 100000,  # SfM points used as seeds (random subset above this)

@@ -19,7 +19,9 @@ are trained, and the first ``(d + 1)² - 1`` of them are passed while the degree
   exponent ``p`` trained with the model (Adam) from ``flash.exponent``, ``r`` clamped below at the nearest SfM
   point's distance from a training camera with ``flash.bounded``; ``meta["flash"]`` keeps ``exponent``, ``r_ref``
   and ``r_min`` (None: unbounded), and :func:`render_view` applies it. ``model.ply`` holds the colours seen from
-  ``r_ref``.
+  ``r_ref``;
+- with ``drop_rate`` > 0, DropGaussian (:func:`drop_gaussians`): each training render leaves every Gaussian out
+  with probability ``drop_rate`` × iteration / iterations and divides the others' opacities by what is kept.
 
 ``holdout: validation`` leaves the test photos out entirely and monitors and evaluates on validation photos taken
 from the training set (:func:`ctsplat.photos.dataset.split_names`): the split to choose settings on.
@@ -34,6 +36,8 @@ References
 ----------
 Kerbl, B., Kopanas, G., Leimkühler, T., Drettakis, G. (2023). 3D Gaussian Splatting for real-time radiance field
 rendering. ACM TOG 42(4).
+Park, H., Ryu, G., Kim, W. (2025). DropGaussian: structural regularization for sparse-view Gaussian splatting.
+CVPR.
 """
 
 from __future__ import annotations
@@ -61,7 +65,7 @@ from ctsplat.training.losses import ssim
 from ctsplat.utils import CtsplatError, atomic_dir, code_version, config_hash, resolve_device, write_json_atomic
 
 __all__ = ["PHOTO_LOG_EXTRAS", "train_photos", "train_scene", "init_params", "border_colour",
-           "held_out_split", "to_gaussians", "render_view", "image_metrics"]
+           "held_out_split", "to_gaussians", "render_view", "image_metrics", "drop_gaussians"]
 
 log = logging.getLogger(__name__)
 
@@ -163,6 +167,50 @@ def to_gaussians(params: dict[str, torch.Tensor], degree: int) -> Gaussians:
                      density_raw=torch.zeros(m.shape[0], dtype=m.dtype, device=m.device),
                      opacity_raw=params["opacity_raw"], colors=params["colors"],
                      sh_rest=params["sh_rest"][:, :k] if k else None)
+
+
+def drop_gaussians(opacity_raw: torch.Tensor, rate: float, gen: torch.Generator) -> torch.Tensor:
+    """DropGaussian's opacities for one training render: each Gaussian left out with probability ``rate``, the
+    others' opacities divided by ``1 - rate`` (so the expected opacity is unchanged), as logits.
+
+    The renderer takes opacities as logits, so a kept opacity ``σ(x) / (1 - rate)`` is capped at 0.999 (the
+    compositor caps α at 0.99 anyway); its gradient passes the cap as if uncapped, as in DropGaussian, where the
+    scaled opacity may exceed 1 and only α is capped, so an opaque Gaussian's opacity keeps training.
+
+    Parameters
+    ----------
+    opacity_raw : Tensor (N,)
+        Opacity logits.
+    rate : float
+        Probability in [0, 1) that a Gaussian is left out.
+    gen : torch.Generator
+        A CPU generator: the draws do not depend on the device.
+
+    Returns
+    -------
+    Tensor (N,)
+        Logits of the opacities to render: -30 (an opacity of 1e-13) for a dropped Gaussian; ``opacity_raw``
+        itself when ``rate`` is 0.
+
+    References
+    ----------
+    Park, H., Ryu, G., Kim, W. (2025). DropGaussian: structural regularization for sparse-view Gaussian
+    splatting. CVPR.
+
+    Examples
+    --------
+    >>> x = torch.zeros(4)
+    >>> drop_gaussians(x, 0.0, torch.Generator().manual_seed(0)) is x
+    True
+    """
+    if rate <= 0.0:
+        return opacity_raw
+    if rate >= 1.0:
+        raise CtsplatError(f"drop rate {rate} leaves no Gaussian; keep photos.train.drop_rate below 1")
+    keep = (torch.rand(opacity_raw.shape, generator=gen) >= rate).to(opacity_raw.device)
+    scaled = torch.sigmoid(opacity_raw) / (1.0 - rate)
+    capped = scaled - (scaled - torch.clamp(scaled, max=0.999)).detach()  # straight through the cap
+    return torch.where(keep, torch.logit(capped), torch.full_like(opacity_raw, -30.0))
 
 
 def render_view(g: Gaussians, view: PhotoView | Any, camera: Any = None, R: Any = None, t: Any = None, *,
@@ -291,6 +339,7 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
         else AlphaDensify(s["densify"], iterations=iters, extent=scene.extent, means=params["means"],
                           camera_centers=torch.as_tensor(centres, dtype=torch.float32, device=device)))
     lam = float(s["lambda_dssim"])
+    drop = float(s["drop_rate"])
     lr0 = float(s["lr"]["means"]) * scene.extent
     lr1 = float(s["lr"]["means_final"]) * scene.extent
     csv = CsvLog(log_path, [*LOG_COLUMNS, *PHOTO_LOG_EXTRAS]) if log_path is not None else None
@@ -312,7 +361,8 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
         view = train[order.pop()]
         lr_means = lr0 * (lr1 / lr0) ** ((it - 1) / max(iters - 1, 1)) if lr0 > 0 else 0.0
         opt.param_groups[0]["lr"] = lr_means
-        out = render_view(to_gaussians(params, degree), view, background=background, flash=flash)
+        shown = {**params, "opacity_raw": drop_gaussians(params["opacity_raw"], drop * it / iters, gen)}
+        out = render_view(to_gaussians(shown, degree), view, background=background, flash=flash)
         img = out.image
         l1 = torch.mean(torch.abs(img - view.image))
         dssim = 1.0 - ssim(img.permute(2, 0, 1), view.image.permute(2, 0, 1), 1.0)

@@ -396,6 +396,44 @@ def test_training_gives_the_density_control_the_training_cameras_centres(monkeyp
     assert np.allclose(seen[0].numpy(), expected, atol=1e-5)
 
 
+def test_drop_gaussians_leaves_out_a_share_and_keeps_the_expected_opacity() -> None:
+    from ctsplat.photos.train import drop_gaussians
+
+    sig = torch.tensor([0.1, 0.5, 0.7, 0.95]).repeat(20000)
+    x = torch.logit(sig).requires_grad_(True)
+    o = torch.sigmoid(drop_gaussians(x, 0.2, torch.Generator().manual_seed(0)))
+    kept = o > 1e-9
+    assert abs(1 - float(kept.float().mean()) - 0.2) < 0.01  # binomial standard error 0.0014
+    assert torch.allclose(o[kept], torch.clamp(sig / 0.8, max=0.999)[kept], atol=1e-5)
+    assert float(o[~kept].max()) < 1e-12
+    means = o.detach().view(-1, 4).mean(0)
+    assert torch.allclose(means[:3], sig[:3], atol=0.01)  # below the cap the expected opacity is unchanged
+    (grad,) = torch.autograd.grad(o.sum(), x)
+    expect = sig * (1 - sig) / 0.8  # d(σ(x) / 0.8)/dx, through the cap too (0.95 / 0.8 > 0.999)
+    assert torch.allclose(grad[kept], expect[kept], rtol=1e-3) and float(grad[~kept].abs().max()) == 0.0
+    assert drop_gaussians(x, 0.0, torch.Generator()) is x
+    with pytest.raises(CtsplatError, match="leaves no Gaussian"):
+        drop_gaussians(x, 1.0, torch.Generator())
+
+
+def test_training_drops_gaussians_at_a_rate_rising_to_drop_rate(monkeypatch: pytest.MonkeyPatch) -> None:
+    import ctsplat.photos.train as photo_train
+
+    rates: list[float] = []
+
+    def recording(opacity_raw: torch.Tensor, rate: float, gen: torch.Generator) -> torch.Tensor:
+        rates.append(rate)
+        return opacity_raw
+
+    monkeypatch.setattr(photo_train, "drop_gaussians", recording)
+    scene, _ = _synthetic_scene()
+    train_scene(scene, photo_settings({"train": {"iterations": 4, "drop_rate": 0.2}})["train"])
+    assert np.allclose(rates, [0.05, 0.1, 0.15, 0.2])
+    rates.clear()
+    train_scene(scene, photo_settings({"train": {"iterations": 2}})["train"])
+    assert rates == [0.0, 0.0]
+
+
 def test_training_without_training_photos_fails_in_one_line() -> None:
     scene, _ = _synthetic_scene()
     for v in scene.views:
