@@ -390,21 +390,24 @@ def pose_from_angles(azimuth_deg: float, elevation_deg: float, isocenter_mm: Seq
     return look_at(iso + distance_mm * direction_from_angles(azimuth_deg, elevation_deg), iso)
 
 
-def camera_center(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+def camera_center(R: Any, t: Any) -> Any:
     """Camera centre ``C = -R^T t`` (world mm) of world-to-camera poses.
 
     Parameters
     ----------
-    R : ndarray, shape (..., 3, 3)
+    R : array_like or Tensor, shape (..., 3, 3)
         World-to-camera rotations.
-    t : ndarray, shape (..., 3)
+    t : array_like or Tensor, shape (..., 3)
         World-to-camera translations (mm).
 
     Returns
     -------
-    ndarray, shape (..., 3)
-        Camera centres (the source, for cone beam), world mm.
+    ndarray or Tensor, shape (..., 3)
+        Camera centres (the source, for cone beam), world mm: a tensor (differentiable in ``R`` and ``t``, on
+        their device) when ``R`` is one, else an ndarray.
     """
+    if not isinstance(R, np.ndarray) and hasattr(R, "mT"):  # a torch tensor (this module does not import torch)
+        return -(R.mT @ t) if R.ndim == 2 else -(R.mT @ t.unsqueeze(-1)).squeeze(-1)
     return -np.einsum("...ji,...j->...i", R, t)
 
 

@@ -40,6 +40,7 @@ import torch
 
 from ctsplat.baselines import FBP_FILTERS
 from ctsplat.formats.viewset import ViewSet
+from ctsplat.geometry.cameras import camera_center
 from ctsplat.recon.operators import check_stack, reference_grid
 from ctsplat.utils import CtsplatError
 
@@ -119,7 +120,7 @@ def is_circular_cone(view_set: ViewSet) -> bool:
     if view_set.camera.model != "cone" or len(view_set) < 2 or _axis_and_angles(view_set) is None:
         return False
     Rs, ts = view_set.Rs(), view_set.ts()
-    centres = -np.einsum("vji,vj->vi", Rs, ts)
+    centres = camera_center(Rs, ts)
     dso = view_set.camera.dso_mm
     # the isocentre of each view: dso along its optical axis from its source
     iso = centres + dso * Rs[:, 2]

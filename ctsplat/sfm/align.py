@@ -101,8 +101,8 @@ def fuse_with_design(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: lis
     idx = [i for i, n in enumerate(names) if n in poses]
     if len(idx) < max(3, 2 * harmonics + 2):
         return dict(poses)
-    cs = np.stack([-poses[names[i]][0].T @ poses[names[i]][1] for i in idx])
-    dc = np.einsum("vji,vj->vi", design_Rs[idx], -np.asarray(design_ts, float)[idx])
+    cs = np.stack([camera_center(*poses[names[i]]) for i in idx])
+    dc = camera_center(design_Rs[idx], np.asarray(design_ts, float)[idx])
     s, Rg, tg = umeyama(cs, dc)
     om = np.stack([Rotation.from_matrix(poses[names[i]][0] @ Rg.T @ design_Rs[i].T).as_rotvec() for i in idx])
     dl = s * cs @ Rg.T + tg - dc
@@ -304,12 +304,12 @@ def evaluate_poses(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: list[
         ``residual_rotation_deg`` (the angle of ``Δ``).
     """
     V = len(names)
-    centres_true = np.einsum("vji,vj->vi", Rs_true, -np.asarray(ts_true, float))  # c = -Rᵀ t
+    centres_true = camera_center(Rs_true, np.asarray(ts_true, float))
     reg = [i for i, n in enumerate(names) if n in poses]
     rows: list[dict[str, Any]] = []
     align: dict[str, Any] = {"ok": False}
     if len(reg) >= 3:
-        src = np.stack([-poses[names[i]][0].T @ poses[names[i]][1] for i in reg])
+        src = np.stack([camera_center(*poses[names[i]]) for i in reg])
         dst = centres_true[reg]
         s, Rg, tg, inl = robust_sim3(src, dst, threshold_mm, iterations=iterations, seed=seed)
         align = {"ok": True, "scale": s, "R": Rg, "t": tg, "n_inliers": int(inl.sum()), "n_used": len(reg)}

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ctsplat.geometry import camera_center
 from ctsplat.utils import CtsplatError
 
 __all__ = ["IsocentricResult", "isocentre_from_poses", "isocentric_poses", "reprojection_jacobians",
@@ -102,7 +103,7 @@ def isocentre_from_poses(Rs: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, fl
         When the principal rays are (nearly) parallel, so no point is nearest to all of them.
     """
     Rs, ts = np.asarray(Rs, float), np.asarray(ts, float)
-    centres = np.einsum("vji,vj->vi", Rs, -ts)
+    centres = camera_center(Rs, ts)
     d = Rs[:, 2, :]  # principal ray directions (world)
     P = np.eye(3) - np.einsum("vi,vj->vij", d, d)  # projectors orthogonal to each ray
     A, b = P.sum(0), np.einsum("vij,vj->i", P, centres)

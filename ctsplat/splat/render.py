@@ -101,6 +101,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ctsplat.geometry.cameras import camera_center
 from ctsplat.splat import _kernel, _reference, _triton
 from ctsplat.splat.gaussians import Gaussians, eval_sh, quat_to_rotmat
 from ctsplat.utils import CtsplatError
@@ -463,8 +464,7 @@ def _colors_for_view(gaussians: Gaussians, R: torch.Tensor, t: torch.Tensor, mod
     if model == "parallel":
         d = R[2].expand(n, 3)  # viewing direction +z_cam in world
     else:
-        centre = -R.T @ t
-        d = F.normalize(m - centre, dim=-1)
+        d = F.normalize(m - camera_center(R, t), dim=-1)
     return torch.clamp_min(base + eval_sh(gaussians.sh_rest, d), 0.0)
 
 

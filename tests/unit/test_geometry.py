@@ -80,6 +80,22 @@ def test_cone_intrinsics_and_magnification():
     assert uv[1, 0] - uv[0, 0] == pytest.approx(cam.magnification / cam.pitch_mm)
 
 
+def test_camera_centre_of_tensors_matches_arrays_and_carries_gradients():
+    torch = pytest.importorskip("torch")
+    rng = np.random.default_rng(3)
+    poses = [random_pose(rng) for _ in range(4)]
+    Rs, ts = np.stack([p[0] for p in poses]), np.stack([p[1] for p in poses])
+    want = np.stack([world_to_camera(np.zeros(3), R.T, -R.T @ t) for R, t in poses])  # the origin seen backwards
+    np.testing.assert_allclose(camera_center(Rs, ts), want, atol=1e-9)
+    R_t, t_t = torch.tensor(Rs), torch.tensor(ts, requires_grad=True)
+    c = camera_center(R_t, t_t)
+    assert isinstance(c, torch.Tensor) and c.shape == (4, 3)
+    np.testing.assert_allclose(c.detach().numpy(), want, atol=1e-9)
+    np.testing.assert_allclose(camera_center(R_t[0], t_t[0]).detach().numpy(), want[0], atol=1e-9)
+    (g,) = torch.autograd.grad(c[:, 0].sum(), t_t)  # dC/dt = -Rᵀ: row 0 of -Rᵀ is minus column 0 of R
+    np.testing.assert_allclose(g.numpy(), -Rs[:, :, 0], atol=1e-12)
+
+
 def test_world_camera_conversions_both_ways():
     rng = np.random.default_rng(2)
     R, t = random_pose(rng)
