@@ -5,8 +5,10 @@ Every pair trains the default and the candidate (the default plus ``--candidate 
 (``train.validation_offset``; the test photos are never trained on or scored) with the same seed, one thread per
 run and ``--jobs`` runs at a time. :func:`ctsplat.photos.select.paired_comparison` then gives the mean PSNR
 difference, its standard error and the verdict (the candidate wins only at two standard errors or more). Finished
-runs are kept and reused, so a comparison can be extended by more folds or seeds. Writes ``OUT/pairs.csv`` (one row
-per pair), ``OUT/per_photo.csv`` and ``OUT/summary.json``, and prints the summary as one JSON line.
+runs are kept and reused, so a comparison can be extended by more folds or seeds (not across kinds of CPU: a run
+trained on another CPU capability, AVX2 against AVX512, takes another rounding path and is refused). Writes
+``OUT/pairs.csv`` (one row per pair), ``OUT/per_photo.csv`` and ``OUT/summary.json``, and prints the summary as
+one JSON line.
 
 Usage::
 
@@ -36,7 +38,7 @@ from ctsplat.cli._common import apply_sets
 from ctsplat.config import check_section
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.select import paired_comparison, read_validation_run
-from ctsplat.utils import CtsplatError, atomic_path, code_version, dotted_items, write_json_atomic
+from ctsplat.utils import CtsplatError, atomic_path, code_version, compute_platform, dotted_items, write_json_atomic
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "out"
@@ -56,6 +58,12 @@ def _train(sfm: Path, run_dir: Path, sets: list[str]) -> None:
         wanted = dotted_items(apply_sets({}, sets)["train"])
         if any(have.get(k) != v for k, v in wanted.items()):
             raise CtsplatError(f"{run_dir} holds a run with other settings; remove it or choose another --out")
+        made = json.loads((run_dir / "training.json").read_text()).get("platform", {}).get("cpu_capability")
+        here = compute_platform()["cpu_capability"]
+        if made is not None and made != here:
+            # another kind of CPU rounds differently: the run would not pair with the other arm trained here
+            raise CtsplatError(f"{run_dir} was trained on a {made} CPU and this one is {here}, so it does not pair "
+                               "with runs made here; remove it or choose another --out")
         return
     cmd = [sys.executable, "-c", "import sys; from ctsplat.cli import main; sys.exit(main())", "photos-train",
            str(sfm), str(run_dir)]

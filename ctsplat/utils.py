@@ -32,6 +32,7 @@ __all__ = [
     "write_json_atomic",
     "json_safe",
     "code_version",
+    "compute_platform",
     "config_hash",
     "deep_update",
     "dotted_items",
@@ -329,6 +330,37 @@ def code_version() -> str:
         return f"{__version__}+g{sha}{'-dirty' if dirty else ''}"
     except (OSError, subprocess.SubprocessError):
         return __version__
+
+
+def compute_platform(device: Any = "cpu") -> dict[str, Any]:
+    """What decides a run's rounding besides its config, seed and code, for its provenance.
+
+    Torch picks its CPU kernels by the vector instructions the CPU has (AVX2, AVX512, ...), and they sum in other
+    orders, so a run repeats bit for bit on a CPU of the same capability with the same threads, and takes another
+    path on another one.
+
+    Parameters
+    ----------
+    device : torch.device or str
+        The device the run computes on.
+
+    Returns
+    -------
+    dict
+        ``torch`` (version), ``cpu_capability`` (``torch.backends.cpu.get_cpu_capability()``), ``threads``
+        (torch's intra-op threads), ``gpu`` (the CUDA device's name; None on CPU).
+
+    Examples
+    --------
+    >>> sorted(compute_platform())
+    ['cpu_capability', 'gpu', 'threads', 'torch']
+    """
+    import torch
+
+    dev = torch.device(device)
+    return {"torch": torch.__version__, "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+            "threads": torch.get_num_threads(),
+            "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None}
 
 
 def config_hash(config: Any) -> str:

@@ -62,7 +62,15 @@ from ctsplat.photos.mcmc import MCMCDensify
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.splat.render import render
 from ctsplat.training.losses import ssim
-from ctsplat.utils import CtsplatError, atomic_dir, code_version, config_hash, resolve_device, write_json_atomic
+from ctsplat.utils import (
+    CtsplatError,
+    atomic_dir,
+    code_version,
+    compute_platform,
+    config_hash,
+    resolve_device,
+    write_json_atomic,
+)
 
 __all__ = ["PHOTO_LOG_EXTRAS", "train_photos", "train_scene", "init_params", "border_colour",
            "held_out_split", "to_gaussians", "render_view", "image_metrics", "drop_gaussians"]
@@ -464,6 +472,7 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
         model.to_ply(tmp / "model.ply")
         w, h = scene.views[0].camera.width, scene.views[0].camera.height
         report.update({"resolution": [w, h], "downscale": int(s["downscale"]), "extent": scene.extent,
-                       "device": str(device), "threads": torch.get_num_threads()})
+                       "device": str(device), "threads": torch.get_num_threads(),
+                       "platform": compute_platform(device)})
         write_json_atomic(tmp / "training.json", report)
     return report

@@ -107,6 +107,7 @@ from ctsplat.utils import (
     CtsplatError,
     atomic_path,
     code_version,
+    compute_platform,
     config_hash,
     json_safe,
     resolve_device,
@@ -598,6 +599,7 @@ def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: 
         "eval_split_during_training": scene.eval_split,
         "device": str(device),
         "renderer": resolved_backend("auto", device),
+        "platform": compute_platform(device),
         "config_hash": chash,
         "code_version": code_version(),
     }

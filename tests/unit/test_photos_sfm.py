@@ -141,6 +141,10 @@ def test_fold_benchmark_pairs_real_runs_and_reuses_them(skull_subset: Path, tmp_
     second = subprocess.run([*cmd, "--folds", "1", "3"], capture_output=True, text=True, env=env, timeout=600)
     assert second.returncode == 0, second.stderr[-3000:]
     assert (out / "fold1_seed0_default" / "training.json").stat().st_mtime_ns == stamp  # kept, not retrained
+    import torch
+
+    made = json.loads((out / "fold1_seed0_default" / "training.json").read_text())["platform"]
+    assert made["threads"] == 1 and made["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
     summary = json.loads(second.stdout.strip().splitlines()[-1])
     assert summary == json.loads((out / "summary.json").read_text())
     assert summary["psnr"]["n"] == 2 and summary["psnr"]["verdict"] in ("tie", "candidate", "default")
@@ -169,3 +173,9 @@ def test_fold_benchmark_pairs_real_runs_and_reuses_them(skull_subset: Path, tmp_
     for photo, rows in table.groupby("photo"):
         assert rows["rank"].tolist() == [1, 2] and rows["gain"].is_monotonic_decreasing
         assert rows["psnr"].iloc[0] == pytest.approx(scored[photo], abs=1e-4)
+    # a run trained on another kind of CPU rounds differently and is not paired with runs made here
+    made_file = out / "fold1_seed0_default" / "training.json"
+    made_file.write_text(json.dumps({**json.loads(made_file.read_text()), "platform": {"cpu_capability": "OTHER"}}))
+    other = subprocess.run([*cmd, "--folds", "1"], capture_output=True, text=True, env=env, timeout=600)
+    assert other.returncode == 2
+    assert "was trained on a OTHER CPU" in other.stderr.strip().splitlines()[-1]

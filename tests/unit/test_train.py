@@ -81,7 +81,11 @@ def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
     assert m["model_size_bytes"] == os.path.getsize(out / "model.pt")
     from ctsplat.splat.render import resolved_backend
 
-    assert json.loads((out / "training.json").read_text())["renderer"] == resolved_backend("auto", "cpu")
+    training = json.loads((out / "training.json").read_text())
+    assert training["renderer"] == resolved_backend("auto", "cpu")
+    # what decides the rounding, so a run can be matched with one on the same kind of CPU
+    assert training["platform"] == {"torch": torch.__version__, "threads": torch.get_num_threads(), "gpu": None,
+                                    "cpu_capability": torch.backends.cpu.get_cpu_capability()}
     for name in ("model.pt", "model.ply", "model_volume.nii.gz", "gallery.png", "slices.png", "turntable.gif",
                  "config.json", "training.json"):
         assert (out / name).stat().st_size > 0, name
