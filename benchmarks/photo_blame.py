@@ -1,10 +1,11 @@
 """Which Gaussians a photo run's held-out photos fail on (:func:`ctsplat.photos.blame.blame_view`).
 
 For every held-out photo of a run folder (the test photos, or the validation photos of a ``holdout: validation``
-run): its PSNR, the ``--top`` Gaussians whose removal lowers its squared error most (first order), their opacity,
-widest standard deviation (× the scene extent) and distances from the photo's camera and the nearest training
-camera (world units), and the PSNR with the first 1 .. ``--top`` of them removed. Writes ``RUN/blame.csv`` (one
-row per photo and Gaussian) and prints one line per photo.
+run): its PSNR, the ``--top`` Gaussians whose removal lowers its squared error most (each removed alone, among
+the 50 with the largest first-order gain), their opacity, widest standard deviation (× the scene extent) and
+distances from the photo's camera and the nearest training camera (world units), and the PSNR with the first
+1 .. ``--top`` of them removed. Writes ``RUN/blame.csv`` (one row per photo and Gaussian) and prints one line per
+photo.
 
 Usage::
 

@@ -27,7 +27,7 @@ import json
 import os
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from pathlib import Path
 from typing import Any
 
@@ -50,14 +50,24 @@ def run_sets(fold: int, seed: int, extra: list[str]) -> list[str]:
             "train.num_threads=1", *extra]
 
 
+def _same_run(config: dict[str, Any], sfm: Path, sets: list[str]) -> bool:
+    """Whether a kept run's ``config.json`` trained these settings on this SfM folder: every filled setting equal,
+    where a key the run does not record (an option added since) must have its default value."""
+    if Path(config["sfm_dir"]).resolve() != sfm.resolve():
+        return False
+    have = dotted_items(config["train"])
+    wanted = dotted_items(photo_settings(apply_sets({}, sets))["train"])
+    defaults = dotted_items(photo_settings({})["train"])
+    return all(have[k] == v if k in have else v == defaults.get(k) for k, v in wanted.items())
+
+
 def _train(sfm: Path, run_dir: Path, sets: list[str]) -> None:
     """One ``ctsplat photos-train`` process (its log beside the run folder); a finished run with the same settings
-    is kept."""
+    on the same SfM folder is kept."""
     if (run_dir / "training.json").is_file():
-        have = dotted_items(json.loads((run_dir / "config.json").read_text())["train"])
-        wanted = dotted_items(apply_sets({}, sets)["train"])
-        if any(have.get(k) != v for k, v in wanted.items()):
-            raise CtsplatError(f"{run_dir} holds a run with other settings; remove it or choose another --out")
+        if not _same_run(json.loads((run_dir / "config.json").read_text()), sfm, sets):
+            raise CtsplatError(f"{run_dir} holds a run with other settings or another SfM folder; remove it or "
+                               "choose another --out")
         made = json.loads((run_dir / "training.json").read_text()).get("platform", {}).get("cpu_capability")
         here = compute_platform()["cpu_capability"]
         if made is not None and made != here:
@@ -107,8 +117,12 @@ def run(argv: list[str] | None = None) -> int:
     jobs = [(out / f"fold{fold}_seed{seed}_{arm}", run_sets(fold, seed, extra))
             for fold, seed in pairs for arm, extra in arms.items()]
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        for f in [pool.submit(_train, sfm, d, sets) for d, sets in jobs]:
-            f.result()
+        futures = [pool.submit(_train, sfm, d, sets) for d, sets in jobs]
+        done, _ = wait(futures, return_when=FIRST_EXCEPTION)
+        failed = [f for f in futures if f in done and f.exception() is not None]
+        if failed:  # the queued runs are cancelled (hours of training), the running ones finish
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise failed[0].exception()
     runs = {(fold, seed, arm): read_validation_run(out / f"fold{fold}_seed{seed}_{arm}")
             for fold, seed in pairs for arm in arms}
     result = paired_comparison([runs[p + ("default",)]["psnr"] for p in pairs],

@@ -4,8 +4,9 @@ The 66 photographs of ``../shared/data/skull_photos`` ("Photogrammetry Test Set:
 Background" by alansartlog, CC BY 4.0, github.com/AlansCodeLog/photogrammetry-test-sets; keep this attribution
 with any figure) are posed by :func:`ctsplat.photos.sfm.run_photo_sfm`, trained at ``--downscale`` (default 1/4:
 about 265x177) by :func:`ctsplat.photos.train.train_photos` on every image but each 8th and evaluated on the
-held-out ones by :func:`ctsplat.photos.evaluate.evaluate_photos`. Prints one JSON line and writes
-``benchmarks/out/photos/`` (sfm/, run/ with metrics.json, gallery and turntable) and ``benchmarks/out/photos.json``.
+held-out ones by :func:`ctsplat.photos.evaluate.evaluate_photos`. Prints one JSON line and writes the ``--out``
+folder (``benchmarks/out/photos/``: sfm/, run/ with metrics.json, gallery and turntable) and the JSON line beside
+it, named after it (``benchmarks/out/photos.json``).
 
 Usage::
 
@@ -105,8 +106,7 @@ def run() -> None:
                     "train_loop_seconds": m["training"].get("seconds")})
     row.update({"total_seconds": time.perf_counter() - t0, "threads": args.threads, "device": args.device,
                 "code_version": code_version()})
-    OUT.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(OUT / "photos.json", row)
+    write_json_atomic(out.with_name(out.name + ".json"), row)  # beside the --out folder: photos.json by default
     print(json.dumps(row))
 
 

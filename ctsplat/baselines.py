@@ -548,6 +548,7 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
     test_rows = vs_all.indices("test")
     subsets = [select_views(vs_all, cfg["split"], c) for c in counts]  # errors on an empty split, before any work
     ref = volume.data
+    unit = volume.metric_range  # 3D metrics compare normalised volumes
     rows: list[dict[str, Any]] = []
     trials: list[dict[str, Any]] = []
     volumes: dict[str, np.ndarray] = {}
@@ -566,8 +567,9 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
         best = best_choice(choices)
         for c in choices:  # test metrics only now, after every choice is made
             row = {"method": c.method, "filter": c.params.get("filter", ""),
-                   "iterations": int(c.params.get("iterations", 0)), "n_views": nv, "psnr3d": psnr3d(c.volume, ref),
-                   "ssim3d": ssim3d(c.volume, ref), "seconds": c.seconds, "val_psnr": c.val_psnr,
+                   "iterations": int(c.params.get("iterations", 0)), "n_views": nv,
+                   "psnr3d": psnr3d(c.volume / unit, ref / unit), "ssim3d": ssim3d(c.volume / unit, ref / unit),
+                   "seconds": c.seconds, "val_psnr": c.val_psnr,
                    "params": json.dumps(c.params, sort_keys=True), "psnr2d": float("nan"), "ssim2d": float("nan"),
                    "selection_seconds": c.selection_seconds, "best_on_val": c is best}
             if test is not None:

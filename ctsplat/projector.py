@@ -736,7 +736,7 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
         When the detector does not cover the object (:func:`ctsplat.geometry.check_fov`) and that is allowed.
     """
 
-    from ctsplat.formats.volume import load_volume
+    from ctsplat.formats.volume import check_attenuation, load_volume
 
     cfg = merge_config("radiographs", config, RADIOGRAPHS_DEFAULTS)
     check_noise(cfg["noise"])
@@ -746,6 +746,7 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
     if bad:
         raise CtsplatError(f"volume {volume_path} has {bad} non-finite voxels (NaN/Inf); re-ingest it (ingest names "
                            "where they are, or fills them with nonfinite: fill_min)")
+    check_attenuation(volume, volume_path)
     view_set = build_view_set(volume, cfg, seed)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

@@ -16,7 +16,7 @@ import tempfile
 import threading
 import traceback
 from collections import Counter
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -28,6 +28,8 @@ if TYPE_CHECKING:
 __all__ = [
     "CtsplatError",
     "atomic_path",
+    "atomic_dir",
+    "check_output_dir",
     "scratch_dir",
     "write_json_atomic",
     "json_safe",
@@ -136,34 +138,89 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         raise
 
 
+def check_output_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str] | None = None,
+                     inputs: Sequence[str | os.PathLike[str]] = ()) -> None:
+    """Refuse an output folder whose replacement would destroy something that is not an earlier output.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The output folder, to be replaced as a whole (:func:`atomic_dir`).
+    marker : str or sequence of str, optional
+        Glob patterns, one of which an earlier output of the same step matches inside the folder
+        (``"summary.json"``, ``"*.png"``); a non-empty folder without a match is refused. None: only a new or empty
+        folder is accepted.
+    inputs : sequence of paths
+        The step's inputs: the output may be neither one of them nor a folder that holds one.
+
+    Raises
+    ------
+    CtsplatError
+        One line naming the folder and what to do instead.
+
+    Examples
+    --------
+    >>> check_output_dir("results/new_run", marker="config.json")
+    """
+    path = Path(path)
+    target = path.resolve()
+    for inp in inputs:
+        source = Path(inp).resolve()
+        if target == source or target in source.parents:
+            raise CtsplatError(f"output folder {path} is, or holds, the input {inp}, and writing it would replace "
+                               "the input; choose another output folder")
+    if not path.exists():
+        return
+    if not path.is_dir():
+        raise CtsplatError(f"output {path} exists and is not a folder; choose a new or empty folder")
+    holds_files = any(p.is_file() or p.is_symlink() for p in path.rglob("*"))  # empty sub-folders do not count
+    markers = [marker] if isinstance(marker, str) else list(marker or ())
+    if holds_files and not any(any(path.glob(m)) for m in markers):
+        what = f" (no {' or '.join(markers)} in it)" if markers else ""
+        raise CtsplatError(f"output folder {path} already holds files that are not an earlier output of this "
+                           f"step{what}; choose a new or empty folder, or remove it first")
+
+
 @contextlib.contextmanager
-def atomic_dir(path: str | os.PathLike[str]) -> Iterator[Path]:
+def atomic_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str] | None = None,
+               inputs: Sequence[str | os.PathLike[str]] = ()) -> Iterator[Path]:
     """Yield an empty temporary folder next to ``path``; it replaces ``path`` only if the block succeeds.
 
     The folder-level twin of :func:`atomic_path`: an existing ``path`` is removed and the temporary folder renamed
     onto it (one file system, so readers see the old folder or the whole new one); on any error the temporary
-    folder is removed and the exception propagates, leaving ``path`` as it was.
+    folder is removed and the exception propagates, leaving ``path`` as it was. Only an empty folder or an earlier
+    output (``marker``) is ever removed, and never an input (:func:`check_output_dir`, called before the block
+    and again before the removal).
 
     Parameters
     ----------
     path : str or os.PathLike
         The final output folder. Its parent folder is created if missing.
+    marker, inputs
+        As in :func:`check_output_dir`.
 
     Yields
     ------
     pathlib.Path
         The temporary folder to write into (permissions as a plain ``mkdir`` would give).
 
+    Raises
+    ------
+    CtsplatError
+        When ``path`` may not be replaced (:func:`check_output_dir`).
+
     Examples
     --------
-    >>> with atomic_dir("out/views") as tmp:
+    >>> with atomic_dir("out/views", marker="views.json") as tmp:
     ...     _ = (tmp / "views.json").write_text("{}")
     """
     path = Path(path)
+    check_output_dir(path, marker=marker, inputs=inputs)
     path.parent.mkdir(parents=True, exist_ok=True)
     with scratch_dir(path.parent, prefix=f".{path.name}.") as tmp:
         os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp creates 0700
         yield tmp
+        check_output_dir(path, marker=marker, inputs=inputs)  # the folder may have changed while the block ran
         if path.exists():
             shutil.rmtree(path)
         os.replace(tmp, path)

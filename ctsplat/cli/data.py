@@ -85,7 +85,7 @@ def _check_ingest_options(args: argparse.Namespace, cfg: dict) -> None:
         raise CtsplatError("give either --voxel-size (isotropic voxels of that size) or --grid (that many voxels), "
                            "not both")
     intensity = cfg.get("intensity", schema_defaults("preprocessing")["intensity"])
-    for option, key, used_by in (("--window", "window", ("window",)), ("--hu-max", "hu_max", ("attenuation",)),
+    for option, key, used_by in (("--window", "window", ("window",)), ("--hu-max", "hu_max", ("attenuation", "mu")),
                                  ("--mu-water", "mu_water_per_mm", ("attenuation", "mu"))):
         if getattr(args, key) is not None and intensity not in used_by:
             raise CtsplatError(f"{option} only applies to intensity {' / '.join(used_by)}, not {intensity}; add "
@@ -175,7 +175,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     q.add_argument("--intensity", choices=["attenuation", "window", "mu", "hu"],
                    help="value mapping (default attenuation: mu/mu_max in [0, 1])")
     q.add_argument("--window", type=_window, help="window preset (brain, soft_tissue, bone, lung) or LEVEL,WIDTH")
-    q.add_argument("--hu-max", dest="hu_max", type=float, help="HU mapped to 1.0 by attenuation (default 3000)")
+    q.add_argument("--hu-max", dest="hu_max", type=float,
+                   help="HU mapped to 1.0 by attenuation, and where mu clips (default 3000)")
     q.add_argument("--mu-water", dest="mu_water_per_mm", type=float, help="mu of water in 1/mm (default 0.019)")
     q.add_argument("--denoise", choices=["tv", "bilateral"], help="optional denoising")
     q.add_argument("--mask", choices=["otsu", "convex_hull"], help="optional body mask; air outside")

@@ -33,7 +33,9 @@ import numpy as np
 from scipy import ndimage
 from skimage.metrics import structural_similarity
 
-__all__ = ["psnr", "ssim2d", "psnr3d", "ssim3d", "psnr3d_r2", "ssim3d_r2", "ssim_map_r2", "normalise_r2",
+from ctsplat.utils import CtsplatError
+
+__all__ = ["psnr", "ssim_window", "ssim2d", "psnr3d", "ssim3d", "psnr3d_r2", "ssim3d_r2", "ssim_map_r2", "normalise_r2",
            "lpips_distance", "lpips_status"]
 
 
@@ -75,8 +77,40 @@ def psnr(test: np.ndarray, reference: np.ndarray, data_range: float | None = Non
     return float(10.0 * np.log10(data_range**2 / mse))
 
 
+def ssim_window(shape: tuple[int, ...]) -> int:
+    """The uniform SSIM window for images of ``shape``: skimage's 7, or the largest odd size that fits a side
+    shorter than 7 px.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        The image's shape.
+
+    Returns
+    -------
+    int
+        An odd window size, 3 .. 7.
+
+    Raises
+    ------
+    CtsplatError
+        When a side is shorter than 3 px (no SSIM window fits).
+
+    Examples
+    --------
+    >>> ssim_window((64, 5))
+    5
+    """
+    side = min(int(s) for s in shape)
+    if side < 3:
+        raise CtsplatError(f"SSIM needs images at least 3 px on a side, got {tuple(int(s) for s in shape)}; use a "
+                           "larger detector or volume")
+    return min(7, side if side % 2 else side - 1)
+
+
 def ssim2d(test: np.ndarray, reference: np.ndarray, data_range: float | None = None) -> float:
-    """SSIM of two 2D images (``skimage.metrics.structural_similarity`` defaults: uniform 7x7 window).
+    """SSIM of two 2D images (``skimage.metrics.structural_similarity`` defaults: uniform 7x7 window, smaller for an
+    image with a side under 7 px, :func:`ssim_window`).
 
     Parameters
     ----------
@@ -93,7 +127,8 @@ def ssim2d(test: np.ndarray, reference: np.ndarray, data_range: float | None = N
     reference = np.asarray(reference, dtype=np.float64)
     if data_range is None:
         data_range = float(reference.max() - reference.min()) or 1.0
-    return float(structural_similarity(np.asarray(test, np.float64), reference, data_range=data_range))
+    return float(structural_similarity(np.asarray(test, np.float64), reference, data_range=data_range,
+                                       win_size=ssim_window(reference.shape)))
 
 
 def psnr3d(test: np.ndarray, reference: np.ndarray) -> float:
@@ -114,12 +149,13 @@ def psnr3d(test: np.ndarray, reference: np.ndarray) -> float:
 
 def ssim3d(test: np.ndarray, reference: np.ndarray) -> float:
     """3D SSIM (the project's own): the mean 2D SSIM (data range 1) over all slices along each axis, averaged over
-    the three axes; skimage's uniform 7x7 window, empty slices included. See :func:`ssim3d_r2` for R²-Gaussian's.
+    the three axes; skimage's uniform 7x7 window (smaller along an axis under 7 voxels, :func:`ssim_window`), empty
+    slices included. See :func:`ssim3d_r2` for R²-Gaussian's.
 
     Parameters
     ----------
     test, reference : ndarray, shape (I, J, K)
-        Normalised volumes, every axis at least 7 voxels (the SSIM window).
+        Normalised volumes, every axis at least 3 voxels.
 
     Returns
     -------
@@ -139,7 +175,9 @@ def ssim3d(test: np.ndarray, reference: np.ndarray) -> float:
     for axis in range(3):
         t = np.moveaxis(test, axis, 0)
         r = np.moveaxis(reference, axis, 0)
-        per_axis.append(np.mean([structural_similarity(a, b, data_range=1.0) for a, b in zip(t, r, strict=True)]))
+        win = ssim_window(r.shape[1:])
+        per_axis.append(np.mean([structural_similarity(a, b, data_range=1.0, win_size=win)
+                                 for a, b in zip(t, r, strict=True)]))
     return float(np.mean(per_axis))
 
 
@@ -305,13 +343,14 @@ def lpips_status() -> str | None:
 
 
 def lpips_distance(test: np.ndarray, reference: np.ndarray) -> tuple[float | None, str | None]:
-    """LPIPS (AlexNet) of two grey images replicated to 3 channels.
+    """LPIPS (AlexNet) of two grey images replicated to 3 channels, or of two RGB images.
 
-    Both images are scaled together to [-1, 1] by the reference's range.
+    Grey images are scaled together to [-1, 1] by the reference's range; RGB images are taken as lying in [0, 1]
+    (photographs) and mapped to [-1, 1], as LPIPS expects.
 
     Parameters
     ----------
-    test, reference : ndarray, shape (H, W)
+    test, reference : ndarray, shape (H, W) or (H, W, 3)
         The images.
 
     Returns
@@ -328,12 +367,13 @@ def lpips_distance(test: np.ndarray, reference: np.ndarray) -> tuple[float | Non
     import torch
 
     ref = np.asarray(reference, np.float32)
-    lo, hi = float(ref.min()), float(ref.max())
+    rgb = ref.ndim == 3 and ref.shape[-1] == 3
+    lo, hi = (0.0, 1.0) if rgb else (float(ref.min()), float(ref.max()))
     scale = (hi - lo) or 1.0
 
     def prep(img: np.ndarray) -> torch.Tensor:
-        x = (np.asarray(img, np.float32) - lo) / scale * 2.0 - 1.0
-        return torch.from_numpy(x)[None, None].repeat(1, 3, 1, 1)
+        x = torch.from_numpy((np.asarray(img, np.float32) - lo) / scale * 2.0 - 1.0)
+        return x.permute(2, 0, 1)[None] if rgb else x[None, None].repeat(1, 3, 1, 1)
 
     with torch.no_grad():
         return float(model(prep(test), prep(reference)).item()), None

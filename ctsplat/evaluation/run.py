@@ -207,15 +207,19 @@ def gauge_aligned_model(gaussians: Any, G: np.ndarray, b: np.ndarray) -> Any:
     return dataclasses.replace(g, means=(g.means - bt) @ Gt, quats=quat_mul(q.expand_as(g.quats), g.quats))
 
 
-def volume_metrics(model_vol: np.ndarray, reference: np.ndarray, *, r2: bool = False) -> dict[str, float]:
+def volume_metrics(model_vol: np.ndarray, reference: np.ndarray, *, r2: bool = False,
+                   data_range: float = 1.0) -> dict[str, float]:
     """3D metrics of a voxelised model against the reference.
 
     Parameters
     ----------
     model_vol, reference : ndarray, shape (I, J, K)
-        Normalised volumes.
+        Volumes in the reference volume's units.
     r2 : bool
         Also R²-Gaussian's ``metric_vol`` values (the held-out evaluation; periodic validation skips them).
+    data_range : float
+        The units' full range (:attr:`ctsplat.formats.volume.Volume.metric_range`): both volumes are divided by it,
+        so the metrics compare normalised volumes (1: they already are).
 
     Returns
     -------
@@ -223,6 +227,8 @@ def volume_metrics(model_vol: np.ndarray, reference: np.ndarray, *, r2: bool = F
         ``psnr3d`` (dB, whole volume, data range 1) and ``ssim3d`` (mean 2D SSIM over the three axes), the
         project's convention; with ``r2`` also ``psnr3d_r2`` and ``ssim3d_r2`` (:mod:`ctsplat.evaluation.metrics`).
     """
+    if data_range != 1.0:
+        model_vol, reference = model_vol / data_range, reference / data_range
     out = {"psnr3d": metrics.psnr3d(model_vol, reference), "ssim3d": metrics.ssim3d(model_vol, reference)}
     if r2:
         out.update(psnr3d_r2=metrics.psnr3d_r2(model_vol, reference), ssim3d_r2=metrics.ssim3d_r2(model_vol, reference))
@@ -437,9 +443,9 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     vol_raw, sharpening = vol_model, readout_sharpening(cfg, vol_model, scene, dev)
     if sharpening:
         vol_model = sharpening.pop("volume")
-        raw = volume_metrics(vol_raw, scene.volume.data, r2=True)
+        raw = volume_metrics(vol_raw, scene.volume.data, r2=True, data_range=scene.volume.metric_range)
         sharpening.update({f"{k}_unsharpened": v for k, v in raw.items()})
-    m3 = volume_metrics(vol_model, scene.volume.data, r2=True)
+    m3 = volume_metrics(vol_model, scene.volume.data, r2=True, data_range=scene.volume.metric_range)
     m3.update(_gauge_aligned_metrics(run_dir, g, scene, rk))
     log_path = run_dir / "train_log.csv"
     targets = dict(milestones) if milestones else schema_defaults("analysis")["milestones"]
@@ -597,7 +603,7 @@ def _gauge_aligned_metrics(run_dir: Path, g: Any, scene: Any, rk: dict[str, Any]
     G, b = gauge_motion(Rs, ts, Rs_true, ts_true, tr.camera.model)
     moved = gauge_aligned_model(g, G, b)
     vol = voxelize_model(moved, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
-    m = volume_metrics(vol, scene.volume.data)
+    m = volume_metrics(vol, scene.volume.data, data_range=scene.volume.metric_range)
     return {"psnr3d_gauge_aligned": m["psnr3d"], "ssim3d_gauge_aligned": m["ssim3d"],
             "gauge_rotation_deg": float(rotation_angles_deg(G[None])[0]), "gauge_shift_mm": float(np.linalg.norm(b))}
 

@@ -429,17 +429,30 @@ def _walk_files(folder: Path) -> list[Path]:
     return sorted(p for p in files if p.is_file() and not p.name.startswith("."))
 
 
+class _FileLabels:
+    """Names a file of the input folder by its place in path order, never by its name (DICOM file names are often
+    SOP Instance UIDs, which carry the acquisition date and time)."""
+
+    def __init__(self, folder: Path, files: list[Path]) -> None:
+        self.folder = folder
+        self.n = len(files)
+        self.place = {p: i + 1 for i, p in enumerate(files)}
+
+    def __call__(self, path: Path) -> str:
+        return f"file {self.place[path]} of {self.n} under {self.folder} (in sorted path order)"
+
+
 #: Header fields that tell series without a SeriesInstanceUID apart (hashed into their id, never shown).
 _NO_UID_KEYS = ("StudyInstanceUID", "FrameOfReferenceUID", "SeriesNumber", "Modality", "SeriesDescription")
 
 
-def _handle_corrupt(path: Path, why: str, skip_corrupt: bool, skipped: list[Path]) -> None:
+def _handle_corrupt(path: Path, label: str, why: str, skip_corrupt: bool, skipped: list[Path]) -> None:
     if not skip_corrupt:
         raise CtsplatError(
-            f"corrupt or truncated DICOM file {path} ({why}); remove it or pass skip_corrupt "
+            f"corrupt or truncated DICOM file: {label} ({why}); remove it or pass skip_corrupt "
             f"(--skip-corrupt) to ignore it with a warning"
         )
-    log.warning("skipping corrupt DICOM file %s (%s)", path, why)
+    log.warning("skipping corrupt DICOM file: %s (%s)", label, why)
     skipped.append(path)
 
 
@@ -471,20 +484,22 @@ def find_dicom_series(
     if not files:
         raise CtsplatError(f"input folder {folder} is empty; point ingest at a folder that contains DICOM slices")
     skipped = _skipped if _skipped is not None else []
+    label = _FileLabels(folder, files)
     groups: dict[tuple[str, ...], SeriesInfo] = {}
     with _quiet_pydicom():  # header values are read here; pydicom would quote invalid ones
         for path in files:
             try:
                 ds = _dcmread(path, stop_before_pixels=True)
             except Exception as exc:  # noqa: BLE001 - DICOM prefix present but the header does not parse
-                _handle_corrupt(path, f"{type(exc).__name__}: {exc}".split("\n")[0][:120], skip_corrupt, skipped)
+                _handle_corrupt(path, label(path), f"{type(exc).__name__}: {exc}".split("\n")[0][:120],
+                                skip_corrupt, skipped)
                 continue
             if ds is None:
                 continue
             if not _is_image_sop(ds) and "Rows" not in ds:
                 continue  # DICOMDIR, structured report, presentation state ...
             if "Rows" not in ds or "Columns" not in ds:
-                _handle_corrupt(path, "image header ends before Rows/Columns", skip_corrupt, skipped)
+                _handle_corrupt(path, label(path), "image header ends before Rows/Columns", skip_corrupt, skipped)
                 continue
             uid = _text(ds, "SeriesInstanceUID").strip()
             if uid:
@@ -578,7 +593,7 @@ def _choose_series(
     return pick
 
 
-def _check_decoder(ds: Any, path: Path) -> None:
+def _check_decoder(ds: Any, label: str) -> None:
     """Fail with the package to install when a compressed transfer syntax cannot be decoded."""
     ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
     if ts is None or not ts.is_compressed:
@@ -588,16 +603,16 @@ def _check_decoder(ds: Any, path: Path) -> None:
     try:
         decoder = get_decoder(ts)
     except NotImplementedError:
-        raise CtsplatError(f"{path}: transfer syntax {ts.name} ({ts}) is not supported by pydicom") from None
+        raise CtsplatError(f"{label}: transfer syntax {ts.name} ({ts}) is not supported by pydicom") from None
     if not decoder.is_available:
         pkg = _DECODER_PACKAGES.get(str(ts), "a pydicom pixel-data plugin (pylibjpeg or gdcm)")
         raise CtsplatError(
-            f"{path} is compressed ({ts.name}) and no decoder is installed; install {pkg} "
+            f"{label} is compressed ({ts.name}) and no decoder is installed; install {pkg} "
             f"(pip install 'ctsplat[j2k]')"
         )
 
 
-def _vec(ds: Any, key: str, n: int, path: Path) -> np.ndarray:
+def _vec(ds: Any, key: str, n: int, label: str) -> np.ndarray:
     value = ds.get(key)
     if value is None or len(value) != n:
         hint = {
@@ -605,8 +620,29 @@ def _vec(ds: Any, key: str, n: int, path: Path) -> np.ndarray:
             "ImageOrientationPatient": "slice orientation is unknown; re-export the series with geometry tags",
             "PixelSpacing": "pixel size is unknown; re-export the series with PixelSpacing",
         }[key]
-        raise CtsplatError(f"{path} has no {key}: {hint}")
-    return np.asarray([float(v) for v in value], dtype=float)
+        raise CtsplatError(f"{label} has no {key}: {hint}")
+    try:
+        out = np.asarray([float(v) for v in value], dtype=float)
+    except (TypeError, ValueError):
+        out = np.full(n, np.nan)
+    if not np.all(np.isfinite(out)) or (key == "PixelSpacing" and np.any(out <= 0)):
+        need = "positive numbers (mm)" if key == "PixelSpacing" else "finite numbers"
+        raise CtsplatError(f"{label} has an invalid {key} (need {n} {need}); fix the header or re-export the series")
+    return out
+
+
+def _rescale(ds: Any, label: str) -> tuple[float, float] | None:
+    """The slice's ``(RescaleSlope, RescaleIntercept)``, None when either tag is absent or empty."""
+    if ds.get("RescaleSlope") in (None, "") or ds.get("RescaleIntercept") in (None, ""):
+        return None
+    try:
+        slope, intercept = float(ds.RescaleSlope), float(ds.RescaleIntercept)
+    except (TypeError, ValueError):
+        slope = intercept = float("nan")
+    if not (np.isfinite(slope) and np.isfinite(intercept)) or slope == 0:
+        raise CtsplatError(f"{label} has an invalid RescaleSlope/RescaleIntercept (need finite numbers, a non-zero "
+                           "slope); fix the header, or remove the tags and pass rescale (--rescale SLOPE INTERCEPT)")
+    return slope, intercept
 
 
 def read_dicom_series(
@@ -691,6 +727,7 @@ def _read_dicom_series(
     user_rescale = check_rescale(rescale)
     skipped: list[Path] = []
     series = find_dicom_series(folder, skip_corrupt=skip_corrupt, _skipped=skipped)
+    label = _FileLabels(folder, _walk_files(folder))
     pick = _choose_series(series, series_uid, allow_modalities, folder)
 
     slices: list[tuple[Path, Any, np.ndarray]] = []
@@ -703,37 +740,39 @@ def _read_dicom_series(
             if ds is None:
                 raise ValueError("not readable as DICOM")
         except Exception as exc:  # noqa: BLE001
-            _handle_corrupt(path, f"{type(exc).__name__}: {exc}".split("\n")[0][:120], skip_corrupt, skipped)
+            _handle_corrupt(path, label(path), f"{type(exc).__name__}: {exc}".split("\n")[0][:120], skip_corrupt,
+                            skipped)
             continue
         if int(ds.get("NumberOfFrames", 1) or 1) > 1:
             raise CtsplatError(
-                f"{path} is a multi-frame (enhanced) image; only one-slice-per-file series are supported - "
+                f"{label(path)} is a multi-frame (enhanced) image; only one-slice-per-file series are supported - "
                 f"convert it to a NIfTI (e.g. dcm2niix) and ingest that"
             )
         if int(ds.get("SamplesPerPixel", 1) or 1) != 1:
-            raise CtsplatError(f"{path} is not a greyscale image (SamplesPerPixel != 1); CT slices are greyscale")
-        _check_decoder(ds, path)
-        _vec(ds, "ImagePositionPatient", 3, path)  # fail early when missing
-        iop = _vec(ds, "ImageOrientationPatient", 6, path)
-        ps = _vec(ds, "PixelSpacing", 2, path)
+            raise CtsplatError(f"{label(path)} is not a greyscale image (SamplesPerPixel != 1); CT slices are "
+                               "greyscale")
+        _check_decoder(ds, label(path))
+        _vec(ds, "ImagePositionPatient", 3, label(path))  # fail early when missing
+        iop = _vec(ds, "ImageOrientationPatient", 6, label(path))
+        ps = _vec(ds, "PixelSpacing", 2, label(path))
         rows, cols = int(ds.Rows), int(ds.Columns)
         if not ref:
             ref = {"iop": iop, "ps": ps, "rows": rows, "cols": cols, "path": path}
         else:
             if (rows, cols) != (ref["rows"], ref["cols"]):
                 raise CtsplatError(
-                    f"inconsistent slice size in series: {path} is {rows}x{cols}, {ref['path']} is "
+                    f"inconsistent slice size in series: {label(path)} is {rows}x{cols}, {label(ref['path'])} is "
                     f"{ref['rows']}x{ref['cols']} (rows x columns); remove the odd slices or choose another series"
                 )
             if not np.allclose(ps, ref["ps"], rtol=_SPACING_RTOL, atol=0):
                 raise CtsplatError(
-                    f"inconsistent PixelSpacing in series: {path} has {ps.tolist()}, {ref['path']} has "
+                    f"inconsistent PixelSpacing in series: {label(path)} has {ps.tolist()}, {label(ref['path'])} has "
                     f"{ref['ps'].tolist()} mm; remove the odd slices or choose another series"
                 )
             if not np.allclose(iop, ref["iop"], atol=_ORIENT_TOL):
                 raise CtsplatError(
-                    f"slices with different ImageOrientationPatient in one series ({path} vs {ref['path']}); "
-                    f"not supported - split the series or re-export it"
+                    f"slices with different ImageOrientationPatient in one series ({label(path)} vs "
+                    f"{label(ref['path'])}); not supported - split the series or re-export it"
                 )
         try:
             with warnings.catch_warnings():
@@ -743,15 +782,17 @@ def _read_dicom_series(
             msg = str(exc).split("\n")[0][:160]
             if "missing" in msg.lower() and "plugin" in msg.lower():
                 pkg = _DECODER_PACKAGES.get(str(ds.file_meta.TransferSyntaxUID), "pylibjpeg")
-                raise CtsplatError(f"{path}: no decoder for its compressed pixel data; install {pkg}") from None
-            _handle_corrupt(path, f"{type(exc).__name__}: {msg}", skip_corrupt, skipped)
+                raise CtsplatError(f"{label(path)}: no decoder for its compressed pixel data; install {pkg}") from None
+            _handle_corrupt(path, label(path), f"{type(exc).__name__}: {msg}", skip_corrupt, skipped)
             continue
         if pixels.shape != (rows, cols):
-            _handle_corrupt(path, f"pixel array shape {pixels.shape} != {(rows, cols)}", skip_corrupt, skipped)
+            _handle_corrupt(path, label(path), f"pixel array shape {pixels.shape} != {(rows, cols)}", skip_corrupt,
+                            skipped)
             continue
         values = pixels.astype(np.float32)
-        if ds.get("RescaleSlope") not in (None, "") and ds.get("RescaleIntercept") not in (None, ""):
-            slope, intercept = float(ds.RescaleSlope), float(ds.RescaleIntercept)
+        rescale_tags = _rescale(ds, label(path))
+        if rescale_tags is not None:
+            slope, intercept = rescale_tags
             header_rescales.add((slope, intercept))
             values = values * np.float32(slope) + np.float32(intercept)
         else:
@@ -775,7 +816,7 @@ def _read_dicom_series(
     row_lps = row_lps / np.linalg.norm(row_lps)
     col_lps = col_lps / np.linalg.norm(col_lps)
     normal_lps = np.cross(row_lps, col_lps)
-    ipps = np.stack([_vec(ds, "ImagePositionPatient", 3, p) for p, ds, _ in slices])
+    ipps = np.stack([_vec(ds, "ImagePositionPatient", 3, label(p)) for p, ds, _ in slices])
     pos = ipps @ normal_lps
     order = np.argsort(pos, kind="stable")
     pos_sorted = pos[order]
@@ -784,7 +825,7 @@ def _read_dicom_series(
     if dup.size:
         a, b = slices[order[dup[0]]][0], slices[order[dup[0] + 1]][0]
         raise CtsplatError(
-            f"duplicate slice position {pos_sorted[dup[0]]:.3f} mm along the normal in {a} and {b} "
+            f"duplicate slice position {pos_sorted[dup[0]]:.3f} mm along the normal in {label(a)} and {label(b)} "
             f"({dup.size} duplicate pair(s)); remove the duplicate files or choose the right series"
         )
 

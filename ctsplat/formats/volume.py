@@ -34,7 +34,7 @@ import numpy as np
 
 from ctsplat.utils import CtsplatError, atomic_path, write_json_atomic
 
-__all__ = ["Volume", "load_volume", "save_volume", "json_path_for", "compute_volume_id"]
+__all__ = ["Volume", "load_volume", "save_volume", "json_path_for", "compute_volume_id", "check_attenuation"]
 
 
 @dataclass
@@ -69,6 +69,19 @@ class Volume:
     def mu_scale_per_mm(self) -> float:
         """Factor mapping ``data`` to attenuation in 1/mm (1.0 when ``data`` already is μ)."""
         return float(self.meta.get("intensity", {}).get("mu_scale_per_mm", 1.0))
+
+    @property
+    def metric_range(self) -> float:
+        """The data range that 3D PSNR/SSIM compare ``data`` in: μ of ``hu_max`` (1/mm) for a volume stored in 1/mm
+        (intensity ``mu``), 1 for the normalised intensities (and a volume without metadata in [0, 1]), else the
+        volume's own max - min."""
+        intensity = self.meta.get("intensity", {})
+        if intensity.get("kind") == "attenuation_per_mm":
+            return float(intensity["mu_water_per_mm"]) * (1.0 + float(intensity["hu_max"]) / 1000.0)
+        if "kind" in intensity:
+            return 1.0
+        lo, hi = float(np.min(self.data)), float(np.max(self.data))
+        return 1.0 if 0.0 <= lo and hi <= 1.0 else (hi - lo) or 1.0
 
     @property
     def volume_id(self) -> str:
@@ -194,3 +207,29 @@ def load_volume(path: str | Path) -> Volume:
     if jp.exists():
         meta = json.loads(jp.read_text())
     return Volume(data=data, affine=np.asarray(img.affine, float), meta=meta)
+
+
+def check_attenuation(volume: Volume, name: str | Path) -> None:
+    """Refuse a volume whose values are not attenuation (HU, or mostly negative values), before it is projected.
+
+    Parameters
+    ----------
+    volume : Volume
+    name : str or Path
+        How the error names it (its file).
+
+    Raises
+    ------
+    CtsplatError
+        For intensity ``hu`` (``volume.json``), or when the negative values outweigh 1 % of the absolute total
+        (a volume in HU without metadata; a reconstruction's small negative ripples pass).
+    """
+    if volume.meta.get("intensity", {}).get("kind") == "hu":
+        raise CtsplatError(f"volume {name} holds raw HU (intensity: hu), not attenuation; ingest it again with "
+                           "intensity attenuation (the default) or mu before projecting it")
+    data = np.asarray(volume.data, np.float64)
+    negative = float(-data[data < 0].sum())
+    if negative > 0.01 * float(np.abs(data).sum()):
+        raise CtsplatError(f"volume {name} has negative values down to {float(data.min()):g} ({negative:.3g} of "
+                           f"{float(np.abs(data).sum()):.3g} in absolute sum): it looks like HU, not attenuation; "
+                           "ingest it with `ctsplat ingest` (intensity attenuation) or clip it at 0")

@@ -209,7 +209,7 @@ def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, 
         views.append(PhotoView(im.name, torch.from_numpy(rgb).to(device), pc, np.asarray(m[:, :3], float),
                                np.asarray(m[:, 3], float), splits[im.name]))
     if not any(v.split == "train" for v in views):
-        raise CtsplatError(f"{sfm_dir} has {len(views)} registered views and none left for training; lower "
+        raise CtsplatError(f"{sfm_dir} has {len(views)} registered views and none left for training; raise "
                            "test_every or register more photos")
     pts = list(rec.points3D.values())
     xyz = np.array([p.xyz for p in pts], float).reshape(-1, 3)

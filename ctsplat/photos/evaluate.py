@@ -1,9 +1,12 @@
 """Held-out metrics of a photo run: PSNR/SSIM per view, LPIPS where available, FPS, peak memory, a gallery of
 held-out renders beside the photographs, and a turntable around the scene.
 
-PSNR uses data range 1 on renders clipped to [0, 1]; SSIM is the Gaussian-window SSIM (σ 1.5, as 3DGS reports
-it; :func:`ctsplat.training.losses.ssim`) averaged over RGB. LPIPS is ``null`` with the reason when the ``lpips``
-package or its weights cannot be loaded (:func:`ctsplat.evaluation.metrics.lpips_status`). Every figure carries
+PSNR uses data range 1 on renders clipped to [0, 1]; SSIM is the Gaussian-window SSIM (σ 1.5, 3DGS's window;
+:func:`ctsplat.training.losses.ssim`) averaged over RGB; it averages the map over the pixels whose window lies
+inside the image, where 3DGS's ``ssim`` zero-pads the border and averages over every pixel, so it reads
+0.001–0.01 lower than 3DGS would on the same images. LPIPS (AlexNet, RGB mapped to [-1, 1]) is the mean over the
+held-out views, or ``null`` with the reason when the ``lpips`` package or its weights cannot be loaded
+(:func:`ctsplat.evaluation.metrics.lpips_status`). Every figure carries
 the photographs' attribution line (``photos.evaluate.attribution``).
 
 The held-out views are the test photos, or the validation photos of a run trained with ``holdout: validation``
@@ -26,7 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ctsplat.evaluation.metrics import lpips_status
+from ctsplat.evaluation.metrics import lpips_distance, lpips_status
 from ctsplat.formats.runlog import PER_VIEW_COLUMNS, CsvLog
 from ctsplat.geometry.cameras import camera_center, look_at
 from ctsplat.photos.config import SFM_SUMMARY_KEYS, photo_settings
@@ -122,8 +125,50 @@ def save_photo_gallery(path: str | Path, photos: list[np.ndarray], renders: list
     plt.close(fig)
 
 
+def wrap_to_width(text: str, width_px: float, measure: Any) -> list[str]:
+    """Break ``text`` into lines no wider than ``width_px`` (at spaces; a word wider than a line is cut).
+
+    Parameters
+    ----------
+    text : str
+    width_px : float
+        Widest line, in the units of ``measure``.
+    measure : callable(str) -> float
+        Drawn width of a string (e.g. ``ImageDraw.textlength``).
+
+    Returns
+    -------
+    list of str
+        The lines; joined with spaces they give ``text`` again (with single spaces; cut words without one).
+
+    Examples
+    --------
+    >>> wrap_to_width("a bb ccc", 3, len)
+    ['a', 'bb', 'ccc']
+    """
+    lines: list[str] = []
+    line = ""
+    for word in text.split():
+        while measure(word) > width_px and len(word) > 1:  # cut the longest head that fits (at least one char)
+            k = max(1, max((i for i in range(1, len(word) + 1) if measure(word[:i]) <= width_px), default=1))
+            if line:
+                lines.append(line)
+                line = ""
+            lines.append(word[:k])
+            word = word[k:]
+        candidate = f"{line} {word}" if line else word
+        if line and measure(candidate) > width_px:
+            lines.append(line)
+            line = word
+        else:
+            line = candidate
+    if line:
+        lines.append(line)
+    return lines
+
+
 def save_turntable_gif(path: str | Path, frames: list[np.ndarray], attribution: str, fps: float = 12.0) -> None:
-    """A looping GIF of RGB frames in [0, 1] with the attribution line drawn under each frame.
+    """A looping GIF of RGB frames in [0, 1] with the attribution drawn under each frame, wrapped to its width.
 
     Parameters
     ----------
@@ -135,13 +180,16 @@ def save_turntable_gif(path: str | Path, frames: list[np.ndarray], attribution: 
     """
     from PIL import Image, ImageDraw
 
-    text = _footer(attribution)
+    width = frames[0].shape[1]
+    draw = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    footer = "\n".join(wrap_to_width(_footer(attribution), width - 4, draw.textlength))
+    footer_px = int(draw.multiline_textbbox((0, 0), footer)[3]) + 3
     out = []
     for f in frames:
         im = Image.fromarray((np.clip(f, 0, 1) * 255 + 0.5).astype(np.uint8))
-        canvas = Image.new("RGB", (im.width, im.height + 14), (0, 0, 0))
+        canvas = Image.new("RGB", (im.width, im.height + footer_px), (0, 0, 0))
         canvas.paste(im, (0, 0))
-        ImageDraw.Draw(canvas).text((2, im.height + 1), text, fill=(200, 200, 200))
+        ImageDraw.Draw(canvas).multiline_text((2, im.height + 1), footer, fill=(200, 200, 200))
         out.append(canvas.convert("P", palette=Image.Palette.ADAPTIVE))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -243,8 +291,9 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
             p, ss = image_metrics(img, v.image)
             rows.append({"iteration": "final", "view_id": v.name, "split": held, "psnr2d": p, "ssim2d": ss})
             renders.append(img.clamp(0, 1).cpu().numpy())
-    reason = lpips_status()
-    lpips_reason = reason or "LPIPS is wired for grey CT projections only; not computed on RGB photographs"
+    lpips_reason = lpips_status()
+    lpips_values = ([] if lpips_reason else
+                    [lpips_distance(r, v.image.cpu().numpy())[0] for r, v in zip(renders, test, strict=True)])
     log_csv = CsvLog(run_dir / "per_view_test.csv", PER_VIEW_COLUMNS)
     log_csv.reset()
     log_csv.append(rows)
@@ -268,9 +317,11 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     metrics = {
         "psnr": float(np.mean([r["psnr2d"] for r in rows])),
         "ssim": float(np.mean([r["ssim2d"] for r in rows])),
-        "lpips": None,
+        "lpips": float(np.mean(lpips_values)) if lpips_values else None,
         "lpips_reason": lpips_reason,
-        "per_view": {r["view_id"]: {"psnr": r["psnr2d"], "ssim": r["ssim2d"]} for r in rows},
+        "per_view": {r["view_id"]: {"psnr": r["psnr2d"], "ssim": r["ssim2d"],
+                                    "lpips": lpips_values[i] if lpips_values else None}
+                     for i, r in enumerate(rows)},
         "held_out": held,
         "n_test": len(test),
         "n_train": len(scene.split("train")),

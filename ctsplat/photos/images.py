@@ -76,6 +76,9 @@ def check_photos(folder: str | Path, names: list[str], *, single_camera: bool) -
             with Image.open(path) as im:
                 im.load()  # decodes every byte: a truncated JPEG fails here, not at SIFT time
                 sizes[name] = (int(im.width), int(im.height))
+        except Image.DecompressionBombError as exc:
+            raise CtsplatError(f"image {path} is too large to decode safely ({str(exc).splitlines()[0]}); "
+                               "downscale it or remove it") from exc
         except (OSError, SyntaxError, ValueError) as exc:
             raise CtsplatError(f"corrupt or truncated image {path}: {str(exc).splitlines()[0]}; "
                                "replace or remove it") from exc

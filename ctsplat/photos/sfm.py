@@ -122,7 +122,8 @@ def run_photo_sfm(image_dir: str | Path, out_dir: str | Path, settings: dict[str
     image_dir : str or Path
         Folder of JPEG/PNG/TIFF photographs of one scene.
     out_dir : str or Path
-        Output folder (replaced when it exists, only after success).
+        Output folder (replaced after success, and only when it is new, empty or an earlier SfM output; never the
+        image folder or one that holds it).
     settings : dict, optional
         The ``photos.sfm`` section (:data:`ctsplat.photos.config.PHOTOS_DEFAULTS`); missing keys take defaults.
 
@@ -152,7 +153,7 @@ def run_photo_sfm(image_dir: str | Path, out_dir: str | Path, settings: dict[str
     with contextlib.suppress(Exception):
         pycolmap.set_random_seed(int(s["seed"]))
         pycolmap.logging.minloglevel = 2  # glog: errors only
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir, marker="summary.json", inputs=(image_dir,)) as tmp:
         summary = _run(image_dir, names, tmp, s)
     return summary
 

@@ -65,6 +65,7 @@ from ctsplat.training.losses import ssim
 from ctsplat.utils import (
     CtsplatError,
     atomic_dir,
+    check_output_dir,
     code_version,
     compute_platform,
     config_hash,
@@ -328,6 +329,11 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     train, test = scene.split("train"), scene.split(held)
     if not train:
         raise CtsplatError("no training photo left after the held-out split; raise photos.train.test_every")
+    if not test:
+        what = ("no validation photo (fewer registered photos than validation_offset + 1)" if held == "val" else
+                f"no test photo (test_every {s['test_every']})")
+        raise CtsplatError(f"the held-out split has {what}, and the run is evaluated on held-out photos; set "
+                           "photos.train.test_every to 2 or more, or hold out the test photos only")
     params = init_params(scene.xyz, scene.rgb, s, rng, device)
     opt = _optimizer(params, s["lr"], scene.extent)
     learned = s["background"] == "learned"
@@ -427,6 +433,11 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     return model, report
 
 
+#: Files that mark a folder as an earlier photo run, which a new run may replace (the evaluation's metrics.json
+#: stays when the workflow reruns training, which removes the training's own files first).
+RUN_MARKERS = ("config.json", "model.pt", "metrics.json")
+
+
 def _check(s: dict[str, Any]) -> None:
     if int(s["iterations"]) < 1:
         raise CtsplatError(f"photos.train.iterations must be >= 1, got {s['iterations']}")
@@ -445,7 +456,8 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
     sfm_dir : str or Path
         Output of :func:`ctsplat.photos.sfm.run_photo_sfm`.
     out_dir : str or Path
-        The run folder (replaced when training succeeds; nothing is written on failure).
+        The run folder (replaced when training succeeds, and only when it is new, empty or an earlier photo run;
+        nothing is written on failure).
     settings : dict, optional
         The ``photos.train`` section; missing keys take :data:`ctsplat.photos.config.PHOTOS_DEFAULTS`.
 
@@ -456,13 +468,15 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
     """
     s = photo_settings({"train": dict(settings or {})})["train"]
     _check(s)
+    out_dir = Path(out_dir)
+    check_output_dir(out_dir, marker=RUN_MARKERS, inputs=(sfm_dir,))  # before training, not after it
+    sfm_dir = Path(sfm_dir).resolve()  # config.json and the model must find it from any working folder
     device = resolve_device(s["device"])
     torch.set_num_threads(int(s["num_threads"]))
     scene = load_scene(sfm_dir, downscale=int(s["downscale"]), test_every=int(s["test_every"]),
                        validation=held_out_split(s) == "val",
                        validation_offset=s.get("validation_offset"), device=device)
-    out_dir = Path(out_dir)
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir, marker=RUN_MARKERS, inputs=(sfm_dir,)) as tmp:
         config = {"sfm_dir": str(sfm_dir), "train": s}
         write_json_atomic(tmp / "config.json", {**config, "config_hash": config_hash(config),
                                                 "code_version": code_version()})

@@ -736,7 +736,7 @@ def write_model(rec: Any, out_dir: Path) -> None:
     out_dir : Path
         Target folder (e.g. ``sparse/0``).
     """
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir, marker="cameras.bin") as tmp:
         rec.write_binary(str(tmp))
         (tmp / "text").mkdir()
         rec.write_text(str(tmp / "text"))

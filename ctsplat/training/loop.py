@@ -145,7 +145,7 @@ def _evaluate_periodic(state: TrainState, cfg: dict[str, Any], scene: Scene, val
     preds = render_views(g, val.camera, val.Rs, val.ts, rk)
     vm = view_metrics(preds, val.images)
     vol = voxelize_model(g, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
-    m3 = volume_metrics(vol, scene.volume.data)
+    m3 = volume_metrics(vol, scene.volume.data, data_range=scene.volume.metric_range)
     row = {"psnr2d": float(np.mean(vm["psnr2d"])), "ssim2d": float(np.mean(vm["ssim2d"])), **m3}
     return row, per_view_rows(state.iteration, val, vm)
 

@@ -289,3 +289,38 @@ def test_workflow_config_takes_cone_beam_baselines_and_refuses_a_carm_geometry()
                            "baselines": {"geometry": "carm", "enabled": False}})["baselines"]["geometry"] == "carm"
     with pytest.raises(CtsplatError, match=r"baselines\.settings\.asd_pocs_alpha"):
         prepare_config({"radiographs": {"circ": {}}, "baselines": {"settings": {"asd_pocs_alpha": [0.1, 0]}}})
+
+
+def test_3d_metrics_do_not_depend_on_the_volume_units(tmp_path):
+    # the same object stored normalised (μ / μ_max) and in 1/mm (intensity mu): the same reconstructions, so the
+    # same 3D scores; data range 1 on the volume in 1/mm would add 20 log10(1 / μ_max) ≈ 22 dB
+    mu_max = 0.019 * (1 + 3000 / 1000)
+    base = make_volume(16)
+    scores = {}
+    for name, data, intensity in (
+            ("normalised", base.data, {"kind": "attenuation_normalised", "mu_water_per_mm": 0.019, "hu_max": 3000.0,
+                                       "mu_scale_per_mm": mu_max}),
+            ("per_mm", base.data * np.float32(mu_max), {"kind": "attenuation_per_mm", "mu_water_per_mm": 0.019,
+                                                        "hu_max": 3000.0, "mu_scale_per_mm": 1.0})):
+        vol = Volume(data, base.affine, {"volume_id": name, "intensity": intensity})
+        save_volume(vol, tmp_path / f"{name}.nii.gz")
+        render_radiographs(tmp_path / f"{name}.nii.gz", tmp_path / f"rad_{name}",
+                           {"n_views": 24, "detector_width": 16, "detector_height": 20})
+        df = run_baselines(tmp_path / f"{name}.nii.gz", tmp_path / f"rad_{name}", tmp_path / f"out_{name}",
+                           {**QUICK, "methods": ["fbp"], "n_views": [16]})
+        scores[name] = df.iloc[0][["psnr3d", "ssim3d"]].astype(float).to_numpy()
+    assert load_volume(tmp_path / "per_mm.nii.gz").metric_range == pytest.approx(mu_max)
+    assert scores["per_mm"] == pytest.approx(scores["normalised"], abs=1e-3)
+    assert 10 < scores["normalised"][0] < 40
+
+
+def test_3d_ssim_of_a_thin_volume_uses_a_smaller_window():
+    from ctsplat.evaluation.metrics import ssim_window
+
+    rng = np.random.default_rng(0)
+    ref = rng.random((20, 20, 5))
+    test = ref + rng.normal(0, 0.05, ref.shape)
+    assert ssim_window((20, 5)) == 5 and ssim_window((20, 4)) == 3 and ssim_window((64, 64)) == 7
+    assert ssim3d(ref, ref) == pytest.approx(1.0) and 0 < ssim3d(test, ref) < 1
+    with pytest.raises(CtsplatError, match=r"SSIM needs images at least 3 px on a side, got \(20, 2\)"):
+        ssim3d(ref[:, :, :2], ref[:, :, :2])

@@ -268,3 +268,19 @@ def test_a_run_config_json_is_read_back_with_its_exponent_floats(tmp_path):
     path.write_text("{not json")
     with pytest.raises(CtsplatError, match=r"config\.json is not valid YAML/JSON"):
         load_section(str(path), "train")
+
+
+def test_hu_max_sets_where_mu_clips(tmp_path):
+    from ctsplat.formats.sources import write_dicom_series
+    from ctsplat.formats.volume import load_volume
+
+    hu = np.full((8, 8, 4), 4000.0)  # dense metal, above the default hu_max of 3000
+    hu[:4] = 0.0  # water
+    write_dicom_series(hu, tmp_path / "dicom", spacing_mm=(1.0, 1.0, 1.0), origin_lps=(0.0, 0.0, 0.0))
+    for hu_max, top in ((None, 0.019 * 4), ("5000", 0.019 * 5)):
+        out = tmp_path / f"v{hu_max}.nii.gz"
+        extra = ["--hu-max", hu_max] if hu_max else []
+        assert main(["ingest", str(tmp_path / "dicom"), str(out), "--intensity", "mu", "--native", *extra]) == 0
+        data = load_volume(out).data
+        assert float(data.max()) == pytest.approx(top, rel=1e-4)  # mu clips at mu(hu_max)
+        assert float(data.min()) == pytest.approx(0.019, rel=1e-4)

@@ -21,7 +21,7 @@ from ctsplat.photos.dataset import PhotoScene, PhotoView, PinholeCamera, load_sc
 from ctsplat.photos.evaluate import evaluate_photos, turntable_poses
 from ctsplat.photos.images import check_photos, list_photos
 from ctsplat.photos.sfm import run_photo_sfm
-from ctsplat.photos.train import image_metrics, render_view, to_gaussians, train_scene
+from ctsplat.photos.train import image_metrics, render_view, to_gaussians, train_photos, train_scene
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.utils import CtsplatError
 
@@ -261,6 +261,11 @@ def test_photo_volumes_stay_out_of_the_ct_grid(tmp_path: Path) -> None:
         prepare_config({"volumes": {"skull": {"source": str(photos), "kind": "photos"}}})
     with pytest.raises(CtsplatError, match=r"photos.train.downscale"):
         prepare_config({"volumes": {"phantom": {"source": "phantom"}}, "photos": {"train": {"downscale": 3}}})
+    for key in ("gallery_views", "turntable_frames"):  # the workflow's photos_evaluate rule writes both figures
+        with pytest.raises(CtsplatError, match=rf"photos.evaluate.{key}: .*must be >= 1"):
+            prepare_config({"volumes": {"phantom": {"source": "phantom"},
+                                        "skull": {"source": str(photos), "kind": "photos"}},
+                            "photos": {"evaluate": {key: 0}}})
 
 
 # ------------------------------------------------------------------------------------------------ benchmark
@@ -434,6 +439,93 @@ def test_training_drops_gaussians_at_a_rate_rising_to_drop_rate(monkeypatch: pyt
     assert rates == [0.0, 0.0]
 
 
+def test_training_without_held_out_photos_fails_before_training(tmp_path: Path) -> None:
+    scene, _ = _synthetic_scene()
+    for v in scene.views:
+        v.split = "train"  # test_every 0: nothing held out, nothing to evaluate the run on
+    with pytest.raises(CtsplatError, match=r"no test photo \(test_every 0\).*test_every to 2 or more"):
+        train_scene(scene, photo_settings({"train": {"iterations": 10**6, "test_every": 0}})["train"])
+
+
+def test_sfm_and_training_never_replace_their_input(tmp_path: Path) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for k in range(3):
+        _jpeg(photos / f"{k:02d}.jpg", seed=k)
+    before = sorted(p.name for p in photos.iterdir())
+    for out in (photos, tmp_path):  # the photo folder itself, and a folder that holds it
+        with pytest.raises(CtsplatError, match=r"is, or holds, the input .*choose another output folder"):
+            run_photo_sfm(photos, out)
+        assert sorted(p.name for p in photos.iterdir()) == before
+    other = tmp_path / "notes"
+    other.mkdir()
+    (other / "keep.txt").write_text("mine")
+    with pytest.raises(CtsplatError, match=r"notes already holds files that are not an earlier output"):
+        run_photo_sfm(photos, other)
+    assert (other / "keep.txt").read_text() == "mine"
+    sfm = tmp_path / "sfm"
+    (sfm / "sparse" / "0").mkdir(parents=True)
+    (sfm / "summary.json").write_text("{}")
+    with pytest.raises(CtsplatError, match=r"is, or holds, the input"):
+        train_photos(sfm, sfm)  # refused before the scene is even read
+    assert (sfm / "summary.json").is_file()
+
+
+def test_turntable_attribution_is_wrapped_to_the_frame(tmp_path: Path) -> None:
+    from PIL import ImageDraw
+
+    from ctsplat.photos.evaluate import save_turntable_gif, wrap_to_width
+
+    text = ("Photographs: Photogrammetry Test Set: Skull - Cameramoves - Flash - No Background by alansartlog, "
+            "CC BY 4.0 (github.com/AlansCodeLog/photogrammetry-test-sets)")
+    measure = ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength
+    lines = wrap_to_width(text, 120, measure)
+    assert len(lines) > 3 and all(measure(line) <= 120 for line in lines)
+    assert "".join(lines).replace(" ", "") == text.replace(" ", "")  # every character kept, in order
+    assert wrap_to_width("abcdefghij", 3, len) == ["abc", "def", "ghi", "j"]  # a word wider than a line is cut
+    frames = [np.full((40, 124, 3), 0.5)] * 2
+    save_turntable_gif(tmp_path / "t.gif", frames, text.removeprefix("Photographs: "))
+    gif = Image.open(tmp_path / "t.gif")
+    assert gif.size[0] == 124 and gif.size[1] >= 40 + 10 * len(lines)  # a footer tall enough for every line
+
+
+def test_lpips_is_computed_on_rgb_renders_when_available(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import ctsplat.evaluation.metrics as metrics
+
+    seen = []
+
+    def fake(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # stands in for AlexNet LPIPS
+        seen.append((a.shape, float(a.min()), float(a.max())))
+        return ((a - b) ** 2).mean()
+
+    monkeypatch.setattr(metrics, "_lpips_model", lambda: (fake, None))
+    scene, truth = _synthetic_scene()
+    run = tmp_path / "run"
+    run.mkdir()
+    dimmed = truth.detach()
+    dimmed.colors.mul_(0.8)  # renders that differ from the photos
+    dimmed.save(run / "model.pt")
+    (run / "config.json").write_text(json.dumps({"sfm_dir": str(tmp_path), "train": photo_settings()["train"]}))
+    m = evaluate_photos(run, {"turntable_frames": 0, "gallery_views": 0}, scene=scene)
+    assert m["lpips_reason"] is None and m["lpips"] > 0
+    assert all(shape == (1, 3, 48, 64) and lo >= -1 and hi <= 1 for shape, lo, hi in seen)  # RGB in [-1, 1]
+    expected = []
+    for v in scene.split("test"):
+        with torch.no_grad():
+            img = render_view(dimmed, v).image.clamp(0, 1).numpy()
+        expected.append(float(np.mean((2 * img - 2 * v.image.numpy()) ** 2)))
+    assert m["lpips"] == pytest.approx(np.mean(expected), rel=1e-5)
+    assert [m["per_view"][v.name]["lpips"] for v in scene.split("test")] == pytest.approx(expected, rel=1e-5)
+
+
+def test_an_image_too_large_to_decode_safely_fails_in_one_line(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    _jpeg(tmp_path / "01.jpg")  # 64 x 48 = 3072 px
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)  # PIL refuses images over twice this
+    with pytest.raises(CtsplatError, match=r"01\.jpg is too large to decode safely .*downscale it"):
+        check_photos(tmp_path, ["01.jpg"], single_camera=True)
+
+
 def test_training_without_training_photos_fails_in_one_line() -> None:
     scene, _ = _synthetic_scene()
     for v in scene.views:
@@ -517,8 +609,18 @@ def test_blame_names_a_planted_floater_and_its_gain_is_the_opacity_derivative() 
     r = blame_view(model, view, top=2)
     assert r["index"][0] == len(truth)  # the floater, appended last
     assert r["psnr"] < 25 and r["psnr_without"][0] > 60  # without it the render is the photo again
+    # the ranked gains are the exact decreases of the summed squared error, each Gaussian removed alone
+    with torch.no_grad():
+        err_all = float(((render_view(model, view).image - view.image) ** 2).sum())
+        for i, exact in zip(r["index"], r["gain"], strict=True):
+            keep = torch.ones(len(model), dtype=torch.bool)
+            keep[i] = False
+            err_without = float(((render_view(model[keep], view).image - view.image) ** 2).sum())
+            assert exact == pytest.approx(err_all - err_without, rel=1e-5, abs=1e-6)
+    assert r["gain"] == sorted(r["gain"], reverse=True)
     # the gain is (dE/dx) / (1 - o); dE/dx against central differences of the summed squared error
     gain = removal_gain(model, view)
+    assert r["first_order"] == pytest.approx([float(gain[i]) for i in r["index"]])
     x0 = model.opacity_raw.clone()
     for i in (r["index"][1], 3):
         err = []

@@ -104,7 +104,7 @@ def test_workflow_runs_a_photo_volume_beside_the_ct_grid(skull_subset: Path, tmp
     assert dry.returncode == 0, dry.stderr[-3000:]
     blocks = re.split(r"\n(?:local)?rule ", dry.stdout)
     skull_rules = {b.split(":", 1)[0] for b in blocks if "volume=skull" in b}
-    assert skull_rules == {"photos_sfm", "photos_train"}  # no CT rule is scheduled for the photo volume
+    assert skull_rules == {"photos_sfm", "photos_train", "photos_evaluate"}  # no CT rule for the photo volume
     run = subprocess.run([*base, "results/skull/photos/run/metrics.json", *cfg_arg], capture_output=True, text=True,
                          env=env, timeout=600)
     assert run.returncode == 0, run.stderr[-4000:]
@@ -161,6 +161,16 @@ def test_fold_benchmark_pairs_real_runs_and_reuses_them(skull_subset: Path, tmp_
     clash = subprocess.run([*cmd[:-4], "--candidate", "train.sh_degree=1", "--seeds", "0", "--folds", "1"],
                            capture_output=True, text=True, env=env, timeout=600)
     assert clash.returncode == 2 and "holds a run with other settings" in clash.stderr.strip().splitlines()[-1]
+    # a kept run is compared on every setting, not only the ones this call sets: a --base left out (the default
+    # 6000 iterations against the kept 20) or another SfM folder is refused before any training
+    import shutil
+
+    shutil.copytree(sfm, tmp_path / "sfm_copy")
+    k = cmd.index("train.iterations=20")
+    for changed in (cmd[:k - 1] + cmd[k + 1:], [str(tmp_path / "sfm_copy") if c == str(sfm) else c for c in cmd]):
+        refused = subprocess.run([*changed, "--folds", "1"], capture_output=True, text=True, env=env, timeout=600)
+        assert refused.returncode == 2, refused.stderr[-2000:]
+        assert "other settings or another SfM folder" in refused.stderr.strip().splitlines()[-1]
     # which Gaussians the held-out photos fail on, for one of these runs: every validation photo, its PSNR as the
     # evaluation scored it, and the named Gaussians in order of their removal gain
     run = out / "fold1_seed0_default"

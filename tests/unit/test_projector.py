@@ -396,6 +396,24 @@ def test_project_refuses_a_non_finite_volume(tmp_path) -> None:
     assert not (tmp_path / "out").exists()
 
 
+def test_project_refuses_a_volume_that_is_not_attenuation(tmp_path) -> None:
+    hu = np.full((8, 8, 8), -1000.0, np.float32)  # air in HU
+    hu[2:6, 2:6, 2:6] = 40.0
+    opts = {"n_views": 4, "detector_width": 8, "detector_height": 8}
+    save_volume(Volume(hu, np.eye(4), {"volume_id": "hu", "intensity": {"kind": "hu"}}), tmp_path / "hu.nii.gz")
+    with pytest.raises(CtsplatError, match=r"holds raw HU \(intensity: hu\), not attenuation"):
+        render_radiographs(tmp_path / "hu.nii.gz", tmp_path / "out", opts)
+    save_volume(Volume(hu, np.eye(4), {"volume_id": "plain"}), tmp_path / "plain.nii.gz")
+    with pytest.raises(CtsplatError, match=r"negative values down to -1000 .*looks like HU"):
+        render_radiographs(tmp_path / "plain.nii.gz", tmp_path / "out", opts)
+    assert not (tmp_path / "out").exists()
+    ripple = np.where(hu > 0, 1.0, 0.0).astype(np.float32)
+    ripple[0, 0, :] = -0.01  # a reconstruction's small negative ripple is still attenuation
+    save_volume(Volume(ripple, np.eye(4), {"volume_id": "ripple"}), tmp_path / "ripple.nii.gz")
+    render_radiographs(tmp_path / "ripple.nii.gz", tmp_path / "out", opts)
+    assert (tmp_path / "out" / "line_integrals.tif").is_file()
+
+
 def test_radiograph_folder_is_written_whole_or_not_at_all(tmp_path) -> None:
     """A file that cannot be written (here views.json blocked by a folder of that name) leaves nothing new behind,
     and a previous complete folder stays as it was."""

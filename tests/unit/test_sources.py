@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shutil
 import warnings
 from pathlib import Path
@@ -79,6 +80,12 @@ def make_series(
         hu, folder, spacing_mm=spacing, origin_lps=origin, row_dir_lps=row, col_dir_lps=col,
         slice_positions_mm=positions, slice_step_lps=step, **kw,
     )
+
+
+def place(folder: Path, path: Path) -> str:
+    """How errors and warnings name a file of a DICOM folder: by its place in path order, never by its name."""
+    files = sorted(p for p in folder.rglob("*") if p.is_file())
+    return f"file {files.index(path) + 1} of {len(files)} under {folder} (in sorted path order)"
 
 
 def assert_fails_cleanly(source, tmp_path: Path, match: str, **kw) -> str:
@@ -286,10 +293,12 @@ def test_truncated_file_named_and_skippable(tmp_path, caplog, cut):
     raw = bad.read_bytes()
     bad.write_bytes(raw[:-40] if cut == "pixels" else raw[:400])
     msg = assert_fails_cleanly(tmp_path / "s", tmp_path, "corrupt or truncated")
-    assert str(bad) in msg and "skip" in msg
+    assert place(tmp_path / "s", bad) in msg and "skip" in msg
+    assert bad.name not in msg  # DICOM file names are often SOP Instance UIDs
     with caplog.at_level(logging.WARNING, logger="ctsplat.formats.sources"), pytest.warns(SliceGapWarning):
         vol = ingest(tmp_path / "s", tmp_path / "ok" / "volume.nii.gz", {"grid": 8}, skip_corrupt=True)
-    assert any(str(bad) in r.getMessage() for r in caplog.records)
+    assert any(place(tmp_path / "s", bad) in r.getMessage() for r in caplog.records)
+    assert not any(bad.name in r.getMessage() for r in caplog.records)
     assert vol.meta["source"]["n_slices"] == 5
     assert vol.meta["source"]["n_files_skipped"] == 1
     assert vol.meta["source"]["missing_slice_gaps"][0]["between_slices"] == [1, 2]  # where the skipped slice was
@@ -325,7 +334,26 @@ def test_missing_image_position(tmp_path):
     del ds.ImagePositionPatient
     ds.save_as(files[3])
     msg = assert_fails_cleanly(tmp_path / "s", tmp_path, "ImagePositionPatient")
-    assert str(files[3]) in msg
+    assert place(tmp_path / "s", files[3]) in msg and files[3].name not in msg
+
+
+@pytest.mark.filterwarnings("ignore:Invalid value for VR DS")
+@pytest.mark.parametrize(("tag", "value", "needle"), [
+    ("PixelSpacing", ["0", "0"], "invalid PixelSpacing (need 2 positive numbers (mm))"),
+    ("PixelSpacing", ["-1", "1"], "invalid PixelSpacing"),
+    ("ImagePositionPatient", ["nan", "0", "0"], "invalid ImagePositionPatient (need 3 finite numbers)"),
+    ("ImageOrientationPatient", ["1", "0", "0", "0", "inf", "0"], "invalid ImageOrientationPatient"),
+    ("RescaleSlope", "0", "invalid RescaleSlope/RescaleIntercept"),
+    ("RescaleIntercept", "nan", "invalid RescaleSlope/RescaleIntercept"),
+])
+def test_invalid_geometry_or_rescale_values_fail_naming_the_tag(tmp_path, tag, value, needle):
+    files = make_series(tmp_path / "s")
+    for f in files:  # every slice, as an exporter would write them
+        ds = pydicom.dcmread(f)
+        setattr(ds, tag, value)
+        ds.save_as(f)
+    msg = assert_fails_cleanly(tmp_path / "s", tmp_path, re.escape(needle))
+    assert place(tmp_path / "s", files[0]) in msg or "file 1 of" in msg
 
 
 def test_single_slice(tmp_path):
@@ -351,7 +379,8 @@ def test_duplicate_positions_name_both_files(tmp_path):
     files = make_series(tmp_path / "s")
     shutil.copy(files[2], tmp_path / "s" / "copy_of_2.dcm")
     msg = assert_fails_cleanly(tmp_path / "s", tmp_path, "duplicate slice position")
-    assert str(files[2]) in msg and "copy_of_2.dcm" in msg
+    assert place(tmp_path / "s", files[2]) in msg and place(tmp_path / "s", tmp_path / "s" / "copy_of_2.dcm") in msg
+    assert "copy_of_2.dcm" not in msg and files[2].name not in msg
 
 
 def test_mr_rejected_unless_allowed(tmp_path):
@@ -422,12 +451,12 @@ def test_atomic_dir_replaces_whole_folders_or_leaves_the_old_one(tmp_path):
     out = tmp_path / "views"
     out.mkdir()
     (out / "old.png").write_bytes(b"old")
-    with pytest.raises(RuntimeError), atomic_dir(out) as tmp:
+    with pytest.raises(RuntimeError), atomic_dir(out, marker="*.png") as tmp:
         (tmp / "new.png").write_bytes(b"partial")
         raise RuntimeError("writer failed")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["views"]  # no temporary folder left
     assert sorted(p.name for p in out.iterdir()) == ["old.png"]
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out, marker="*.png") as tmp:
         (tmp / "new.png").write_bytes(b"new")
         assert not (out / "new.png").exists()  # nothing visible before the block ends
     assert sorted(p.name for p in out.iterdir()) == ["new.png"]
@@ -435,6 +464,38 @@ def test_atomic_dir_replaces_whole_folders_or_leaves_the_old_one(tmp_path):
     os.umask(umask)
     assert (out.stat().st_mode & 0o777) == 0o777 & ~umask  # not mkdtemp's 0700
     assert sorted(p.name for p in tmp_path.iterdir()) == ["views"]
+
+
+def test_atomic_dir_replaces_only_empty_folders_earlier_outputs_and_never_an_input(tmp_path):
+    from ctsplat.utils import atomic_dir, check_output_dir
+
+    mine = tmp_path / "mine"
+    (mine / "photos").mkdir(parents=True)
+    (mine / "photos" / "a.jpg").write_bytes(b"jpeg")
+    (mine / "notes.txt").write_text("keep")
+    for out in (mine, mine / "photos"):  # a folder that holds the input, and the input itself
+        with pytest.raises(CtsplatError, match=r"is, or holds, the input .*choose another output folder"):
+            with atomic_dir(out, marker="*.jpg", inputs=(mine / "photos",)):
+                pass
+    with pytest.raises(CtsplatError, match=r"mine already holds files that are not an earlier output of this step "
+                                           r"\(no summary\.json in it\)"):
+        check_output_dir(mine, marker="summary.json")
+    with pytest.raises(CtsplatError, match="already holds files"):
+        check_output_dir(mine)  # no marker: only a new or empty folder
+    assert (mine / "notes.txt").read_text() == "keep" and (mine / "photos" / "a.jpg").is_file()
+    empty = tmp_path / "empty" / "figures"  # empty sub-folders (as Snakemake makes them) do not count
+    empty.mkdir(parents=True)
+    check_output_dir(empty.parent)
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(CtsplatError, match="exists and is not a folder"):
+        check_output_dir(tmp_path / "afile")
+    # the folder changes while the block runs: checked again before it is replaced
+    out = tmp_path / "run"
+    with pytest.raises(CtsplatError, match="already holds files"), atomic_dir(out, marker="config.json") as tmp:
+        (tmp / "config.json").write_text("{}")
+        out.mkdir()
+        (out / "someone_elses.txt").write_text("x")
+    assert (out / "someone_elses.txt").is_file() and not (out / "config.json").exists()
 
 
 @pytest.mark.parametrize("kind", ["file", "folder"])
