@@ -27,6 +27,7 @@ from ctsplat.utils import CtsplatError, merge_config
 
 __all__ = [
     "LIBRARY_SECTIONS",
+    "canonical",
     "load_schema",
     "validate_config",
     "schema_defaults",
@@ -407,6 +408,34 @@ def check_volume_sources(volumes: Mapping[str, Mapping[str, Any]], base_dir: str
             )
 
 
+def canonical(value: Any) -> Any:
+    """A copy of a config value with every mapping's keys sorted, recursively (lists keep their order).
+
+    Snakemake's params rerun trigger compares a rule's params as written, key order included; the workflow hands
+    its params over in this form so that reordering a YAML section, or writing out a default, reruns nothing.
+
+    Parameters
+    ----------
+    value : any
+        A config value (mappings, lists, scalars).
+
+    Returns
+    -------
+    any
+        The same value, mappings as plain dicts in key order.
+
+    Examples
+    --------
+    >>> canonical({"b": 1, "a": {"d": [2, {"f": 0, "e": 1}], "c": 3}})
+    {'a': {'c': 3, 'd': [2, {'e': 1, 'f': 0}]}, 'b': 1}
+    """
+    if isinstance(value, Mapping):
+        return {k: canonical(value[k]) for k in sorted(value, key=str)}
+    if isinstance(value, list | tuple):
+        return [canonical(v) for v in value]
+    return value
+
+
 def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] = ".") -> dict[str, Any]:
     """Everything the workflow checks at parse time, before any job runs.
 
@@ -438,10 +467,19 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
         One line naming the offending key and how to fix it.
     """
     cfg = validate_config(config)
+    # a rule given only some of threads / mem_mb / runtime keeps the defaults of the others
+    for rule, spec in load_schema()["properties"]["resources"]["properties"].items():
+        cfg["resources"][rule] = {**spec["default"], **cfg["resources"].get(rule, {})}
     check_volume_sources(cfg["volumes"], base_dir)
     # photo folders take the photos path (workflow/rules/photos.smk), never the CT grid
     cfg["photo_volumes"] = {n: v for n, v in cfg["volumes"].items() if v["kind"] == "photos"}
     cfg["volumes"] = {n: v for n, v in cfg["volumes"].items() if v["kind"] != "photos"}
+    if cfg["photo_volumes"]:
+        for key in ("gallery_views", "turntable_frames"):  # the photos_train rule's outputs include both figures
+            if int(cfg["photos"]["evaluate"][key]) < 1:
+                raise CtsplatError(f"invalid config at photos.evaluate.{key}: the workflow writes the gallery and "
+                                   f"the turntable of every photo volume, so it must be >= 1 (0 skips the figure "
+                                   f"only in `ctsplat photos-train`)")
     if not cfg["volumes"]:
         raise CtsplatError("invalid config at volumes: every volume is of kind photos, and the CT grid needs one CT "
                            "volume (e.g. phantom: {source: phantom}); photographs alone: `ctsplat photos-run`")

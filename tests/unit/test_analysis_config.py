@@ -420,3 +420,12 @@ def test_needs_sfm_follows_enabled_and_the_cells():
     assert needs_sfm(expand_grid(axes, ["v"], []), enabled=True)
     assert needs_sfm(expand_grid({**axes, "poses": ["gt", "colmap"]}, ["v"], []))
     assert needs_sfm(expand_grid({**axes, "init": ["sfm"]}, ["v"], []))
+
+
+def test_a_rule_given_some_resources_keeps_the_defaults_of_the_others():
+    cfg = prepare_config({"volumes": {"phantom": {"source": "phantom"}}, "resources": {"train": {"threads": 2}}})
+    default = prepare_config({"volumes": {"phantom": {"source": "phantom"}}})["resources"]
+    assert cfg["resources"]["train"] == {**default["train"], "threads": 2}
+    assert set(default["train"]) == {"threads", "mem_mb", "runtime"}
+    assert {r: v for r, v in cfg["resources"].items() if r != "train"} == {
+        r: v for r, v in default.items() if r != "train"}

@@ -14,7 +14,7 @@ RULES = {m.group(1) for p in (ROOT / "workflow" / "rules").glob("*.smk")
 def test_rules_found():
     assert RULES == {"phantom", "ingest", "project", "baseline", "sfm", "sfm_figure", "train", "evaluate",
                      "run_figures", "overview_data", "overview_radiographs", "gather", "analyse", "photos_sfm",
-                     "photos_train"}
+                     "photos_train", "photos_evaluate"}
 
 
 def test_slurm_template_profile():

@@ -76,7 +76,7 @@ rule gather:
         mem_mb=rule_resources("gather")["mem_mb"],
         runtime=rule_resources("gather")["runtime"],
     params:
-        analysis=analysis_params(),
+        analysis=gather_params(),
         runs=run_dirs(),
     script:
         "../../scripts/gather.py"

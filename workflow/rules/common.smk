@@ -7,7 +7,7 @@ from pathlib import Path
 from snakemake.utils import Paramspace
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS
-from ctsplat.config import prepare_config
+from ctsplat.config import canonical, prepare_config
 from ctsplat.sfm.step import sfm_failure
 from ctsplat.grid import (
     cells_need_sfm,
@@ -127,19 +127,21 @@ def ingest_source(wildcards):
 def ingest_params(wildcards):
     """Keyword arguments of ctsplat.volume.ingest for one volume (preprocessing merged over the global one)."""
     vol = volume_cfg(wildcards)
-    return {
-        "preprocessing": {**CFG["preprocessing"], **vol["preprocessing"]},
-        "series_uid": vol["series_uid"],
-        "allow_modalities": list(vol["allow_modalities"]),
-        "skip_corrupt": vol["skip_corrupt"],
-        "tiff_voxel_size_mm": vol["tiff_voxel_size_mm"],
-        "rescale": vol["rescale"],
-        "nonfinite": vol["nonfinite"],
-    }
+    return canonical(
+        {
+            "preprocessing": {**CFG["preprocessing"], **vol["preprocessing"]},
+            "series_uid": vol["series_uid"],
+            "allow_modalities": list(vol["allow_modalities"]),
+            "skip_corrupt": vol["skip_corrupt"],
+            "tiff_voxel_size_mm": vol["tiff_voxel_size_mm"],
+            "rescale": vol["rescale"],
+            "nonfinite": vol["nonfinite"],
+        }
+    )
 
 
 def phantom_params(wildcards):
-    return dict(volume_cfg(wildcards)["phantom"])
+    return canonical(volume_cfg(wildcards)["phantom"])
 
 
 def radiographs_params(wildcards):
@@ -148,19 +150,21 @@ def radiographs_params(wildcards):
     user = config.get("radiographs", {}).get(wildcards.geometry) or {}
     if "device" not in user:
         settings["device"] = CFG["device"]
-    return settings
+    return canonical(settings)
 
 
 def baselines_params(wildcards):
-    """run_baselines config: the user's settings plus the grid's view counts (classical reconstructions per view count)."""
-    views = sorted(
-        set(int(v) for v in RUNS[RUNS["volume"] == wildcards.volume]["views"])
+    """run_baselines config: the user's settings plus the view counts (baselines.n_views, else the grid's)."""
+    views = (
+        CFG["baselines"]["n_views"] or RUNS[RUNS["volume"] == wildcards.volume]["views"]
     )
-    return {"n_views": views, **CFG["baselines"]["settings"]}
+    return canonical(
+        {"n_views": sorted(set(int(v) for v in views)), **CFG["baselines"]["settings"]}
+    )
 
 
 def sfm_params(wildcards):
-    return dict(CFG["sfm"]["settings"])
+    return canonical(CFG["sfm"]["settings"])
 
 
 def radiographs_dir(volume, geometry):
@@ -227,7 +231,7 @@ def train_params(wildcards):
         device=CFG["device"],
     )
     # the optional feature axes (ctsplat.grid.FEATURE_AXES)
-    return with_train_overrides(cfg, cell)
+    return canonical(with_train_overrides(cfg, cell))
 
 
 def train_hash(wildcards):
@@ -244,7 +248,29 @@ def train_gpu(wildcards):
 
 
 def analysis_params():
-    return dict(CFG["analysis"])
+    return canonical(CFG["analysis"])
+
+
+def gather_params():
+    """The analysis keys gather reads (so that changing a figure setting does not gather again)."""
+    keys = ("milestones", "max_gap_iters", "velocity_per_iters")
+    return canonical({k: CFG["analysis"][k] for k in keys})
+
+
+def photos_sfm_params(wildcards):
+    return canonical(CFG["photos"]["sfm"])
+
+
+def photos_train_params(wildcards):
+    """The photo training settings; on the workflow's device unless photos.train.device is set."""
+    settings = dict(CFG["photos"]["train"])
+    if "device" not in (config.get("photos", {}).get("train") or {}):
+        settings["device"] = CFG["device"]
+    return canonical(settings)
+
+
+def photos_gpu(wildcards):
+    return 1 if photos_train_params(wildcards)["device"] == "cuda" else 0
 
 
 def metrics_of(dirs):

@@ -18,18 +18,20 @@ rule photos_sfm:
         lambda wildcards: CFG["photo_volumes"][wildcards.volume]["source"],
     output:
         summary=f"{RESULTS}/{{volume}}/photos/sfm/summary.json",
+        sparse=directory(f"{RESULTS}/{{volume}}/photos/sfm/sparse"),
+        images=directory(f"{RESULTS}/{{volume}}/photos/sfm/images"),
     log:
         f"{RESULTS}/logs/photos_sfm/{{volume}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/photos_sfm/{{volume}}.tsv"
     conda:
         "../../envs/ctsplat.yaml"
-    threads: rule_resources("sfm")["threads"]
+    threads: rule_resources("photos_sfm")["threads"]
     resources:
-        mem_mb=rule_resources("sfm")["mem_mb"],
-        runtime=rule_resources("sfm")["runtime"],
+        mem_mb=rule_resources("photos_sfm")["mem_mb"],
+        runtime=rule_resources("photos_sfm")["runtime"],
     params:
-        sfm=lambda wildcards: dict(CFG["photos"]["sfm"]),
+        sfm=photos_sfm_params,
     script:
         "../../scripts/photos_sfm.py"
 
@@ -37,8 +39,39 @@ rule photos_sfm:
 rule photos_train:
     input:
         summary=f"{RESULTS}/{{volume}}/photos/sfm/summary.json",
+        sparse=f"{RESULTS}/{{volume}}/photos/sfm/sparse",
+        images=f"{RESULTS}/{{volume}}/photos/sfm/images",
+    output:
+        model=f"{RESULTS}/{{volume}}/photos/run/model.pt",
+        ply=f"{RESULTS}/{{volume}}/photos/run/model.ply",
+        run_config=f"{RESULTS}/{{volume}}/photos/run/config.json",
+        training=f"{RESULTS}/{{volume}}/photos/run/training.json",
+        log=f"{RESULTS}/{{volume}}/photos/run/train_log.csv",
+    log:
+        f"{RESULTS}/logs/photos_train/{{volume}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/photos_train/{{volume}}.tsv"
+    conda:
+        "../../envs/ctsplat.yaml"
+    threads: rule_resources("photos_train")["threads"]
+    resources:
+        mem_mb=rule_resources("photos_train")["mem_mb"],
+        runtime=rule_resources("photos_train")["runtime"],
+        gpu=photos_gpu,
+    params:
+        train=photos_train_params,
+    script:
+        "../../scripts/photos_train.py"
+
+
+rule photos_evaluate:
+    input:
+        model=f"{RESULTS}/{{volume}}/photos/run/model.pt",
+        run_config=f"{RESULTS}/{{volume}}/photos/run/config.json",
+        training=f"{RESULTS}/{{volume}}/photos/run/training.json",
     output:
         metrics=f"{RESULTS}/{{volume}}/photos/run/metrics.json",
+        per_view=f"{RESULTS}/{{volume}}/photos/run/per_view_test.csv",
         gallery=report(
             f"{RESULTS}/{{volume}}/photos/run/figures/gallery.png",
             caption="../report/photos.rst",
@@ -52,16 +85,17 @@ rule photos_train:
             labels={"volume": "{volume}", "figure": "turntable"},
         ),
     log:
-        f"{RESULTS}/logs/photos_train/{{volume}}.log",
+        f"{RESULTS}/logs/photos_evaluate/{{volume}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/photos_train/{{volume}}.tsv"
+        f"{RESULTS}/benchmarks/photos_evaluate/{{volume}}.tsv"
     conda:
         "../../envs/ctsplat.yaml"
-    threads: rule_resources("train")["threads"]
+    threads: rule_resources("photos_evaluate")["threads"]
     resources:
-        mem_mb=rule_resources("train")["mem_mb"],
-        runtime=rule_resources("train")["runtime"],
+        mem_mb=rule_resources("photos_evaluate")["mem_mb"],
+        runtime=rule_resources("photos_evaluate")["runtime"],
+        gpu=photos_gpu,
     params:
-        photos=lambda wildcards: dict(CFG["photos"]),
+        evaluate=lambda wildcards: canonical(CFG["photos"]["evaluate"]),
     script:
-        "../../scripts/photos_train.py"
+        "../../scripts/photos_evaluate.py"
