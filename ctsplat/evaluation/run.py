@@ -499,7 +499,8 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         return result
     per_view = CsvLog(run_dir / f"per_view_{split}.csv", PER_VIEW_COLUMNS)
     per_view.reset()
-    per_view.append(per_view_rows(trained["iterations"], views, vm))
+    per_view.append(per_view_rows(result["model_iteration"] if result["model_iteration"] is not None
+                                  else trained["iterations"], views, vm))
     if split == "test":
         meta = {"source": "ctsplat voxelised Gaussian model",
                 "intensity": {"unit": "normalised", "mu_scale_per_mm": scene.mu_scale},

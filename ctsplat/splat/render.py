@@ -530,8 +530,8 @@ def render(
         raise CtsplatError("background only applies to the alpha compositor (radiative images have no background)")
     if color_scale is not None and compositor != "alpha":
         raise CtsplatError("color_scale only applies to the alpha compositor (radiative Gaussians have no colour)")
-    if not sigma_cutoff > 0:
-        raise CtsplatError(f"sigma_cutoff must be > 0, got {sigma_cutoff}")
+    if not 0 < sigma_cutoff < math.inf:
+        raise CtsplatError(f"sigma_cutoff must be a finite number > 0, got {sigma_cutoff}")
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
     fused = _fused(backend, gaussians.means.device)
@@ -755,6 +755,11 @@ def voxelize(
     gaussians.validate()
     means = gaussians.means
     dtype, dev = means.dtype, means.device
+    if not 0 < sigma_cutoff < math.inf:
+        raise CtsplatError(f"sigma_cutoff must be a finite number > 0, got {sigma_cutoff}")
+    if filter_3d_var is not None and int(torch.as_tensor(filter_3d_var).numel()) != means.shape[0]:
+        raise CtsplatError(f"filter_3d_var has {int(torch.as_tensor(filter_3d_var).numel())} values for "
+                           f"{means.shape[0]} Gaussians; compute it for this model (compute_3d_filter)")
     if not (isinstance(affine, torch.Tensor) and affine.device.type != "cpu"):
         # checked on the host when it is there (a device affine would cost a read-back per call): the inverse
         # below is taken without an error flag
@@ -878,14 +883,14 @@ def render_to_folder(
     dev = resolve_device(device)
     g = Gaussians.load(model_path, device=dev)
     vs = ViewSet.load(views_path)
-    if split is not None:
-        vs = vs.subset(split)
     scale = float(mu_scale if mu_scale is not None else g.meta.get("mu_scale_per_mm", 1.0))
     fv = None
-    if mip:
-        train_idx = vs.indices("train") if split is None else np.array([], dtype=int)
+    if mip:  # the 3D filter of the training views (the views themselves when the set has none), before any subset
+        train_idx = vs.indices("train")
         base = vs if train_idx.size == 0 else ViewSet(vs.camera, [vs.views[i] for i in train_idx])
         fv = compute_3d_filter(g, vs.camera, base.Rs(), base.ts())
+    if split is not None:
+        vs = vs.subset(split)
     out_dir = Path(out_dir)
     (out_dir / "png").mkdir(parents=True, exist_ok=True)
     images = []

@@ -120,6 +120,8 @@ def save_checkpoint(out_dir: Path, state: TrainState, rng: np.random.Generator, 
         "nan_iters": list(state.nan_iters),
         "elapsed_s": state.elapsed_s,
         "queue": state.queue,
+        # the mip filter of the last densify step: recomputed from the current means it would differ (cone beam)
+        "filter_var": None if state.filter_var is None else state.filter_var.detach().cpu(),
         "densify_counts": state.densify_counts,
         "health": dict(state.health),
         "logs": logs,
@@ -248,6 +250,8 @@ def load_checkpoint(ck: Checkpoint | Path, cfg: dict[str, Any], device: torch.de
         )
         if p.get("err_accum") is not None:
             state.err_accum, state.err_count = p["err_accum"].to(device), p["err_count"].to(device)
+        if p.get("filter_var") is not None:
+            state.filter_var = p["filter_var"].to(device)
         np_state = json.loads(p["np_rng"])
     except Exception as exc:  # noqa: BLE001 - a damaged payload fails in many ways
         raise CtsplatError(f"cannot read checkpoint {ck.path}: {_first_line(exc)}") from exc

@@ -273,7 +273,7 @@ TRAIN_BOUNDS: dict[str, Bound] = {
     "lambda_density": _NONNEG,
     "lambda_scale": _NONNEG,
     "lambda_tv": _NONNEG,
-    "tv_size": _POS_INT,
+    "tv_size": Bound("integer", 2),  # the TV term needs 2 voxels a side
     **{f"lr.{k}": _POS for k in TRAIN_DEFAULTS["lr"]},
     "lr_final_factor": _UNIT,
     "lambda_density_warmup.factor": Bound("number", 1),

@@ -145,18 +145,37 @@ class GradientDensify:
             return False
         return iteration % int(d["interval"]) == 0 or iteration == self.iterations
 
-    def prune_mask(self, means: torch.Tensor, log_scales: torch.Tensor, density_raw: torch.Tensor,
+    def amplitude(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
+        """What each Gaussian renders with: its density (radiative compositors), or its opacity (alpha; the alpha
+        model keeps a density parameter that nothing renders).
+
+        Parameters
+        ----------
+        params : dict of str to Tensor
+            ``density_raw`` (N,), and ``opacity_raw`` (N,) for alpha.
+
+        Returns
+        -------
+        Tensor (N,)
+            ``softplus(density_raw)`` or ``sigmoid(opacity_raw)``, detached.
+        """
+        if self.compositor == "alpha":
+            return torch.sigmoid(params["opacity_raw"].detach())
+        return torch.nn.functional.softplus(params["density_raw"].detach())
+
+    def prune_mask(self, means: torch.Tensor, log_scales: torch.Tensor, amplitude: torch.Tensor,
                    volume: Any) -> torch.Tensor:
-        """The Gaussians pruning removes: density < ``prune_density``, max scale > ``prune_max_scale_fraction`` ×
-        the volume's extent, or centre more than 2 voxels outside the volume box (never all of them).
+        """The Gaussians pruning removes: amplitude (density; alpha: opacity) < ``prune_density``, max scale >
+        ``prune_max_scale_fraction`` × the volume's extent, or centre more than 2 voxels outside the volume box (never
+        all of them).
 
         Parameters
         ----------
         means : Tensor (N, 3)
             Centres (mm).
         log_scales : Tensor (N, 3)
-        density_raw : Tensor (N,)
-            Densities before the softplus.
+        amplitude : Tensor (N,)
+            :meth:`amplitude` of each Gaussian.
         volume : ctsplat.formats.volume.Volume
 
         Returns
@@ -170,7 +189,7 @@ class GradientDensify:
         lo_t = torch.as_tensor(lo - 2 * voxel, dtype=means.dtype, device=dev)
         hi_t = torch.as_tensor(hi + 2 * voxel, dtype=means.dtype, device=dev)
         extent = float(np.max(hi - lo))
-        bad = torch.nn.functional.softplus(density_raw) < float(d["prune_density"])
+        bad = amplitude < float(d["prune_density"])
         bad |= torch.exp(log_scales).max(-1).values > float(d["prune_max_scale_fraction"]) * extent
         bad |= ((means < lo_t) | (means > hi_t)).any(-1)
         if bool(bad.all()):  # never prune everything
@@ -193,7 +212,7 @@ class GradientDensify:
         """
         p = state.params
         with torch.no_grad():
-            bad = self.prune_mask(p["means"].detach(), p["log_scales"].detach(), p["density_raw"].detach(), volume)
+            bad = self.prune_mask(p["means"].detach(), p["log_scales"].detach(), self.amplitude(p), volume)
         if bool(bad.any()):
             state.params = replace_params(state.opt, p, torch.nonzero(~bad).flatten(), {})
         reset_stats(state)
@@ -283,8 +302,9 @@ class GradientDensify:
             # pruning criteria on survivors + new rows
             all_means = torch.cat([p["means"].detach()[keep], new["means"]])
             all_ls = torch.cat([p["log_scales"].detach()[keep], new["log_scales"]])
-            all_dr = torch.cat([p["density_raw"].detach()[keep], new["density_raw"]])
-            bad = self.prune_mask(all_means, all_ls, all_dr, vol)
+            amp = self.amplitude({k: torch.cat([p[k].detach()[keep], new[k]]) for k in ("density_raw", "opacity_raw")
+                                  if k in p})
+            bad = self.prune_mask(all_means, all_ls, amp, vol)
         # apply: first keep/append, then prune
         state.params = replace_params(state.opt, p, torch.nonzero(keep).flatten(), new)
         good = torch.nonzero(~bad).flatten()
@@ -371,7 +391,7 @@ class ErrorDensify(GradientDensify):
     def __init__(self, settings: dict[str, Any], *, compositor: str, iterations: int) -> None:
         super().__init__(settings, compositor=compositor, iterations=iterations)
         self.mode = str(settings.get("strategy", "error"))
-        self.amplitude = "opacity_raw" if compositor == "alpha" else "density_raw"
+        self.amplitude_key = "opacity_raw" if compositor == "alpha" else "density_raw"
 
     def collecting(self, iteration: int) -> bool:
         """Whether the step ``iteration`` (1-based) feeds a densification to come (residual maps cost a backward).
@@ -407,7 +427,7 @@ class ErrorDensify(GradientDensify):
             ``cover`` (N,) bool, the Gaussians with a footprint in the view; ``ratio`` their mean residual divided
             by its mean over ``cover``. None when no Gaussian covers a residual.
         """
-        amp = state.params[self.amplitude]
+        amp = state.params[self.amplitude_key]
         w = residual.detach().abs().to(image.dtype)
         g_w, = torch.autograd.grad(image, amp, grad_outputs=w, retain_graph=True, allow_unused=True)
         g_1, = torch.autograd.grad(image, amp, grad_outputs=torch.ones_like(image), retain_graph=True,

@@ -396,7 +396,8 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     if ckpt is not None and state.pose is not None:
         _load_pose(state, ckpt)
     pr_start = int(cfg["pose_refine"]["start"])
-    state.filter_var = mip_filter(cfg, as_gaussians(state.params), tr.camera, tr.Rs, tr.ts)
+    if ckpt is None or state.filter_var is None or state.filter_var.shape[0] != state.params["means"].shape[0]:
+        state.filter_var = mip_filter(cfg, as_gaussians(state.params), tr.camera, tr.Rs, tr.ts)
     if ckpt is None and cfg["compositor"] == "alpha":
         log.info("alpha seeds: colour %.4g (the brightest target), opacity %.3g (fitted to the training views)",
                  *fit_alpha_seeds(state, cfg, tr))
@@ -562,6 +563,9 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
             state.health["loss_sum"] = float(loss_sum)
             state.elapsed_s = time.perf_counter() - t_start
             save_checkpoint(out_dir, state, rng, gen, chash, int(cfg["keep_checkpoints"]))
+            # a run resumed from this checkpoint rolls a non-finite step back to it: so does this one
+            snap = snapshot(state)
+            pose_snap = _pose_snapshot(state)
         if callback is not None:
             callback(it, state)
     bar.close()

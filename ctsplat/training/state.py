@@ -205,7 +205,7 @@ class TrainState:
     queue : list of list of int
         Remaining view batches of the current epoch.
     filter_var : Tensor (N,) or None
-        Mip 3D filter variance (mm²); recomputed, not checkpointed.
+        Mip 3D filter variance (mm²), computed at each densify step and checkpointed.
     densify_counts : dict of str to int
         Cloned, split and pruned Gaussians so far.
     pose, pose_opt : PoseCorrection, torch.optim.Adam or None

@@ -393,6 +393,19 @@ def test_bad_filter_variance_raises(backend):
             render(g, ParallelCamera(16, 16, 1.0), *_pose(0.0, 0.0), filter_3d_var=fv, backend=backend)
 
 
+def test_bad_cutoff_and_a_filter_of_another_model_raise_in_one_line():
+    from ctsplat.splat.render import voxelize
+
+    g = _mixture(4, seed=0)
+    for cutoff in (0.0, float("inf"), float("nan")):
+        with pytest.raises(CtsplatError, match="sigma_cutoff must be a finite number > 0"):
+            render(g, ParallelCamera(16, 16, 1.0), *_pose(0.0, 0.0), sigma_cutoff=cutoff)
+        with pytest.raises(CtsplatError, match="sigma_cutoff must be a finite number > 0"):
+            voxelize(g, (8, 8, 8), torch.eye(4, dtype=D64), sigma_cutoff=cutoff)
+    with pytest.raises(CtsplatError, match="filter_3d_var has 3 values for 4 Gaussians"):
+        voxelize(g, (8, 8, 8), torch.eye(4, dtype=D64), filter_3d_var=torch.zeros(3, dtype=D64))
+
+
 def test_float32_kernel_rows_of_every_length_and_image_corners():
     # footprint rows 1..37 px long (every remainder of the kernel's 8-lane row chunks), clipped at all four image
     # corners and edges; float32 kernel against the float64 reference, values and gradients

@@ -59,3 +59,24 @@ def test_render_cli_split_and_bad_model(tmp_path, capsys):
     assert main(["render", str(tmp_path / "nope.pt"), str(tmp_path / "views.json"), str(out)]) == 2
     assert "model file not found" in capsys.readouterr().err
     assert torch.is_tensor(Gaussians.load(tmp_path / "model.pt").means)
+
+
+def test_render_cli_split_keeps_the_training_views_3d_filter(tmp_path):
+    from ctsplat.geometry import ConeCamera
+
+    rng = np.random.default_rng(0)
+    g = Gaussians.from_values(rng.normal(size=(20, 3)) * 5, rng.uniform(0.2, 1, (20, 3)), rng.uniform(0.1, 1, 20),
+                              rng.normal(size=(20, 4)))
+    g.save(tmp_path / "model.pt")
+    views = []
+    for i, (az, dist) in enumerate(((0.0, 60.0), (60.0, 60.0), (120.0, 400.0))):  # the test view stands far off
+        R, t = pose_from_angles(az, 10.0, (0, 0, 0), dist)
+        views.append(View(i, R, t, az, 10.0, "train" if i < 2 else "test"))
+    ViewSet(ConeCamera(24, 20, 0.5, 60.0, 90.0), views).save(tmp_path / "views.json")
+    full, test = tmp_path / "all", tmp_path / "test"
+    for out, extra in ((full, []), (test, ["--split", "test"])):
+        assert main(["render", str(tmp_path / "model.pt"), str(tmp_path / "views.json"), str(out), "--mip",
+                     *extra]) == 0
+    # the test view renders the same alone as among all views: the filter comes from the train views either way
+    alone = np.squeeze(tifffile.imread(test / "images.tif"))
+    np.testing.assert_array_equal(alone, tifffile.imread(full / "images.tif")[2])

@@ -294,6 +294,26 @@ def test_prune_until_end_removes_what_grew_after_densification_stopped():
     assert not any(off.prune_due(i) for i in range(1, 36))
 
 
+def test_alpha_pruning_reads_the_opacity_that_is_rendered_not_the_unused_density():
+    rng = np.random.default_rng(1)
+    st = _state_of(rng.uniform(-10, 10, (6, 3)), np.full((6, 3), 1.0), [1e-6, 1.0, 1.0, 1.0, 1.0, 1.0])
+    opacity = torch.tensor([0.95, 1e-6, 0.5, 0.5, 0.5, 0.5])
+    st.params["opacity_raw"] = torch.logit(opacity).requires_grad_(True)  # Gaussian 0 opaque, Gaussian 1 invisible
+    st.params["colors"] = torch.full((6, 1), 0.5, requires_grad=True)
+    st.opt = state.make_optimizer(st.params, {"lr": config.TRAIN_DEFAULTS["lr"]}, 1.0)
+    reset_stats(st)
+    settings = {**config.TRAIN_DEFAULTS["densify"], "interval": 10, "start": 10, "stop": 20, "prune_until_end": True}
+    alpha = GradientDensify(settings, compositor="alpha", iterations=30)
+    assert torch.equal(alpha.amplitude(st.params), torch.sigmoid(st.params["opacity_raw"].detach()))
+    counts = alpha.maybe_step(st, 30, _box_volume(), torch.Generator())
+    assert counts["pruned"] == 1 and counts["n"] == 5
+    kept = torch.sigmoid(st.params["opacity_raw"].detach())
+    assert float(kept[0]) == pytest.approx(0.95) and float(kept.min()) > 0.4  # the opaque one stays
+    radiative = GradientDensify(settings, compositor="radiative", iterations=30)
+    assert torch.equal(radiative.amplitude(st.params),
+                       torch.nn.functional.softplus(st.params["density_raw"].detach()))
+
+
 # --- 5. best-validation model ----------------------------------------------------------------------------------------
 
 def test_model_best_is_the_best_validation_checkpoint_and_evaluate_uses_it(scene_dir, tmp_path):
@@ -323,6 +343,7 @@ def test_model_best_is_the_best_validation_checkpoint_and_evaluate_uses_it(scene
     assert json.loads((out / "metrics.json").read_text())["model"] == "last"
     m = evaluate(out, device="cpu", model="best")
     assert json.loads((out / "metrics.json").read_text())["model"] == "best" and m["model_iteration"] == best_it
+    assert {r["iteration"] for r in _rows(out / "per_view_test.csv")} == {str(best_it)}  # the model's own iteration
     (out / "model_best.pt").unlink()
     with pytest.raises(CtsplatError, match="no model_best.pt"):
         evaluate(out, device="cpu", model="best", write=False)
@@ -388,6 +409,47 @@ def test_resume_with_features_continues_bit_for_bit(scene_dir, tmp_path):
     assert resumed["n_gaussians"] == full["n_gaussians"] and resumed["best_iteration"] == full["best_iteration"]
 
 
+def test_resume_is_bit_for_bit_with_the_mip_filter_and_after_a_non_finite_step(tmp_path):
+    # cone beam: the 3D filter depends on the means, so the resumed run must use the filter of the last densify
+    # step, not one recomputed from the checkpoint's means; a non-finite step after the resume must roll back to
+    # the same state as the uninterrupted run's
+    from train_helpers import MU
+
+    from ctsplat.formats.volume import Volume, save_volume
+    from ctsplat.projector import render_radiographs
+
+    data, aff = tiny_phantom()
+    save_volume(Volume(data, aff, {"volume_id": "tinycone", "intensity": {"mu_scale_per_mm": MU}}),
+                tmp_path / "volume.nii.gz")
+    render_radiographs(tmp_path / "volume.nii.gz", tmp_path / "rad", {
+        "camera": "cone", "dso_mm": 100.0, "dsd_mm": 150.0, "detector_width": 24, "detector_height": 24,
+        "n_views": 12, "device": "cpu"})
+    cfg = _cfg(tmp_path, n_init=200, iterations=16, eval_every=8, checkpoint_every=6, mip=True,
+               densify={"interval": 10, "start": 10})
+
+    class Stop(Exception):
+        pass
+
+    def poison(it: int, st: state.TrainState) -> None:
+        if it == 7:
+            with torch.no_grad():
+                st.params["means"][0, 0] = float("nan")
+
+    def stop(it: int, _st: state.TrainState) -> None:
+        if it == 6:
+            raise Stop
+
+    for name, callback in (("clean", None), ("nan", poison)):
+        full = loop.train(cfg, tmp_path / f"{name}_full", callback=callback)
+        with pytest.raises(Stop):
+            loop.train(cfg, tmp_path / f"{name}_cut", callback=stop)
+        resumed = loop.train(cfg, tmp_path / f"{name}_cut", resume=True, callback=callback)
+        assert resumed["nan_events"] == full["nan_events"] == (1 if callback else 0)
+        a, b = (Gaussians.load(tmp_path / f"{name}_{d}" / "model.pt") for d in ("full", "cut"))
+        for k, v in a.tensors().items():
+            assert torch.equal(v, b.tensors()[k]), (name, k)
+
+
 @pytest.mark.parametrize(("kw", "msg"), [
     ({"augment": {"rot_deg": -0.5}}, r"train\.augment\.rot_deg must be a number in \[0, 1\], got -0.5"),
     ({"augment": {"shear": 1}}, "unknown config key train.augment.shear"),
@@ -398,6 +460,7 @@ def test_resume_with_features_continues_bit_for_bit(scene_dir, tmp_path):
     ({"densify": {"prune_redundant": {"distance": -1}}}, "prune_redundant.distance must be a number in"),
     ({"densify": {"prune_until_end": "yes"}}, "train.densify.prune_until_end must be true or false, got 'yes'"),
     ({"optimizer_preset": "sgd"}, "unknown train.optimizer_preset 'sgd'"),
+    ({"tv_size": 1}, r"train\.tv_size must be an integer >= 2, got 1"),
     ({"model_selection": "median"}, "unknown train.model_selection 'median'"),
 ])
 def test_bad_feature_settings_fail_with_one_line(scene_dir, kw, msg):
