@@ -16,7 +16,7 @@ from ctsplat.grid import GRID_AXES, cell_needs_sfm, parse_run_dir, run_axes, use
 from ctsplat.utils import CtsplatError, atomic_path, dotted_items
 
 __all__ = ["TEST_METRICS", "SFM_COLUMNS", "BASELINE_SUMMARY_COLUMNS", "NOT_RUN", "velocity_column",
-           "sfm_summary_path", "read_baselines", "gather", "load_runs", "load_per_view"]
+           "sfm_summary_path", "read_baselines", "gather", "read_summary", "load_runs", "load_per_view"]
 
 
 # Test-split metrics of metrics.json, renamed so they cannot be mistaken for the validation values of the log.
@@ -81,8 +81,7 @@ def _sfm_columns(run_dir: Path) -> dict[str, Any]:
     path = sfm_summary_path(run_dir)
     if path is None or not path.exists():
         return {**dict.fromkeys(SFM_COLUMNS), "sfm_ok": False}
-    with open(path) as fh:
-        summary = json.load(fh)
+    summary = _read_json(path)
     out = {col: summary.get(key) for col, key in SFM_COLUMNS.items()}
     out["sfm_ok"] = bool(summary.get("ok", False))
     return out
@@ -217,8 +216,7 @@ def gather(
             continue
         row["status"] = "trained"
         if metrics_path.exists():
-            with open(metrics_path) as fh:
-                metrics = json.load(fh)
+            metrics = _read_json(metrics_path)
             for m in TEST_METRICS:
                 row[f"test_{m}"] = metrics.pop(m, None)
             for k, v in dotted_items(metrics, lists_as_json=True).items():
@@ -245,6 +243,50 @@ def gather(
     with atomic_path(out_csv) as tmp:
         df.to_csv(tmp, index=False, lineterminator="\n")
     return df
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    """A run's JSON file, or one line naming it when it does not parse."""
+    try:
+        with open(path) as fh:
+            return json.load(fh)
+    except json.JSONDecodeError as exc:
+        raise CtsplatError(f"{path} is not valid JSON ({exc.msg} at line {exc.lineno}); the step that wrote it was "
+                           "interrupted or the file was edited: run that step again") from None
+
+
+def read_summary(path: str | os.PathLike[str]) -> pd.DataFrame:
+    """Read a ``summary.csv`` written by :func:`gather`, checking that it is one and that its runs are reachable.
+
+    Parameters
+    ----------
+    path : path-like
+        The CSV. Its ``run_dir`` values are as :func:`gather` was given them, relative to the folder it ran in.
+
+    Returns
+    -------
+    pandas.DataFrame
+
+    Raises
+    ------
+    CtsplatError
+        One line: the file is empty or not a summary (no ``run_dir`` / ``volume`` column), or a trained run's folder
+        is not found from here (analyse runs from the folder that gather ran in).
+    """
+    path = Path(path)
+    try:
+        summary = pd.read_csv(path)
+    except pd.errors.EmptyDataError:
+        raise CtsplatError(f"{path} is empty; write it with `ctsplat gather`") from None
+    missing = [c for c in ("run_dir", "volume") if c not in summary]
+    if missing:
+        raise CtsplatError(f"{path} is not a summary of `ctsplat gather` (no {', '.join(missing)} column)")
+    trained = summary if "status" not in summary else summary[summary["status"] != NOT_RUN]
+    gone = [d for d in trained["run_dir"].astype(str) if not Path(d).is_dir()]
+    if gone:
+        raise CtsplatError(f"{len(gone)} run folder(s) of {path} not found from {Path.cwd()} (e.g. {gone[0]}); "
+                           "run analyse from the folder that gather ran in")
+    return summary
 
 
 def load_runs(summary: pd.DataFrame, *, max_gap_iters: int = 10) -> pd.DataFrame:

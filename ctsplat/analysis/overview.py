@@ -208,11 +208,12 @@ def plot_sfm(poses: pd.DataFrame, summary: dict[str, Any], out: str | os.PathLik
 
 def volume_figure(volume_path: str | os.PathLike[str], out: str | os.PathLike[str], *, title: str = ""
                   ) -> plt.Figure:
-    """:func:`plot_volume_slices` of an ingested ``volume.nii.gz`` (normalised attenuation, 0-1)."""
+    """:func:`plot_volume_slices` of an ingested ``volume.nii.gz``, the colour bar in its intensity's unit."""
     from ctsplat.formats.volume import load_volume
 
     vol = load_volume(volume_path)
-    return plot_volume_slices(vol.data, out, spacing_mm=vol.spacing_mm, title=title or Path(volume_path).parent.name)
+    return plot_volume_slices(vol.data, out, spacing_mm=vol.spacing_mm, title=title or Path(volume_path).parent.name,
+                              unit=vol.unit)
 
 
 def radiographs_figure(radiographs_dir: str | os.PathLike[str], out: str | os.PathLike[str], *,

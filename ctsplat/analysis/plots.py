@@ -24,7 +24,7 @@ import pandas as pd  # noqa: E402
 import seaborn as sns  # noqa: E402
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS  # noqa: E402
-from ctsplat.analysis.gather import load_per_view, load_runs, read_baselines  # noqa: E402
+from ctsplat.analysis.gather import load_per_view, load_runs, read_baselines, read_summary  # noqa: E402
 from ctsplat.analysis.stats import (  # noqa: E402
     CONDITION_AXES,
     METRIC_RANGES,
@@ -697,6 +697,15 @@ def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fig
     return _save(fig, out)
 
 
+def _baseline_label(baselines: pd.DataFrame) -> pd.Series:
+    """Each classical row's label: its method, and its volume when ``baselines`` holds several (a method's scores
+    on different volumes are different lines, never one maximum over volumes)."""
+    label = baselines["method"].astype(str)
+    if "volume" in baselines and baselines["volume"].nunique() > 1:
+        label = label + ", volume=" + baselines["volume"].astype(str)
+    return label
+
+
 def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os.PathLike[str], *,
                    metric: str = "psnr3d") -> plt.Figure:
     """Gaussian runs vs classical reconstructions per number of training views.
@@ -732,8 +741,8 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
     drawn = False
     if not baselines.empty and metric in baselines:
         b = baselines.copy()
-        # one line per method: its settings (filter, iterations, weights) were chosen on validation views
-        b["label"] = b["method"].astype(str)
+        # one line per method (and volume): its settings (filter, iterations, weights) were chosen on validation views
+        b["label"] = _baseline_label(b)
         # classical methods in greys with their own markers, so they never share a colour with a Gaussian run
         labels = sorted(b["label"].unique())
         greys = np.linspace(0.0, 0.6, max(len(labels), 1))
@@ -742,8 +751,9 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
             ax.plot(g["n_views"], g[metric], linestyle=LINESTYLES[1 + k % 3], marker=MARKERS[1 + k % 7],
                     color=str(greys[k]), label=label, lw=1.2)
             drawn = True
-    if col in summary and len(summary):
-        s = summary.assign(score=pd.to_numeric(summary[col], errors="coerce")).dropna(subset=["score"])
+    s = (summary.assign(score=pd.to_numeric(summary[col], errors="coerce")).dropna(subset=["score"])
+         if col in summary else summary.iloc[:0])
+    if len(s):
         cond_axes = [a for a in ("volume", *ALL_AXES) if a not in ("views", "seed") and a in s]
         named = varying_axes(s, cond_axes) or [a for a in cond_axes if a != "volume"]
         s = s.assign(condition="Gaussian, " + s[named].astype(str).apply(
@@ -772,8 +782,8 @@ def _plot_baseline_bars(summary: pd.DataFrame, baselines: pd.DataFrame, out: str
 
     bars: list[tuple[str, float, str]] = []  # (label, score, colour)
     if not baselines.empty and metric in baselines:
-        for method, g in baselines.groupby("method"):
-            bars.append((f"{method} (classical)", float(pd.to_numeric(g[metric], errors="coerce").max()), "0.55"))
+        for label, g in baselines.groupby(_baseline_label(baselines)):
+            bars.append((f"{label} (classical)", float(pd.to_numeric(g[metric], errors="coerce").max()), "0.55"))
     if col in summary and len(summary):
         s = summary.assign(score=pd.to_numeric(summary[col], errors="coerce")).dropna(subset=["score"])
         cond_axes = [a for a in ("volume", *ALL_AXES) if a not in ("views", "seed") and a in s]
@@ -830,7 +840,7 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
     unknown = sorted(set(outputs) - set(ANALYSIS_OUTPUTS))
     if unknown:
         raise CtsplatError(f"unknown analysis output {unknown[0]!r}; known: {', '.join(ANALYSIS_OUTPUTS)}")
-    summary = pd.read_csv(summary_csv)
+    summary = read_summary(summary_csv)
     logs = load_runs(summary, max_gap_iters=cfg["max_gap_iters"])
     for a in GRID_AXES:
         key = f"convergence_by_{a}"

@@ -11,7 +11,8 @@ from ctsplat.utils import CtsplatError
 
 
 def load_section(path: str | None, section: str) -> dict[str, Any]:
-    """Settings from a YAML/JSON file: either the section itself or ``{section: {...}}``; ``{}`` without a file."""
+    """Settings from a YAML/JSON file: the section itself, ``{section: {...}}``, or a run folder's ``config.json``
+    (``{"config": {...}, "config_hash": ...}``, the settings it trained with); ``{}`` without a file."""
     if path is None:
         return {}
     p = Path(path)
@@ -26,6 +27,8 @@ def load_section(path: str | None, section: str) -> dict[str, Any]:
         raise CtsplatError(f"config file {p} is not valid YAML/JSON: {str(exc).splitlines()[0]}") from exc
     if not isinstance(cfg, dict):
         raise CtsplatError(f"config file {p} must hold a mapping (the {section} section)")
+    if isinstance(cfg.get("config"), dict) and "config_hash" in cfg:  # a run folder's record of its settings
+        return dict(cfg["config"])
     return dict(cfg[section]) if isinstance(cfg.get(section), dict) else dict(cfg)
 
 

@@ -42,7 +42,8 @@ def _thresholds(defaults: dict[str, float], items: list[str] | None) -> dict[str
 
 
 def _run_dirs(paths: list[str]) -> list[Path]:
-    """Run folders from the arguments: a run folder itself, or any folder searched for ``train_log.csv``."""
+    """Run folders from the arguments: a run folder itself, or any folder searched for grid runs (``KEY~VALUE``
+    folders with ``train_log.csv`` or ``metrics.json``; a photo run, ``{volume}/photos/run``, is not one)."""
     out: list[Path] = []
     for p in map(Path, paths):
         if not p.exists():
@@ -50,8 +51,8 @@ def _run_dirs(paths: list[str]) -> list[Path]:
         if (p / "train_log.csv").exists() or (p / "metrics.json").exists():
             out.append(p)
         else:
-            found = sorted({q.parent for q in p.rglob("train_log.csv")} | {q.parent for q in p.rglob("metrics.json")
-                                                                            if "~" in q.parent.name})
+            found = sorted({q.parent for name in ("train_log.csv", "metrics.json") for q in p.rglob(name)
+                            if "~" in q.parent.name})
             if not found:
                 raise CtsplatError(f"no run folders (with train_log.csv or metrics.json) under {p}")
             out += found

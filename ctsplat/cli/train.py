@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -22,11 +23,8 @@ def load_train_config(path: str | None, overrides: list[str]) -> dict[str, Any]:
 
 
 def _train(args: argparse.Namespace) -> None:
-    from ctsplat.evaluation import evaluate
-    from ctsplat.training import train
-    from ctsplat.training.checkpoint import list_checkpoints
     from ctsplat.training.config import resolve_config
-    from ctsplat.utils import CtsplatError, run_lock
+    from ctsplat.utils import LOCK_NAME
 
     cfg = load_train_config(args.config, args.set or [])
     for key in ("volume", "radiographs", "sfm_dir", "sfm_radiographs", "init", "compositor", "poses", "device"):
@@ -41,6 +39,22 @@ def _train(args: argparse.Namespace) -> None:
         cfg["progress"] = False
     resolve_config(cfg)  # bad settings fail before the run folder is created and locked
     out = Path(args.out)
+    created = not out.exists()
+    try:
+        _train_locked(args, cfg, out)
+    except BaseException:
+        # a run that failed before writing anything (a missing input) leaves no folder behind
+        if created and out.is_dir() and {p.name for p in out.iterdir()} <= {LOCK_NAME}:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
+def _train_locked(args: argparse.Namespace, cfg: dict[str, Any], out: Path) -> None:
+    from ctsplat.evaluation import evaluate
+    from ctsplat.training import train
+    from ctsplat.training.checkpoint import list_checkpoints
+    from ctsplat.utils import CtsplatError, run_lock
+
     # one lock over training and evaluation, so no other process writes the folder in between
     with run_lock(out):
         earlier = [p.relative_to(out).as_posix() for p in list_checkpoints(out)[-1:]]
@@ -62,8 +76,8 @@ def _evaluate(args: argparse.Namespace) -> None:
     from ctsplat.utils import run_lock
 
     run_dir = Path(args.run_dir)
-    # a missing folder is reported by evaluate (not a finished run); locking would create it
-    with run_lock(run_dir) if run_dir.is_dir() else contextlib.nullcontext():
+    # a folder that is not a run is reported by evaluate; locking would create it, or leave a lock file in it
+    with run_lock(run_dir) if (run_dir / "config.json").is_file() else contextlib.nullcontext():
         res = evaluate(run_dir, split=args.split, device=args.device)
     print(json.dumps(res, indent=2, default=str))
 

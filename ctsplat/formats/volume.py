@@ -37,6 +37,16 @@ from ctsplat.utils import CtsplatError, atomic_path, write_json_atomic
 __all__ = ["Volume", "load_volume", "save_volume", "json_path_for", "compute_volume_id", "check_attenuation"]
 
 
+#: Labels of the intensity kinds that :func:`ctsplat.volume.ingest` writes.
+_UNITS = {
+    "attenuation_normalised": "normalised attenuation (0-1)",
+    "minmax_normalised": "min-max normalised source values (0-1)",
+    "window": "windowed HU (0-1)",
+    "attenuation_per_mm": "attenuation μ (1/mm)",
+    "hu": "HU",
+}
+
+
 @dataclass
 class Volume:
     """A CT volume in the world frame.
@@ -69,6 +79,11 @@ class Volume:
     def mu_scale_per_mm(self) -> float:
         """Factor mapping ``data`` to attenuation in 1/mm (1.0 when ``data`` already is μ)."""
         return float(self.meta.get("intensity", {}).get("mu_scale_per_mm", 1.0))
+
+    @property
+    def unit(self) -> str:
+        """What ``data`` holds, for axis and colour-bar labels (from ``meta["intensity"]["kind"]``)."""
+        return _UNITS.get(self.meta.get("intensity", {}).get("kind"), "voxel value")
 
     @property
     def metric_range(self) -> float:

@@ -420,6 +420,14 @@ def test_gather_errors(tmp_path):
     assert not (tmp_path / "s.csv").exists()
 
 
+def test_gather_names_a_corrupt_metrics_file_in_one_line(tmp_path):
+    rd = _fake_run(tmp_path)
+    (rd / "metrics.json").write_text("{bad")
+    with pytest.raises(CtsplatError, match=r"metrics\.json is not valid JSON .*run that step again"):
+        gather([rd], tmp_path / "s.csv")
+    assert not (tmp_path / "s.csv").exists()
+
+
 def test_parse_run_dir_roundtrip():
     row = {"volume": "head", "init": "sfm", "compositor": "radiative_unrectified", "mip": "off", "poses": "colmap",
            "views": 75, "seed": 2}

@@ -37,6 +37,16 @@ def test_gather_searches_folders_and_analyse_writes_figures(tmp_path, capsys):
     assert all((figs / fname).exists() for fname, _ in ANALYSIS_OUTPUTS.values())
 
 
+def test_gather_of_a_results_folder_skips_the_photo_runs(tmp_path, capsys):
+    _run(tmp_path, 0)
+    photo = tmp_path / "results" / "skull" / "photos" / "run"  # a photo run writes train_log.csv too
+    photo.mkdir(parents=True)
+    (photo / "train_log.csv").write_text("iteration,timestamp,psnr2d\n0,0,20\n")
+    (photo / "metrics.json").write_text("{}")
+    assert main(["gather", str(tmp_path / "results"), "--out", str(tmp_path / "s.csv")]) == 0
+    assert list(pd.read_csv(tmp_path / "s.csv")["volume"]) == ["phantom"]
+
+
 def test_cli_errors_are_one_line(tmp_path, capsys):
     assert main(["gather", str(tmp_path / "nothing")]) == 2
     assert main(["gather", str(tmp_path)]) == 2

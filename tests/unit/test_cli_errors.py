@@ -284,3 +284,24 @@ def test_hu_max_sets_where_mu_clips(tmp_path):
         data = load_volume(out).data
         assert float(data.max()) == pytest.approx(top, rel=1e-4)  # mu clips at mu(hu_max)
         assert float(data.min()) == pytest.approx(0.019, rel=1e-4)
+
+
+def test_a_failed_train_or_evaluate_leaves_no_folder_or_lock_behind(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["train", "--out", str(out), "--volume", str(tmp_path / "nope.nii.gz"), "--radiographs",
+                 str(tmp_path / "rad")]) == 2
+    assert "nope.nii.gz does not exist" in capsys.readouterr().err and not out.exists()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    assert main(["evaluate", str(mine)]) == 2
+    assert "is not a finished training run" in capsys.readouterr().err and list(mine.iterdir()) == []
+
+
+def test_train_reads_a_run_folders_config_json(tmp_path):
+    from ctsplat.cli.train import load_train_config
+
+    record = {"config": {"iterations": 400, "init": "fbp", "lr": {"means": 1e-4}}, "config_hash": "abc",
+              "code_version": "1234567", "scene": {}, "uses_reference_volume": False}
+    (tmp_path / "config.json").write_text(json.dumps(record))
+    cfg = load_train_config(str(tmp_path / "config.json"), ["iterations=800"])
+    assert cfg == {"iterations": 800, "init": "fbp", "lr": {"means": 1e-4}}  # the settings it trained with

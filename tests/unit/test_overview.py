@@ -95,6 +95,12 @@ def test_file_wrappers_read_the_workflow_files(tmp_path):
     save_volume(Volume(data=vol, affine=np.diag([2.0, 2.0, 2.0, 1.0]), meta={}), tmp_path / "volume.nii.gz")
     fig = volume_figure(tmp_path / "volume.nii.gz", tmp_path / "v.png")
     assert fig._suptitle.get_text() == tmp_path.name
+    for kind, unit in (("attenuation_normalised", "normalised attenuation (0-1)"),
+                       ("attenuation_per_mm", "attenuation μ (1/mm)"), ("hu", "HU")):  # the colour bar's label
+        save_volume(Volume(data=vol, affine=np.diag([2.0, 2.0, 2.0, 1.0]), meta={"intensity": {"kind": kind}}),
+                    tmp_path / "k" / "volume.nii.gz")
+        labels = {ax.get_ylabel() for ax in volume_figure(tmp_path / "k" / "volume.nii.gz", tmp_path / "k.png").axes}
+        assert unit in labels, (kind, labels)
     assert (tmp_path / "v.png").stat().st_size > 1000
     render_radiographs(tmp_path / "volume.nii.gz", tmp_path / "rad",
                        {"n_views": 10, "detector_width": 8, "detector_height": 8, "device": "cpu"})

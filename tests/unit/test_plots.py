@@ -297,6 +297,46 @@ def test_baselines_plot_with_one_view_count_is_ranked_bars(tmp_path):
     assert _is_png(tmp_path / "bars.png")
 
 
+def test_baselines_of_several_volumes_are_never_pooled(tmp_path):
+    # the phantom's SART (33 dB) must not stand in for the head's (22 dB)
+    base = pd.DataFrame({"volume": ["phantom", "head"], "method": ["sart", "sart"], "n_views": [24, 24],
+                         "psnr3d": [33.0, 22.0], "ssim3d": [0.9, 0.6]})
+    summary = pd.DataFrame({"volume": ["phantom", "head"], "init": "fbp", "compositor": "radiative", "mip": "on",
+                            "poses": "gt", "views": 24, "seed": 0, "test_psnr3d": [34.0, 25.5]})
+    ax = plots.plot_baselines(summary, base, tmp_path / "bars.png").axes[0]
+    bars = dict(zip([t.get_text() for t in ax.get_yticklabels()], [p.get_width() for p in ax.patches], strict=True))
+    assert bars["sart, volume=head (classical)"] == 22.0 and bars["sart, volume=phantom (classical)"] == 33.0
+    several = pd.concat([base, base.assign(n_views=48, psnr3d=base["psnr3d"] + 1)])
+    fig = plots.plot_baselines(summary, several, tmp_path / "l.png")
+    lines = {ln.get_label(): ln for ln in fig.axes[0].get_lines()}
+    np.testing.assert_allclose(lines["sart, volume=head"].get_ydata(), [22.0, 23.0])
+    np.testing.assert_allclose(lines["sart, volume=phantom"].get_ydata(), [33.0, 34.0])
+
+
+def test_analyse_refuses_a_bad_summary_in_one_line_and_draws_one_without_scores(tmp_path, monkeypatch):
+    outputs = {"baselines": tmp_path / "f" / "baselines.png"}
+    (tmp_path / "empty.csv").write_text("")
+    with pytest.raises(CtsplatError, match=r"empty\.csv is empty; write it with `ctsplat gather`"):
+        plots.analyse(tmp_path / "empty.csv", outputs)
+    pd.DataFrame({"volume": ["p"], "psnr": [1.0]}).to_csv(tmp_path / "other.csv", index=False)
+    with pytest.raises(CtsplatError, match=r"other\.csv is not a summary of `ctsplat gather` \(no run_dir column\)"):
+        plots.analyse(tmp_path / "other.csv", outputs)
+    run = _make_run(tmp_path / "work")
+    monkeypatch.chdir(tmp_path / "work")
+    gather([run.relative_to(tmp_path / "work")], tmp_path / "work" / "summary.csv")  # run_dir relative, as Snakemake
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(CtsplatError, match=r"1 run folder\(s\) of .*summary\.csv not found from .* run analyse "
+                                           r"from the folder that gather ran in"):
+        plots.analyse(tmp_path / "work" / "summary.csv", outputs)
+    # a run still in progress: its log has a header and no values yet
+    monkeypatch.chdir(tmp_path / "work")
+    pd.DataFrame(columns=_log().columns).to_csv(run / "train_log.csv", index=False)
+    (run / "metrics.json").unlink()
+    gather([run.relative_to(tmp_path / "work")], "summary.csv")
+    plots.analyse("summary.csv", outputs)
+    assert _is_png(outputs["baselines"])
+
+
 def test_ablation_is_paired_lines_not_boxes(tmp_path):
     runs = [_make_run(tmp_path, init=i, views=v, seed=s) for i in ("fbp", "uniform") for v in (8, 16)
             for s in (0, 1)]
