@@ -234,6 +234,8 @@ def gather(
             row[velocity_column(per_iters)] = convergence_velocity(log["iteration"], log["psnr2d"], per_iters)
         rows.append(row)
     df = pd.DataFrame(rows)
+    for col in [c for c in df.columns if c.startswith("iter_to_")]:
+        df[col] = df[col].astype("Int64")  # iterations, written without ".0" when some run missed the milestone
     colmap = df["poses"].map(uses_colmap)
     if colmap.any():
         sfm = pd.DataFrame([_sfm_columns(Path(r)) if c else dict.fromkeys(SFM_COLUMNS)

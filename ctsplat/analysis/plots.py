@@ -861,7 +861,11 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
         for run, g in logs.groupby("run_dir", sort=True) if not logs.empty else []:
             rows.append({"run_dir": run, **{a: g[a].iloc[0] for a in ("volume", *ALL_AXES) if a in g},
                          **milestones(g, cfg["milestones"]), "iters_per_s": mean_iters_per_s(g)})
-        _write_csv(pd.DataFrame(rows), outputs["milestones"])
+        keys = list(milestones(pd.DataFrame(), cfg["milestones"]))
+        table = pd.DataFrame(rows, columns=None if rows else ["run_dir", "volume", *keys, "iters_per_s"])
+        for col in [c for c in keys if c.startswith("iter_to_")]:
+            table[col] = table[col].astype("Int64")
+        _write_csv(table, outputs["milestones"])
     if "ablation" in outputs:
         plot_ablation(summary, outputs["ablation"])
     if "claims" in outputs:

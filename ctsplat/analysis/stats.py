@@ -233,9 +233,17 @@ def threshold_tag(thr: float) -> str:
     Returns
     -------
     str
-        ``30 -> "30"``, ``0.9 -> "090"`` (fractions as hundredths, three digits), ``32.5 -> "32.5"``.
+        ``30 -> "30"``, ``32.5 -> "32.5"``; a fraction as ``0`` and its decimal digits, at least two:
+        ``0.9 -> "090"``, ``0.95 -> "095"``, ``0.995 -> "0995"``.
+
+    Examples
+    --------
+    >>> [threshold_tag(t) for t in (30, 0.9, 0.905, 0.995)]
+    ['30', '090', '0905', '0995']
     """
-    return f"{round(thr * 100):03d}" if 0 < thr < 1 else f"{thr:g}"
+    if 0 < thr < 1:
+        return "0" + f"{thr:.10f}".split(".")[1].rstrip("0").ljust(2, "0")
+    return f"{thr:g}"
 
 
 def milestones(log: pd.DataFrame, thresholds: Mapping[str, float]) -> dict[str, float | None]:

@@ -420,6 +420,13 @@ def test_gather_errors(tmp_path):
     assert not (tmp_path / "s.csv").exists()
 
 
+def test_gather_writes_milestone_iterations_as_integers_when_some_run_misses_one(tmp_path):
+    runs = [_fake_run(tmp_path, seed=0, slope=0.01), _fake_run(tmp_path, seed=1, slope=0.001)]  # 30 dB at 1000 / never
+    gather(runs, tmp_path / "s.csv", thresholds={"psnr2d": 30.0})
+    written = pd.read_csv(tmp_path / "s.csv", dtype=str, keep_default_na=False)  # the text as written
+    assert list(written["iter_to_psnr2d_30"]) == ["1000", ""]
+
+
 def test_gather_names_a_corrupt_metrics_file_in_one_line(tmp_path):
     rd = _fake_run(tmp_path)
     (rd / "metrics.json").write_text("{bad")
