@@ -11,4 +11,4 @@ with logged(snakemake):  # noqa: F821
     sm = snakemake  # noqa: F821
     run_dir = Path(sm.output.metrics).parent
     with run_lock(run_dir):
-        evaluate(run_dir, device=sm.params.device, milestones=sm.params.milestones)
+        evaluate(run_dir, device=sm.params.device, milestones=sm.params.milestones, settings=sm.params.settings)

@@ -359,7 +359,7 @@ def orbit_poses(R0: np.ndarray, t0: np.ndarray, center_mm: np.ndarray, n: int) -
 
 def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
              milestones: Mapping[str, float] | None = None, write: bool = True,
-             model: str | None = None) -> dict[str, Any]:
+             model: str | None = None, settings: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Evaluate a finished training run: the one place its held-out metrics are computed.
 
     Reads ``run_dir/config.json``, ``model.pt``, ``training.json`` and ``train_log.csv`` (written by
@@ -385,6 +385,9 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     model : {"last", "best"}, optional
         ``last``: ``model.pt``; ``best``: ``model_best.pt`` (highest validation PSNR during training). Default:
         the run's ``model_selection``. Recorded as ``model`` (and ``model_iteration``) in the metrics.
+    settings : mapping, optional
+        :data:`ctsplat.training.config.EVALUATION_KEYS` (``figures``, ``turntable_frames``, ``fps_width``,
+        ``fps_height``) used instead of the run's own; other keys are refused.
 
     Returns
     -------
@@ -411,7 +414,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     from ctsplat.formats.volume import Volume, save_volume
     from ctsplat.scene import load_scene
     from ctsplat.splat.gaussians import Gaussians
-    from ctsplat.training.config import REFERENCE_INITS, mip_filter, render_kwargs
+    from ctsplat.training.config import EVALUATION_KEYS, REFERENCE_INITS, mip_filter, render_kwargs
 
     run_dir = Path(run_dir)
     needed = [run_dir / n for n in ("config.json", "model.pt", "training.json")]
@@ -421,8 +424,12 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
                            "first")
     if split not in ("test", "val", "train"):
         raise CtsplatError(f"unknown split {split!r}; allowed: test, val, train")
+    unknown = sorted(set(settings or {}) - set(EVALUATION_KEYS))
+    if unknown:
+        raise CtsplatError(f"evaluate settings: {unknown[0]!r} is not an evaluation key; allowed: "
+                           f"{', '.join(EVALUATION_KEYS)}")
     run_cfg = json.loads((run_dir / "config.json").read_text())
-    cfg = run_cfg["config"]
+    cfg = {**run_cfg["config"], **(settings or {})}
     model = model or cfg.get("model_selection", "last")
     if model not in ("last", "best"):
         raise CtsplatError(f"unknown model {model!r}; allowed: last, best")

@@ -349,6 +349,8 @@ def test_model_best_is_the_best_validation_checkpoint_and_evaluate_uses_it(scene
         evaluate(out, device="cpu", model="best", write=False)
     with pytest.raises(CtsplatError, match="unknown model"):
         evaluate(out, device="cpu", model="first", write=False)
+    with pytest.raises(CtsplatError, match=r"'lr' is not an evaluation key; allowed: figures, turntable_frames"):
+        evaluate(out, device="cpu", settings={"lr": 1.0}, write=False)
 
 
 # --- 6. optimiser preset -----------------------------------------------------------------------------------------

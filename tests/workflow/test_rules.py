@@ -167,6 +167,24 @@ def test_rule_evaluate(wd):
     assert again["psnr3d"] == pytest.approx(metrics["psnr3d"], abs=1e-6)
 
 
+def test_evaluation_settings_and_key_order_do_not_train_again(wd):
+    run_rule(wd, "evaluate", f"{RUN}/metrics.json")
+    cfg = yaml.safe_load((wd / "config.yaml").read_text())
+
+    def reversed_keys(value):
+        return {k: reversed_keys(value[k]) for k in reversed(list(value))} if isinstance(value, dict) else value
+
+    # the same settings in another order, a default written out: nothing to do
+    same = {**reversed_keys(cfg), "train": {**reversed_keys(cfg["train"]), "lambda_l1": 1.0}}
+    proc = snakemake(wd, f"{RUN}/metrics.json", "-n", configfile=write_config(wd / "reordered.yaml", same))
+    assert "Nothing to be done" in proc.stdout + proc.stderr, proc.stdout[-3000:]
+    # a figure setting: the evaluation again, not the training
+    cfg["train"]["turntable_frames"] = 3
+    proc = snakemake(wd, f"{RUN}/metrics.json", "-n", configfile=write_config(wd / "frames.yaml", cfg))
+    out = proc.stdout + proc.stderr
+    assert "rule evaluate:" in out and "rule train:" not in out, out[-3000:]
+
+
 def test_rule_run_figures(wd):
     names = ["convergence", "porkchop", "acf", "kde"]
     run_rule(wd, "run_figures", *[f"{RUN}/figures/{n}.png" for n in names])

@@ -8,6 +8,7 @@ from snakemake.utils import Paramspace
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS
 from ctsplat.config import canonical, prepare_config
+from ctsplat.training.config import EVALUATION_KEYS
 from ctsplat.sfm.step import sfm_failure
 from ctsplat.grid import (
     cells_need_sfm,
@@ -220,7 +221,8 @@ def train_params(wildcards):
     Tracked by Snakemake's params rerun trigger, so changing any of it reruns the cell; its hash is recorded.
     """
     cell = PARAMSPACE.instance(wildcards)
-    cfg = dict(CFG["train"])
+    # the evaluation's own keys go to the evaluate rule: changing a figure setting does not train again
+    cfg = {k: v for k, v in CFG["train"].items() if k not in EVALUATION_KEYS}
     cfg.update(
         init=str(cell["init"]),
         compositor=str(cell["compositor"]),
@@ -236,6 +238,11 @@ def train_params(wildcards):
 
 def train_hash(wildcards):
     return config_hash(train_params(wildcards))
+
+
+def evaluation_settings():
+    """The train keys that only the evaluation reads (figures, turntable frames, the FPS size)."""
+    return canonical({k: CFG["train"][k] for k in EVALUATION_KEYS if k != "progress"})
 
 
 def evaluation_milestones():

@@ -51,5 +51,6 @@ rule evaluate:
     params:
         device=CFG["device"],
         milestones=evaluation_milestones(),
+        settings=evaluation_settings(),
     script:
         "../../scripts/evaluate.py"
