@@ -364,6 +364,8 @@ def load_scene(cfg: dict[str, Any]) -> Scene:
     eval_split = "val" if split_rows["val"].size else "test"
     test = ViewData.from_view_set(vs, images, test_rows, "test", mu_scale)
     val = ViewData.from_view_set(vs, images, val_rows, eval_split, mu_scale)
+    # a view set without test views is scored on its validation views, which also chose the model: say so
+    info.update(test_views_from="test" if split_rows["test"].size else "val")
     info.update(n_train_views=len(train), n_val_views=len(val), n_test_views=len(test),
                 radiographs_volume_id=vs.volume_id, camera=vs.camera.to_dict(), train_camera=train.camera.to_dict())
     return Scene(train=train, val=val, test=test, volume=volume, mu_scale=mu_scale, eval_split=eval_split, info=info,

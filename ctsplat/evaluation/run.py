@@ -442,6 +442,9 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     scene = load_scene(cfg)
     g = Gaussians.load(model_path, device=dev)
     views = scene.split(split)
+    if split == "test" and scene.info.get("test_views_from") == "val":
+        log.warning("%s: the view set has no test views; the test metrics are on the validation views, which also "
+                    "chose the model (metrics.json: views_from val)", run_dir)
     tr = scene.train
     rk = render_kwargs(cfg, mip_filter(cfg, g, tr.camera, tr.Rs, tr.ts))
     preds = render_views(g, views.camera, views.Rs, views.ts, rk)
@@ -469,6 +472,8 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         **m3,
         **sharpening,
         "split": split,
+        # "val" when the view set has no test views and the test split is its validation views
+        "views_from": scene.info.get("test_views_from", "test") if split == "test" else split,
         "n_views": len(views),
         "n_train_views": len(scene.train),
         "eval_split_during_training": scene.eval_split,

@@ -539,3 +539,24 @@ def test_workflow_dry_run_with_a_feature_axis(tmp_path, monkeypatch):
     assert job_counts(proc.stdout)["train"] == 2
     assert "seed~0/augment~on/densify~error/model.pt" in proc.stdout
     assert "seed~0/augment~off/densify~error/model.pt" in proc.stdout
+
+
+def test_a_view_set_without_test_views_is_scored_on_its_validation_views_and_says_so(tmp_path, caplog):
+    import logging
+
+    from train_helpers import MU
+
+    from ctsplat.formats.volume import Volume, save_volume
+    from ctsplat.projector import render_radiographs
+
+    data, aff = tiny_phantom()
+    save_volume(Volume(data, aff, {"volume_id": "notest", "intensity": {"mu_scale_per_mm": MU}}),
+                tmp_path / "volume.nii.gz")
+    render_radiographs(tmp_path / "volume.nii.gz", tmp_path / "rad", {
+        "detector_width": 24, "detector_height": 24, "n_views": 12, "device": "cpu", "orbit": "sphere",
+        "split": {"train": 0.75, "val": 0.25, "test": 0.0}})
+    loop.train(_cfg(tmp_path, iterations=4, eval_every=2, checkpoint_every=4), tmp_path / "run")
+    with caplog.at_level(logging.WARNING, logger="ctsplat.evaluation.run"):
+        m = evaluate(tmp_path / "run", device="cpu", write=False)
+    assert m["split"] == "test" and m["views_from"] == "val"
+    assert any("no test views" in r.getMessage() for r in caplog.records)

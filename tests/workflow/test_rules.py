@@ -150,7 +150,7 @@ def test_rule_evaluate(wd):
     metrics = json.loads((wd / RUN / "metrics.json").read_text())
     views = json.loads((wd / VOL / "radiographs/circular/views.json").read_text())["views"]
     n_test = sum(v["split"] == "test" for v in views)
-    assert metrics["split"] == "test" and metrics["n_views"] == n_test
+    assert metrics["split"] == "test" and metrics["n_views"] == n_test and metrics["views_from"] == "test"
     assert metrics["init"] == "fbp" and metrics["mip"] is True and metrics["n_train_views"] == VIEWS
     assert metrics["uses_reference_volume"] is False and len(metrics["config_hash"]) == 16
     assert len(pd.read_csv(wd / RUN / "per_view_test.csv")) == n_test
