@@ -518,6 +518,15 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
     runs = expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
     sfm_geometry = cfg["sfm"]["settings"]["geometry"]
     if needs_sfm(runs, enabled=cfg["sfm"]["enabled"]):
+        # an SfM run marked ok must be one the training accepts, or its cells fail instead of being listed as not run
+        sfm_rate = float(cfg["sfm"]["settings"]["min_registration_rate"])
+        train_rate = float(cfg["train"]["min_registration_rate"])
+        if sfm_rate < train_rate:
+            raise CtsplatError(
+                f"invalid config at sfm.settings.min_registration_rate: {sfm_rate:g} is below "
+                f"train.min_registration_rate ({train_rate:g}), so an SfM run marked ok could still be refused by "
+                "training; raise the first or lower the second"
+            )
         carm = cfg["radiographs"].get(sfm_geometry)
         if carm is None or carm["orbit"] != "carm" or carm["camera"] != "cone":
             what = "is not a radiographs geometry" if carm is None else "is not a C-arm orbit"

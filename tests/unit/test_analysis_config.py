@@ -429,3 +429,13 @@ def test_a_rule_given_some_resources_keeps_the_defaults_of_the_others():
     assert set(default["train"]) == {"threads", "mem_mb", "runtime"}
     assert {r: v for r, v in cfg["resources"].items() if r != "train"} == {
         r: v for r, v in default.items() if r != "train"}
+
+
+def test_an_sfm_run_marked_ok_must_be_one_training_accepts():
+    cfg = {"volumes": {"phantom": {"source": "phantom"}}, "sfm": {"enabled": True, "settings": {
+        "geometry": "carm", "min_registration_rate": 0.3}},
+        "radiographs": {"circular": {}, "carm": {"camera": "cone", "orbit": "carm"}}}
+    with pytest.raises(CtsplatError, match=r"sfm.settings.min_registration_rate: 0.3 is below "
+                                           r"train.min_registration_rate \(0.5\)"):
+        prepare_config(cfg)
+    prepare_config({**cfg, "train": {"min_registration_rate": 0.3}})
