@@ -255,7 +255,8 @@ def _colmap_train(cfg: dict[str, Any], volume: Any, mu_scale: float
     if rate < float(cfg["min_registration_rate"]) and failure is None:
         failure = f"registered only {rate:.0%} of {n_total} views (need >= {cfg['min_registration_rate']:.0%})"
     if failure is None and not (sfm_dir / "aligned_views.json").exists():
-        failure = "it wrote no aligned poses (aligned_views.json)"
+        raise CtsplatError(f"{sfm_dir / 'aligned_views.json'} is missing although {summary_path} says the SfM run is "
+                           "ok (removed since?); run the sfm step again (snakemake --forcerun sfm)")
     if failure is not None:  # never train on poses the SfM step itself rejected
         raise CtsplatError(f"the SfM run failed ({summary_path}): {failure}; poses: colmap does not train on failed "
                            "poses: use poses: gt or improve the sfm step")

@@ -474,6 +474,15 @@ def test_colmap_poses_refuse_a_failed_sfm_run(scene_dir: Path, carm_dir: Path, t
     assert not (tmp_path / "r" / "model.pt").exists()
 
 
+def test_colmap_poses_name_a_removed_pose_file(scene_dir: Path, carm_dir: Path, tmp_path: Path) -> None:
+    _sfm_result(carm_dir, tmp_path / "sfm", list(range(12)), rate=1.0, ok=True)
+    (tmp_path / "sfm" / "aligned_views.json").unlink()  # an ok run whose poses were removed since
+    cfg = _cfg(scene_dir, poses="colmap", sfm_dir=str(tmp_path / "sfm"), iterations=10)
+    with pytest.raises(CtsplatError, match=r"aligned_views\.json is missing although .*summary\.json says the SfM run "
+                                           r"is ok .*snakemake --forcerun sfm"):
+        loop.train(cfg, tmp_path / "r")
+
+
 # ------------------------------------------------------------------------------------------ bad input
 def test_unknown_config_key_names_key_and_allowed(scene_dir: Path, tmp_path: Path) -> None:
     with pytest.raises(CtsplatError, match=r"train\.learning_rate.*allowed keys in train: .*batch_views"):
