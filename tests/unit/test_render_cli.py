@@ -16,16 +16,17 @@ from ctsplat.splat.gaussians import Gaussians
 from ctsplat.splat.render import compute_3d_filter, render
 
 
-def _setup(tmp_path):
+def _setup(tmp_path, camera=None, distances=(200.0, 200.0, 200.0), scales=(1, 3)):
+    """20 Gaussians and three views (two train, one test) at azimuths 0, 60, 120 and the given distances (mm)."""
     rng = np.random.default_rng(0)
-    g = Gaussians.from_values(rng.normal(size=(20, 3)) * 5, rng.uniform(1, 3, (20, 3)), rng.uniform(0.1, 1, 20),
+    g = Gaussians.from_values(rng.normal(size=(20, 3)) * 5, rng.uniform(*scales, (20, 3)), rng.uniform(0.1, 1, 20),
                               rng.normal(size=(20, 4)))
     g.save(tmp_path / "model.pt")
     views = []
-    for i, az in enumerate((0.0, 60.0, 120.0)):
-        R, t = pose_from_angles(az, 10.0, (0, 0, 0), 200.0)
+    for i, (az, dist) in enumerate(zip((0.0, 60.0, 120.0), distances, strict=True)):
+        R, t = pose_from_angles(az, 10.0, (0, 0, 0), dist)
         views.append(View(i, R, t, az, 10.0, "train" if i < 2 else "test"))
-    vs = ViewSet(ParallelCamera(24, 20, 1.5), views)
+    vs = ViewSet(camera or ParallelCamera(24, 20, 1.5), views)
     vs.save(tmp_path / "views.json")
     return g, vs
 
@@ -64,15 +65,8 @@ def test_render_cli_split_and_bad_model(tmp_path, capsys):
 def test_render_cli_split_keeps_the_training_views_3d_filter(tmp_path):
     from ctsplat.geometry import ConeCamera
 
-    rng = np.random.default_rng(0)
-    g = Gaussians.from_values(rng.normal(size=(20, 3)) * 5, rng.uniform(0.2, 1, (20, 3)), rng.uniform(0.1, 1, 20),
-                              rng.normal(size=(20, 4)))
-    g.save(tmp_path / "model.pt")
-    views = []
-    for i, (az, dist) in enumerate(((0.0, 60.0), (60.0, 60.0), (120.0, 400.0))):  # the test view stands far off
-        R, t = pose_from_angles(az, 10.0, (0, 0, 0), dist)
-        views.append(View(i, R, t, az, 10.0, "train" if i < 2 else "test"))
-    ViewSet(ConeCamera(24, 20, 0.5, 60.0, 90.0), views).save(tmp_path / "views.json")
+    # cone beam, the test view far off: a filter from the test view alone would differ from the train views' one
+    _setup(tmp_path, ConeCamera(24, 20, 0.5, 60.0, 90.0), distances=(60.0, 60.0, 400.0), scales=(0.2, 1))
     full, test = tmp_path / "all", tmp_path / "test"
     for out, extra in ((full, []), (test, ["--split", "test"])):
         assert main(["render", str(tmp_path / "model.pt"), str(tmp_path / "views.json"), str(out), "--mip",
