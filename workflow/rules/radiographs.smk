@@ -23,7 +23,6 @@ rule project:
     params:
         radiographs=radiographs_params,
         seed=0,
-        device=CFG["device"],
     script:
         "../../scripts/project.py"
 
