@@ -155,13 +155,16 @@ def radiographs_params(wildcards):
 
 
 def baselines_params(wildcards):
-    """run_baselines config: the user's settings plus the view counts (baselines.n_views, else the grid's)."""
+    """run_baselines config: the user's settings plus the view counts (baselines.n_views, else the grid's); on the
+    workflow's device unless baselines.settings.device is set."""
     views = (
         CFG["baselines"]["n_views"] or RUNS[RUNS["volume"] == wildcards.volume]["views"]
     )
-    return canonical(
-        {"n_views": sorted(set(int(v) for v in views)), **CFG["baselines"]["settings"]}
-    )
+    settings = dict(CFG["baselines"]["settings"])
+    user = (config.get("baselines", {}) or {}).get("settings") or {}
+    if "device" not in user:
+        settings["device"] = CFG["device"]
+    return canonical({"n_views": sorted(set(int(v) for v in views)), **settings})
 
 
 def sfm_params(wildcards):
