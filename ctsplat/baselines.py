@@ -102,7 +102,7 @@ BASELINE_DEFAULTS: dict[str, Any] = {
     "detector_binning": None,
     "step_voxels": 1.0,  # 3D iterative methods: projector sampling step (voxels)
     "device": "auto",  # FDK and the 3D iterative methods: auto | cpu | cuda
-    "split": "train",  # which views of the radiographs to reconstruct from
+    "split": "train",  # the views reconstructed from (only train: val chooses parameters, test scores)
     # number(s) of views: null/0 = all views of the split; an int or a list of ints = that many views spread
     # evenly over the split sorted by azimuth (the same subset `train.views` uses), one result row each
     "n_views": None,

@@ -656,7 +656,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("sfm", "isocentre_sigma_mm"): _NON_NEGATIVE,
     ("sfm", "isocentric_loss_px"): _POSITIVE,
     ("sfm", "fuse_harmonics"): _COUNT0,  # 0 = off
-    ("sfm", "min_shared_images"): _COUNT,
+    ("sfm", "min_shared_images"): {"type": "integer", "minimum": 3},  # a similarity between models needs 3 centres
     ("sfm", "num_threads"): {"type": "integer", "minimum": -1},  # COLMAP: <= 0 = all cores
     ("sfm", "align_inlier_threshold_frac"): _POSITIVE,
     ("sfm", "align_iterations"): _COUNT,
@@ -677,7 +677,8 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
                                "items": {"enum": ["fbp", "fdk", "sart", "asd_pocs", "mbir"]}},
     ("baselines", "fbp_filters"): {"type": "array", "minItems": 1,
                                    "items": {"enum": ["ramp", "shepp-logan", "cosine", "hamming", "hann"]}},
-    ("baselines", "split"): {"enum": ["train", "val", "test"]},
+    # the validation views choose the parameters and the test views score: reconstructing from either would leak
+    ("baselines", "split"): {"enum": ["train"]},
     ("baselines", "sart_max_iterations"): _COUNT,
     ("baselines", "sart_relaxation"): {"type": ["number", "array"], "exclusiveMinimum": 0, "exclusiveMaximum": 2,
                                        "minItems": 1,

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -457,8 +458,8 @@ def write_phantom_dicom(
     """
     if not isinstance(size, int) or size < 8:
         raise CtsplatError(f"phantom size must be an integer >= 8, got {size!r}")
-    if not fov_mm > 0:
-        raise CtsplatError(f"phantom fov_mm must be > 0, got {fov_mm!r}")
+    if not 0 < fov_mm < math.inf:
+        raise CtsplatError(f"phantom fov_mm must be a finite number > 0, got {fov_mm!r}")
     out_dir = Path(out_dir)
     stale = _check_phantom_target(out_dir, force)
     ellipsoids = shepp_logan_ellipsoids(

@@ -215,8 +215,12 @@ def load_volume(path: str | Path) -> Volume:
     path = Path(path)
     if not path.exists():
         raise CtsplatError(f"volume file {path} does not exist; run the ingest step first")
-    img = nib.load(str(path))
-    data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
+    try:
+        img = nib.load(str(path))
+        data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
+    except (nib.filebasedimages.ImageFileError, OSError, EOFError, ValueError) as exc:
+        raise CtsplatError(f"volume file {path} is not a readable NIfTI ({str(exc).splitlines()[0]}); give the "
+                           "volume.nii.gz that ingest wrote") from None
     meta: dict[str, Any] = {}
     jp = json_path_for(path)
     if jp.exists():

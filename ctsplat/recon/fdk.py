@@ -44,7 +44,7 @@ from ctsplat.geometry.cameras import camera_center
 from ctsplat.recon.operators import check_stack, reference_grid
 from ctsplat.utils import CtsplatError
 
-__all__ = ["FDK_FILTERS", "fdk_volume", "is_circular_cone", "orbit_angles", "ramp_filter"]
+__all__ = ["FDK_FILTERS", "fdk_volume", "is_circular_cone", "orbit_angles", "ramp_filter", "short_scan_shortfall"]
 
 #: Apodisation windows of the ramp filter: the ones slice-wise FBP offers (``skimage.transform.iradon``'s names),
 #: since one ``baselines.fbp_filters`` list feeds both.
@@ -162,6 +162,30 @@ def _angular_weights(beta: np.ndarray) -> tuple[np.ndarray, bool, float, float]:
     return dbeta, True, float(start), float(r[-1] + g.mean())
 
 
+def short_scan_shortfall(view_set: ViewSet) -> str | None:
+    """Why FDK cannot reconstruct a circular cone-beam orbit: a short scan under 180° plus the fan angle.
+
+    Parameters
+    ----------
+    view_set : ViewSet
+        A circular cone-beam view set (:func:`is_circular_cone`).
+
+    Returns
+    -------
+    str or None
+        One line naming the arc and what it needs; None when the orbit is a full scan or a long enough short scan.
+    """
+    cam = view_set.camera
+    _, short, _, scan = _angular_weights(orbit_angles(view_set))
+    if not short:
+        return None
+    delta = float(np.arctan((cam.width / 2.0) * cam.pitch_mm / cam.dsd_mm))
+    if scan >= np.pi + 2 * delta - 1e-6:
+        return None
+    return (f"FDK short scan covers {np.degrees(scan):.0f} deg, less than 180 deg plus the fan angle "
+            f"({np.degrees(np.pi + 2 * delta):.0f} deg); render a longer arc")
+
+
 def _parker(rel_beta: np.ndarray, gamma: np.ndarray, delta: float, scan: float) -> np.ndarray:
     """Parker's short-scan weights ``w(β, γ)``, shape (V, W); ``delta`` half fan angle, ``scan`` the range (rad).
 
@@ -247,9 +271,9 @@ def fdk_volume(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *,
     if short:
         gamma = np.arctan(u / dsd)
         delta = float(np.arctan((W / 2.0) * pitch / dsd))
-        if scan < np.pi + 2 * delta - 1e-6:
-            raise CtsplatError(f"FDK short scan covers {np.degrees(scan):.0f} deg, less than 180 deg plus the fan "
-                               f"angle ({np.degrees(np.pi + 2 * delta):.0f} deg); render a longer arc")
+        shortfall = short_scan_shortfall(view_set)
+        if shortfall is not None:
+            raise CtsplatError(shortfall)
         # Parker's β runs with the orbit and γ with it: the sign of γ follows the direction of rotation
         view_w = _parker(np.mod(beta - start, 2 * np.pi), -gamma, delta, scan) * dbeta[:, None]  # (V, W)
     else:

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from ctsplat.formats.viewset import ViewSet
-from ctsplat.recon.fdk import is_circular_cone
+from ctsplat.recon.fdk import is_circular_cone, short_scan_shortfall
 from ctsplat.recon.select import Choice, Validator, choose, choose_iterative
 from ctsplat.utils import CtsplatError, scratch_dir
 
@@ -39,12 +39,17 @@ METHODS = ("fbp", "fdk", "sart", "asd_pocs", "mbir")
 
 
 def applicable_methods(view_set: ViewSet) -> tuple[str, ...]:
-    """The methods of :data:`METHODS` that can reconstruct ``view_set``'s geometry (see the module docstring)."""
+    """The methods of :data:`METHODS` that can reconstruct ``view_set``'s geometry (see the module docstring); FDK
+    not on a short scan under 180° plus the fan angle (:func:`ctsplat.recon.fdk.short_scan_shortfall`)."""
     from ctsplat.baselines import is_circular_parallel
 
     if is_circular_parallel(view_set):
         return ("fbp", "sart", "asd_pocs", "mbir")
     if is_circular_cone(view_set):
+        shortfall = short_scan_shortfall(view_set)
+        if shortfall is not None:
+            log.warning("baselines: FDK skipped: %s", shortfall)
+            return ("sart", "asd_pocs")
         return ("fdk", "sart", "asd_pocs")
     return ("sart", "asd_pocs")
 

@@ -408,6 +408,11 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
         raise CtsplatError("sfm.pose_prior 'position' needs sfm.mapper 'incremental' (global mapping ignores priors)")
     if cfg["naive_slices"] and volume_path is None:
         raise CtsplatError("sfm.naive_slices needs the volume: pass volume_path (CLI: --volume)")
+    naive_volume = None
+    if cfg["naive_slices"]:  # read before any output is replaced: a bad volume fails the step with nothing written
+        from ctsplat.formats.volume import load_volume
+
+        naive_volume = load_volume(volume_path).data
     p, vs = load_radiographs(radiographs_dir)
     cam = vs.camera
     if cam.model != "cone":
@@ -440,11 +445,16 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
                 prior_centres=design_centres if cfg["pose_prior"] == "position" else None,
                 prior_poses=(design_Rs, design_ts) if cfg["pose_prior"] in REFINE_MODES else None,
                 masks=masks, design=(design_Rs, design_ts), design_azimuth_deg=design_az)
+            # an earlier run's model and points go when this run has none: init sfm must not seed from them
             if main is not None:
                 write_model(main, out_dir / "sparse" / "0")
-                if align["ok"]:
-                    xyz = np.array([pt.xyz for pt in main.points3D.values()]).reshape(-1, 3)
-                    write_points_ply(out_dir / "points3d.ply", align["scale"] * xyz @ align["R"].T + align["t"])
+            else:
+                shutil.rmtree(out_dir / "sparse" / "0", ignore_errors=True)
+            if main is not None and align["ok"]:
+                xyz = np.array([pt.xyz for pt in main.points3D.values()]).reshape(-1, 3)
+                write_points_ply(out_dir / "points3d.ply", align["scale"] * xyz @ align["R"].T + align["t"])
+            else:
+                (out_dir / "points3d.ply").unlink(missing_ok=True)
             if (out_dir / "images").exists():
                 shutil.rmtree(out_dir / "images")
             (work / "images").rename(out_dir / "images")
@@ -485,11 +495,8 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
         write_json_atomic(out_dir / "aligned_views.json", {
             "format": VIEWSET_FORMAT, "format_version": VIEWSET_FORMAT_VERSION, "volume_id": vs.volume_id,
             "isocenter_mm": np.asarray(iso, float).tolist(), "camera": cam.to_dict(), "views": [], "meta": vs_meta})
-    if cfg["naive_slices"]:
-        from ctsplat.formats.volume import load_volume
-
-        summary["naive_slices"] = naive_slices_sfm(load_volume(volume_path).data, out_dir / ".naive_work", cfg,
-                                                   seed=seed)
+    if naive_volume is not None:
+        summary["naive_slices"] = naive_slices_sfm(naive_volume, out_dir / ".naive_work", cfg, seed=seed)
         shutil.rmtree(out_dir / ".naive_work", ignore_errors=True)
     cfg.pop("_arc_deg", None)
     summary.update(config=cfg, seed=seed, code_version=code_version(), volume_id=vs.volume_id,

@@ -188,6 +188,23 @@ def test_run_baselines_on_a_cone_beam_geometry(tmp_path):
     assert json.loads(df["params"][1])["detector_binning"] == 1
 
 
+def test_a_cone_arc_too_short_for_fdk_skips_it_and_runs_the_others(tmp_path, caplog):
+    import logging
+
+    vol = make_volume(16)
+    save_volume(vol, tmp_path / "volume.nii.gz")
+    render_radiographs(tmp_path / "volume.nii.gz", tmp_path / "rad", {
+        "camera": "cone", "arc_deg": 180.0, "n_views": 18, "detector_width": 32, "detector_height": 32,
+        "dso_mm": 80.0, "dsd_mm": 112.0, "pixel_spacing_mm": 2.8})
+    with caplog.at_level(logging.WARNING, logger="ctsplat.recon.suite"):
+        df = run_baselines(tmp_path / "volume.nii.gz", tmp_path / "rad", tmp_path / "out",
+                           {**QUICK, "save_volumes": False, "methods": ["fdk", "sart"]})
+    assert list(df["method"]) == ["sart"]
+    assert any("FDK skipped: FDK short scan covers" in r.getMessage() for r in caplog.records)
+    with pytest.raises(CtsplatError, match=r"baselines.methods \['fdk'\] cannot reconstruct this geometry"):
+        run_baselines(tmp_path / "volume.nii.gz", tmp_path / "rad", tmp_path / "out2", {**QUICK, "methods": ["fdk"]})
+
+
 def test_baseline_choice_reads_validation_views_only(tmp_path):
     """Corrupting the test views and the reference volume changes the test metrics, never the choice."""
     from ctsplat.formats.viewset import load_radiographs, write_radiographs
@@ -269,7 +286,10 @@ def test_baselines_bad_input(tmp_path):
     render_radiographs(vol_path, tmp_path / "rad", {"n_views": 10, "detector_width": 16, "detector_height": 32,
                                                     "split": {"train": 1.0, "val": 0.0, "test": 0.0}})
     with pytest.raises(CtsplatError, match="no validation views"):
-        run_baselines(vol_path, tmp_path / "rad", tmp_path / "out", {"split": "val"})
+        run_baselines(vol_path, tmp_path / "rad", tmp_path / "out", {})
+    for held_out in ("val", "test"):  # reconstructing from the views that choose or score would leak
+        with pytest.raises(CtsplatError, match=rf"baselines.split: '{held_out}' is not one of \['train'\]"):
+            run_baselines(vol_path, tmp_path / "rad", tmp_path / "out", {"split": held_out})
     other = Volume(vol.data, vol.affine, {**vol.meta, "volume_id": "other"})
     save_volume(other, tmp_path / "o.nii.gz")
     with pytest.raises(CtsplatError, match="rendered from volume ph16"):

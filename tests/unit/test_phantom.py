@@ -151,6 +151,10 @@ def test_write_replaces_atomically_and_cleans_up_on_failure(tmp_path, monkeypatc
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ph"]  # no temp folders, nothing half-written
     with pytest.raises(CtsplatError, match="size"):
         write_phantom_dicom(tmp_path / "bad", size=3)
+    for fov in (0.0, float("inf"), float("nan")):
+        with pytest.raises(CtsplatError, match="fov_mm must be a finite number > 0"):
+            write_phantom_dicom(tmp_path / "bad", size=16, fov_mm=fov)
+    assert not (tmp_path / "bad").exists()
 
 
 def test_ellipsoid_dict_roundtrip():

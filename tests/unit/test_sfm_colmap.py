@@ -156,7 +156,11 @@ def test_featureless_volume_records_failure_without_crashing(tmp_path: Path) -> 
     save_volume(Volume(empty, aff, {"volume_id": "empty", "intensity": {"mu_scale_per_mm": 0.02}}),
                 tmp_path / "empty.nii.gz")
     rad = _carm(tmp_path / "empty.nii.gz", tmp_path / "carm", n_views=8, detector_width=64, detector_height=64)
+    (tmp_path / "out" / "sparse" / "0").mkdir(parents=True)  # an earlier, successful run's model and points
+    (tmp_path / "out" / "sparse" / "0" / "points3D.bin").write_bytes(b"old")
+    (tmp_path / "out" / "points3d.ply").write_text("old")
     s = run_sfm(rad, tmp_path / "out", CFG)
+    assert not (tmp_path / "out" / "sparse" / "0").exists() and not (tmp_path / "out" / "points3d.ply").exists()
     assert s["ok"] is False
     assert s["registration_rate"] < SFM_DEFAULTS["min_registration_rate"]
     assert "registration rate" in s["reason"]
@@ -181,6 +185,9 @@ def test_bad_config_fails_fast_and_writes_nothing(tmp_path: Path) -> None:
     render_radiographs(tmp_path / "v.nii.gz", circular, {"n_views": 4, "detector_width": 16, "detector_height": 16})
     with pytest.raises(CtsplatError, match="cone-beam view set"):
         run_sfm(circular, tmp_path / "out", {})
+    (tmp_path / "not_a_volume.nii.gz").write_text("x")
+    with pytest.raises(CtsplatError, match=r"not_a_volume\.nii\.gz is not a readable NIfTI"):  # before any output
+        run_sfm(rad, tmp_path / "out", {"naive_slices": True}, volume_path=tmp_path / "not_a_volume.nii.gz")
     assert not (tmp_path / "out").exists() and not (tmp_path / "bad").exists()
 
 
