@@ -414,6 +414,21 @@ def test_project_refuses_a_volume_that_is_not_attenuation(tmp_path) -> None:
     assert (tmp_path / "out" / "line_integrals.tif").is_file()
 
 
+def test_reading_radiographs_with_a_nan_pixel_names_the_view(tmp_path) -> None:
+    import tifffile
+
+    data = np.zeros((8, 8, 8), np.float32)
+    data[2:6, 2:6, 2:6] = 1.0
+    save_volume(Volume(data, np.eye(4), {"volume_id": "nan"}), tmp_path / "v.nii.gz")
+    render_radiographs(tmp_path / "v.nii.gz", tmp_path / "rad", {"n_views": 4, "detector_width": 8,
+                                                                  "detector_height": 8})
+    p, vs = load_radiographs(tmp_path / "rad")
+    p[2, 3, 3] = np.nan
+    tifffile.imwrite(tmp_path / "rad" / "line_integrals.tif", p)
+    with pytest.raises(CtsplatError, match=rf"1 non-finite pixels \(NaN/Inf\), the first in view {vs.views[2].id}"):
+        load_radiographs(tmp_path / "rad")
+
+
 def test_radiograph_folder_is_written_whole_or_not_at_all(tmp_path) -> None:
     """A file that cannot be written (here views.json blocked by a folder of that name) leaves nothing new behind,
     and a previous complete folder stays as it was."""
