@@ -207,7 +207,13 @@ class ViewSet:
             d = json.loads(path.read_text())
         except json.JSONDecodeError as exc:
             raise CtsplatError(f"view set {path} is not valid JSON ({exc}); re-render it") from exc
-        return cls.from_dict(d)
+        try:
+            return cls.from_dict(d)
+        except CtsplatError:
+            raise
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            what = f"no {exc.args[0]!r} entry" if isinstance(exc, KeyError) else str(exc).splitlines()[0]
+            raise CtsplatError(f"view set {path} is malformed ({what}); re-render it") from None
 
 
 # ------------------------------------------------------------------------------------------ radiograph folder

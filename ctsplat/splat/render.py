@@ -532,6 +532,9 @@ def render(
         raise CtsplatError("color_scale only applies to the alpha compositor (radiative Gaussians have no colour)")
     if not 0 < sigma_cutoff < math.inf:
         raise CtsplatError(f"sigma_cutoff must be a finite number > 0, got {sigma_cutoff}")
+    if tuple(np.shape(R)) != (3, 3) or tuple(np.shape(t)) != (3,):  # shapes only: no device read-back per call
+        raise CtsplatError(f"render needs one pose, R (3, 3) and t (3,); got {tuple(np.shape(R))} and "
+                           f"{tuple(np.shape(t))}")
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
     fused = _fused(backend, gaussians.means.device)

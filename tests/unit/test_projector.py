@@ -429,6 +429,18 @@ def test_reading_radiographs_with_a_nan_pixel_names_the_view(tmp_path) -> None:
         load_radiographs(tmp_path / "rad")
 
 
+def test_a_view_set_with_a_view_missing_its_rotation_is_named(tmp_path) -> None:
+    data = np.ones((8, 8, 8), np.float32)
+    save_volume(Volume(data, np.eye(4), {"volume_id": "vs"}), tmp_path / "v.nii.gz")
+    render_radiographs(tmp_path / "v.nii.gz", tmp_path / "rad", {"n_views": 4, "detector_width": 8,
+                                                                  "detector_height": 8})
+    d = json.loads((tmp_path / "rad" / "views.json").read_text())
+    del d["views"][1]["R"]
+    (tmp_path / "rad" / "views.json").write_text(json.dumps(d))
+    with pytest.raises(CtsplatError, match=r"views\.json is malformed \(no 'R' entry\); re-render it"):
+        ViewSet.load(tmp_path / "rad" / "views.json")
+
+
 def test_radiograph_folder_is_written_whole_or_not_at_all(tmp_path) -> None:
     """A file that cannot be written (here views.json blocked by a folder of that name) leaves nothing new behind,
     and a previous complete folder stays as it was."""

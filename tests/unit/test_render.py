@@ -393,6 +393,14 @@ def test_bad_filter_variance_raises(backend):
             render(g, ParallelCamera(16, 16, 1.0), *_pose(0.0, 0.0), filter_3d_var=fv, backend=backend)
 
 
+def test_a_pose_of_the_wrong_shape_raises_in_one_line():
+    g = _mixture(4, seed=0)
+    R, t = _pose(0.0, 0.0)
+    for bad_R, bad_t in ((R[None], t), (R, t[:2]), (R[:2], t)):
+        with pytest.raises(CtsplatError, match=r"render needs one pose, R \(3, 3\) and t \(3,\)"):
+            render(g, ParallelCamera(16, 16, 1.0), bad_R, bad_t)
+
+
 def test_bad_cutoff_and_a_filter_of_another_model_raise_in_one_line():
     from ctsplat.splat.render import voxelize
 
