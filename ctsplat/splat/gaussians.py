@@ -143,6 +143,18 @@ def eval_sh(sh_rest: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     return (b[..., None] * sh_rest).sum(dim=1)
 
 
+def _rows(x: torch.Tensor, n: int, width: int | None, name: str) -> torch.Tensor:
+    """``x`` as ``(n, width)`` (``(n,)`` for width None), or one line naming the argument that does not fit."""
+    shape = (n,) if width is None else (n, width)
+    try:
+        return x.reshape(shape)
+    except RuntimeError:
+        want = "N" if n == -1 else str(n)
+        expected = f"({want},)" if width is None else f"({want}, {'C' if width == -1 else width})"
+        raise CtsplatError(f"from_values: {name} of shape {tuple(x.shape)} does not fit {want} Gaussians "
+                           f"(expected {expected})") from None
+
+
 @dataclass
 class Gaussians:
     """``N`` anisotropic 3D Gaussians as plain tensors (any device/dtype; parameters may require grad).
@@ -214,33 +226,33 @@ class Gaussians:
             With ``log_scales = log(scales_mm)``, ``density_raw = softplus⁻¹(ρ)``, ``opacity_raw = logit(o)``.
         """
         kw = {"dtype": dtype, "device": device}
-        means_t = torch.as_tensor(means, **kw).reshape(-1, 3)
+        means_t = _rows(torch.as_tensor(means, **kw), -1, 3, "means")
         n = means_t.shape[0]
         scales = torch.as_tensor(scales_mm, **kw)
         if scales.ndim == 0:
             scales = scales.expand(n, 3)
-        elif scales.ndim == 1 and scales.shape[0] == n and n != 3:
+        elif scales.ndim == 1 and scales.shape[0] == n:  # one isotropic scale per Gaussian (also when n is 3)
             scales = scales[:, None].expand(n, 3)
         else:
-            scales = scales.reshape(n, 3)
+            scales = _rows(scales, n, 3, "scales_mm")
         if not bool(torch.all(scales > 0)):
             raise CtsplatError("from_values: scales_mm must be > 0 (standard deviations in mm)")
         dens = torch.as_tensor(densities, **kw)
-        dens = dens.expand(n) if dens.ndim == 0 else dens.reshape(n)
+        dens = dens.expand(n) if dens.ndim == 0 else _rows(dens, n, None, "densities")
         if not bool(torch.all(dens > 0)):
             raise CtsplatError("from_values: densities must be > 0 (softplus-parameterised)")
         q = torch.zeros(n, 4, **kw)
         q[:, 0] = 1.0
         if quats is not None:
-            q = torch.as_tensor(quats, **kw).reshape(n, 4).clone()
+            q = _rows(torch.as_tensor(quats, **kw), n, 4, "quats").clone()
         op_raw = None
         if opacities is not None:
             op = torch.as_tensor(opacities, **kw)
-            op = op.expand(n) if op.ndim == 0 else op.reshape(n)
+            op = op.expand(n) if op.ndim == 0 else _rows(op, n, None, "opacities")
             if not bool(torch.all((op > 0) & (op < 1))):
                 raise CtsplatError("from_values: opacities must lie in (0, 1)")
             op_raw = torch.logit(op)
-        cols = None if colors is None else torch.as_tensor(colors, **kw).reshape(n, -1).clone()
+        cols = None if colors is None else _rows(torch.as_tensor(colors, **kw), n, -1, "colors").clone()
         sh_rest = None
         if sh_degree:
             if sh_degree not in (1, 2, 3):

@@ -140,3 +140,14 @@ def test_subset_and_to():
     h = g[torch.tensor([0, 3])].to(dtype=torch.float64)
     assert len(h) == 2 and h.means.dtype == torch.float64
     torch.testing.assert_close(h.means.float(), g.means[[0, 3]])
+
+
+def test_from_values_takes_one_scale_per_gaussian_and_names_a_shape_that_does_not_fit():
+    g = Gaussians.from_values(np.zeros((3, 3)), np.array([1.0, 2.0, 3.0]), 1.0)  # (N,) with N = 3: per Gaussian
+    np.testing.assert_allclose(torch.exp(g.log_scales).numpy(), [[1.0] * 3, [2.0] * 3, [3.0] * 3], rtol=1e-6)
+    for kw, msg in ((dict(densities=np.ones(2)), r"densities of shape \(2,\) does not fit 3 Gaussians \(expected "
+                                                  r"\(3,\)\)"),
+                    (dict(densities=1.0, quats=np.ones((2, 4))), r"quats of shape \(2, 4\) does not fit 3 Gaussians"),
+                    (dict(densities=1.0, scales_mm=np.ones((3, 2))), r"scales_mm of shape \(3, 2\)")):
+        with pytest.raises(CtsplatError, match=msg):
+            Gaussians.from_values(np.zeros((3, 3)), **{"scales_mm": 1.0, **kw})
