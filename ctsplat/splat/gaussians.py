@@ -460,7 +460,10 @@ class Gaussians:
             dens = self.densities.detach().cpu().double()
             if self.colors is not None:
                 col = self.colors.detach().cpu().double()
-                col = col.expand(n, 3) if col.shape[1] == 1 else col[:, :3]
+                if col.shape[1] not in (1, 3):
+                    raise CtsplatError(f"to_ply: colours of {col.shape[1]} channels; 3DGS PLY stores grey (1) or "
+                                       "RGB (3)")
+                col = col.expand(n, 3) if col.shape[1] == 1 else col
             else:
                 col = (dens / dens.max().clamp_min(1e-12))[:, None].expand(n, 3) if n else torch.zeros(0, 3)
             f_dc = (col - 0.5) / SH_C0

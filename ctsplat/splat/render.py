@@ -657,6 +657,9 @@ def compute_3d_filter(
     n = m.shape[0]
     Rs_t = torch.as_tensor(Rs, dtype=m.dtype, device=m.device).reshape(-1, 3, 3)
     ts_t = torch.as_tensor(ts, dtype=m.dtype, device=m.device).reshape(-1, 3)
+    if Rs_t.shape[0] != ts_t.shape[0]:
+        raise CtsplatError(f"compute_3d_filter: {Rs_t.shape[0]} rotations but {ts_t.shape[0]} translations; pass one "
+                           "pose per camera")
     best = torch.full((n,), math.inf, dtype=m.dtype, device=m.device)
     W, H = cam["W"], cam["H"]
     for R_v, t_v in zip(Rs_t, ts_t, strict=True):

@@ -151,3 +151,10 @@ def test_from_values_takes_one_scale_per_gaussian_and_names_a_shape_that_does_no
                     (dict(densities=1.0, scales_mm=np.ones((3, 2))), r"scales_mm of shape \(3, 2\)")):
         with pytest.raises(CtsplatError, match=msg):
             Gaussians.from_values(np.zeros((3, 3)), **{"scales_mm": 1.0, **kw})
+
+
+def test_ply_refuses_colours_it_cannot_store(tmp_path):
+    g = Gaussians.from_values(np.zeros((2, 3)), 1.0, 1.0, colors=np.full((2, 2), 0.5))
+    with pytest.raises(CtsplatError, match=r"to_ply: colours of 2 channels; 3DGS PLY stores grey \(1\) or RGB \(3\)"):
+        g.to_ply(tmp_path / "g.ply")
+    assert not (tmp_path / "g.ply").exists()

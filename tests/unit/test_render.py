@@ -393,6 +393,12 @@ def test_bad_filter_variance_raises(backend):
             render(g, ParallelCamera(16, 16, 1.0), *_pose(0.0, 0.0), filter_3d_var=fv, backend=backend)
 
 
+def test_a_3d_filter_with_unpaired_poses_raises_in_one_line():
+    R, t = _pose(0.0, 0.0)
+    with pytest.raises(CtsplatError, match="compute_3d_filter: 2 rotations but 1 translations"):
+        compute_3d_filter(_mixture(4, seed=0), ParallelCamera(16, 16, 1.0), torch.stack([R, R]), t[None])
+
+
 def test_a_pose_of_the_wrong_shape_raises_in_one_line():
     g = _mixture(4, seed=0)
     R, t = _pose(0.0, 0.0)
