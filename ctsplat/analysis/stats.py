@@ -40,9 +40,10 @@ __all__ = [
 # Columns that name a run's condition, in naming order (the seed is a replicate, not a condition).
 CONDITION_AXES: tuple[str, ...] = ("volume", *ALL_AXES)
 
-# Range of each metric: PSNR is non-negative and unbounded above; SSIM lies in [-1, 1]. Densities are confined to it.
+# Range of each metric: PSNR is unbounded (negative when the error exceeds the data range, as for unrectified runs);
+# SSIM lies in [-1, 1]. Densities are confined to it.
 METRIC_RANGES: dict[str, tuple[float | None, float | None]] = {
-    "psnr2d": (0.0, None), "psnr3d": (0.0, None), "ssim2d": (-1.0, 1.0), "ssim3d": (-1.0, 1.0)}
+    "psnr2d": (None, None), "psnr3d": (None, None), "ssim2d": (-1.0, 1.0), "ssim3d": (-1.0, 1.0)}
 
 
 def rolling_centered(values: Sequence[float] | pd.Series, window: int) -> np.ndarray:

@@ -202,6 +202,8 @@ def test_bounded_kde_of_ssim_stays_within_one_and_keeps_its_mass():
     # an unbounded side is left alone: the PSNR support reaches below the smallest sample
     xp, _ = bounded_kde(rng.normal(30, 1, 100), *METRIC_RANGES["psnr2d"])
     assert xp.min() < 27
+    xn, _ = bounded_kde(rng.normal(-2, 1, 100), *METRIC_RANGES["psnr3d"])  # PSNR below 0 (an unrectified run)
+    assert xn.min() < -4
     assert bounded_kde([0.5, 0.5], lo, hi)[0].size == 0  # no spread, no density
     with pytest.raises(CtsplatError, match="outside the metric's range"):
         bounded_kde([0.5, 1.2], lo, hi)
