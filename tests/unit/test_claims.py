@@ -66,3 +66,10 @@ def test_failed_claims_say_so_and_why():
     assert (unrect["result"], unrect["n_as_expected"]) == ("mixed", 5)
     assert unrect["note"] == ("radiative_unrectified is as good or better in 1 of 6 pairs: init=uniform, mip=off, "
                               "poses=gt, views=24 (-1.00 dB)")
+
+
+def test_the_headline_claim_says_it_was_not_measured_without_baselines():
+    s = _summary().drop(columns=[c for c in _summary().columns if c.startswith("best_baseline")])
+    t = claims_table(s)
+    head = t[t["comparison"].str.contains("strongest classical")]
+    assert list(head["result"]) == ["no pairs"] and "gather ran without --baselines" in head["note"].iloc[0]
