@@ -322,9 +322,9 @@ def load_radiographs(out_dir: str | Path) -> tuple[np.ndarray, ViewSet]:
     if p.shape != expected:
         raise CtsplatError(f"{tif} holds images of shape {p.shape} but views.json describes {expected}; "
                            "re-render the radiographs")
-    bad = int(p.size - np.count_nonzero(np.isfinite(p)))
-    if bad:  # one NaN turns every reconstruction and score NaN, and NaN scores never lose a comparison
-        first = int(np.flatnonzero(~np.isfinite(p).reshape(len(p), -1).all(axis=1))[0])
-        raise CtsplatError(f"{tif} has {bad} non-finite pixels (NaN/Inf), the first in view "
-                           f"{view_set.views[first].id}; re-render the radiographs")
+    finite = np.isfinite(p)
+    if not finite.all():  # one NaN turns every reconstruction and score NaN, and NaN scores never lose a comparison
+        first = int(np.flatnonzero(~finite.reshape(len(p), -1).all(axis=1))[0])
+        raise CtsplatError(f"{tif} has {int(finite.size - np.count_nonzero(finite))} non-finite pixels (NaN/Inf), "
+                           f"the first in view {view_set.views[first].id}; re-render the radiographs")
     return p, view_set

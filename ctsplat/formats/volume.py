@@ -248,7 +248,8 @@ def check_attenuation(volume: Volume, name: str | Path) -> None:
                            "intensity attenuation (the default) or mu before projecting it")
     data = np.asarray(volume.data, np.float64)
     negative = float(-data[data < 0].sum())
-    if negative > 0.01 * float(np.abs(data).sum()):
+    total = float(np.abs(data).sum())
+    if negative > 0.01 * total:
         raise CtsplatError(f"volume {name} has negative values down to {float(data.min()):g} ({negative:.3g} of "
-                           f"{float(np.abs(data).sum()):.3g} in absolute sum): it looks like HU, not attenuation; "
-                           "ingest it with `ctsplat ingest` (intensity attenuation) or clip it at 0")
+                           f"{total:.3g} in absolute sum): it looks like HU, not attenuation; ingest it with "
+                           "`ctsplat ingest` (intensity attenuation) or clip it at 0")

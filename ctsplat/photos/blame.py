@@ -78,23 +78,20 @@ def blame_view(g: Gaussians, view: PhotoView, *, background: Any = None, top: in
     top = max(int(top), 1)
     first = removal_gain(g, view, background=background)
     short = torch.argsort(first, descending=True, stable=True)[:max(int(shortlist), top)]
+
+    def render_without(drop: Any) -> torch.Tensor:
+        keep = torch.ones(len(g), dtype=torch.bool, device=g.means.device)
+        keep[drop] = False
+        return render_view(g[keep], view, background=background).image
+
     with torch.no_grad():
         img = render_view(g, view, background=background).image
         psnr = image_metrics(img, view.image)[0]
         err = float(((img - view.image) ** 2).sum())
-        exact = []
-        for i in short.tolist():
-            keep = torch.ones(len(g), dtype=torch.bool, device=g.means.device)
-            keep[i] = False
-            exact.append(err - float(((render_view(g[keep], view, background=background).image - view.image) ** 2)
-                                     .sum()))
-        exact_t = torch.tensor(exact, dtype=torch.float64)
+        exact_t = torch.tensor([err - float(((render_without(i) - view.image) ** 2).sum()) for i in short.tolist()],
+                               dtype=torch.float64)
         rank = torch.argsort(exact_t, descending=True, stable=True)[:top]
         order = short[rank]
-        without = []
-        for k in range(1, len(order) + 1):
-            keep = torch.ones(len(g), dtype=torch.bool, device=g.means.device)
-            keep[order[:k]] = False
-            without.append(image_metrics(render_view(g[keep], view, background=background).image, view.image)[0])
+        without = [image_metrics(render_without(order[:k]), view.image)[0] for k in range(1, len(order) + 1)]
     return {"psnr": psnr, "index": order.tolist(), "gain": exact_t[rank].tolist(), "first_order": first[order].tolist(),
             "psnr_without": without}

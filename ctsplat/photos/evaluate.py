@@ -150,7 +150,7 @@ def wrap_to_width(text: str, width_px: float, measure: Any) -> list[str]:
     line = ""
     for word in text.split():
         while measure(word) > width_px and len(word) > 1:  # cut the longest head that fits (at least one char)
-            k = max(1, max((i for i in range(1, len(word) + 1) if measure(word[:i]) <= width_px), default=1))
+            k = max((i for i in range(1, len(word) + 1) if measure(word[:i]) <= width_px), default=1)
             if line:
                 lines.append(line)
                 line = ""

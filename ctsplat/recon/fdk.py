@@ -175,11 +175,17 @@ def short_scan_shortfall(view_set: ViewSet) -> str | None:
     str or None
         One line naming the arc and what it needs; None when the orbit is a full scan or a long enough short scan.
     """
-    cam = view_set.camera
     _, short, _, scan = _angular_weights(orbit_angles(view_set))
-    if not short:
-        return None
-    delta = float(np.arctan((cam.width / 2.0) * cam.pitch_mm / cam.dsd_mm))
+    return _shortfall(scan, _half_fan(view_set.camera)) if short else None
+
+
+def _half_fan(cam: Any) -> float:
+    """Half the fan angle of a cone-beam detector's width (rad)."""
+    return float(np.arctan((cam.width / 2.0) * cam.pitch_mm / cam.dsd_mm))
+
+
+def _shortfall(scan: float, delta: float) -> str | None:
+    """The one line of :func:`short_scan_shortfall` for a short scan of ``scan`` rad and half fan angle ``delta``."""
     if scan >= np.pi + 2 * delta - 1e-6:
         return None
     return (f"FDK short scan covers {np.degrees(scan):.0f} deg, less than 180 deg plus the fan angle "
@@ -270,8 +276,8 @@ def fdk_volume(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *,
     dbeta, short, start, scan = _angular_weights(beta)
     if short:
         gamma = np.arctan(u / dsd)
-        delta = float(np.arctan((W / 2.0) * pitch / dsd))
-        shortfall = short_scan_shortfall(view_set)
+        delta = _half_fan(cam)
+        shortfall = _shortfall(scan, delta)
         if shortfall is not None:
             raise CtsplatError(shortfall)
         # Parker's β runs with the orbit and γ with it: the sign of γ follows the direction of rotation

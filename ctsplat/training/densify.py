@@ -40,7 +40,7 @@ import torch
 from ctsplat.splat.gaussians import inverse_softplus, quat_to_rotmat
 from ctsplat.training.features import merge_redundant
 from ctsplat.training.seeding import grid_bounds_mm
-from ctsplat.training.state import TrainState, replace_params
+from ctsplat.training.state import TrainState, amplitude, replace_params
 
 __all__ = ["GradientDensify", "ErrorDensify", "make_densify", "reset_stats"]
 
@@ -145,24 +145,6 @@ class GradientDensify:
             return False
         return iteration % int(d["interval"]) == 0 or iteration == self.iterations
 
-    def amplitude(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
-        """What each Gaussian renders with: its density (radiative compositors), or its opacity (alpha; the alpha
-        model keeps a density parameter that nothing renders).
-
-        Parameters
-        ----------
-        params : dict of str to Tensor
-            ``density_raw`` (N,), and ``opacity_raw`` (N,) for alpha.
-
-        Returns
-        -------
-        Tensor (N,)
-            ``softplus(density_raw)`` or ``sigmoid(opacity_raw)``, detached.
-        """
-        if self.compositor == "alpha":
-            return torch.sigmoid(params["opacity_raw"].detach())
-        return torch.nn.functional.softplus(params["density_raw"].detach())
-
     def prune_mask(self, means: torch.Tensor, log_scales: torch.Tensor, amplitude: torch.Tensor,
                    volume: Any) -> torch.Tensor:
         """The Gaussians pruning removes: amplitude (density; alpha: opacity) < ``prune_density``, max scale >
@@ -175,7 +157,7 @@ class GradientDensify:
             Centres (mm).
         log_scales : Tensor (N, 3)
         amplitude : Tensor (N,)
-            :meth:`amplitude` of each Gaussian.
+            :func:`ctsplat.training.state.amplitude` of each Gaussian.
         volume : ctsplat.formats.volume.Volume
 
         Returns
@@ -212,7 +194,8 @@ class GradientDensify:
         """
         p = state.params
         with torch.no_grad():
-            bad = self.prune_mask(p["means"].detach(), p["log_scales"].detach(), self.amplitude(p), volume)
+            bad = self.prune_mask(p["means"].detach(), p["log_scales"].detach(), amplitude(p, self.compositor),
+                                  volume)
         if bool(bad.any()):
             state.params = replace_params(state.opt, p, torch.nonzero(~bad).flatten(), {})
         reset_stats(state)
@@ -302,8 +285,8 @@ class GradientDensify:
             # pruning criteria on survivors + new rows
             all_means = torch.cat([p["means"].detach()[keep], new["means"]])
             all_ls = torch.cat([p["log_scales"].detach()[keep], new["log_scales"]])
-            amp = self.amplitude({k: torch.cat([p[k].detach()[keep], new[k]]) for k in ("density_raw", "opacity_raw")
-                                  if k in p})
+            amp = amplitude({k: torch.cat([p[k].detach()[keep], new[k]]) for k in ("density_raw", "opacity_raw")
+                             if k in p}, self.compositor)
             bad = self.prune_mask(all_means, all_ls, amp, vol)
         # apply: first keep/append, then prune
         state.params = replace_params(state.opt, p, torch.nonzero(keep).flatten(), new)

@@ -95,6 +95,7 @@ from ctsplat.training.state import (
     TrainState,
     ViewSampler,
     all_finite,
+    amplitude,
     as_gaussians,
     cosine_factor,
     init_params,
@@ -237,10 +238,9 @@ def _collapse_reason(state: TrainState, cfg: dict[str, Any], row: dict[str, floa
         return reason
     min_n = int(cfg["collapse_min_gaussians"])
     if min_n:
-        g = as_gaussians(state.params)
-        amp = g.opacities if cfg["compositor"] == "alpha" else g.densities
+        amp = amplitude(state.params, cfg["compositor"])
         thr = float(cfg["densify"]["prune_density"])
-        alive = int((amp.detach() >= thr).sum())
+        alive = int((amp >= thr).sum())
         if alive < min_n:
             what = "opacity" if cfg["compositor"] == "alpha" else "density"
             return (f"only {alive} of {amp.shape[0]} Gaussians have a {what} >= densify.prune_density ({thr:g}), "

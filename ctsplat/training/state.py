@@ -22,8 +22,8 @@ import torch
 
 from ctsplat.training.seeding import Seed
 
-__all__ = ["PARAM_GROUPS", "METHOD_LR", "TrainState", "ViewSampler", "init_params", "as_gaussians", "make_optimizer",
-           "cosine_factor", "replace_params", "snapshot", "restore", "all_finite"]
+__all__ = ["PARAM_GROUPS", "METHOD_LR", "TrainState", "ViewSampler", "init_params", "as_gaussians", "amplitude",
+           "make_optimizer", "cosine_factor", "replace_params", "snapshot", "restore", "all_finite"]
 
 PARAM_GROUPS = {"means": "means", "log_scales": "scales", "quats": "quats", "density_raw": "density",
                 "opacity_raw": "opacity", "colors": "colors"}
@@ -54,6 +54,26 @@ def init_params(seed: Seed, cfg: dict[str, Any], device: torch.device) -> dict[s
         kw = {"opacities": 0.1, "colors": np.full((len(seed), 1), 0.5, np.float32)}
     g = Gaussians.from_values(seed.means, seed.scales, seed.densities, dtype=torch.float32, device=device, **kw)
     return {k: v.detach().clone().requires_grad_(True) for k, v in g.tensors().items() if k in PARAM_GROUPS}
+
+
+def amplitude(params: dict[str, torch.Tensor], compositor: str) -> torch.Tensor:
+    """What each Gaussian renders with: its density (radiative compositors), or its opacity (alpha; the alpha
+    model keeps a density parameter that nothing renders).
+
+    Parameters
+    ----------
+    params : dict of str to Tensor
+        ``density_raw`` (N,), and ``opacity_raw`` (N,) for alpha.
+    compositor : str
+
+    Returns
+    -------
+    Tensor (N,)
+        ``softplus(density_raw)`` or ``sigmoid(opacity_raw)``, detached.
+    """
+    if compositor == "alpha":
+        return torch.sigmoid(params["opacity_raw"].detach())
+    return torch.nn.functional.softplus(params["density_raw"].detach())
 
 
 def as_gaussians(params: dict[str, torch.Tensor]) -> Any:

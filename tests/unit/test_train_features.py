@@ -304,13 +304,12 @@ def test_alpha_pruning_reads_the_opacity_that_is_rendered_not_the_unused_density
     reset_stats(st)
     settings = {**config.TRAIN_DEFAULTS["densify"], "interval": 10, "start": 10, "stop": 20, "prune_until_end": True}
     alpha = GradientDensify(settings, compositor="alpha", iterations=30)
-    assert torch.equal(alpha.amplitude(st.params), torch.sigmoid(st.params["opacity_raw"].detach()))
+    assert torch.equal(state.amplitude(st.params, "alpha"), torch.sigmoid(st.params["opacity_raw"].detach()))
     counts = alpha.maybe_step(st, 30, _box_volume(), torch.Generator())
     assert counts["pruned"] == 1 and counts["n"] == 5
     kept = torch.sigmoid(st.params["opacity_raw"].detach())
     assert float(kept[0]) == pytest.approx(0.95) and float(kept.min()) > 0.4  # the opaque one stays
-    radiative = GradientDensify(settings, compositor="radiative", iterations=30)
-    assert torch.equal(radiative.amplitude(st.params),
+    assert torch.equal(state.amplitude(st.params, "radiative"),
                        torch.nn.functional.softplus(st.params["density_raw"].detach()))
 
 
