@@ -28,6 +28,7 @@ from ctsplat.utils import CtsplatError, merge_config
 __all__ = [
     "LIBRARY_SECTIONS",
     "canonical",
+    "on_workflow_device",
     "load_schema",
     "validate_config",
     "schema_defaults",
@@ -434,6 +435,39 @@ def canonical(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [canonical(v) for v in value]
     return value
+
+
+def on_workflow_device(settings: Mapping[str, Any], user: Mapping[str, Any] | None, device: str) -> dict[str, Any]:
+    """A section's settings on the workflow's device unless the user's own section names one.
+
+    The radiographs, baselines and photo sections each have a ``device`` default of their own; a workflow whose
+    top-level ``device`` is ``cuda`` should run them there too, unless the section was set explicitly.
+
+    Parameters
+    ----------
+    settings : mapping
+        The section as validated (defaults filled in).
+    user : mapping or None
+        The same section as the user wrote it (before defaults), None when absent.
+    device : str
+        The workflow's ``device``.
+
+    Returns
+    -------
+    dict
+        A copy of ``settings`` with ``device`` replaced unless ``user`` sets it.
+
+    Examples
+    --------
+    >>> on_workflow_device({"device": "cpu", "k": 1}, None, "cuda")
+    {'device': 'cuda', 'k': 1}
+    >>> on_workflow_device({"device": "cpu"}, {"device": "cpu"}, "cuda")
+    {'device': 'cpu'}
+    """
+    out = dict(settings)
+    if "device" not in (user or {}):
+        out["device"] = device
+    return out
 
 
 def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] = ".") -> dict[str, Any]:

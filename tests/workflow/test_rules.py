@@ -176,6 +176,8 @@ def test_evaluation_settings_and_key_order_do_not_train_again(wd):
 
     # the same settings in another order, a default written out: nothing to do
     same = {**reversed_keys(cfg), "train": {**reversed_keys(cfg["train"]), "lambda_l1": 1.0}}
+    # the milestones as the schema's defaults, written in reverse order (evaluate reads them as params)
+    same["analysis"] = {**same["analysis"], "milestones": {"psnr3d": 30.0, "ssim2d": 0.9, "psnr2d": 30.0}}
     proc = snakemake(wd, f"{RUN}/metrics.json", "-n", configfile=write_config(wd / "reordered.yaml", same))
     assert "Nothing to be done" in proc.stdout + proc.stderr, proc.stdout[-3000:]
     # a figure setting: the evaluation again, not the training

@@ -7,7 +7,7 @@ from pathlib import Path
 from snakemake.utils import Paramspace
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS
-from ctsplat.config import canonical, prepare_config
+from ctsplat.config import canonical, on_workflow_device, prepare_config
 from ctsplat.training.config import EVALUATION_KEYS
 from ctsplat.sfm.step import sfm_failure
 from ctsplat.grid import (
@@ -147,11 +147,10 @@ def phantom_params(wildcards):
 
 def radiographs_params(wildcards):
     """The geometry's radiographs settings; the projector runs on the workflow's device unless set there."""
-    settings = dict(CFG["radiographs"][wildcards.geometry])
-    user = config.get("radiographs", {}).get(wildcards.geometry) or {}
-    if "device" not in user:
-        settings["device"] = CFG["device"]
-    return canonical(settings)
+    user = (config.get("radiographs") or {}).get(wildcards.geometry)
+    return canonical(
+        on_workflow_device(CFG["radiographs"][wildcards.geometry], user, CFG["device"])
+    )
 
 
 def baselines_params(wildcards):
@@ -160,10 +159,8 @@ def baselines_params(wildcards):
     views = (
         CFG["baselines"]["n_views"] or RUNS[RUNS["volume"] == wildcards.volume]["views"]
     )
-    settings = dict(CFG["baselines"]["settings"])
-    user = (config.get("baselines", {}) or {}).get("settings") or {}
-    if "device" not in user:
-        settings["device"] = CFG["device"]
+    user = (config.get("baselines") or {}).get("settings")
+    settings = on_workflow_device(CFG["baselines"]["settings"], user, CFG["device"])
     return canonical({"n_views": sorted(set(int(v) for v in views)), **settings})
 
 
@@ -250,7 +247,7 @@ def evaluation_settings():
 
 def evaluation_milestones():
     """Validation targets of the time-to-milestone columns (the analysis section's, so tables agree)."""
-    return dict(CFG["analysis"]["milestones"])
+    return canonical(CFG["analysis"]["milestones"])
 
 
 def train_gpu(wildcards):
@@ -273,10 +270,8 @@ def photos_sfm_params(wildcards):
 
 def photos_train_params(wildcards):
     """The photo training settings; on the workflow's device unless photos.train.device is set."""
-    settings = dict(CFG["photos"]["train"])
-    if "device" not in (config.get("photos", {}).get("train") or {}):
-        settings["device"] = CFG["device"]
-    return canonical(settings)
+    user = (config.get("photos") or {}).get("train")
+    return canonical(on_workflow_device(CFG["photos"]["train"], user, CFG["device"]))
 
 
 def photos_gpu(wildcards):
