@@ -506,7 +506,9 @@ def run_lock(folder: str | os.PathLike[str], what: str = "run folder") -> Iterat
 
     The lock is ``fcntl.flock`` on ``folder/.ctsplat.lock``, which records the holder's pid and command. The
     kernel releases it when the holder exits, however it ends (a killed job leaves no stale lock; the file
-    stays, unlocked). Nested calls for the same folder in one process share the outer lock.
+    stays, unlocked). Nested calls for the same folder in one process share the outer lock. When the step fails
+    in a folder that this call created and that holds nothing but the lock file, the folder is removed: a run
+    that failed on its inputs leaves nothing behind.
 
     Parameters
     ----------
@@ -528,9 +530,12 @@ def run_lock(folder: str | os.PathLike[str], what: str = "run folder") -> Iterat
     import fcntl
 
     folder = Path(folder)
+    created = not folder.exists()
     try:
         folder.mkdir(parents=True, exist_ok=True)
         key = str(folder.resolve())
+        if not os.access(folder, os.W_OK | os.X_OK):  # an existing lock file opens even in a read-only folder
+            raise PermissionError(13, "Permission denied")
     except OSError as exc:
         raise CtsplatError(f"{what} {folder} is not writable ({exc.strerror or exc}); choose another folder or fix "
                            "its permissions") from exc
@@ -548,6 +553,7 @@ def run_lock(folder: str | os.PathLike[str], what: str = "run folder") -> Iterat
     except OSError as exc:
         raise CtsplatError(f"{what} {folder} is not writable ({exc.strerror or exc}); choose another folder or fix "
                            "its permissions") from exc
+    failed_empty = False
     try:
         try:
             fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -565,6 +571,9 @@ def run_lock(folder: str | os.PathLike[str], what: str = "run folder") -> Iterat
         _HELD_LOCKS[key] = [fh, 1]
         try:
             yield lock_path
+        except BaseException:
+            failed_empty = created and {p.name for p in folder.iterdir()} <= {LOCK_NAME}
+            raise
         finally:
             del _HELD_LOCKS[key]
             # the file is left in place: removing it would let a waiting process lock an unlinked inode while a
@@ -572,6 +581,8 @@ def run_lock(folder: str | os.PathLike[str], what: str = "run folder") -> Iterat
             fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
     finally:
         fh.close()
+        if failed_empty:
+            shutil.rmtree(folder, ignore_errors=True)
 
 
 def _command_name() -> str:

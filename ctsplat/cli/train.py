@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +23,6 @@ def load_train_config(path: str | None, overrides: list[str]) -> dict[str, Any]:
 
 def _train(args: argparse.Namespace) -> None:
     from ctsplat.training.config import resolve_config
-    from ctsplat.utils import LOCK_NAME
 
     cfg = load_train_config(args.config, args.set or [])
     for key in ("volume", "radiographs", "sfm_dir", "sfm_radiographs", "init", "compositor", "poses", "device"):
@@ -38,15 +36,7 @@ def _train(args: argparse.Namespace) -> None:
     if args.quiet:
         cfg["progress"] = False
     resolve_config(cfg)  # bad settings fail before the run folder is created and locked
-    out = Path(args.out)
-    created = not out.exists()
-    try:
-        _train_locked(args, cfg, out)
-    except BaseException:
-        # a run that failed before writing anything (a missing input) leaves no folder behind
-        if created and out.is_dir() and {p.name for p in out.iterdir()} <= {LOCK_NAME}:
-            shutil.rmtree(out, ignore_errors=True)
-        raise
+    _train_locked(args, cfg, Path(args.out))
 
 
 def _train_locked(args: argparse.Namespace, cfg: dict[str, Any], out: Path) -> None:

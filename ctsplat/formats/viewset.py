@@ -249,7 +249,9 @@ def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, pro
     """Write a radiograph folder (see the module docstring): all of its files, or none of them.
 
     Every file is first written into a staging folder beside ``out_dir``; only when all are complete are they moved
-    into place (renames on one file system), so a failure leaves ``out_dir`` as it was.
+    into place (renames on one file system), so a failure leaves ``out_dir`` as it was. The moves take the old
+    ``views.json`` away first and put the new one in place last: a crash between two moves leaves a folder without
+    ``views.json``, which :func:`load_radiographs` refuses, never new images beside the old view set.
 
     Parameters
     ----------
@@ -281,12 +283,13 @@ def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, pro
             "units": "line integrals of mu in 1/mm (dimensionless); png = 16-bit transmission exp(-p)",
         })
         out_dir.mkdir(exist_ok=True)
-        names = ("line_integrals.tif", "png", "views.json", "radiographs.json")
+        names = ("line_integrals.tif", "png", "radiographs.json", "views.json")  # views.json last
         for name in names:  # check every target before the first move, so the moves cannot fail halfway
             target = out_dir / name
             if target.exists() and target.is_dir() != (name == "png"):
                 raise CtsplatError(f"cannot write {target}: a {'folder' if target.is_dir() else 'file'} of that "
                                    "name is in the way; remove it or choose another output folder")
+        (out_dir / "views.json").unlink(missing_ok=True)
         for name in names:
             if name == "png" and (out_dir / name).exists():
                 shutil.rmtree(out_dir / name)

@@ -55,7 +55,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import shutil
 import sys
 import time
@@ -104,7 +103,6 @@ from ctsplat.training.state import (
     snapshot,
 )
 from ctsplat.utils import (
-    LOCK_NAME,
     CtsplatError,
     atomic_path,
     code_version,
@@ -125,17 +123,6 @@ log = logging.getLogger(__name__)
 #: would otherwise sit beside the new model.
 RUN_OUTPUTS = ("training.json", "metrics.json", "model.pt", "model_best.pt", "model.ply", "model_volume.nii.gz",
                "per_view_test.csv", "refined_views.json")
-
-
-def _check_writable(out_dir: Path) -> None:
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        probe = out_dir / f".write_probe_{os.getpid()}"
-        probe.write_text("ok")
-        probe.unlink()
-    except OSError as exc:
-        raise CtsplatError(f"output folder {out_dir} is not writable ({exc.strerror or exc}); choose another "
-                           "folder or fix its permissions") from exc
 
 
 def _evaluate_periodic(state: TrainState, cfg: dict[str, Any], scene: Scene, val: ViewData
@@ -317,16 +304,10 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool | Literal
         raise CtsplatError(f"resume must be True, False or 'auto', got {resume!r}")
     cfg = resolve_config(config)
     out_dir = Path(out_dir)
-    created = not out_dir.exists()
-    _check_writable(out_dir)
-    try:
-        with run_lock(out_dir):
-            return _train(cfg, out_dir, resume, callback)
-    except BaseException:
-        # a run that failed before writing anything (bad inputs) leaves no empty folder behind
-        if created and {p.name for p in out_dir.iterdir()} <= {LOCK_NAME}:
-            shutil.rmtree(out_dir, ignore_errors=True)
-        raise
+    # the lock checks that the folder is writable, and removes it again if this run created it and fails on its
+    # inputs before writing anything
+    with run_lock(out_dir, "output folder"):
+        return _train(cfg, out_dir, resume, callback)
 
 
 def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,

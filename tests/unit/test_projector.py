@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import warnings
+from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
@@ -464,3 +466,33 @@ def test_radiograph_folder_is_written_whole_or_not_at_all(tmp_path) -> None:
     assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
     p, back = load_radiographs(out)
     assert np.all(p == 1.0) and len(back) == 4
+
+
+def test_radiograph_folder_never_pairs_new_images_with_the_old_view_set(tmp_path, monkeypatch) -> None:
+    """A crash between two of the final moves (simulated: the second rename fails) leaves a folder that
+    load_radiographs refuses, not new line integrals beside the old views.json of the same shape."""
+    import ctsplat.formats.viewset as viewset_mod
+    from ctsplat.geometry import circular_orbit
+
+    vs = ViewSet(ParallelCamera(8, 8, 1.0), circular_orbit(4, np.zeros(3), 20.0, split_fractions={"train": 1.0}),
+                 "v1", np.zeros(3), {})
+    out = tmp_path / "rad"
+    viewset_mod.write_radiographs(out, np.ones((4, 8, 8), np.float32), vs, {})
+    moved = []
+    real_replace = os.replace
+
+    def crash_on_second(src, dst):
+        if Path(dst).parent == out:  # the final moves (the staging folder's own renames pass)
+            if len(moved) == 1:
+                raise OSError("simulated crash")
+            moved.append(dst)
+        real_replace(src, dst)
+
+    monkeypatch.setattr(viewset_mod.os, "replace", crash_on_second)
+    other = ViewSet(ParallelCamera(8, 8, 1.0), circular_orbit(4, np.zeros(3), 20.0, start_deg=45.0,
+                                                              split_fractions={"train": 1.0}), "v2", np.zeros(3), {})
+    with pytest.raises(OSError, match="simulated crash"):
+        viewset_mod.write_radiographs(out, np.full((4, 8, 8), 2.0, np.float32), other, {})
+    assert [Path(m).name for m in moved] == ["line_integrals.tif"]
+    with pytest.raises(CtsplatError, match=r"views\.json does not exist"):
+        load_radiographs(out)

@@ -384,3 +384,30 @@ def test_bad_inputs_leave_no_run_folder(tmp_path) -> None:
         train({"volume": str(tmp_path / "nope.nii.gz"), "radiographs": str(tmp_path / "rad"), "device": "cpu",
                "progress": False}, out)
     assert not out.exists()
+
+
+def test_lock_removes_a_folder_it_created_when_the_step_fails_before_writing(tmp_path: Path) -> None:
+    new = tmp_path / "a" / "run"
+    with pytest.raises(ValueError), run_lock(new):
+        raise ValueError("bad input")
+    assert not new.exists()  # created here, nothing written: gone
+    kept = tmp_path / "kept"
+    with pytest.raises(ValueError), run_lock(kept):
+        (kept / "log.csv").write_text("x")
+        raise ValueError("failed after writing")
+    assert (kept / "log.csv").exists()  # something written: kept for the user to look at
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    with pytest.raises(ValueError), run_lock(existing):
+        raise ValueError("bad input")
+    assert existing.is_dir()  # not created by the lock: never removed
+    with run_lock(new):
+        pass
+    assert (new / LOCK_NAME).exists()  # a step that succeeds keeps its folder
+    if os.geteuid() != 0:  # permissions do not stop root
+        new.chmod(0o500)
+        try:
+            with pytest.raises(CtsplatError, match="not writable"), run_lock(new):
+                pass
+        finally:
+            new.chmod(0o700)
