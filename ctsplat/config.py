@@ -22,7 +22,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from ctsplat.grid import expand_grid, needs_sfm
+from ctsplat.grid import expand_grid, needs_sfm, uses_colmap
 from ctsplat.utils import CtsplatError, merge_config
 
 __all__ = [
@@ -505,6 +505,9 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
     for rule, spec in load_schema()["properties"]["resources"]["properties"].items():
         cfg["resources"][rule] = {**spec["default"], **cfg["resources"].get(rule, {})}
     check_volume_sources(cfg["volumes"], base_dir)
+    for name, vol in cfg["volumes"].items():
+        if vol["kind"] != "photos":
+            _check_volume_preprocessing(name, vol.get("preprocessing") or {}, cfg["preprocessing"])
     # photo folders take the photos path (workflow/rules/photos.smk), never the CT grid
     cfg["photo_volumes"] = {n: v for n, v in cfg["volumes"].items() if v["kind"] == "photos"}
     cfg["volumes"] = {n: v for n, v in cfg["volumes"].items() if v["kind"] != "photos"}
@@ -546,9 +549,23 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
             f"invalid config at baselines.geometry: {cfg['baselines']['geometry']!r} is a C-arm orbit (orbit: carm) "
             "with no validation views to choose the baselines' parameters on; name a circular or sphere geometry"
         )
+    from ctsplat.geometry.orbits import check_orbit_settings
+
     for geo, values in cfg["radiographs"].items():
         check_split(values["split"], f"radiographs.{geo}.split")
+        check_orbit_settings(values, f"invalid config at radiographs.{geo}")
     check_grid_exclude(cfg)
+    sfm_settings = cfg["sfm"]["settings"]
+    if float(sfm_settings["percentile_low"]) >= float(sfm_settings["percentile_high"]):
+        raise CtsplatError(
+            f"invalid config at sfm.settings.percentile_low: {sfm_settings['percentile_low']:g} is not below "
+            f"percentile_high ({sfm_settings['percentile_high']:g}), so every image would be blank; e.g. 0.5 and 99.5"
+        )
+    photo_train = cfg["photos"]["train"]
+    offset, every = photo_train["validation_offset"], int(photo_train["test_every"])
+    if cfg["photo_volumes"] and offset is not None and every and not int(offset) < every:
+        raise CtsplatError(f"invalid config at photos.train.validation_offset: {offset} must be 1..{every - 1} "
+                           f"(below photos.train.test_every, {every})")
     runs = expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
     sfm_geometry = cfg["sfm"]["settings"]["geometry"]
     if needs_sfm(runs, enabled=cfg["sfm"]["enabled"]):
@@ -569,16 +586,58 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
                 f"or init: sfm) registers a C-arm view set: add radiographs.{sfm_geometry} with camera: cone, "
                 "orbit: carm (config/README.md)"
             )
-    geo = cfg["radiographs"][cfg["grid"]["geometry"]]
-    # circular orbits have exactly n_views training angles; a sphere splits n_views into train/val/test
-    available = geo["n_views"] if geo["orbit"] == "circular" else int(geo["n_views"] * geo["split"]["train"])
-    if int(runs["views"].max()) > available:
-        raise CtsplatError(
-            f"invalid config at grid.axes.views: {int(runs['views'].max())} training views requested but geometry "
-            f"{cfg['grid']['geometry']!r} has only about {available} training views; raise "
-            f"radiographs.{cfg['grid']['geometry']}.n_views or lower the views axis"
-        )
+    # poses: colmap cells train on the C-arm view set SfM registers, the others on the grid's geometry
+    colmap = runs["poses"].map(uses_colmap).to_numpy(bool)
+    for cells, geo_name, what in ((~colmap, cfg["grid"]["geometry"], "geometry"),
+                                  (colmap, sfm_geometry, "the C-arm view set of poses: colmap cells,")):
+        if not cells.any() or geo_name not in cfg["radiographs"]:
+            continue
+        most = int(runs.loc[cells, "views"].max())
+        available = _training_views(cfg["radiographs"][geo_name])
+        if most > available:
+            raise CtsplatError(
+                f"invalid config at grid.axes.views: {most} training views requested but {what} {geo_name!r} has "
+                f"only about {available} training views; raise radiographs.{geo_name}.n_views or lower the views "
+                "axis"
+            )
+    if cfg["baselines"]["enabled"]:
+        base = cfg["baselines"]["geometry"]
+        counts = cfg["baselines"]["n_views"] or []
+        available = _training_views(cfg["radiographs"][base])
+        if any(int(c) > available for c in counts):
+            raise CtsplatError(
+                f"invalid config at baselines.n_views: {max(int(c) for c in counts)} views requested but geometry "
+                f"{base!r} has only about {available} training views; lower baselines.n_views or raise "
+                f"radiographs.{base}.n_views"
+            )
     return cfg
+
+
+def _training_views(geometry: Mapping[str, Any]) -> int:
+    """How many training views a radiographs geometry (defaults filled) renders, about: circular and C-arm orbits
+    have exactly ``n_views``, a sphere splits ``n_views`` into train/val/test."""
+    if geometry["orbit"] in ("circular", "carm"):
+        return int(geometry["n_views"])
+    return int(geometry["n_views"] * geometry["split"]["train"])
+
+
+def _check_volume_preprocessing(name: str, override: Mapping[str, Any], defaults: Mapping[str, Any]) -> None:
+    """A volume's ``preprocessing`` overrides: the section's types and ranges, and an intensity the projector takes.
+    """
+    where = f"volumes.{name}.preprocessing"
+    check_values(override, section_schema("preprocessing"), where)
+    settings = {**defaults, **override}
+    if settings["intensity"] == "hu":
+        key = f"{where}.intensity" if "intensity" in override else "preprocessing.intensity"
+        raise CtsplatError(f"invalid config at {key}: 'hu' keeps Hounsfield units, which the projector cannot use "
+                           "(negative below water); use attenuation, window or mu (hu is for `ctsplat ingest` "
+                           "alone)")
+    from ctsplat.volume import check_preprocessing
+
+    try:
+        check_preprocessing(settings)  # what the schema cannot say (a window preset's name)
+    except CtsplatError as exc:
+        raise CtsplatError(f"invalid config at {where if override else 'preprocessing'}: {exc}") from None
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -646,7 +705,8 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("radiographs", "orbit_jitter_mm"): _NON_NEGATIVE,
     ("radiographs", "orbit_jitter_deg"): _NON_NEGATIVE,
     ("radiographs", "fov_margin"): _POSITIVE,
-    ("radiographs", "split.train"): _FRACTION,  # the three fractions sum to 1 (check_split)
+    # the three fractions sum to 1 (check_split); every view set has training views
+    ("radiographs", "split.train"): {"type": "number", "exclusiveMinimum": 0, "maximum": 1},
     ("radiographs", "split.val"): _FRACTION,
     ("radiographs", "split.test"): _FRACTION,
     ("radiographs", "step_voxels"): _POSITIVE,
@@ -793,8 +853,10 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("photos", "train.device"): {"enum": ["auto", "cpu", "cuda"]},
     ("photos", "evaluate.turntable_frames"): {"type": "integer", "minimum": 0},
     ("photos", "evaluate.gallery_views"): {"type": "integer", "minimum": 0},
-    ("baselines", "n_views"): {"type": ["integer", "array", "null"], "minimum": 0,
+    ("baselines", "n_views"): {"type": ["integer", "array", "null"], "minimum": 0, "minItems": 1,
                                "items": {"type": "integer", "minimum": 0}},
+    ("train", "fbp_filter"): {"enum": ["ramp", "shepp-logan", "cosine", "hamming", "hann"]},
+    ("radiographs", "device"): {"type": "string", "pattern": "^(auto|cpu|cuda(:[0-9]+)?)$"},
 }
 
 

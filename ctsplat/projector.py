@@ -73,6 +73,7 @@ from ctsplat.geometry import (
     camera_rays,
     carm_orbit,
     check_fov,
+    check_orbit_settings,
     circular_orbit,
     covering_spacing_mm,
     object_points_mm,
@@ -604,11 +605,7 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
     iso = np.asarray(cfg["isocenter_mm"] if cfg["isocenter_mm"] is not None else volume.center_mm(), float)
     if iso.shape != (3,):
         raise CtsplatError(f"isocenter_mm must be [x, y, z] in mm, got {cfg['isocenter_mm']!r}")
-    if cfg["orbit"] not in ("circular", "sphere", "carm"):
-        raise CtsplatError(f"unknown orbit {cfg['orbit']!r}; allowed: circular, sphere, carm")
-    if cfg["orbit"] != "circular" and (cfg["n_val"] is not None or cfg["n_test"] is not None):
-        raise CtsplatError(f"radiographs.n_val / n_test set the held-out views of orbit: circular; orbit "
-                           f"{cfg['orbit']} splits by the split fractions (set n_val and n_test to null)")
+    check_orbit_settings(cfg)
     voxel = float(np.max(volume.spacing_mm))
     side = float(np.max(np.asarray(volume.shape, float) * np.asarray(volume.spacing_mm, float)))  # L (mm)
     corners = np.array([[a, b, c] for a in (-1, volume.shape[0]) for b in (-1, volume.shape[1])
@@ -620,8 +617,6 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
     if size_factor is not None and not (isinstance(size_factor, int | float) and size_factor > 0):
         raise CtsplatError(f"radiographs.detector_size_factor must be a positive number (detector width in volume "
                            f"sides) or null, got {size_factor!r}")
-    if cfg["pixel_spacing_mm"] is not None and size_factor is not None:
-        raise CtsplatError("radiographs: set pixel_spacing_mm or detector_size_factor, not both")
     dso = dsd = object_radius = 0.0
     if cfg["camera"] == "parallel":
         distance = (radius * 1.05 + 1.0) if cfg["parallel_distance_mm"] is None else float(cfg["parallel_distance_mm"])
@@ -651,8 +646,6 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
         if dso <= radius:
             warnings.warn(f"dso_mm {dso} puts the source inside the volume's bounding sphere (radius "
                           f"{radius:.1f} mm); part of the volume lies behind the source", stacklevel=2)
-    else:
-        raise CtsplatError(f"unknown camera {cfg['camera']!r}; allowed: parallel, cone")
     arc = cfg["arc_deg"]
     if cfg["orbit"] == "circular":
         if arc is None:
@@ -665,8 +658,6 @@ def build_view_set(volume: Any, config: dict[str, Any], seed: int = 0) -> ViewSe
         views = sphere_orbit(cfg["n_views"], iso, distance, elevation_range_deg=cfg["elevation_range_deg"],
                              sampling=cfg["sphere_sampling"], split_fractions=cfg["split"], seed=seed)
     else:
-        if cfg["camera"] != "cone":
-            raise CtsplatError("orbit: carm needs camera: cone (a C-arm is a cone-beam scanner)")
         arc = 360.0 if arc is None else arc
         views = carm_orbit(cfg["n_views"], iso, distance, arc_deg=float(arc), start_deg=float(cfg["start_deg"]),
                            wobble_deg=float(cfg["wobble_deg"]), wobble_cycles=float(cfg["wobble_cycles"]),

@@ -14,7 +14,7 @@ import dataclasses
 import itertools
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +28,7 @@ from ctsplat.utils import CtsplatError, code_version, merge_config
 __all__ = [
     "PREPROCESSING_DEFAULTS",
     "WINDOW_PRESETS",
+    "check_preprocessing",
     "ingest",
     "resample_stack",
     "hu_to_attenuation",
@@ -88,7 +89,19 @@ _INTENSITY_MODES = ("attenuation", "window", "mu", "hu")
 NONFINITE_RULES = ("error", "fill_min")
 
 
-def _check_preprocessing(cfg: dict[str, Any]) -> None:
+def check_preprocessing(cfg: Mapping[str, Any]) -> None:
+    """Check a ``preprocessing`` section (defaults filled) beyond its schema: names, ranges, the window.
+
+    Parameters
+    ----------
+    cfg : mapping
+        The section, every key of :data:`PREPROCESSING_DEFAULTS` present.
+
+    Raises
+    ------
+    CtsplatError
+        Naming the first bad key, e.g. an unknown window preset.
+    """
     if cfg["intensity"] not in _INTENSITY_MODES:
         allowed = ", ".join(_INTENSITY_MODES)
         raise CtsplatError(f"preprocessing.intensity {cfg['intensity']!r} unknown; allowed: {allowed}")
@@ -592,7 +605,7 @@ def ingest(
     if not out_path.name.endswith((".nii.gz", ".nii")):
         raise CtsplatError(f"output {out_path} must end in .nii.gz or .nii")
     cfg = merge_config("preprocessing", preprocessing, PREPROCESSING_DEFAULTS)
-    _check_preprocessing(cfg)
+    check_preprocessing(cfg)
     check_rescale(rescale)
     if nonfinite not in NONFINITE_RULES:
         raise CtsplatError(f"nonfinite {nonfinite!r} unknown; allowed: {', '.join(NONFINITE_RULES)}")

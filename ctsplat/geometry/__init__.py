@@ -11,7 +11,7 @@ from ctsplat.geometry.cameras import __all__ as _cameras_all
 
 _ORBIT_NAMES = ("arc_azimuths", "fibonacci_directions", "stratified_directions", "split_counts", "assign_splits",
                 "sphere_orbit", "circular_orbit", "carm_orbit", "support_radius_mm", "fov_outside_fraction",
-                "check_fov", "object_points_mm", "covering_spacing_mm")
+                "check_fov", "object_points_mm", "covering_spacing_mm", "check_orbit_settings")
 
 __all__ = [*_cameras_all, *_ORBIT_NAMES]
 

@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -31,6 +32,7 @@ from ctsplat.geometry.cameras import Camera, look_at, pose_from_angles, project_
 from ctsplat.utils import CtsplatError
 
 __all__ = [
+    "check_orbit_settings",
     "arc_azimuths",
     "fibonacci_directions",
     "stratified_directions",
@@ -45,6 +47,46 @@ __all__ = [
     "object_points_mm",
     "covering_spacing_mm",
 ]
+
+
+def check_orbit_settings(cfg: Mapping[str, Any], where: str = "radiographs") -> None:
+    """Check the settings of one radiographs geometry that do not depend on the volume.
+
+    Run by the projector before it builds a view set, and by the workflow on every geometry before any job runs.
+
+    Parameters
+    ----------
+    cfg : mapping
+        One geometry's settings with the defaults filled (``orbit``, ``camera``, ``n_val``, ``n_test``,
+        ``pixel_spacing_mm``, ``detector_size_factor``).
+    where : str
+        Key path shown in the error (``radiographs.circular``).
+
+    Raises
+    ------
+    CtsplatError
+        For an unknown orbit or camera, a C-arm orbit on a parallel camera, held-out counts on an orbit that
+        splits by fractions, or both detector-size settings.
+
+    Examples
+    --------
+    >>> check_orbit_settings({"orbit": "carm", "camera": "parallel"}, "radiographs.carm")
+    Traceback (most recent call last):
+    ...
+    ctsplat.utils.CtsplatError: radiographs.carm: orbit carm needs camera: cone (a C-arm is a cone-beam scanner)
+    """
+    orbit, camera = cfg.get("orbit"), cfg.get("camera")
+    if orbit not in ("circular", "sphere", "carm"):
+        raise CtsplatError(f"{where}: unknown orbit {orbit!r}; allowed: circular, sphere, carm")
+    if camera not in ("parallel", "cone"):
+        raise CtsplatError(f"{where}: unknown camera {camera!r}; allowed: parallel, cone")
+    if orbit == "carm" and camera != "cone":
+        raise CtsplatError(f"{where}: orbit carm needs camera: cone (a C-arm is a cone-beam scanner)")
+    if orbit != "circular" and (cfg.get("n_val") is not None or cfg.get("n_test") is not None):
+        raise CtsplatError(f"{where}: n_val / n_test set the held-out views of orbit: circular; orbit {orbit} "
+                           "splits by the split fractions (set n_val and n_test to null)")
+    if cfg.get("pixel_spacing_mm") is not None and cfg.get("detector_size_factor") is not None:
+        raise CtsplatError(f"{where}: set pixel_spacing_mm or detector_size_factor, not both")
 
 
 def arc_azimuths(n: int, arc_deg: float, start_deg: float = 0.0, offsets: np.ndarray | None = None) -> np.ndarray:

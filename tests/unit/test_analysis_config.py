@@ -221,6 +221,71 @@ def test_views_axis_must_fit_the_training_geometry():
                            "grid": {"axes": {"views": [80]}}})
 
 
+def test_colmap_cells_must_fit_the_c_arm_view_set_and_others_the_grid_geometry():
+    carm = {"camera": "cone", "orbit": "carm", "n_views": 30, "dso_mm": 600.0, "dsd_mm": 1000.0}
+    # 40 views fit the circular geometry (50) but not the 30-view C-arm set that poses: colmap cells train on
+    with pytest.raises(CtsplatError, match="40 training views requested but the C-arm view set of poses: colmap "
+                                           "cells, 'carm' has only about 30"):
+        prepare_config({"radiographs": {"circular": {"n_views": 50}, "carm": carm},
+                        "grid": {"axes": {"poses": ["gt", "colmap"], "views": [20, 40]}}})
+    # a colmap-only grid is measured against the C-arm set alone (the circular one has 12 views)
+    prepare_config({"radiographs": {"circular": {"n_views": 12}, "carm": {**carm, "n_views": 90}},
+                    "grid": {"axes": {"poses": ["colmap"], "views": [60]}}})
+
+
+def test_baseline_view_counts_must_fit_the_baselines_geometry():
+    with pytest.raises(CtsplatError, match=r"baselines\.n_views: 500 views requested but geometry 'circular' has "
+                                           "only about 100"):
+        prepare_config({"baselines": {"n_views": [10, 500]}})
+    with pytest.raises(CtsplatError, match=r"invalid config at baselines\.n_views"):
+        prepare_config({"baselines": {"n_views": []}})  # an empty list is not "the grid's views" (null is)
+    assert prepare_config({"baselines": {"n_views": [10, 100]}})["baselines"]["n_views"] == [10, 100]
+
+
+@pytest.mark.parametrize(
+    ("config", "message"),
+    [
+        ({"volumes": {"p": {"source": "phantom", "preprocessing": {"denoise": "tv", "denoise_weight": -5}}}},
+         "invalid config at volumes.p.preprocessing.denoise_weight: -5 is less than or equal to the minimum of 0"),
+        ({"volumes": {"p": {"source": "phantom", "preprocessing": {"mu_water_per_mm": "x"}}}},
+         "invalid config at volumes.p.preprocessing.mu_water_per_mm: 'x' is not of type 'number'"),
+        ({"volumes": {"p": {"source": "phantom", "preprocessing": {"intensity": "window", "window": "brian"}}}},
+         "invalid config at volumes.p.preprocessing: unknown window preset 'brian'"),
+        ({"preprocessing": {"intensity": "window", "window": "brian"}},
+         "invalid config at preprocessing: unknown window preset 'brian'"),
+        ({"volumes": {"p": {"source": "phantom", "preprocessing": {"intensity": "hu"}}}},
+         "invalid config at volumes.p.preprocessing.intensity: 'hu' keeps Hounsfield units"),
+        ({"preprocessing": {"intensity": "hu"}}, "invalid config at preprocessing.intensity: 'hu' keeps"),
+        ({"sfm": {"settings": {"percentile_low": 99.5, "percentile_high": 0.5}}},
+         "invalid config at sfm.settings.percentile_low: 99.5 is not below percentile_high (0.5)"),
+        ({"train": {"fbp_filter": "rampp"}}, "invalid config at train.fbp_filter: 'rampp' is not one of"),
+        ({"radiographs": {"c": {"device": "gpu"}}}, "invalid config at radiographs.c.device"),
+        ({"radiographs": {"c": {"split": {"train": 0.0, "val": 0.5, "test": 0.5}}}},
+         "invalid config at radiographs.c.split.train"),
+        ({"radiographs": {"s": {"orbit": "sphere", "n_val": 5}}},
+         "invalid config at radiographs.s: n_val / n_test set the held-out views of orbit: circular"),
+        ({"radiographs": {"c": {"pixel_spacing_mm": 1.0, "detector_size_factor": 2.0}}},
+         "invalid config at radiographs.c: set pixel_spacing_mm or detector_size_factor, not both"),
+    ],
+    ids=["volume-range", "volume-type", "volume-window", "window", "volume-hu", "hu", "sfm-percentiles",
+         "fbp-filter", "radiographs-device", "no-train-views", "sphere-n-val", "spacing-and-size"],
+)
+def test_values_that_would_fail_a_job_fail_at_parse_time(config, message):
+    with pytest.raises(CtsplatError) as err:
+        prepare_config(config)
+    assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_photo_validation_fold_must_lie_below_test_every(tmp_path):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (photos / "a.jpg").write_bytes(b"")
+    config = {"volumes": {"p": {"source": "phantom"}, "skull": {"source": str(photos), "kind": "photos"}},
+              "photos": {"train": {"holdout": "validation", "validation_offset": 50}}}
+    with pytest.raises(CtsplatError, match=r"photos\.train\.validation_offset: 50 must be 1\.\.7"):
+        prepare_config(config)
+
+
 def test_split_fractions_must_sum_to_one():
     with pytest.raises(CtsplatError, match=r"at radiographs\.c\.split: fractions must sum to 1, got 1\.4 \(train"):
         prepare_config({"radiographs": {"c": {"split": {"train": 0.9, "val": 0.25, "test": 0.25}}}})

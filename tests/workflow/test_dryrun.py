@@ -114,8 +114,9 @@ def test_bad_config_fails_before_any_job(tmp_path, config, message):
     assert not (tmp_path / "results").exists()  # nothing ran, nothing written
 
 
-def test_cuda_device_requests_a_gpu_for_training_only(tmp_path):
-    """`--config device=cuda` on top of the default grid: train/evaluate jobs get resources gpu=1, others none."""
+def test_cuda_device_requests_a_gpu_for_the_jobs_that_run_on_it(tmp_path):
+    """`--config device=cuda` on top of the default grid: the jobs that then run on CUDA (training, evaluation, the
+    projector and the baselines, which follow the workflow's device) get resources gpu=1, the others none."""
     proc = snakemake(tmp_path, "-n", "--config", "device=cuda")
     jobs = proc.stdout.split("\n\n")
     gpu_rules = set()
@@ -124,6 +125,6 @@ def test_cuda_device_requests_a_gpu_for_training_only(tmp_path):
         rule = next((line.split()[-1].rstrip(":") for line in head if line.startswith(("rule ", "localrule "))), None)
         if rule and any("gpu=1" in line for line in head):
             gpu_rules.add(rule)
-    assert gpu_rules == {"train", "evaluate"}
+    assert gpu_rules == {"train", "evaluate", "project", "baseline"}
     counts = job_counts(proc.stdout)
     assert counts["train"] == 18  # the default config/config.yaml grid was loaded, device overridden

@@ -156,9 +156,9 @@ def radiographs_params(wildcards):
 def baselines_params(wildcards):
     """run_baselines config: the user's settings plus the view counts (baselines.n_views, else the grid's); on the
     workflow's device unless baselines.settings.device is set."""
-    views = (
-        CFG["baselines"]["n_views"] or RUNS[RUNS["volume"] == wildcards.volume]["views"]
-    )
+    views = CFG["baselines"]["n_views"]
+    if views is None:
+        views = RUNS[RUNS["volume"] == wildcards.volume]["views"]
     user = (config.get("baselines") or {}).get("settings")
     settings = on_workflow_device(CFG["baselines"]["settings"], user, CFG["device"])
     return canonical({"n_views": sorted(set(int(v) for v in views)), **settings})
@@ -276,6 +276,15 @@ def photos_train_params(wildcards):
 
 def photos_gpu(wildcards):
     return 1 if photos_train_params(wildcards)["device"] == "cuda" else 0
+
+
+def project_gpu(wildcards):
+    """A GPU for the projector when it runs on CUDA (the workflow's device unless the geometry sets one)."""
+    return 1 if radiographs_params(wildcards)["device"].startswith("cuda") else 0
+
+
+def baseline_gpu(wildcards):
+    return 1 if baselines_params(wildcards)["device"].startswith("cuda") else 0
 
 
 def metrics_of(dirs):

@@ -20,6 +20,7 @@ rule project:
     resources:
         mem_mb=rule_resources("project")["mem_mb"],
         runtime=rule_resources("project")["runtime"],
+        gpu=project_gpu,
     params:
         radiographs=radiographs_params,
         seed=0,
@@ -54,6 +55,7 @@ rule baseline:
     resources:
         mem_mb=rule_resources("baseline")["mem_mb"],
         runtime=rule_resources("baseline")["runtime"],
+        gpu=baseline_gpu,
     params:
         baselines=baselines_params,
     script:
