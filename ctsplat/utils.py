@@ -369,8 +369,9 @@ def code_version() -> str:
     Returns
     -------
     str
-        ``"<version>+g<12-hex commit>"`` with ``-dirty`` appended when tracked files under ``ctsplat/`` differ
-        from the commit; the bare version when git or the checkout is unavailable.
+        ``"<version>+g<12-hex commit>"`` with ``-dirty`` appended when files under ``ctsplat/``, ``workflow/``,
+        ``scripts/`` or the ``Snakefile`` differ from the commit (or are new); the bare version when git or the
+        checkout is unavailable.
     """
     from ctsplat import __version__
 
@@ -380,8 +381,10 @@ def code_version() -> str:
             ["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"],
             capture_output=True, text=True, timeout=5, check=True,
         ).stdout.strip()
+        # the library and what wires it (rules compute parameters, scripts call the library), new files included
         dirty = subprocess.run(
-            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no", "--", "ctsplat"],
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=normal", "--", "ctsplat",
+             "workflow", "scripts", "Snakefile"],
             capture_output=True, text=True, timeout=5, check=True,
         ).stdout.strip()
         return f"{__version__}+g{sha}{'-dirty' if dirty else ''}"

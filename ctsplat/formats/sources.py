@@ -25,7 +25,7 @@ module's ``HU = stored * RescaleSlope + RescaleIntercept`` [2]_. For NIfTI the s
 the image's affine (sform, else qform) [3]_, already RAS.
 
 De-identification: ``SliceStack.source`` holds geometry and acquisition facts only (modality,
-scanner model, kVp, spacing ...). UIDs appear only as salted SHA-256 hashes (:func:`salted_hash`);
+scanner model, kVp, spacing ...). UIDs appear only as keyed hashes with a private key (:func:`salted_hash`);
 patient, study-date and institution fields and file names (often SOP Instance UIDs) are never
 copied. The same holds for log lines, warnings, error messages and series listings: a series is
 named by its :attr:`SeriesInfo.id` (the salted hash of its SeriesInstanceUID, as in the
@@ -47,9 +47,11 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import hmac
 import logging
 import os
 import re
+import secrets
 import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -68,6 +70,8 @@ __all__ = [
     "LPS_TO_RAS",
     "lps_to_ras",
     "salted_hash",
+    "deid_key",
+    "outputs_selector",
     "find_dicom_series",
     "select_series",
     "read_dicom_series",
@@ -137,11 +141,59 @@ def lps_to_ras(v: np.ndarray) -> np.ndarray:
     return np.asarray(v, dtype=float) @ LPS_TO_RAS
 
 
-def salted_hash(value: str, n: int = 16) -> str:
-    """Salted SHA-256 of an identifier; the salt comes from ``$CTSPLAT_DEID_SALT``.
+DEID_KEY_ENV = "CTSPLAT_DEID_SALT"
 
-    The default salt is fixed so that outputs stay deterministic; set ``CTSPLAT_DEID_SALT`` to a
-    private value to make hashes unlinkable across sites.
+
+def deid_key() -> bytes:
+    """The secret key of :func:`salted_hash`: ``$CTSPLAT_DEID_SALT``, else this user's private random key.
+
+    The private key (32 random bytes) lives in ``$XDG_CONFIG_HOME/ctsplat/deid_key`` (default
+    ``~/.config/ctsplat/deid_key``, mode 0600) and is created on first use. A key that ships with the code would
+    not protect anything: DICOM UIDs are built from a scanner's root, serial number and the acquisition time, so
+    a reader who knows the key recovers a UID — and with it the study date and time — from its hash by trying the
+    plausible ones. Set ``CTSPLAT_DEID_SALT`` to one private value to get the same series ids on several machines.
+
+    Returns
+    -------
+    bytes
+
+    Raises
+    ------
+    CtsplatError
+        When the key file cannot be read or created (names the file and the variable to set instead).
+    """
+    env = os.environ.get(DEID_KEY_ENV)
+    if env:
+        return env.encode()
+    home = os.environ.get("XDG_CONFIG_HOME") or os.path.join(os.path.expanduser("~"), ".config")
+    path = Path(home) / "ctsplat" / "deid_key"
+    try:
+        if not path.exists():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f".deid_key.{os.getpid()}.tmp")
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(secrets.token_bytes(32))
+            try:
+                os.link(tmp, path)  # fails if another process created the key first: then theirs is used
+            except FileExistsError:
+                pass
+            finally:
+                tmp.unlink()
+        key = path.read_bytes()
+    except OSError as exc:
+        raise CtsplatError(f"cannot read or create the de-identification key {path} ({exc.strerror or exc}); set "
+                           f"{DEID_KEY_ENV} to a private value instead") from None
+    if len(key) < 16:
+        raise CtsplatError(f"the de-identification key {path} is too short ({len(key)} bytes); delete it to make "
+                           f"a new one, or set {DEID_KEY_ENV}")
+    return key
+
+
+def salted_hash(value: str, n: int = 16) -> str:
+    """Keyed hash of an identifier: HMAC-SHA-256 with the private key of :func:`deid_key`.
+
+    Deterministic for one key (one user, or one ``CTSPLAT_DEID_SALT``), and not reversible without it.
 
     Parameters
     ----------
@@ -153,10 +205,38 @@ def salted_hash(value: str, n: int = 16) -> str:
     Returns
     -------
     str
-        ``n`` hex digits of ``sha256(f"{salt}:{value}")``.
+        ``n`` hex digits of ``HMAC-SHA-256(key, value)``.
     """
-    salt = os.environ.get("CTSPLAT_DEID_SALT", "ctsplat-deid-v1")
-    return hashlib.sha256(f"{salt}:{value}".encode()).hexdigest()[:n]
+    return hmac.new(deid_key(), value.encode(), hashlib.sha256).hexdigest()[:n]
+
+
+def outputs_selector(selector: str | None) -> str | None:
+    """A series selector as it may be stored beside outputs: a raw SeriesInstanceUID becomes its id.
+
+    :func:`select_series` finds a series by its id as by its UID, so the workflow hands this form to the ingest
+    step and no UID reaches the workflow's own records (Snakemake stores every rule's parameters).
+
+    Parameters
+    ----------
+    selector : str or None
+        A series id, SeriesInstanceUID or SeriesNumber.
+
+    Returns
+    -------
+    str or None
+        :func:`salted_hash` of a UID (digits with at least one dot); anything else unchanged.
+
+    Examples
+    --------
+    >>> outputs_selector("3"), outputs_selector(None)
+    ('3', None)
+    >>> outputs_selector("1.2.840.113619.2.55.3") == salted_hash("1.2.840.113619.2.55.3")
+    True
+    """
+    if selector is None:
+        return None
+    key = str(selector).strip()
+    return salted_hash(key) if re.fullmatch(r"\d+(\.\d+)+", key) else str(selector)
 
 
 class SliceGapWarning(UserWarning):

@@ -151,7 +151,8 @@ class AlphaDensify:
                                     {k: torch.cat(v) for k, v in new.items()})
             op = torch.sigmoid(params["opacity_raw"])
             bad = op < float(d["prune_opacity"])
-            if d["size_prune"] == "always" or iteration > int(d["opacity_reset_interval"]):
+            reset = int(d["opacity_reset_interval"])  # 0: no reset, so "after the first reset" never comes
+            if d["size_prune"] == "always" or (reset > 0 and iteration > reset):
                 bad |= torch.exp(params["log_scales"]).max(-1).values > float(d["prune_scale_fraction"]) * self.extent
             if float(d["near_prune"]) > 0:
                 dist = torch.cdist(params["means"], self.camera_centers.to(params["means"])).min(-1).values

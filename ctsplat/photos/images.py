@@ -6,6 +6,7 @@ nothing behind.
 
 from __future__ import annotations
 
+import os
 from collections import Counter
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from PIL import Image
 
 from ctsplat.utils import CtsplatError
 
-__all__ = ["IMAGE_SUFFIXES", "list_photos", "check_photos", "load_rgb"]
+__all__ = ["IMAGE_SUFFIXES", "list_photos", "check_photos", "load_rgb", "strip_metadata"]
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
@@ -112,3 +113,64 @@ def load_rgb(path: str | Path, downscale: int = 1) -> np.ndarray:
             size = (max(1, round(im.width / downscale)), max(1, round(im.height / downscale)))
             im = im.resize(size, Image.Resampling.BOX)
         return np.asarray(im, dtype=np.float32) / 255.0
+
+
+#: JPEG segments kept by :func:`strip_metadata`: APP0 (JFIF), APP2 (ICC colour profile) and APP14 (Adobe colour
+#: transform) say how to decode the pixels; every other APPn (EXIF and XMP in APP1, IPTC in APP13, vendor data) and
+#: comments are dropped.
+_JPEG_KEPT_APP = {0xE0, 0xE2, 0xEE}
+
+
+def _jpeg_without_metadata(data: bytes) -> bytes:
+    if data[:2] != b"\xff\xd8":
+        raise ValueError("not a JPEG file (no SOI marker)")
+    out, i = [data[:2]], 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            raise ValueError(f"bad JPEG marker at byte {i}")
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker == 0xDA:  # start of scan: the entropy-coded data and everything after it stay as they are
+            out.append(data[i:])
+            return b"".join(out)
+        length = int.from_bytes(data[i + 2:i + 4], "big")
+        segment = data[i:i + 2 + length]
+        if not ((0xE0 <= marker <= 0xEF and marker not in _JPEG_KEPT_APP) or marker == 0xFE):
+            out.append(segment)
+        i += 2 + length
+    raise ValueError("JPEG file ends before its image data")
+
+
+def strip_metadata(path: str | Path) -> None:
+    """Remove the metadata (EXIF with GPS position, camera serial, owner and date; XMP; IPTC; comments) from an
+    image file in place, leaving its pixels bit for bit as they were.
+
+    JPEG files lose their metadata segments without being decoded (no second lossy compression); PNG and TIFF files
+    are written again without it (lossless formats), keeping an ICC colour profile.
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``.jpg``/``.jpeg``, ``.png`` or ``.tif``/``.tiff`` file; replaced atomically.
+
+    Raises
+    ------
+    CtsplatError
+        When the file is not a readable image of its suffix.
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        if path.suffix.lower() in (".jpg", ".jpeg"):
+            tmp.write_bytes(_jpeg_without_metadata(path.read_bytes()))
+        else:
+            with Image.open(path) as im:
+                im.load()
+                icc = im.info.get("icc_profile")
+                im.save(tmp, **({"icc_profile": icc} if icc else {}))
+        os.replace(tmp, path)
+    except (OSError, ValueError) as exc:
+        tmp.unlink(missing_ok=True)
+        raise CtsplatError(f"cannot remove the metadata of {path}: {str(exc).splitlines()[0]}") from exc

@@ -29,7 +29,7 @@ import numpy as np
 import pycolmap
 
 from ctsplat.photos.config import photo_settings
-from ctsplat.photos.images import check_photos, list_photos
+from ctsplat.photos.images import check_photos, list_photos, strip_metadata
 from ctsplat.sfm.colmap import MAPPING_THREADS, extraction_options, write_model
 from ctsplat.utils import CtsplatError, atomic_dir, code_version, write_json_atomic
 
@@ -181,6 +181,9 @@ def _run(image_dir: Path, names: list[str], tmp: Path, s: dict[str, Any]) -> dic
     rec = pycolmap.Reconstruction(str(und / "sparse"))
     write_model(rec, tmp / "sparse" / "0")
     (und / "images").rename(tmp / "images")
+    for image in sorted((tmp / "images").rglob("*")):  # the undistorter copies EXIF (GPS, serial numbers, dates)
+        if image.is_file():
+            strip_metadata(image)
     t3 = time.perf_counter()
     registered = sorted(img.name for img in rec.images.values() if img.has_pose)
     unregistered = sorted(set(names) - set(registered))

@@ -168,6 +168,22 @@ def test_ssim3d_r2_matches_a_slice_loop_of_r2_gaussians_ssim() -> None:
     assert metrics.ssim3d_r2(test, ref) != pytest.approx(metrics.ssim3d(test, ref), abs=1e-3)
 
 
+def test_ssim3d_treats_the_three_axes_alike() -> None:
+    """The project's 3D SSIM averages over all three axes, so it cannot depend on how the volume is transposed;
+    an error confined to slices of one axis still lowers the slices of the other two."""
+    import itertools
+
+    test, ref = _volumes_with_empty_margins()
+    value = metrics.ssim3d(test, ref)
+    for perm in itertools.permutations(range(3)):
+        assert metrics.ssim3d(test.transpose(perm), ref.transpose(perm)) == pytest.approx(value, abs=1e-12), perm
+    one_slice = ref.copy()
+    one_slice[7] = 0.0  # one slice along axis 0 lost
+    lost = metrics.ssim3d(one_slice, ref)
+    assert 0.9 < lost < 1.0
+    assert metrics.ssim3d(one_slice.transpose(1, 2, 0), ref.transpose(1, 2, 0)) == pytest.approx(lost, abs=1e-12)
+
+
 def test_ssim_map_r2_interior_matches_skimage_gaussian_ssim() -> None:
     """Away from the zero-padded border R²'s SSIM is skimage's Gaussian-window SSIM with population variances."""
     from skimage.metrics import structural_similarity

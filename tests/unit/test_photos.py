@@ -132,11 +132,19 @@ def test_validation_folds_are_disjoint_and_never_touch_the_test_photos() -> None
 
 
 def test_pinhole_camera_scales_with_the_image() -> None:
-    cam = PinholeCamera(1061, 707, 2400.0, 2400.0, 530.5, 353.5)
+    cam = PinholeCamera(1061, 707, 2400.0, 2390.0, 520.5, 360.25)
     q = cam.scaled(4)
     assert (q.width, q.height) == (265, 177)
-    assert q.fx == pytest.approx(2400 * 265 / 1061) and q.cx == pytest.approx(530.5 * 265 / 1061)
     assert q.model == "cone" and q.dsd_mm == q.fx  # what the renderer reads
+    # a scene point lands at the same place in the image: its pixel coordinates (COLMAP's, the first pixel's centre
+    # at 0.5) shrink with the image, each axis by its own factor (265 / 1061 across, 177 / 707 down)
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([-0.2, -0.15, 2.0], [0.2, 0.15, 4.0], size=(50, 3))
+
+    def pixels(c: PinholeCamera) -> np.ndarray:
+        return pts[:, :2] / pts[:, 2:] * [c.fx, c.fy] + [c.cx, c.cy]
+
+    assert np.allclose(pixels(q), pixels(cam) * [265 / 1061, 177 / 707], rtol=0, atol=1e-9)
 
 
 def test_photo_settings_fill_defaults_and_refuse_unknown_keys() -> None:
@@ -335,12 +343,13 @@ def _three_gaussians() -> dict[str, torch.Tensor]:
     return params
 
 
-@pytest.mark.parametrize("size_prune", ["after_reset", "always"])
-def test_size_prune_always_prunes_wide_gaussians_to_the_end_of_training(size_prune: str) -> None:
+@pytest.mark.parametrize(("size_prune", "reset"), [("after_reset", 3000), ("always", 3000), ("after_reset", 0)])
+def test_size_prune_always_prunes_wide_gaussians_to_the_end_of_training(size_prune: str, reset: int) -> None:
+    """... and "after_reset" never prunes by size when no reset comes (opacity_reset_interval 0)."""
     from ctsplat.photos.densify import AlphaDensify
     from ctsplat.photos.train import _optimizer
 
-    settings = {**photo_settings()["train"]["densify"], "size_prune": size_prune}
+    settings = {**photo_settings()["train"]["densify"], "size_prune": size_prune, "opacity_reset_interval": reset}
     params = _three_gaussians()
     opt = _optimizer(params, photo_settings()["train"]["lr"], 1.0)
     settings["start"] = 100
@@ -632,3 +641,33 @@ def test_blame_names_a_planted_floater_and_its_gain_is_the_opacity_derivative() 
             err.append(float(((img.double() - view.image.double()) ** 2).sum()))
         fd = (err[0] - err[1]) / 2e-2
         assert float(gain[i]) * (1 - float(torch.sigmoid(x0[i]))) == pytest.approx(fd, rel=0.05, abs=1e-3)
+
+
+def test_strip_metadata_keeps_pixels_and_colour_profile_and_drops_exif(tmp_path):
+    from PIL import ImageCms
+
+    from ctsplat.photos.images import strip_metadata
+
+    rng = np.random.default_rng(0)
+    pixels = (rng.random((24, 32, 3)) * 255).astype(np.uint8)
+    exif = Image.Exif()
+    exif[0x013B] = "Jane Photographer"  # Artist
+    exif[0xA431] = "SERIAL-123456"  # BodySerialNumber
+    exif.get_ifd(0x8825)[2] = (48.0, 51.0, 29.0)  # GPSLatitude
+    icc = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
+    for name, kw in (("a.jpg", {"quality": 90, "comment": b"taken at home"}), ("b.png", {}), ("c.tif", {})):
+        path = tmp_path / name
+        Image.fromarray(pixels).save(path, exif=exif, icc_profile=icc, **kw)
+        before = np.asarray(Image.open(path))
+        assert b"Jane Photographer" in path.read_bytes()
+        strip_metadata(path)
+        data = path.read_bytes()
+        assert b"Jane Photographer" not in data and b"SERIAL-123456" not in data and b"taken at home" not in data
+        with Image.open(path) as im:
+            left = im.getexif()  # a TIFF keeps its structural tags (size, layout), nothing about its owner
+            assert not {0x013B, 0x8825, 0x8769} & set(left) and im.info.get("icc_profile") == icc
+            assert np.array_equal(np.asarray(im), before)  # the same pixels: JPEG not encoded again
+    (tmp_path / "broken.jpg").write_bytes(b"\xff\xd8\xff\xe1\x00\x10Exif")
+    with pytest.raises(CtsplatError, match="cannot remove the metadata of .*broken.jpg"):
+        strip_metadata(tmp_path / "broken.jpg")
+    assert (tmp_path / "broken.jpg").read_bytes() == b"\xff\xd8\xff\xe1\x00\x10Exif"  # left as it was

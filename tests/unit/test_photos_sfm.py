@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from ctsplat.photos.dataset import load_scene
 from ctsplat.photos.sfm import run_photo_sfm
@@ -28,8 +29,18 @@ def skull_subset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     if not SKULL.is_dir():
         pytest.skip(f"skull photos not found at {SKULL} (expected ../shared/data/skull_photos)")
     folder = tmp_path_factory.mktemp("skull10")
-    for name in NEIGHBOURS:
+    for name in NEIGHBOURS[1:]:
         (folder / name).symlink_to(SKULL / name)
+    # the first photo carries an owner's EXIF (inserted without touching its pixels), which no output may keep
+    data = (SKULL / NEIGHBOURS[0]).read_bytes()
+    exif = Image.Exif()
+    exif[0x013B] = "Jane Photographer"  # Artist
+    exif[0x8298] = "(c) Jane Photographer"  # Copyright
+    payload = b"Exif\x00\x00" + exif.tobytes()
+    (folder / NEIGHBOURS[0]).write_bytes(data[:2] + b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload
+                                         + data[2:])
+    with Image.open(folder / NEIGHBOURS[0]) as im:
+        assert im.getexif().get(0x013B) == "Jane Photographer"
     return folder
 
 
@@ -47,6 +58,8 @@ def test_ten_neighbouring_skull_photos_register_in_one_model(skull_subset: Path,
         assert (out / "sparse" / "0" / f).is_file()
     assert "PINHOLE" in (out / "sparse" / "0" / "text" / "cameras.txt").read_text()
     assert len(list((out / "images").iterdir())) == summary["n_registered"]
+    for image in (out / "images").iterdir():  # the undistorted copies keep no EXIF
+        assert b"Jane Photographer" not in image.read_bytes(), image.name
     assert not (out / "work").exists()
 
     scene = load_scene(out, downscale=4, test_every=8)
@@ -64,6 +77,24 @@ def test_ten_neighbouring_skull_photos_register_in_one_model(skull_subset: Path,
         & (uv[:, 1] < v.camera.height)
     assert np.mean(inside) > 0.5
     assert scene.rgb.min() >= 0 and scene.rgb.max() <= 1 and scene.rgb.std() > 0.02  # coloured points
+    # every observation of the undistorted model, projected with the cameras and poses load_scene hands the renderer,
+    # lands where COLMAP measured it (its keypoints): at full size and at a quarter (the keypoints scaled per axis)
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    by_name = {img.name: img for img in rec.images.values()}
+    for factor in (1, 4):
+        errors = []
+        for view in load_scene(out, downscale=factor).views:
+            img = by_name[view.name]
+            obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in img.points2D if p.has_point3D()]
+            xy = np.array([o[0] for o in obs]) * [view.camera.width / img.camera.width,
+                                                  view.camera.height / img.camera.height]
+            xc = np.array([o[1] for o in obs]) @ view.R.T + view.t
+            uv = xc[:, :2] / xc[:, 2:] * [view.camera.fx, view.camera.fy] + [view.camera.cx, view.camera.cy]
+            errors.append(np.linalg.norm(uv - xy, axis=1))
+        err = np.concatenate(errors)
+        assert np.median(err) < 0.5 / factor and np.percentile(err, 90) < 1.5 / factor, (factor, np.median(err))
 
 
 def test_the_same_photos_give_the_same_model(skull_subset: Path, tmp_path: Path) -> None:

@@ -171,9 +171,9 @@ def test_mixture_matches_projector_on_voxelised_field(model):
 
 # ------------------------------------------------------------------------------------------------ alpha
 def _brute_alpha(g: Gaussians, cam, R: torch.Tensor, t: torch.Tensor, mip_2d: bool = False,
-                 background: float = 0.0) -> np.ndarray:
-    """Independent per-pixel loop (numpy): EWA 2D covariance, 0.3 px low-pass, depth-sorted front to back, then
-    ``background`` times the transmittance left."""
+                 background: float = 0.0, cap: float = 0.99) -> np.ndarray:
+    """Independent per-pixel loop (numpy): EWA 2D covariance, 0.3 px low-pass, alpha capped at ``cap``, depth-sorted
+    front to back, then ``background`` times the transmittance left."""
     m = g.means.detach().numpy()
     cov = g.covariances.detach().numpy()
     op = g.opacities.detach().numpy()
@@ -204,7 +204,7 @@ def _brute_alpha(g: Gaussians, cam, R: torch.Tensor, t: torch.Tensor, mip_2d: bo
             for i in order:
                 d = np.array([u + 0.5, v + 0.5]) - mus[i]
                 P, o = covs[i]
-                a = min(0.99, o * math.exp(-0.5 * d @ P @ d))
+                a = min(cap, o * math.exp(-0.5 * d @ P @ d))
                 img[v, u] += T * a * col[i]
                 T *= 1 - a
             img[v, u] += T * background
@@ -221,6 +221,28 @@ def test_alpha_matches_bruteforce_loop(model, mip):
     ref = _brute_alpha(g, cam, R, t, mip_2d=mip)
     assert ref.max() > 0.3
     np.testing.assert_allclose(img, ref, atol=1e-10)
+
+
+@pytest.mark.parametrize("backend", ["reference", "auto"])
+def test_nearly_opaque_gaussians_are_capped_at_alpha_099(backend):
+    """3DGS caps each Gaussian's alpha at 0.99 (a pixel never turns fully opaque, so the ones behind keep a
+    gradient); opacities of 0.995-0.9999 exceed it near every centre. The capped alphas pass no gradient to the
+    opacity, and the fused kernel's backward agrees with the reference's autograd."""
+    g = _mixture(6, seed=1, spread=3.0, smin=2.0, smax=4.0)
+    g.opacity_raw = torch.logit(torch.linspace(0.995, 0.9999, 6, dtype=D64))
+    cam = ParallelCamera(14, 12, 1.0)
+    R, t = _pose(40.0, 15.0, dist=100.0)
+    g.opacity_raw.requires_grad_(True)
+    img = render(g, cam, R, t, compositor="alpha", sigma_cutoff=30.0, backend=backend).image
+    ref = _brute_alpha(g, cam, R, t)
+    np.testing.assert_allclose(img.detach().numpy(), ref, atol=1e-10)
+    assert np.abs(_brute_alpha(g, cam, R, t, cap=1.0) - ref).max() > 1e-4  # the cap is what this scene tests
+    w = torch.rand(img.shape, generator=torch.Generator().manual_seed(2), dtype=D64)
+    (grad,) = torch.autograd.grad((img * w).sum(), g.opacity_raw)
+    g_ref = Gaussians(**{**g.tensors(), "opacity_raw": g.opacity_raw.detach().clone().requires_grad_(True)})
+    img_ref = render(g_ref, cam, R, t, compositor="alpha", sigma_cutoff=30.0, backend="reference").image
+    (grad_ref,) = torch.autograd.grad((img_ref * w).sum(), g_ref.opacity_raw)
+    np.testing.assert_allclose(grad.numpy(), grad_ref.numpy(), rtol=1e-8, atol=1e-12)
 
 
 @pytest.mark.parametrize("backend", ["reference", "auto"])

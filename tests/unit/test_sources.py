@@ -580,6 +580,22 @@ def test_missing_rescale_with_explicit_option(tmp_path):
     assert float(vol.data.min()) == pytest.approx(-1000.0, abs=1.0)
 
 
+def test_header_rescale_slope_other_than_one(tmp_path):
+    """Stored values become HU through slope and intercept from the header (scanners store 0.5 HU steps, or
+    HU / 2 to fit a range): HU = stored × slope + intercept, slice by slice (slopes may differ between slices)."""
+    files = head_series(tmp_path / "s")
+    hu = strip_rescale(files)
+    for k, f in enumerate(files):
+        ds = pydicom.dcmread(f)
+        slope, intercept = (0.5, -1000.0) if k % 2 else (2.0, -1024.0)
+        ds.PixelData = np.round((hu[:, :, k].T - intercept) / slope).astype(np.uint16).tobytes()
+        ds.RescaleSlope, ds.RescaleIntercept = slope, intercept
+        ds.save_as(f)
+    stack = read_dicom_series(tmp_path / "s")
+    np.testing.assert_array_equal(stack.data, hu)
+    assert stack.source["rescale"]["from"] == "header"
+
+
 def test_rescale_option_does_not_override_header_tags(tmp_path):
     make_series(tmp_path / "s")
     stack = read_dicom_series(tmp_path / "s", rescale=(2.0, 5.0))
@@ -658,3 +674,40 @@ def test_many_gaps_are_counted_in_one_warning(tmp_path):
         stack = read_dicom_series(tmp_path / "s")
     assert len(rec) == 1 and "has 7 gap(s)" in str(rec[0].message) and "and 2 more" in str(rec[0].message)
     assert len(stack.source["missing_slice_gaps"]) == 7
+
+
+def test_uid_hashes_need_the_private_key(tmp_path, monkeypatch):
+    """The ids are keyed by a private random key made on first use (mode 0600), stable for its owner; without the
+    key, a reader of the outputs cannot test candidate UIDs against them."""
+    import hashlib
+    import stat
+
+    from ctsplat.formats.sources import DEID_KEY_ENV, deid_key
+
+    uid = "1.3.12.2.1107.5.1.1.20707.20020604103714064.2"
+    monkeypatch.delenv(DEID_KEY_ENV, raising=False)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "a"))
+    first = salted_hash(uid)
+    key_file = tmp_path / "a" / "ctsplat" / "deid_key"
+    assert stat.S_IMODE(key_file.stat().st_mode) == 0o600 and len(key_file.read_bytes()) == 32
+    assert salted_hash(uid) == first and deid_key() == key_file.read_bytes()  # the same key on every call
+    # the public salt of the code no longer reproduces the id
+    assert first != hashlib.sha256(f"ctsplat-deid-v1:{uid}".encode()).hexdigest()[:16]
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "b"))
+    assert salted_hash(uid) != first  # another user's key, another id
+    monkeypatch.setenv(DEID_KEY_ENV, "site secret")
+    shared = salted_hash(uid)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "a"))
+    assert salted_hash(uid) == shared  # one private value set on several machines: the same ids
+    monkeypatch.delenv(DEID_KEY_ENV)
+    key_file.write_bytes(b"short")
+    with pytest.raises(CtsplatError, match="too short"):
+        salted_hash(uid)
+
+
+def test_workflow_stores_a_series_uid_selector_as_its_id():
+    from ctsplat.formats.sources import outputs_selector
+
+    uid = "1.2.840.113619.2.55.3.604688119.969.1268071029.320"
+    assert outputs_selector(uid) == salted_hash(uid) and outputs_selector(f" {uid} ") == salted_hash(uid)
+    assert outputs_selector("7") == "7" and outputs_selector("a1b2c3d4e5f60718") == "a1b2c3d4e5f60718"

@@ -8,6 +8,7 @@ from snakemake.utils import Paramspace
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS
 from ctsplat.config import canonical, on_workflow_device, prepare_config
+from ctsplat.formats.sources import outputs_selector
 from ctsplat.training.config import EVALUATION_KEYS
 from ctsplat.sfm.step import sfm_failure
 from ctsplat.grid import (
@@ -131,7 +132,7 @@ def ingest_params(wildcards):
     return canonical(
         {
             "preprocessing": {**CFG["preprocessing"], **vol["preprocessing"]},
-            "series_uid": vol["series_uid"],
+            "series_uid": outputs_selector(vol["series_uid"]),
             "allow_modalities": list(vol["allow_modalities"]),
             "skip_corrupt": vol["skip_corrupt"],
             "tiff_voxel_size_mm": vol["tiff_voxel_size_mm"],
