@@ -167,7 +167,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "Identifying DICOM fields never reach the outputs.",
     )
     q.add_argument("source", help="DICOM folder (searched recursively), .nii/.nii.gz file, .tif stack or TIFF folder")
-    q.add_argument("out", nargs="?", help="output .nii.gz (volume.json is written beside it)")
+    q.add_argument("out", nargs="?", help="output NAME.nii.gz (its sidecar NAME.json, read by later steps, beside it)")
     q.add_argument("--config", help="YAML/JSON file with preprocessing options (the section or {preprocessing: ...})")
     q.add_argument("--voxel-size", dest="voxel_size_mm", type=float, help="isotropic voxel size in mm")
     q.add_argument("--grid", type=_grid, help="target grid N (N^3) or I,J,K with isotropic voxels (default 128)")

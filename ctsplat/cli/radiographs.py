@@ -31,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Render line integrals (line_integrals.tif), 16-bit transmission PNGs, views.json and "
         "radiographs.json for a camera/orbit (settings: ctsplat.projector.RADIOGRAPHS_DEFAULTS).",
     )
-    p.add_argument("--volume", required=True, help="volume.nii.gz (with volume.json beside it)")
+    p.add_argument("--volume", required=True, help="NAME.nii.gz from ingest (its sidecar NAME.json beside it)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", help="YAML/JSON file with the radiographs settings (or a 'radiographs' section)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",

@@ -240,9 +240,15 @@ def check_attenuation(volume: Volume, name: str | Path) -> None:
     Raises
     ------
     CtsplatError
-        For intensity ``hu`` (``volume.json``), or when the negative values outweigh 1 % of the absolute total
-        (a volume in HU without metadata; a reconstruction's small negative ripples pass).
+        For a volume without the sidecar ``ingest`` writes (its intensity, hence its scale to 1/mm, unknown), for
+        intensity ``hu`` (``volume.json``), or when the negative values outweigh 1 % of the absolute total (a
+        volume in HU; a reconstruction's small negative ripples pass).
     """
+    if not volume.meta:  # load_volume found no sidecar
+        raise CtsplatError(f"volume {name} has no {json_path_for(Path(name)).name} beside it (the sidecar ingest "
+                           "writes), so whether it holds normalised attenuation or mu in 1/mm is unknown; keep the "
+                           "sidecar next to it under the same stem, or run `ctsplat ingest` on it (NIfTI input "
+                           "works; --intensity mu for a map already in 1/mm)")
     if volume.meta.get("intensity", {}).get("kind") == "hu":
         raise CtsplatError(f"volume {name} holds raw HU (intensity: hu), not attenuation; ingest it again with "
                            "intensity attenuation (the default) or mu before projecting it")

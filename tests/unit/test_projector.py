@@ -412,6 +412,13 @@ def test_project_refuses_a_volume_that_is_not_attenuation(tmp_path) -> None:
     ripple = np.where(hu > 0, 1.0, 0.0).astype(np.float32)
     ripple[0, 0, :] = -0.01  # a reconstruction's small negative ripple is still attenuation
     save_volume(Volume(ripple, np.eye(4), {"volume_id": "ripple"}), tmp_path / "ripple.nii.gz")
+    # the NIfTI copied without its sidecar: normalised attenuation or mu in 1/mm? refused, not guessed
+    lonely = tmp_path / "lonely" / "ripple.nii.gz"
+    lonely.parent.mkdir()
+    lonely.write_bytes((tmp_path / "ripple.nii.gz").read_bytes())
+    with pytest.raises(CtsplatError, match=r"has no ripple\.json beside it .* run `ctsplat ingest` on it"):
+        render_radiographs(lonely, tmp_path / "out", opts)
+    assert not (tmp_path / "out").exists()
     render_radiographs(tmp_path / "ripple.nii.gz", tmp_path / "out", opts)
     assert (tmp_path / "out" / "line_integrals.tif").is_file()
 
