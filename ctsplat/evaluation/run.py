@@ -26,7 +26,14 @@ import numpy as np
 import torch
 
 from ctsplat.evaluation import metrics
-from ctsplat.utils import CtsplatError, code_version, json_safe, resolve_device, write_json_atomic
+from ctsplat.utils import (
+    CtsplatError,
+    code_version,
+    compute_platform,
+    json_safe,
+    resolve_device,
+    write_json_atomic,
+)
 
 __all__ = [
     "render_views",
@@ -503,6 +510,8 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         "device": str(dev),
         "config_hash": run_cfg.get("config_hash"),
         "code_version": code_version(),
+        # torch's CPU kernels round by vector instructions and threads: what the scores were computed with
+        "platform": compute_platform(dev),
         "volume_id": scene.volume.volume_id,
         # training-pose errors against the true poses, before and after pose refinement (training.json)
         **{k: v for k, v in trained.items() if k.startswith("pose_")},

@@ -36,7 +36,15 @@ from ctsplat.photos.config import SFM_SUMMARY_KEYS, photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
 from ctsplat.photos.train import held_out_split, image_metrics, render_view
 from ctsplat.splat.gaussians import Gaussians
-from ctsplat.utils import CtsplatError, atomic_path, json_safe, resolve_device, write_json_atomic
+from ctsplat.utils import (
+    CtsplatError,
+    atomic_path,
+    code_version,
+    compute_platform,
+    json_safe,
+    resolve_device,
+    write_json_atomic,
+)
 
 __all__ = ["evaluate_photos", "run_config", "run_scene", "turntable_poses", "save_photo_gallery", "save_turntable_gif"]
 
@@ -337,6 +345,12 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
         "sfm": {k2: sfm.get(k2) for k2 in SFM_SUMMARY_KEYS},
         "training": training,
         "attribution": s["attribution"],
+        # the trained run's provenance, and the code that scored it (the evaluation can run again on its own)
+        "seed": int(t["seed"]),
+        "config_hash": cfg.get("config_hash"),
+        "training_code_version": cfg.get("code_version"),
+        "code_version": code_version(),
+        "platform": compute_platform(device),
     }
     write_json_atomic(run_dir / "metrics.json", json_safe(metrics))
     return metrics

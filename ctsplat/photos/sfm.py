@@ -214,6 +214,7 @@ def _run(image_dir: Path, names: list[str], tmp: Path, s: dict[str, Any]) -> dic
         "seconds_undistortion": t3 - t2,
         "settings": s,
         "code_version": code_version(),
+        "pycolmap": pycolmap.__version__,
     }
     shutil.rmtree(work)
     write_json_atomic(tmp / "summary.json", summary)

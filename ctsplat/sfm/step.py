@@ -499,7 +499,10 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
         summary["naive_slices"] = naive_slices_sfm(naive_volume, out_dir / ".naive_work", cfg, seed=seed)
         shutil.rmtree(out_dir / ".naive_work", ignore_errors=True)
     cfg.pop("_arc_deg", None)
-    summary.update(config=cfg, seed=seed, code_version=code_version(), volume_id=vs.volume_id,
+    from importlib.metadata import version
+
+    summary.update(config=cfg, seed=seed, code_version=code_version(), pycolmap=version("pycolmap"),
+                   volume_id=vs.volume_id,
                    radiographs=str(radiographs_dir),
                    camera={"model": "PINHOLE", "width": W, "height": H, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                            "cy": cam.cy, "pitch_mm": cam.pitch_mm, "dso_mm": cam.dso_mm, "dsd_mm": cam.dsd_mm})

@@ -404,7 +404,8 @@ class Gaussians:
             "meta": dict(self.meta),
         }
         with atomic_path(path) as tmp:
-            torch.save(payload, tmp)
+            with open(tmp, "wb") as fh:  # a file object: the archive's inner folder is "archive", not the temp name
+                torch.save(payload, fh)
 
     @classmethod
     def load(cls, path: str | Path, device: torch.device | str | None = None) -> Gaussians:

@@ -132,7 +132,8 @@ def save_checkpoint(out_dir: Path, state: TrainState, rng: np.random.Generator, 
         "torch_rng": torch.get_rng_state(),
     }
     with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+        with open(tmp, "wb") as fh:  # a file object: the archive's inner folder is "archive", not the temp name
+            torch.save(payload, fh)
     for old in list_checkpoints(out_dir)[:-max(1, keep)]:
         old.unlink(missing_ok=True)
     return path

@@ -81,6 +81,8 @@ def test_save_load_round_trip(tmp_path):
     for name, t in g.tensors().items():
         assert torch.equal(t, getattr(h, name)), name
     assert h.meta == {"step": 12} and h.sh_degree == 2
+    g.save(tmp_path / "again.pt")  # the same model, the same bytes (no temporary name inside the archive)
+    assert (tmp_path / "again.pt").read_bytes() == path.read_bytes()
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(CtsplatError, match="junk.pt"):
         Gaussians.load(tmp_path / "junk.pt")

@@ -241,10 +241,14 @@ def test_evaluation_writes_metrics_gallery_and_turntable(tmp_path: Path) -> None
     run.mkdir()
     truth.save(run / "model.pt")
     t = photo_settings()["train"]
-    (run / "config.json").write_text(json.dumps({"sfm_dir": str(tmp_path / "sfm"), "train": t}))
+    (run / "config.json").write_text(json.dumps({"sfm_dir": str(tmp_path / "sfm"), "train": t,
+                                                 "config_hash": "0123456789abcdef", "code_version": "0.1.0+gtrain"}))
     m = evaluate_photos(run, {"turntable_frames": 4, "gallery_views": 2, "attribution": "by someone, CC BY 4.0"},
                         scene=scene)
     assert m["psnr"] > 40 and m["ssim"] > 0.99  # the true model renders its own targets
+    assert (m["seed"], m["config_hash"], m["training_code_version"]) == (t["seed"], "0123456789abcdef",
+                                                                         "0.1.0+gtrain")
+    assert m["code_version"] and m["platform"]["threads"] >= 1
     assert m["lpips"] is None and m["lpips_reason"]
     assert m["fps"] > 0 and m["peak_rss_mb"] > 0 and m["n_test"] == 2
     assert json.loads((run / "metrics.json").read_text())["attribution"] == "by someone, CC BY 4.0"

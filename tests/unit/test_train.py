@@ -72,8 +72,9 @@ def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
     m = json.loads((out / "metrics.json").read_text())
     for key in ("psnr2d", "ssim2d", "lpips", "lpips_reason", "psnr3d", "ssim3d", "wall_time_s", "iters_per_s",
                 "time_to_psnr2d_30_s", "time_to_ssim2d_090_s", "fps_forward", "peak_memory_mb", "n_gaussians",
-                "model_size_bytes", "uses_reference_volume", "config_hash", "code_version"):
+                "model_size_bytes", "uses_reference_volume", "config_hash", "code_version", "platform"):
         assert key in m, key
+    assert m["platform"]["threads"] >= 1 and m["platform"]["cpu_capability"]
     assert m["uses_reference_volume"] is True
     assert m["lpips"] is None or math.isfinite(m["lpips"])
     if m["lpips"] is None:
