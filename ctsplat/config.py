@@ -586,6 +586,14 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
                 f"or init: sfm) registers a C-arm view set: add radiographs.{sfm_geometry} with camera: cone, "
                 "orbit: carm (config/README.md)"
             )
+    grid_geo = cfg["radiographs"][cfg["grid"]["geometry"]]
+    no_val = grid_geo["n_val"] == 0 or (grid_geo["n_val"] is None and float(grid_geo["split"]["val"]) == 0)
+    if any(float(a) for a in cfg["train"]["sharpen"]["amounts"]) and no_val:
+        raise CtsplatError(
+            f"invalid config at train.sharpen.amounts: the amount is chosen on validation views, but geometry "
+            f"{cfg['grid']['geometry']!r} renders none; give it validation views (n_val or split.val) or set "
+            "train.sharpen.amounts: [0]"
+        )
     # poses: colmap cells train on the C-arm view set SfM registers, the others on the grid's geometry
     colmap = runs["poses"].map(uses_colmap).to_numpy(bool)
     for cells, geo_name, what in ((~colmap, cfg["grid"]["geometry"], "geometry"),

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from ctsplat.grid import GRID_AXES
 
-__all__ = ["ANALYSIS_OUTPUTS", "RUN_FIGURES"]
+__all__ = ["ANALYSIS_OUTPUTS", "RUN_FIGURES", "RUN_FIGURE_KEYS"]
 
 # Grid-level outputs of plots.analyse: name -> (file name under results/figures/, report category).
 ANALYSIS_OUTPUTS: dict[str, tuple[str, str]] = {
@@ -26,3 +26,5 @@ ANALYSIS_OUTPUTS: dict[str, tuple[str, str]] = {
 }
 # Per-run figures of plots.run_figures, written to {run}/figures/{name}.png.
 RUN_FIGURES: tuple[str, ...] = ("convergence", "porkchop", "acf", "kde")
+# The analysis keys those figures read (the workflow tracks only these, so other analysis keys redraw nothing).
+RUN_FIGURE_KEYS: tuple[str, ...] = ("window", "acf_max_lag", "kde_windows", "max_gap_iters")

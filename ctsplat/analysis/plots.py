@@ -415,7 +415,8 @@ def run_figures(run_dir: str | os.PathLike[str], outputs: Mapping[str, str | os.
     outputs : mapping of str to path-like
         Figure name (in :data:`ctsplat.analysis.RUN_FIGURES`) -> PNG path; only these are written.
     analysis : mapping, optional
-        The workflow config's ``analysis`` section; missing keys take the schema defaults.
+        The workflow config's ``analysis`` section (the keys of :data:`ctsplat.analysis.RUN_FIGURE_KEYS` are
+        read); missing keys take the schema defaults.
     """
     cfg = {**schema_defaults("analysis"), **(analysis or {})}
     run_dir = Path(run_dir)

@@ -23,9 +23,12 @@ __all__ = ["TRAIN_DEFAULTS", "TRAIN_BOUNDS", "Bound", "INITS", "REFERENCE_INITS"
            "OPTIMIZER_PRESETS", "DENSIFY_STRATEGIES", "MODEL_SELECTIONS", "CONE_POSE_MODELS", "resolve_config",
            "render_kwargs", "mip_filter", "EVALUATION_KEYS"]
 
-#: The ``train`` keys that do not change the trained model: the evaluation's figures and timing size, and the
-#: progress bar. The workflow hands them to the evaluation only, so changing them does not train again.
-EVALUATION_KEYS = ("figures", "turntable_frames", "fps_width", "fps_height", "progress")
+#: The ``train`` keys that do not change the trained model: the evaluation's figures and timing size, which model
+#: it scores (``model_selection``: training writes both) and its read-out sharpening (chosen on validation views
+#: after training), and the progress bar. The workflow hands them to the evaluation only, so changing them does
+#: not train again.
+EVALUATION_KEYS = ("figures", "turntable_frames", "fps_width", "fps_height", "model_selection", "sharpen",
+                   "progress")
 
 INITS = ("volume", "uniform", "fbp", "sfm")
 #: the inits that read the reference volume's voxel values (their runs are labelled as such wherever shown)

@@ -266,9 +266,12 @@ def test_baseline_view_counts_must_fit_the_baselines_geometry():
          "invalid config at radiographs.s: n_val / n_test set the held-out views of orbit: circular"),
         ({"radiographs": {"c": {"pixel_spacing_mm": 1.0, "detector_size_factor": 2.0}}},
          "invalid config at radiographs.c: set pixel_spacing_mm or detector_size_factor, not both"),
+        ({"radiographs": {"c": {"split": {"train": 0.85, "val": 0.0, "test": 0.15}}},
+          "train": {"sharpen": {"amounts": [0.0, 0.5]}}},
+         "invalid config at train.sharpen.amounts: the amount is chosen on validation views, but geometry 'c'"),
     ],
     ids=["volume-range", "volume-type", "volume-window", "window", "volume-hu", "hu", "sfm-percentiles",
-         "fbp-filter", "radiographs-device", "no-train-views", "sphere-n-val", "spacing-and-size"],
+         "fbp-filter", "radiographs-device", "no-train-views", "sphere-n-val", "spacing-and-size", "sharpen-no-val"],
 )
 def test_values_that_would_fail_a_job_fail_at_parse_time(config, message):
     with pytest.raises(CtsplatError) as err:

@@ -180,11 +180,12 @@ def test_evaluation_settings_and_key_order_do_not_train_again(wd):
     same["analysis"] = {**same["analysis"], "milestones": {"psnr3d": 30.0, "ssim2d": 0.9, "psnr2d": 30.0}}
     proc = snakemake(wd, f"{RUN}/metrics.json", "-n", configfile=write_config(wd / "reordered.yaml", same))
     assert "Nothing to be done" in proc.stdout + proc.stderr, proc.stdout[-3000:]
-    # a figure setting: the evaluation again, not the training
-    cfg["train"]["turntable_frames"] = 3
-    proc = snakemake(wd, f"{RUN}/metrics.json", "-n", configfile=write_config(wd / "frames.yaml", cfg))
-    out = proc.stdout + proc.stderr
-    assert "rule evaluate:" in out and "rule train:" not in out, out[-3000:]
+    # a figure setting, or which model is scored: the evaluation again, not the training
+    for key, value in (("turntable_frames", 3), ("model_selection", "best")):
+        changed = {**cfg, "train": {**cfg["train"], key: value}}
+        proc = snakemake(wd, f"{RUN}/metrics.json", "-n", configfile=write_config(wd / f"{key}.yaml", changed))
+        out = proc.stdout + proc.stderr
+        assert "rule evaluate:" in out and "rule train:" not in out, (key, out[-3000:])
 
 
 def test_rule_run_figures(wd):

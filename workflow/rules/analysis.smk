@@ -45,7 +45,7 @@ rule run_figures:
         mem_mb=rule_resources("run_figures")["mem_mb"],
         runtime=rule_resources("run_figures")["runtime"],
     params:
-        analysis=analysis_params(),
+        analysis=run_figures_params(),
     script:
         "../../scripts/run_figures.py"
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from snakemake.utils import Paramspace
 
-from ctsplat.analysis import ANALYSIS_OUTPUTS
+from ctsplat.analysis import ANALYSIS_OUTPUTS, RUN_FIGURE_KEYS
 from ctsplat.config import canonical, on_workflow_device, prepare_config
 from ctsplat.formats.sources import outputs_selector
 from ctsplat.training.config import EVALUATION_KEYS
@@ -242,7 +242,8 @@ def train_hash(wildcards):
 
 
 def evaluation_settings():
-    """The train keys that only the evaluation reads (figures, turntable frames, the FPS size)."""
+    """The train keys that only the evaluation reads (figures, turntable frames, the FPS size, which model it
+    scores, the read-out sharpening)."""
     return canonical({k: CFG["train"][k] for k in EVALUATION_KEYS if k != "progress"})
 
 
@@ -259,20 +260,31 @@ def analysis_params():
     return canonical(CFG["analysis"])
 
 
+def run_figures_params():
+    """The analysis keys the per-run figures read (changing another one redraws nothing)."""
+    return canonical({k: CFG["analysis"][k] for k in RUN_FIGURE_KEYS})
+
+
 def gather_params():
     """The analysis keys gather reads (so that changing a figure setting does not gather again)."""
     keys = ("milestones", "max_gap_iters", "velocity_per_iters")
     return canonical({k: CFG["analysis"][k] for k in keys})
 
 
+def without_threads(settings):
+    """Settings less num_threads, which the photo scripts take from the rule's threads (so it reruns nothing)."""
+    return {k: v for k, v in settings.items() if k != "num_threads"}
+
+
 def photos_sfm_params(wildcards):
-    return canonical(CFG["photos"]["sfm"])
+    return canonical(without_threads(CFG["photos"]["sfm"]))
 
 
 def photos_train_params(wildcards):
     """The photo training settings; on the workflow's device unless photos.train.device is set."""
     user = (config.get("photos") or {}).get("train")
-    return canonical(on_workflow_device(CFG["photos"]["train"], user, CFG["device"]))
+    settings = on_workflow_device(CFG["photos"]["train"], user, CFG["device"])
+    return canonical(without_threads(settings))
 
 
 def photos_gpu(wildcards):
