@@ -21,6 +21,7 @@ from typing import Any
 import nibabel as nib
 import numpy as np
 import scipy.sparse as sparse
+from threadpoolctl import threadpool_limits
 
 from ctsplat.formats.volume import Volume, compute_volume_id, save_volume
 from ctsplat.utils import CtsplatError, code_version, merge_config
@@ -310,8 +311,11 @@ def resample_stack(
         out, cov = inter, cov_inter
     else:
         wnt = wn.T.toarray().astype(np.float32)  # (K, C)
-        out = (inter.reshape(-1, n_k) @ wnt).reshape(counts[0], counts[1], counts[2])
-        cov = (cov_inter.reshape(-1, n_k) @ wnt).reshape(out.shape)
+        # BLAS splits this product by threads and rounds differently for each count: one thread, so the volume
+        # (and its volume_id, which names every later output) is the same whatever the machine or job size
+        with threadpool_limits(limits=1, user_api="blas"):
+            out = (inter.reshape(-1, n_k) @ wnt).reshape(counts[0], counts[1], counts[2])
+            cov = (cov_inter.reshape(-1, n_k) @ wnt).reshape(out.shape)
     out += np.float32(fill) * (1.0 - cov)
 
     affine = np.eye(4)
