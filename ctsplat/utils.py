@@ -27,6 +27,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CtsplatError",
+    "Terminated",
+    "terminate_as_interrupt",
     "atomic_path",
     "atomic_dir",
     "check_output_dir",
@@ -67,9 +69,29 @@ _UMASK = os.umask(0o022)  # reading the process umask requires setting it; put i
 os.umask(_UMASK)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (what ``kill``, Slurm's cancel and its time limit send) raised like Ctrl-C, so that the cleanup of
+    temporary outputs runs."""
+
+
+def _raise_terminated(signum: int, _frame: Any) -> None:
+    raise Terminated(f"terminated by signal {signum}")
+
+
+def terminate_as_interrupt() -> None:
+    """Make SIGTERM raise :class:`Terminated` (a ``KeyboardInterrupt``) in this process's main thread.
+
+    Python's default for SIGTERM ends the process at once, skipping every ``finally``: a killed step would leave
+    its temporary files and folders (written under hidden names beside the outputs) behind. The command line and
+    the workflow's scripts call this first; elsewhere it does nothing (signal handlers live in the main thread).
+    """
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _raise_terminated)
+
+
 @contextlib.contextmanager
 def _interrupts_held() -> Iterator[None]:
-    """Hold Ctrl-C (SIGINT) for the block and raise it when the block ends.
+    """Hold Ctrl-C (SIGINT) and SIGTERM for the block and deliver them when the block ends.
 
     Creating a temporary file and recording its name are two steps; an interrupt between them would leave a file
     that no cleanup knows of. Python runs signal handlers in the main thread only, so elsewhere this does nothing.
@@ -78,15 +100,18 @@ def _interrupts_held() -> Iterator[None]:
         yield
         return
     caught: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, _frame: caught.append(signum))
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {sig: signal.signal(sig, lambda signum, _frame: caught.append(signum)) for sig in held}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
-    if caught and callable(previous):
-        previous(signal.SIGINT, None)
-    elif caught and previous == signal.SIG_DFL:
-        signal.raise_signal(signal.SIGINT)
+        for sig in held:
+            signal.signal(sig, previous[sig])
+    for sig in dict.fromkeys(caught):
+        if callable(previous[sig]):
+            previous[sig](sig, None)
+        elif previous[sig] == signal.SIG_DFL:
+            signal.raise_signal(sig)
 
 
 @contextlib.contextmanager

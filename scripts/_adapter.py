@@ -28,6 +28,9 @@ if _SM is not None:
 @contextlib.contextmanager
 def logged(snakemake) -> Iterator[logging.Logger]:  # noqa: ANN001 (the Snakemake script object)
     """Send logging, warnings, stdout and stderr (tracebacks included) of the step to ``snakemake.log[0]``."""
+    from ctsplat.utils import terminate_as_interrupt
+
+    terminate_as_interrupt()  # a cancelled job (SIGTERM) removes its temporary files before it ends
     log_path = Path(snakemake.log[0])
     log_path.parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "w", buffering=1) as fh, contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):

@@ -12,7 +12,7 @@ import importlib
 import logging
 import sys
 
-from ctsplat.utils import CtsplatError
+from ctsplat.utils import CtsplatError, Terminated, terminate_as_interrupt
 
 # module name -> imported lazily so `ctsplat --help` stays fast and a broken optional step
 # does not take the whole CLI down.
@@ -80,9 +80,11 @@ def main(argv: list[str] | None = None) -> int:
     -------
     int
         0 on success, 2 for a user error (:class:`~ctsplat.utils.CtsplatError`) or a file-system error
-        (``OSError``: unreadable input, unwritable or blocked output path), 130 when interrupted (Ctrl-C). Every
+        (``OSError``: unreadable input, unwritable or blocked output path), 130 when interrupted (Ctrl-C), 143 when
+        terminated (SIGTERM: ``kill``, a cluster's cancel or time limit). Every
         output file is written under a temporary name first, so an error leaves no half-written file.
     """
+    terminate_as_interrupt()  # a killed command (SIGTERM) removes its temporary files like an interrupted one
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
@@ -98,10 +100,11 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger(__name__).debug("file-system error", exc_info=True)  # the traceback with -v
         print(f"ctsplat {args.command}: error: {os_error_message(exc)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         again = "continue with `ctsplat train --resume`" if args.command == "train" else "run the command again"
-        print(f"ctsplat {args.command}: interrupted; files are written whole or not at all: {again}", file=sys.stderr)
-        return 130
+        how = "terminated" if isinstance(exc, Terminated) else "interrupted"
+        print(f"ctsplat {args.command}: {how}; files are written whole or not at all: {again}", file=sys.stderr)
+        return 143 if isinstance(exc, Terminated) else 130
     return 0
 
 

@@ -305,3 +305,31 @@ def test_train_reads_a_run_folders_config_json(tmp_path):
     (tmp_path / "config.json").write_text(json.dumps(record))
     cfg = load_train_config(str(tmp_path / "config.json"), ["iterations=800"])
     assert cfg == {"iterations": 800, "init": "fbp", "lr": {"means": 1e-4}}  # the settings it trained with
+
+
+def test_terminated_command_removes_its_temporary_outputs(tmp_path):
+    """SIGTERM (kill, a cluster's cancel or time limit) ends a step like Ctrl-C: exit 143, one line, and no
+    hidden staging folder left beside the output."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    code = "import sys; from ctsplat.cli import main; sys.exit(main(sys.argv[1:]))"
+    subprocess.run([sys.executable, "-c", code, "phantom", str(tmp_path / "dicom")], check=True, capture_output=True)
+    subprocess.run([sys.executable, "-c", code, "ingest", str(tmp_path / "dicom"), str(tmp_path / "v.nii.gz"),
+                    "--grid", "48"], check=True, capture_output=True)
+    out = tmp_path / "rad"
+    proc = subprocess.Popen([sys.executable, "-c", code, "project", "--volume", str(tmp_path / "v.nii.gz"), "--out",
+                             str(out), "--set", "n_views=2000", "--set", "detector_width=192",
+                             "--set", "detector_height=192"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    deadline = time.monotonic() + 60
+    while not list(tmp_path.glob(".rad.*")) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    assert list(tmp_path.glob(".rad.*")), "the projector never opened its staging folder"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    assert "ctsplat project: terminated; files are written whole or not at all" in err
+    assert not list(tmp_path.glob(".rad.*")) and not out.exists()
