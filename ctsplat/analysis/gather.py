@@ -280,6 +280,9 @@ def read_summary(path: str | os.PathLike[str]) -> pd.DataFrame:
         summary = pd.read_csv(path)
     except pd.errors.EmptyDataError:
         raise CtsplatError(f"{path} is empty; write it with `ctsplat gather`") from None
+    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise CtsplatError(f"{path} is not a CSV summary of `ctsplat gather` ({type(exc).__name__}); give the "
+                           "summary.csv it wrote") from None
     missing = [c for c in ("run_dir", "volume") if c not in summary]
     if missing:
         raise CtsplatError(f"{path} is not a summary of `ctsplat gather` (no {', '.join(missing)} column)")

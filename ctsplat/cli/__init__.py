@@ -42,7 +42,8 @@ _OS_HINTS = {
     errno.EROFS: "the file system is read-only; choose another path",
     errno.ENOTDIR: "a file stands where a folder is needed; choose another path",
     errno.EEXIST: "the path is taken, e.g. by a file where a folder is needed; choose another path",
-    errno.EISDIR: "a folder stands where a file is to be written; remove it or choose another path",
+    errno.EISDIR: "a folder stands where a file is expected; give the file's path (or move the folder if it blocks "
+                  "an output)",
     errno.ENOSPC: "the disk is full; free space or choose another path",
     errno.ENOENT: "check the path",
 }

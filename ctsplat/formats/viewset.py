@@ -308,6 +308,8 @@ def load_radiographs(out_dir: str | Path) -> tuple[np.ndarray, ViewSet]:
     import tifffile
 
     out_dir = Path(out_dir)
+    if out_dir.is_file():
+        raise CtsplatError(f"{out_dir} is a file; give the radiographs folder that holds it ({out_dir.parent})")
     if not out_dir.is_dir():
         raise CtsplatError(f"radiographs folder {out_dir} does not exist; run `ctsplat project` first")
     tif = out_dir / "line_integrals.tif"

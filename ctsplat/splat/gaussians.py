@@ -428,7 +428,9 @@ class Gaussians:
         try:
             payload = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001 - torch raises many types for corrupt files
-            raise CtsplatError(f"cannot read Gaussian model {path}: {exc}".splitlines()[0]) from exc
+            # torch's own first line advises loading untrusted files with weights_only=False: not repeated here
+            raise CtsplatError(f"cannot read Gaussian model {path} ({type(exc).__name__}): it is not a .pt model "
+                               "written by ctsplat (Gaussians.save); give a run's model.pt") from exc
         if isinstance(payload, dict) and "gaussians" in payload and "tensors" not in payload:
             payload = payload["gaussians"]
         if not isinstance(payload, dict) or payload.get("format") != "ctsplat.gaussians":

@@ -321,6 +321,10 @@ def test_analyse_refuses_a_bad_summary_in_one_line_and_draws_one_without_scores(
     pd.DataFrame({"volume": ["p"], "psnr": [1.0]}).to_csv(tmp_path / "other.csv", index=False)
     with pytest.raises(CtsplatError, match=r"other\.csv is not a summary of `ctsplat gather` \(no run_dir column\)"):
         plots.analyse(tmp_path / "other.csv", outputs)
+    view = {"id": 0, "R": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], "t": [0.0, 0.0, 500.0]}
+    (tmp_path / "views.json").write_text(json.dumps({"camera": {"model": "cone"}, "views": [view] * 2}, indent=1))
+    with pytest.raises(CtsplatError, match=r"views\.json is not a CSV summary of `ctsplat gather` \(ParserError\)"):
+        plots.analyse(tmp_path / "views.json", outputs)  # a JSON file given by mistake
     run = _make_run(tmp_path / "work")
     monkeypatch.chdir(tmp_path / "work")
     gather([run.relative_to(tmp_path / "work")], tmp_path / "work" / "summary.csv")  # run_dir relative, as Snakemake

@@ -503,3 +503,5 @@ def test_radiograph_folder_never_pairs_new_images_with_the_old_view_set(tmp_path
     assert [Path(m).name for m in moved] == ["line_integrals.tif"]
     with pytest.raises(CtsplatError, match=r"views\.json does not exist"):
         load_radiographs(out)
+    with pytest.raises(CtsplatError, match=r"line_integrals\.tif is a file; give the radiographs folder that holds"):
+        load_radiographs(out / "line_integrals.tif")
