@@ -407,6 +407,23 @@ def check_volume_sources(volumes: Mapping[str, Mapping[str, Any]], base_dir: str
                 f"volume source not found at volumes.{name}.source: {source!r} (resolved to {path.resolve()}); "
                 "give a DICOM folder, a .nii/.nii.gz file, a TIFF stack, or 'phantom'"
             )
+        if path.is_dir():
+            _check_scan_folder(name, source, path)
+
+
+def _check_scan_folder(name: str, source: str, path: Path) -> None:
+    """A CT source folder must hold files, and not only photographs (a photo folder needs ``kind: photos``)."""
+    from ctsplat.photos.images import IMAGE_SUFFIXES
+
+    suffixes = [Path(f).suffix.lower() for _, _, files in os.walk(path) for f in files if not f.startswith(".")]
+    if not suffixes:
+        raise CtsplatError(f"volume source at volumes.{name}.source is an empty folder: {source!r} (resolved to "
+                           f"{path.resolve()}); give the folder with the scan's files")
+    photo = [x for x in suffixes if x in IMAGE_SUFFIXES and x not in (".tif", ".tiff")]  # TIFF stacks are scans
+    if len(photo) == len(suffixes):
+        raise CtsplatError(f"volume source at volumes.{name}.source holds photographs ({len(photo)} "
+                           f"{'/'.join(sorted(set(photo)))} files), not a scan: for the photo path set "
+                           f"volumes.{name}.kind: photos")
 
 
 def canonical(value: Any) -> Any:

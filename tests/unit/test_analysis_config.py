@@ -185,6 +185,7 @@ def test_missing_volume_source_is_reported_with_key(tmp_path):
     with pytest.raises(CtsplatError, match=r"volumes\.head\.source: 'nope/ct'"):
         prepare_config({"volumes": {"head": {"source": "nope/ct"}}}, base_dir=tmp_path)
     (tmp_path / "ct").mkdir()
+    (tmp_path / "ct" / "slice_0000.dcm").write_bytes(b"")
     cfg = prepare_config({"volumes": {"head": {"source": "ct"}}}, base_dir=tmp_path)
     assert cfg["grid"]["geometry"] == "circular"
 
@@ -277,6 +278,20 @@ def test_values_that_would_fail_a_job_fail_at_parse_time(config, message):
     with pytest.raises(CtsplatError) as err:
         prepare_config(config)
     assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_ct_source_folder_must_hold_a_scan(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CtsplatError, match=r"volumes\.v\.source is an empty folder"):
+        prepare_config({"volumes": {"v": {"source": str(tmp_path / "empty")}}})
+    (tmp_path / "photos").mkdir()
+    for n in ("01.jpg", "02.JPG", "03.png"):
+        (tmp_path / "photos" / n).write_bytes(b"")
+    with pytest.raises(CtsplatError, match=r"holds photographs \(3 \.jpg/\.png files\), not a scan: for the photo "
+                                           r"path set volumes\.v\.kind: photos"):
+        prepare_config({"volumes": {"v": {"source": str(tmp_path / "photos")}}})
+    (tmp_path / "photos" / "slice.dcm").write_bytes(b"")  # something else beside them: the ingest step decides
+    prepare_config({"volumes": {"v": {"source": str(tmp_path / "photos")}}})
 
 
 def test_photo_validation_fold_must_lie_below_test_every(tmp_path):

@@ -20,7 +20,8 @@ def _cells(axes, volumes, drop):
 
 
 def test_large_grid_schedules_shared_work_once_and_training_per_cell(tmp_path):
-    (tmp_path / "ct").mkdir()  # a second volume from a (not yet read) DICOM folder
+    (tmp_path / "ct").mkdir()
+    (tmp_path / "ct" / "slice_0000.dcm").write_bytes(b"")  # a second volume from a (not yet read) DICOM folder
     axes = {"init": ["fbp", "volume", "sfm"], "compositor": ["radiative", "alpha"], "mip": ["on", "off"],
             "poses": ["gt", "colmap"], "views": [10, 20], "seed": [0, 1]}
     config = {
@@ -50,6 +51,7 @@ def test_large_grid_schedules_shared_work_once_and_training_per_cell(tmp_path):
 
 def test_optional_steps_switch_off(tmp_path):
     (tmp_path / "ct").mkdir()
+    (tmp_path / "ct" / "slice_0000.dcm").write_bytes(b"")
     config = {
         "volumes": {"head": {"source": "ct"}},  # replaces the default config: no phantom job
         "baselines": {"enabled": False}, "sfm": {"enabled": False},
