@@ -11,8 +11,10 @@ from ctsplat.utils import CtsplatError
 
 
 def load_section(path: str | None, section: str) -> dict[str, Any]:
-    """Settings from a YAML/JSON file: the section itself, ``{section: {...}}``, or a run folder's ``config.json``
-    (``{"config": {...}, "config_hash": ...}``, the settings it trained with); ``{}`` without a file."""
+    """Settings from a YAML/JSON file: the section itself, ``{section: {...}}``, a workflow config (its
+    ``sfm.settings`` / ``baselines.settings``, or its one ``radiographs`` geometry), or a run folder's
+    ``config.json`` (``{"config": {...}, "config_hash": ...}``, the settings it trained with); ``{}`` without a
+    file."""
     if path is None:
         return {}
     p = Path(path)
@@ -29,7 +31,24 @@ def load_section(path: str | None, section: str) -> dict[str, Any]:
         raise CtsplatError(f"config file {p} must hold a mapping (the {section} section)")
     if isinstance(cfg.get("config"), dict) and "config_hash" in cfg:  # a run folder's record of its settings
         return dict(cfg["config"])
-    return dict(cfg[section]) if isinstance(cfg.get(section), dict) else dict(cfg)
+    if not isinstance(cfg.get(section), dict):
+        return dict(cfg)
+    values = dict(cfg[section])
+    if section in ("sfm", "baselines") and {"enabled", "settings"} & set(values):  # a workflow config's section
+        workflow = values
+        values = dict(workflow.get("settings") or {})
+        if section == "baselines" and workflow.get("n_views") is not None:
+            values["n_views"] = workflow["n_views"]
+    elif section == "radiographs" and values and all(isinstance(v, dict) for v in values.values()):
+        from ctsplat.projector import RADIOGRAPHS_DEFAULTS
+
+        if not set(values) & set(RADIOGRAPHS_DEFAULTS):  # geometry name -> settings, as in a workflow config
+            if len(values) > 1:
+                raise CtsplatError(f"config file {p} holds {len(values)} radiographs geometries ({', '.join(values)})"
+                                   "; give a file with one geometry's settings (at top level or alone under "
+                                   "radiographs:)")
+            values = dict(next(iter(values.values())))
+    return values
 
 
 def parse_value(text: str) -> Any:

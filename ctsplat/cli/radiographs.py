@@ -33,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--volume", required=True, help="NAME.nii.gz from ingest (its sidecar NAME.json beside it)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--config", help="YAML/JSON file with the radiographs settings (or a 'radiographs' section)")
+    p.add_argument("--config", help="YAML/JSON file with one geometry's settings (or a workflow config with one)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override one setting, e.g. --set camera=cone --set n_views=50 --set noise.enabled=true")
     p.add_argument("--seed", type=int, default=0, help="orbit/split/noise seed (default 0)")
@@ -49,7 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--volume", required=True, help="the reference volume.nii.gz the radiographs were rendered from")
     b.add_argument("--radiographs", required=True, help="folder written by `ctsplat project`")
     b.add_argument("--out", required=True, help="output folder")
-    b.add_argument("--config", help="YAML/JSON file with the baselines settings (or a 'baselines' section)")
+    b.add_argument("--config", help="YAML/JSON file with the baselines settings (or a workflow config)")
     b.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override one setting, e.g. --set n_views=[25,50,75] --set sart_max_iterations=3")
     b.set_defaults(func=run_baseline)

@@ -40,7 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "Too few registrations do not fail: summary.json records ok: false.")
     p.add_argument("radiographs", help="radiographs folder of the C-arm view set (line_integrals.tif, views.json)")
     p.add_argument("out_dir", help="output folder")
-    p.add_argument("--config", help="YAML/JSON file with the sfm section (or {sfm: {...}})")
+    p.add_argument("--config", help="YAML/JSON file with the sfm settings (or a workflow config: its sfm.settings)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override one sfm key, e.g. --set matching=sequential --set pose_prior=isocentric")
     p.add_argument("--seed", type=int, default=0)

@@ -270,6 +270,23 @@ def test_a_run_config_json_is_read_back_with_its_exponent_floats(tmp_path):
         load_section(str(path), "train")
 
 
+def test_step_configs_are_read_from_a_workflow_config():
+    """`--config config/ct0051_head.yaml` (a workflow config) gives project, baseline and sfm their sections:
+    sfm.settings, baselines.settings (+ n_views) and, with one geometry, that geometry; two geometries are refused
+    naming them."""
+    from ctsplat.cli._common import load_section
+    from ctsplat.config import check_section
+    from ctsplat.utils import CtsplatError
+
+    head = str(ROOT / "config" / "ct0051_head.yaml")
+    sfm = check_section("sfm", load_section(head, "sfm"))
+    assert sfm["pose_prior"] == "isocentric" and sfm["geometry"] == "carm"
+    assert check_section("baselines", load_section(str(ROOT / "config" / "full_protocol.yaml"), "baselines")) == {
+        "n_views": [25, 50, 75, 150]}
+    with pytest.raises(CtsplatError, match=r"holds 2 radiographs geometries \(circular, carm\); give a file with one"):
+        load_section(head, "radiographs")
+
+
 def test_hu_max_sets_where_mu_clips(tmp_path):
     from ctsplat.formats.sources import write_dicom_series
     from ctsplat.formats.volume import load_volume
