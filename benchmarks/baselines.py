@@ -53,7 +53,7 @@ def geometry_config(name: str, grid: int, side_mm: float, n_views: int, arc_deg:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--source", default=str(ROOT.parent / "shared" / "data" / "ct0051_head"),
                     help="a DICOM folder / NIfTI / TIFF stack, or 'phantom' (default: %(default)s)")
     ap.add_argument("--grid", type=int, default=64)

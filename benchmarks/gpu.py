@@ -133,7 +133,7 @@ def train_row(data: str, size: int) -> dict | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--reps", type=int, default=20, help="minimum timed repetitions per row")
     p.add_argument("--budget-s", type=float, default=3.0, help="keep repeating a row for this long (<= 10x reps)")
     p.add_argument("--reference", action="store_true", help="also time the pure-PyTorch reference")

@@ -65,7 +65,7 @@ def _count(its: int, sets: list[str], vol: Path, rad: Path, out: Path) -> tuple[
 
 
 def run(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="train config overrides")
     ap.add_argument("--out", default=str(OUT / "host_reads"))
     args = ap.parse_args(argv)

@@ -89,7 +89,7 @@ def _train(sfm: Path, run_dir: Path, sets: list[str]) -> None:
 
 def run(argv: list[str] | None = None) -> int:
     """Parse the options, train the missing runs, write and print the comparison (module docstring)."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sfm", default=str(OUT / "photos" / "sfm"), help="output folder of `ctsplat photos-sfm`")
     ap.add_argument("--candidate", action="append", required=True, metavar="KEY=VALUE",
                     help="a photos key the candidate sets, e.g. train.flash.enabled=true (repeatable)")

@@ -60,7 +60,7 @@ def main() -> None:
 
 def run() -> None:
     """Parse the options, then SfM, training and evaluation (module docstring)."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--images", default=str(SKULL), help="photo folder (default: the skull set)")
     ap.add_argument("--iterations", type=int, default=PHOTOS_DEFAULTS["train"]["iterations"])
     ap.add_argument("--downscale", type=int, default=PHOTOS_DEFAULTS["train"]["downscale"])

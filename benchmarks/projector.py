@@ -56,7 +56,7 @@ def n_samples(camera, Rs, ts, affine, vol, step_voxels: float) -> int:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--angles", type=int, default=180)
     ap.add_argument("--cone-views", type=int, default=16)

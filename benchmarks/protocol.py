@@ -261,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--volumes", nargs="+", default=DEFAULT_VOLUMES,
                     help="phantom and/or folder names in --data (default: %(default)s)")
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data"))

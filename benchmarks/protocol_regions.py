@@ -87,7 +87,7 @@ def run(argv: list[str] | None = None) -> int:
     from ctsplat.formats.volume import load_volume
     from ctsplat.utils import CtsplatError
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("out", help="a benchmarks/protocol.py --out folder")
     ap.add_argument("--threshold", type=float, default=0.01, help="reference value above which a voxel is object")
     args = ap.parse_args(argv)

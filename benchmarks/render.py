@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(run_one(o.n, o.width, o.height, o.mode, o.backend, o.compositor, o.device, o.threads,
                                  o.budget_s)))
         return 0
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--compositor", choices=["radiative", "radiative_unrectified", "alpha"],

@@ -185,8 +185,8 @@ def sweep_overrides(sets: list[str]) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--only", help="volume name (head, phantom_beads, phantom_smooth) or label substring")
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--only", help="volume name (head, phantom_beads, phantom_smooth, beads_in_air) or label substring")
     ap.add_argument("--quick", action="store_true", help="first matching configuration only")
     ap.add_argument("--grid", type=int, default=128, help="volume grid (voxels per axis)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override for every run")

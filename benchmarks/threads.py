@@ -102,7 +102,7 @@ def _steps(n: int, size: int, grid: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--threads", default="1,2", help="comma-separated thread counts (default 1,2)")
     p.add_argument("--reps", type=int, default=15, help="timed repetitions per configuration and thread count")
     p.add_argument("--n", type=int, default=50_000, help="Gaussians")

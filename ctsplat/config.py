@@ -955,13 +955,16 @@ def sync_library_defaults(schema_path: str | os.PathLike[str] | None = None) -> 
     Returns
     -------
     pathlib.Path
-        The rewritten file.
+        The schema file (written only when its text changes).
     """
     path = Path(schema_path) if schema_path is not None else Path(__file__).resolve().parent / SCHEMA_RESOURCE
-    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    before = path.read_text(encoding="utf-8")
+    lines = before.splitlines(keepends=True)
     b = next(i for i, line in enumerate(lines) if line.startswith(GENERATED_BEGIN))
     e = next(i for i, line in enumerate(lines) if line.startswith(GENERATED_END))
-    path.write_text("".join(lines[: b + 1]) + _generated_block() + "".join(lines[e:]), encoding="utf-8")
+    text = "".join(lines[: b + 1]) + _generated_block() + "".join(lines[e:])
+    if text != before:  # unchanged: the file (and its time stamp) stays as it is
+        path.write_text(text, encoding="utf-8")
     return path
 
 
@@ -972,7 +975,10 @@ def main(argv: list[str] | None = None) -> None:
                         help="regenerate the schema's library sections from the modules' *_DEFAULTS")
     parser.add_argument("--schema", help="schema file to rewrite (default: the one in this source tree)")
     args = parser.parse_args(argv)
-    print(f"updated {sync_library_defaults(args.schema)}")
+    path = Path(args.schema) if args.schema else Path(__file__).resolve().parent / SCHEMA_RESOURCE
+    before = path.read_text(encoding="utf-8") if path.is_file() else None
+    sync_library_defaults(path)
+    print(f"{'unchanged' if path.read_text(encoding='utf-8') == before else 'updated'} {path}")
 
 
 if __name__ == "__main__":
