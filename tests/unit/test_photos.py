@@ -347,6 +347,39 @@ def _three_gaussians() -> dict[str, torch.Tensor]:
     return params
 
 
+def test_split_children_are_drawn_from_the_parent_with_scales_over_1_6() -> None:
+    """3DGS's split: each large Gaussian with a large gradient becomes two, their means sampled from the parent
+    Gaussian N(μ, R S² Rᵀ) and their scales the parent's / 1.6 (Kerbl et al. 2023, Sec. 5.2); the sample
+    covariance of 4000 children against the parent's covariance."""
+    from scipy.spatial.transform import Rotation
+
+    from ctsplat.photos.densify import AlphaDensify
+    from ctsplat.photos.train import _optimizer, init_params
+
+    m = 2000
+    scales = np.array([0.05, 0.02, 0.01])  # above percent_dense x extent (0.01): split, not clone
+    quat_xyzw = Rotation.from_euler("zyx", [30, 40, 10], degrees=True).as_quat()
+    params = init_params(np.zeros((m, 3)), np.full((m, 3), 0.5), photo_settings()["train"], np.random.default_rng(0))
+    with torch.no_grad():
+        params["log_scales"][:] = torch.log(torch.as_tensor(scales, dtype=params["log_scales"].dtype))
+        params["quats"][:] = torch.as_tensor(np.roll(quat_xyzw, 1), dtype=params["quats"].dtype)  # wxyz
+        params["opacity_raw"][:] = 2.0
+    settings = {**photo_settings()["train"]["densify"], "start": 100, "max_gaussians": 10 * m}
+    opt = _optimizer(params, photo_settings()["train"]["lr"], 1.0)
+    dens = AlphaDensify(settings, iterations=1000, extent=1.0, means=params["means"])
+    dens.grad_accum[:] = 1.0
+    dens.grad_count[:] = 1.0
+    params, st = dens.step(params, opt, torch.Generator().manual_seed(0), iteration=100)
+    assert (st["split"], st["cloned"], st["n"]) == (m, 0, 2 * m)
+    np.testing.assert_allclose(torch.exp(params["log_scales"]).detach().numpy(), np.tile(scales / 1.6, (2 * m, 1)),
+                               rtol=1e-6)
+    offsets = params["means"].detach().double().numpy()  # the parents sat at the origin
+    rot = Rotation.from_quat(quat_xyzw).as_matrix()
+    expected = rot @ np.diag(scales**2) @ rot.T
+    np.testing.assert_allclose(np.cov(offsets.T), expected, atol=0.1 * scales[0] ** 2)
+    assert abs(offsets.mean(0)).max() < 0.1 * scales[0]
+
+
 @pytest.mark.parametrize(("size_prune", "reset"), [("after_reset", 3000), ("always", 3000), ("after_reset", 0)])
 def test_size_prune_always_prunes_wide_gaussians_to_the_end_of_training(size_prune: str, reset: int) -> None:
     """... and "after_reset" never prunes by size when no reset comes (opacity_reset_interval 0)."""

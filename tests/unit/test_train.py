@@ -246,6 +246,25 @@ def test_densify_clone_split_prune_and_cap(scene_dir: Path) -> None:
     assert c2["cloned"] + c2["split"] == 1 and c2["split"] == 1 and c2["n"] == 4
 
 
+def test_split_children_are_drawn_from_the_parent_gaussian(scene_dir: Path) -> None:
+    """The two children of a split sample N(μ, Σ) of their (axis-aligned, anisotropic) parent: the sample
+    covariance of 1200 children against Σ = diag(s²)."""
+    cfg = config.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "clone_max_scale_voxels": 1.5,
+                                                         "max_gaussians": 10_000}))
+    scene = sc.load_scene(cfg)
+    m, parent_scales = 600, np.array([6.0, 4.0, 2.5])  # every axis above 1.5 voxels: split, not cloned
+    centre = scene.volume.center_mm()
+    st = _state_from(np.tile(centre, (m, 1)), np.tile(parent_scales, (m, 1)), [0.6] * m, cfg)
+    st.grad_accum = torch.full((m,), 3.0)
+    counts = _densify(st, cfg, scene, torch.Generator().manual_seed(0))
+    assert counts["split"] == m and 2 * m - 5 <= counts["n"] <= 2 * m  # a far tail sample may leave the volume
+    g = state.as_gaussians({k: v.detach() for k, v in st.params.items()})
+    np.testing.assert_allclose(g.scales.numpy(), np.tile(parent_scales / 1.6, (len(g), 1)), rtol=1e-5)
+    offsets = g.means.double().numpy() - centre
+    np.testing.assert_allclose(np.cov(offsets.T), np.diag(parent_scales**2), atol=0.12 * parent_scales[0] ** 2)
+    assert abs(offsets.mean(0)).max() < 0.1 * parent_scales[0]
+
+
 def test_alpha_mode_split_keeps_density(scene_dir: Path) -> None:
     cfg = config.resolve_config(_cfg(scene_dir, compositor="alpha", densify={"grad_threshold": 1.0}))
     scene = sc.load_scene(cfg)
