@@ -52,11 +52,17 @@ def test_render_cli_writes_images_equal_to_render(tmp_path):
 
 
 def test_render_cli_split_and_bad_model(tmp_path, capsys):
-    _setup(tmp_path)
+    g, vs = _setup(tmp_path)
+    for compositor in ("alpha", "radiative_unrectified"):
+        out = tmp_path / f"o_{compositor}"
+        assert main(["render", str(tmp_path / "model.pt"), str(tmp_path / "views.json"), str(out), "--split", "test",
+                     "--compositor", compositor]) == 0
+        image = np.squeeze(tifffile.imread(out / "images.tif"))
+        assert image.shape == (20, 24)  # a single view, rendered by the compositor asked for
+        test = vs.views[2]
+        np.testing.assert_allclose(image, render(g, vs.camera, test.R, test.t, compositor=compositor).image.numpy(),
+                                   rtol=1e-5, atol=1e-6)
     out = tmp_path / "o2"
-    assert main(["render", str(tmp_path / "model.pt"), str(tmp_path / "views.json"), str(out), "--split", "test",
-                 "--compositor", "alpha"]) == 0
-    assert np.squeeze(tifffile.imread(out / "images.tif")).shape == (20, 24)  # a single view
     assert main(["render", str(tmp_path / "nope.pt"), str(tmp_path / "views.json"), str(out)]) == 2
     assert "model file not found" in capsys.readouterr().err
     assert torch.is_tensor(Gaussians.load(tmp_path / "model.pt").means)
