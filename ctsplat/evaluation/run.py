@@ -453,7 +453,10 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         log.warning("%s: the view set has no test views; the test metrics are on the validation views, which also "
                     "chose the model (metrics.json: views_from val)", run_dir)
     tr = scene.train
-    rk = render_kwargs(cfg, mip_filter(cfg, g, tr.camera, tr.Rs, tr.ts))
+    # the 3D filter the model was trained (and, for model_best, selected) with; recomputed only for a model
+    # saved without one
+    stored = g.filter_3d_var if cfg["mip"] else None
+    rk = render_kwargs(cfg, stored if stored is not None else mip_filter(cfg, g, tr.camera, tr.Rs, tr.ts))
     preds = render_views(g, views.camera, views.Rs, views.ts, rk)
     vm = view_metrics(preds, views.images, with_lpips=True)
     vol_model = voxelize_model(g, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))

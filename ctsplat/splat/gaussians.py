@@ -175,6 +175,11 @@ class Gaussians:
         Base colour (grey C=1, RGB C=3) for the alpha compositor; ``None`` means grey 1.
     sh_rest : Tensor (N, K-1, C) or None
         Degree 1..3 SH coefficients (``K = (deg+1)^2``).
+    meta : dict
+        Provenance (JSON-like values).
+    filter_3d_var : Tensor (N,) or None
+        The Mip-Splatting 3D filter variance (mm²) the model was trained with, saved with it so that it is
+        rendered and scored with that filter (as Mip-Splatting stores its ``filter_3D``); None without one.
     """
 
     means: torch.Tensor
@@ -185,6 +190,7 @@ class Gaussians:
     colors: torch.Tensor | None = None
     sh_rest: torch.Tensor | None = None
     meta: dict = field(default_factory=dict)
+    filter_3d_var: torch.Tensor | None = None
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -340,7 +346,8 @@ class Gaussians:
             True checks every tensor for NaN/Inf, False none, a tuple of names only those.
         """
         n = len(self)
-        shapes = {"means": (n, 3), "log_scales": (n, 3), "quats": (n, 4), "density_raw": (n,), "opacity_raw": (n,)}
+        shapes = {"means": (n, 3), "log_scales": (n, 3), "quats": (n, 4), "density_raw": (n,), "opacity_raw": (n,),
+                  "filter_3d_var": (n,)}
         checked = []
         for name, t in self.tensors().items():
             if name in shapes and tuple(t.shape) != shapes[name]:

@@ -865,7 +865,8 @@ def render_to_folder(
     split : {"train", "val", "test"} or None
         Only this split's views.
     mip : bool
-        3D filter from the view set's ``train`` views (all views if it has none) and the 2D mip filter.
+        The model's own 3D filter (the one it was trained with, when it was saved with one), else one computed from
+        the view set's ``train`` views (all views if it has none); and the 2D mip filter.
     mu_scale : float or None
         Density factor (1/mm per normalised unit); default the model's ``meta["mu_scale_per_mm"]``, else 1.
     device : str
@@ -891,10 +892,10 @@ def render_to_folder(
     vs = ViewSet.load(views_path)
     scale = float(mu_scale if mu_scale is not None else g.meta.get("mu_scale_per_mm", 1.0))
     fv = None
-    if mip:  # the 3D filter of the training views (the views themselves when the set has none), before any subset
+    if mip:  # the model's filter, else that of the training views (the views themselves when none), before any subset
         train_idx = vs.indices("train")
         base = vs if train_idx.size == 0 else ViewSet(vs.camera, [vs.views[i] for i in train_idx])
-        fv = compute_3d_filter(g, vs.camera, base.Rs(), base.ts())
+        fv = g.filter_3d_var if g.filter_3d_var is not None else compute_3d_filter(g, vs.camera, base.Rs(), base.ts())
     if split is not None:
         vs = vs.subset(split)
     out_dir = Path(out_dir)

@@ -557,6 +557,8 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
 def _save_model(state: TrainState, cfg: dict[str, Any], path: Path, chash: str) -> Any:
     """Write the current model to ``path`` (``.pt``) with its provenance and iteration; returns the Gaussians."""
     g = as_gaussians({k: v.detach() for k, v in state.params.items()})
+    if state.filter_var is not None:  # the 3D filter this model was rendered with: evaluation uses the same
+        g.filter_3d_var = state.filter_var.detach()
     g.meta.update(config_hash=chash, uses_reference_volume=cfg["init"] in REFERENCE_INITS, init=cfg["init"],
                   compositor=cfg["compositor"], iteration=state.iteration)
     if "best_psnr" in state.health:

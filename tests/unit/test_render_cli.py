@@ -80,3 +80,14 @@ def test_render_cli_split_keeps_the_training_views_3d_filter(tmp_path):
     # the test view renders the same alone as among all views: the filter comes from the train views either way
     alone = np.squeeze(tifffile.imread(test / "images.tif"))
     np.testing.assert_array_equal(alone, tifffile.imread(full / "images.tif")[2])
+
+
+def test_render_cli_uses_the_filter_a_model_was_saved_with(tmp_path):
+    g, vs = _setup(tmp_path)
+    g.filter_3d_var = torch.linspace(0.5, 4.0, len(g), dtype=g.means.dtype)  # not what the views would give
+    g.save(tmp_path / "model.pt")
+    out = tmp_path / "stored"
+    assert main(["render", str(tmp_path / "model.pt"), str(tmp_path / "views.json"), str(out), "--mip"]) == 0
+    v = vs.views[0]
+    ref = render(g, vs.camera, v.R, v.t, filter_3d_var=g.filter_3d_var, mip_2d=True).image.numpy()
+    np.testing.assert_allclose(tifffile.imread(out / "images.tif")[0], ref, rtol=1e-5, atol=1e-6)

@@ -308,6 +308,26 @@ def test_variants_run_and_learn(scene_dir: Path, tmp_path: Path, kw: dict) -> No
         assert float(rows[-1]["tv"]) > 0
 
 
+def test_a_mip_model_is_saved_and_scored_with_the_filter_it_was_trained_with(scene_dir: Path, tmp_path: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """Mip-Splatting stores its 3D filter with the model: model.pt and model_best.pt carry the filter the training
+    rendered them with, and the evaluation scores them with it instead of computing another one from the final
+    means (so the validation PSNR logged at the last iteration is the one evaluate gives)."""
+    from ctsplat.splat.gaussians import Gaussians
+    from ctsplat.training import config as train_config
+
+    run = tmp_path / "mip"
+    loop.train(_cfg(scene_dir, iterations=30, mip=True, densify={"interval": 10, "start": 10, "stop": 15}), run)
+    last, best = Gaussians.load(run / "model.pt"), Gaussians.load(run / "model_best.pt")
+    for g in (last, best):
+        assert g.filter_3d_var is not None and g.filter_3d_var.shape == (len(g),) and bool((g.filter_3d_var > 0).all())
+    monkeypatch.setattr(train_config, "mip_filter", lambda *a, **k: pytest.fail("the stored filter was not used"))
+    val = evaluate(run, split="val", device="cpu", write=False)
+    logged = list(csv.DictReader(open(run / "train_log.csv", newline="")))[-1]
+    assert int(logged["iteration"]) == 30 and val["psnr2d"] == pytest.approx(float(logged["psnr2d"]), abs=1e-6)
+    assert math.isfinite(evaluate(run, device="cpu", write=False, model="best")["psnr2d"])
+
+
 def test_fbp_init_uses_training_projections_only(scene_dir: Path, tmp_path: Path) -> None:
     pytest.importorskip("ctsplat.baselines")
     cfg = config.resolve_config(_cfg(scene_dir, init="fbp"))
