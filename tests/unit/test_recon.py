@@ -250,3 +250,26 @@ def test_mbir_recovers_a_disc():
     assert rec.min() >= 0 and rec.max() <= 1
     again = mbir_volume(p, vs, vol, sharpness=0.0, snr_db=30.0)  # one thread (the default): bit-identical
     np.testing.assert_array_equal(again, rec)
+
+
+def test_a_diverged_candidate_never_wins_the_choice():
+    """A candidate whose reconstruction diverged (NaN) scores NaN on validation; NaN never loses a comparison, so
+    listed first it used to be chosen over every finite candidate."""
+    from ctsplat.recon.select import choose, choose_iterative
+
+    class ByMean:  # stands in for the validation views: higher is better, NaN for a NaN volume
+        def score(self, vol: np.ndarray) -> float:
+            return float(-np.mean(vol))
+
+    def volume(k: int) -> np.ndarray:
+        return np.full((2, 2, 2), np.nan if k == 0 else 0.1 * k, np.float32)
+
+    direct = choose("m", [{"k": 0}, {"k": 2}, {"k": 1}], volume, ByMean(), clip=False)
+    assert direct.params == {"k": 1} and np.isnan(direct.trials[0]["val_psnr"])
+
+    def iterates(k: int):
+        for it in (1, 2):
+            yield it, volume(k) if k == 0 else volume(k) * it
+
+    iterative = choose_iterative("m", [{"k": 0}, {"k": 1}], iterates, ByMean(), clip=False)
+    assert iterative.params == {"k": 1, "iterations": 1}
