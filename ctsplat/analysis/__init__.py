@@ -23,6 +23,7 @@ ANALYSIS_OUTPUTS: dict[str, tuple[str, str]] = {
     "milestones": ("milestones.csv", "Milestones"),
     "ablation": ("ablation.png", "Ablation"),
     "baselines": ("baselines.png", "Baselines"),
+    "provenance": ("analysis.json", "Claims"),
 }
 # Per-run figures of plots.run_figures, written to {run}/figures/{name}.png.
 RUN_FIGURES: tuple[str, ...] = ("convergence", "porkchop", "acf", "kde")

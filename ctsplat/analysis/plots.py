@@ -47,7 +47,7 @@ from ctsplat.analysis.stats import (  # noqa: E402
 from ctsplat.config import schema_defaults  # noqa: E402
 from ctsplat.formats.runlog import METRICS_2D3D, read_per_view, read_train_log  # noqa: E402
 from ctsplat.grid import ALL_AXES, GRID_AXES  # noqa: E402
-from ctsplat.utils import CtsplatError, atomic_path  # noqa: E402
+from ctsplat.utils import CtsplatError, atomic_path, code_version, write_json_atomic  # noqa: E402
 
 __all__ = [
     "plot_convergence",
@@ -875,6 +875,45 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
         _write_csv(claims_table(summary), outputs["claims"])
     if "baselines" in outputs:
         plot_baselines(summary, read_baselines(baselines_csvs), outputs["baselines"])
+    if "provenance" in outputs:
+        write_json_atomic(outputs["provenance"], analysis_provenance(summary_csv, summary, cfg, baselines_csvs))
+
+
+def analysis_provenance(summary_csv: str | os.PathLike[str], summary: pd.DataFrame, analysis: Mapping[str, Any],
+                        baselines_csvs: Sequence[str | os.PathLike[str]] = ()) -> dict[str, Any]:
+    """What the grid-level figures and tables were made from, and with which code and settings.
+
+    Parameters
+    ----------
+    summary_csv : path-like
+        The summary the figures read.
+    summary : DataFrame
+        Its contents.
+    analysis : mapping
+        The ``analysis`` settings used (defaults filled).
+    baselines_csvs : sequence of path-like
+        The baseline tables read.
+
+    Returns
+    -------
+    dict
+        ``code_version`` (of the analysis), ``analysis`` (settings), ``summary`` (path and SHA-256), the runs'
+        ``run_code_versions`` and ``run_config_hashes`` (distinct values), ``n_runs`` and ``baselines`` (paths).
+    """
+    import hashlib
+
+    def distinct(col: str) -> list[str]:
+        return sorted({str(v) for v in summary[col].dropna()}) if col in summary else []
+
+    return {
+        "code_version": code_version(),
+        "analysis": dict(analysis),
+        "summary": {"path": str(summary_csv), "sha256": hashlib.sha256(Path(summary_csv).read_bytes()).hexdigest()},
+        "n_runs": int(len(summary)),
+        "run_code_versions": distinct("code_version"),
+        "run_config_hashes": distinct("config_hash"),
+        "baselines": [str(b) for b in baselines_csvs],
+    }
 
 
 def plot_acf_runs(logs: pd.DataFrame, out: str | os.PathLike[str], *, max_lag: int = 40,

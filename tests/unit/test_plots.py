@@ -3,6 +3,7 @@ artists) and PNGs."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 
 import imageio.v3 as iio
@@ -399,6 +400,12 @@ def test_analyse_and_run_figures_write_every_output(tmp_path):
         assert path.exists(), name
     ms = pd.read_csv(outputs["milestones"])
     assert len(ms) == 4 and {"iter_to_psnr2d_30", "iters_per_s"} <= set(ms.columns)
+    prov = json.loads(outputs["provenance"].read_text())
+    assert prov["n_runs"] == 4 and prov["analysis"]["window"] == 3 and prov["code_version"]
+    assert prov["summary"]["sha256"] == hashlib.sha256((tmp_path / "summary.csv").read_bytes()).hexdigest()
+    table = pd.read_csv(tmp_path / "summary.csv")
+    assert prov["run_code_versions"] == (sorted(set(table["code_version"].dropna().astype(str)))
+                                         if "code_version" in table else [])
     corr = pd.read_csv(outputs["correlations"])
     # per run: the whole run + analysis.kde_windows (4) windows, for the PSNR and SSIM pairs; nothing pooled
     assert len(corr) == 4 * (1 + 4) * 2 and set(corr["run_dir"]) == {str(r) for r in runs}
