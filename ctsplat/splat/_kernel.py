@@ -111,6 +111,8 @@ SIGNATURES: dict[str, tuple[tuple[type, ...], type | None]] = {
 
 # tried in order; the first set the compiler accepts is used (some compilers lack -march=native)
 _FLAG_SETS = (["-march=native"], [])
+#: How the library is built (part of the cache key): compiled and linked in two steps (see _build).
+_BUILD = "compile -ffast-math, link without"
 
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
@@ -137,7 +139,7 @@ def _build() -> ctypes.CDLL:
     with contextlib.suppress(OSError):
         cpu += next((ln for ln in Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("flags")), "")
     text = "".join(f"// {name}\n{body}" for name, body in srcs.items())
-    tag = hashlib.sha256((text + cpu + repr(_FLAG_SETS)).encode()).hexdigest()[:16]
+    tag = hashlib.sha256((text + cpu + repr(_FLAG_SETS) + _BUILD).encode()).hexdigest()[:16]
     out = _cache_dir() / f"render_{tag}.so"
     if not out.exists():
         cxx = os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++") or shutil.which("clang++")
@@ -148,11 +150,16 @@ def _build() -> ctypes.CDLL:
             for name, body in srcs.items():  # compile exactly the hashed text
                 (Path(tmp) / name).write_text(body)
             src = Path(tmp) / "render.cpp"
+            obj = Path(tmp) / "render.o"
             so = Path(tmp) / "render.so"
-            base = [cxx, "-O3", "-std=c++17", "-ffast-math", "-fPIC", "-shared", str(src), "-o", str(so), "-pthread"]
+            # compiled with -ffast-math but linked without it: GCC links crtfastmath.o into a -ffast-math link,
+            # whose constructor turns on flush-to-zero for the whole process (numpy and torch included) on load
+            base = [cxx, "-O3", "-std=c++17", "-ffast-math", "-fPIC", "-c", str(src), "-o", str(obj)]
             for extra in _FLAG_SETS:  # the first set the compiler accepts
                 res = subprocess.run(base[:1] + extra + base[1:], capture_output=True, text=True)
                 if res.returncode == 0:
+                    res = subprocess.run([cxx, "-shared", str(obj), "-o", str(so), "-pthread"], capture_output=True,
+                                         text=True)
                     break
             if res.returncode != 0:
                 raise RuntimeError(f"render kernel compilation failed: {res.stderr.strip()[:500]}")

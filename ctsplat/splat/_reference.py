@@ -106,7 +106,9 @@ def splat_alpha_reference(proj: Projection, colors: torch.Tensor, height: int, w
     c = colors.shape[1]
     out = torch.zeros(height * width, c, dtype=colors.dtype, device=colors.device)
     if gid.numel() == 0:
-        return out.reshape(height, width, c)
+        # no Gaussian touches a pixel: zero image, still connected to the parameters (zero gradients, as the
+        # fused kernels give), so that a training step's backward does not fail
+        return (out + 0.0 * (proj.amps.sum() + colors.sum())).reshape(height, width, c)
     srt = torch.sort(pix, stable=True)
     pix = srt.values
     gid = gid[srt.indices]

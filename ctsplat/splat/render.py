@@ -193,17 +193,23 @@ def camera_intrinsics(camera: Any) -> dict[str, Any]:
         raise CtsplatError(f"camera size must be positive, got {w}x{h}")
     cx = float(getattr(camera, "cx", w / 2))
     cy = float(getattr(camera, "cy", h / 2))
+    if not (math.isfinite(cx) and math.isfinite(cy)):
+        raise CtsplatError(f"camera principal point must be finite, got cx={cx}, cy={cy}")
     if model == "parallel":
         sp = camera.spacing_mm
         sx, sy = (float(sp), float(sp)) if not hasattr(sp, "__len__") else (float(sp[0]), float(sp[1]))
-        if sx <= 0 or sy <= 0:
-            raise CtsplatError(f"parallel camera spacing_mm must be > 0, got {sp}")
+        if not (0 < sx < math.inf and 0 < sy < math.inf):
+            raise CtsplatError(f"parallel camera spacing_mm must be finite and > 0, got {sp}")
         return {"model": model, "W": w, "H": h, "cx": cx, "cy": cy, "sx": sx, "sy": sy, "pixel_area_mm2": sx * sy}
     if model == "cone":
         pitch = float(camera.pitch_mm)
         dsd = float(camera.dsd_mm)
+        if not (0 < pitch < math.inf and 0 < dsd < math.inf):
+            raise CtsplatError(f"cone camera pitch_mm and dsd_mm must be finite and > 0, got {pitch} and {dsd}")
         fx = float(getattr(camera, "fx", dsd / pitch))
         fy = float(getattr(camera, "fy", dsd / pitch))
+        if not (0 < fx < math.inf and 0 < fy < math.inf):
+            raise CtsplatError(f"cone camera focal lengths must be finite and > 0, got fx={fx}, fy={fy}")
         return {"model": model, "W": w, "H": h, "cx": cx, "cy": cy, "fx": fx, "fy": fy,
                 "pixel_area_mm2": pitch * pitch}
     raise CtsplatError(f"unknown camera model {model!r}; expected 'parallel' or 'cone'")
@@ -539,6 +545,15 @@ def render(
     H, W = cam["H"], cam["W"]
     fused = _fused(backend, gaussians.means.device)
     if fused is not None:
+        # the fused kernels read raw pointers of every tensor on the means' device, and treat the pose as fixed
+        dev = gaussians.means.device
+        other = next((k for k, v in gaussians.tensors().items() if v.device != dev), None)
+        if other is not None:
+            raise CtsplatError(f"Gaussians.{other} is on {gaussians.tensors()[other].device}, the means on {dev}; "
+                               "move the model to one device (Gaussians.to)")
+        if any(isinstance(x, torch.Tensor) and x.requires_grad for x in (R, t)):
+            raise CtsplatError("the fused render backends give no gradient to the pose (R, t); use "
+                               "backend='reference' to differentiate with respect to it")
         # the fused projection flags NaN/Inf in what it reads (one pass, no per-view torch reductions); the full
         # check then names the parameter. Colours, which it does not read, are checked here (alpha only).
         gaussians.validate(check_finite=("colors", "sh_rest") if compositor == "alpha" else False)

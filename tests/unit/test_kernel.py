@@ -154,3 +154,19 @@ def test_voxel_boxes_match_the_tensor_arithmetic(dtype, monkeypatch):
                                   A[:3, 3], torch.tensor([[0, 32], [0, 40], [0, 28]]), 3.0)
     assert lo.shape == ext.shape == (n, 3) and bool((ext >= 0).all()) and bool((lo >= 0).all())
     assert bool(((lo + ext) <= torch.tensor([32, 40, 28])).all()) and bool((ext.prod(-1) == 0).any())
+
+
+def test_loading_the_kernel_keeps_subnormal_numbers_in_the_process():
+    """The library is compiled with -ffast-math but linked without it: GCC would otherwise link crtfastmath.o,
+    whose constructor turns on flush-to-zero for the whole process on load (numpy and torch then round subnormals
+    to 0, and a reference-path gradient could turn NaN depending on what ran before)."""
+    import numpy as np
+    import torch
+
+    from ctsplat.splat import _kernel
+
+    if not _kernel.available():
+        pytest.skip(f"C kernel unavailable: {_kernel._failed}")
+    tiny = 1e-310  # a float64 subnormal
+    assert tiny * 1.0 == tiny and np.float64(tiny) * 1.0 == tiny
+    assert float(torch.tensor([1e-40], dtype=torch.float32)[0] * 1.0) > 0.0  # a float32 subnormal

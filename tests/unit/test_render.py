@@ -700,3 +700,36 @@ def test_extreme_raw_parameters_have_finite_gradients(compositor):
         grads = torch.autograd.grad(out.image.sum(), params, allow_unused=True)
         assert torch.isfinite(out.image).all()
         assert all(gr is None or bool(torch.isfinite(gr).all()) for gr in grads)
+
+
+def test_edge_inputs_fail_in_one_line_or_keep_the_graph():
+    """A reference alpha render that no Gaussian reaches still backpropagates (zero gradients); a parameter on
+    another device, a pose that needs a gradient on a fused backend, and a non-finite camera are refused."""
+    from types import SimpleNamespace
+
+    g = _mixture(3, seed=4, dtype=torch.float64)
+    g.means = g.means + torch.tensor([500.0, 0.0, 0.0], dtype=D64)  # far outside the image
+    for p in (g.means, g.opacity_raw, g.colors):
+        p.requires_grad_(True)
+    cam = ParallelCamera(8, 6, 1.0)
+    R, t = _pose(20.0, 10.0, dist=100.0)
+    img = render(g, cam, R, t, compositor="alpha", backend="reference").image
+    ((img - 0.3) ** 2).mean().backward()
+    assert float(img.detach().abs().max()) == 0.0 and float(g.opacity_raw.grad.abs().max()) == 0.0
+    moved = Gaussians(**{**g.detach().tensors(), "log_scales": g.log_scales.detach().to("meta")})
+    with pytest.raises(CtsplatError, match=r"Gaussians\.log_scales is on meta, the means on cpu"):
+        render(moved, cam, R, t, backend="auto")
+    from ctsplat.splat import _kernel
+
+    if _kernel.available():
+        with pytest.raises(CtsplatError, match="no gradient to the pose"):
+            render(g.detach(), cam, R.clone().requires_grad_(True), t, backend="kernel")
+    R_grad = R.clone().requires_grad_(True)
+    render(g.detach(), cam, R_grad, t, backend="reference").image.sum().backward()
+    assert R_grad.grad is not None
+    for bad, match in ((SimpleNamespace(model="parallel", width=8, height=6, spacing_mm=float("nan")), "spacing"),
+                       (SimpleNamespace(model="cone", width=8, height=6, pitch_mm=0.0, dsd_mm=100.0), "pitch"),
+                       (SimpleNamespace(model="parallel", width=8, height=6, spacing_mm=1.0, cx=float("nan"),
+                                        cy=3.0), "principal point")):
+        with pytest.raises(CtsplatError, match=match):
+            render(g.detach(), bad, R, t)
