@@ -133,9 +133,15 @@ def _finish(x: np.ndarray | torch.Tensor, clip: bool) -> np.ndarray:
     return np.clip(vol, 0.0, 1.0) if clip else vol
 
 
-def _rank(score: float) -> float:
+def rank(score: float) -> float:
     """A validation score for comparisons: NaN (a diverged candidate's reconstruction) ranks below every number,
-    since NaN never loses a ``>`` comparison and a NaN first candidate would otherwise win."""
+    since NaN never loses a ``>`` comparison and a NaN first candidate would otherwise win.
+
+    Examples
+    --------
+    >>> max([float("nan"), 31.2], key=rank)
+    31.2
+    """
     return -math.inf if math.isnan(score) else score
 
 
@@ -171,7 +177,7 @@ def choose(method: str, candidates: Iterable[dict[str, Any]], reconstruct: Calla
         total += sec
         score = validator.score(vol)
         trials.append({"method": method, **params, "val_psnr": score, "seconds": sec})
-        if best is None or _rank(score) > _rank(best.val_psnr):
+        if best is None or rank(score) > rank(best.val_psnr):
             best = Choice(method, dict(params), score, vol, sec)
     if best is None:
         raise CtsplatError(f"{method}: no candidate parameters to choose from")
@@ -217,10 +223,10 @@ def choose_iterative(method: str, candidates: Iterable[dict[str, Any]],
             vol = _finish(x, clip)
             score = validator.score(vol)
             trials.append({"method": method, **params, "iterations": it, "val_psnr": score, "seconds": elapsed})
-            if best is None or _rank(score) > _rank(best.val_psnr):
+            if best is None or rank(score) > rank(best.val_psnr):
                 best = Choice(method, {**params, "iterations": it}, score, vol, elapsed)
-            since = 0 if _rank(score) > cand_best else since + 1
-            cand_best = max(cand_best, _rank(score))
+            since = 0 if rank(score) > cand_best else since + 1
+            cand_best = max(cand_best, rank(score))
             t0 += time.perf_counter() - t1  # keep the scoring out of the reconstruction time
             if patience is not None and since >= patience:
                 break

@@ -26,7 +26,7 @@ import numpy as np
 
 from ctsplat.formats.viewset import ViewSet
 from ctsplat.recon.fdk import is_circular_cone, short_scan_shortfall
-from ctsplat.recon.select import Choice, Validator, choose, choose_iterative
+from ctsplat.recon.select import Choice, Validator, choose, choose_iterative, rank
 from ctsplat.utils import CtsplatError, scratch_dir
 
 __all__ = ["METHODS", "applicable_methods", "bin_detector", "auto_binning", "classical_reconstructions",
@@ -233,4 +233,4 @@ def classical_reconstructions(train_p: np.ndarray, train_vs: ViewSet, val_p: np.
 
 def best_choice(choices: list[Choice]) -> Choice | None:
     """The choice with the highest validation PSNR (the "best classical" reconstruction), or None."""
-    return max(choices, key=lambda c: c.val_psnr) if choices else None
+    return max(choices, key=lambda c: rank(c.val_psnr)) if choices else None

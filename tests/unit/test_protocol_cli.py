@@ -57,6 +57,14 @@ def test_protocol_tiny_run_writes_the_table(tmp_path):
     assert len(g) == 1 and g["views"].iloc[0] == 4 and g["volume"].iloc[0] == "phantom"
     for col in ("psnr3d_r2", "ssim3d_r2", "psnr3d", "ssim3d", "psnr2d_test", "ssim2d_test", "wall_time_s"):
         assert math.isfinite(float(g[col].iloc[0])), col
+    # a classical method's wall time is its whole selection (which holds the chosen reconstruction once)
+    classical = table[~table["method"].str.startswith("gaussians")]
+    base = pd.read_csv(next((out / "cache").rglob("baselines.csv")))
+    chosen = base.set_index("method")["selection_seconds"]
+    for _, row in classical.iterrows():
+        name = row["method"].split(":")[0]
+        if name in chosen:
+            assert row["wall_time_s"] == pytest.approx(float(chosen[name])), name
     md = (out / "protocol.md").read_text()
     assert md.startswith("| volume | views | method | psnr3d_r2 |") and "| phantom | 4 | gaussians (radiative" in md
     assert "psnr3d_r2" in res.stdout  # the table is printed

@@ -273,3 +273,12 @@ def test_a_diverged_candidate_never_wins_the_choice():
 
     iterative = choose_iterative("m", [{"k": 0}, {"k": 1}], iterates, ByMean(), clip=False)
     assert iterative.params == {"k": 1, "iterations": 1}
+
+
+def test_the_best_classical_method_is_never_a_nan_one():
+    from ctsplat.recon.select import Choice
+    from ctsplat.recon.suite import best_choice
+
+    vol = np.zeros((2, 2, 2), np.float32)
+    choices = [Choice("sart", {}, float("nan"), vol, 1.0), Choice("asd_pocs", {}, 40.0, vol, 1.0)]
+    assert best_choice(choices).method == "asd_pocs"
