@@ -106,6 +106,11 @@ def run(argv: list[str] | None = None) -> int:
     if not (sfm / "sparse" / "0" / "cameras.bin").is_file():
         raise CtsplatError(f"{sfm} is not a photo SfM folder; run `python benchmarks/photos.py --sfm-only` first")
     pairs = list(itertools.product(sorted(set(args.folds)), sorted(set(args.seeds))))
+    fold_keys = ("train.holdout", "train.validation_offset", "train.seed")  # the fold design is this script's
+    fixed = [item for item in [*args.base, *args.candidate] if item.split("=", 1)[0].strip() in fold_keys]
+    if fixed:
+        raise CtsplatError(f"--base/--candidate may not set {fixed[0].split('=', 1)[0]}: the folds and seeds hold "
+                           "out the validation photos (--folds, --seeds), never the test photos")
     arms = {"default": args.base, "candidate": [*args.base, *args.candidate]}
     test_every = photo_settings(check_section("photos", apply_sets({}, args.base)))["train"]["test_every"]
     for fold, seed in pairs:  # every run's settings are checked before the first one starts
@@ -125,6 +130,10 @@ def run(argv: list[str] | None = None) -> int:
             raise failed[0].exception()
     runs = {(fold, seed, arm): read_validation_run(out / f"fold{fold}_seed{seed}_{arm}")
             for fold, seed in pairs for arm in arms}
+    scored_test = [key for key, r in runs.items() if r["held_out"] != "val"]
+    if scored_test:
+        raise CtsplatError(f"run fold{scored_test[0][0]}_seed{scored_test[0][1]}_{scored_test[0][2]} scored its "
+                           "test photos, not validation photos; remove it and run again")
     result = paired_comparison([runs[p + ("default",)]["psnr"] for p in pairs],
                                [runs[p + ("candidate",)]["psnr"] for p in pairs])
     _write_tables(out, pairs, runs, result["differences"])

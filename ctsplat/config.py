@@ -605,6 +605,12 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
             )
     grid_geo = cfg["radiographs"][cfg["grid"]["geometry"]]
     no_val = grid_geo["n_val"] == 0 or (grid_geo["n_val"] is None and float(grid_geo["split"]["val"]) == 0)
+    if cfg["train"]["model_selection"] == "best" and no_val:
+        raise CtsplatError(
+            f"invalid config at train.model_selection: best chooses a model on validation views, but geometry "
+            f"{cfg['grid']['geometry']!r} renders none (it would choose on the test views); give it validation views "
+            "(n_val or split.val) or set model_selection: last"
+        )
     if any(float(a) for a in cfg["train"]["sharpen"]["amounts"]) and no_val:
         raise CtsplatError(
             f"invalid config at train.sharpen.amounts: the amount is chosen on validation views, but geometry "

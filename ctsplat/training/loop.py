@@ -320,6 +320,14 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     gen.manual_seed(int(cfg["seed"]))
     scene = load_scene(cfg)
     check_sharpen_views(scene, cfg)  # before any work: the read-out's amount needs validation views
+    if scene.eval_split != "val":
+        if cfg["model_selection"] == "best":
+            raise CtsplatError(f"model_selection: best chooses a model on validation views, but the radiographs in "
+                               f"{cfg['radiographs']} have none (it would choose on the test views); render them "
+                               "with a validation split (n_val or split.val) or set model_selection: last")
+        log.warning("the radiographs in %s have no validation views: the periodic evaluation (train_log.csv, "
+                    "model_best.pt, the collapse checks) scores the test views; the final model is unaffected",
+                    cfg["radiographs"])
     vol = scene.volume
     voxel_mm = float(np.mean(vol.spacing_mm))
     half_extent_mm = 0.5 * float(np.max(vol.extent_mm()))

@@ -270,9 +270,13 @@ def test_baseline_view_counts_must_fit_the_baselines_geometry():
         ({"radiographs": {"c": {"split": {"train": 0.85, "val": 0.0, "test": 0.15}}},
           "train": {"sharpen": {"amounts": [0.0, 0.5]}}},
          "invalid config at train.sharpen.amounts: the amount is chosen on validation views, but geometry 'c'"),
+        ({"radiographs": {"c": {"split": {"train": 0.85, "val": 0.0, "test": 0.15}}},
+          "train": {"model_selection": "best"}},
+         "invalid config at train.model_selection: best chooses a model on validation views, but geometry 'c'"),
     ],
     ids=["volume-range", "volume-type", "volume-window", "window", "volume-hu", "hu", "sfm-percentiles",
-         "fbp-filter", "radiographs-device", "no-train-views", "sphere-n-val", "spacing-and-size", "sharpen-no-val"],
+         "fbp-filter", "radiographs-device", "no-train-views", "sphere-n-val", "spacing-and-size", "sharpen-no-val",
+         "best-no-val"],
 )
 def test_values_that_would_fail_a_job_fail_at_parse_time(config, message):
     with pytest.raises(CtsplatError) as err:

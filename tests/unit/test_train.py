@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 import os
 import shutil
@@ -547,6 +548,23 @@ def test_missing_and_mismatched_inputs(scene_dir: Path, tmp_path: Path) -> None:
     with pytest.raises(CtsplatError, match="rendered from volume tiny01, but train.volume is other02"):
         loop.train(_cfg(scene_dir, volume=str(tmp_path / "other.nii.gz")), tmp_path / "r")
     assert not (tmp_path / "r" / "train_log.csv").exists()
+
+
+def test_without_validation_views_the_test_views_never_choose_a_model(scene_dir: Path, tmp_path: Path,
+                                                                     caplog: pytest.LogCaptureFixture) -> None:
+    rad = tmp_path / "rad"
+    shutil.copytree(scene_dir / "rad", rad)
+    d = json.loads((rad / "views.json").read_text())
+    for v in d["views"]:
+        if v["split"] == "val":
+            v["split"] = "test"
+    (rad / "views.json").write_text(json.dumps(d))
+    with pytest.raises(CtsplatError, match="model_selection: best chooses a model on validation views"):
+        loop.train(_cfg(scene_dir, radiographs=str(rad), model_selection="best"), tmp_path / "best")
+    assert not (tmp_path / "best").exists()
+    with caplog.at_level(logging.WARNING, logger="ctsplat.training.loop"):
+        loop.train(_cfg(scene_dir, radiographs=str(rad), iterations=10), tmp_path / "last")
+    assert "no validation views: the periodic evaluation" in caplog.text
 
 
 def test_empty_train_split(scene_dir: Path, tmp_path: Path) -> None:
