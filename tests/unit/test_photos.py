@@ -620,7 +620,7 @@ def test_reading_an_unfinished_run_names_what_is_missing(tmp_path: Path) -> None
     (["--candidate", "train.nonsense=1"], "nonsense"),
     (["--candidate", "train.iterations=0"], "photos.train.iterations: 0 is less than the minimum of 1"),
     (["--candidate", "train.holdout=test"], "may not set train.holdout: the folds and seeds hold out the validation"),
-    (["--base", "train.seed=3"], "may not set train.seed"),
+    (["--base", "train.seed=3", "--candidate", "train.sh_degree=1"], "may not set train.seed"),
 ])
 def test_fold_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: list[str], needle: str) -> None:
     import os
