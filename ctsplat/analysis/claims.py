@@ -103,9 +103,15 @@ def _paired_rows(summary: pd.DataFrame, axis: str, high: str, low: str, expected
     out = {"comparison": label, "expected": expected or "measured", "n_pairs": len(d),
            "median_difference_psnr3d_db": float(np.median(d)) if len(d) else None,
            "median_difference_ssim3d": float(ssim) if ssim is not None and pd.notna(ssim) else None}
+    # pairs whose both runs were seeded from the reference volume are counted in, and said so
+    seeded = 0
+    if axis != "init" and "init" in pairs.index.names:
+        seeded = int((pairs.index.get_level_values("init").astype(str) == "volume").sum())
+    seeded_note = f"{seeded} of {len(d)} pairs seeded from the reference volume (init=volume)" if seeded else ""
     if expected is None:
+        measured = f"{high} higher in {int((d > 0).sum())} of {len(d)} pairs"
         return {**out, "result": "measured", "n_as_expected": None,
-                "note": f"{high} higher in {int((d > 0).sum())} of {len(d)} pairs"}
+                "note": "; ".join(x for x in (measured, seeded_note) if x)}
     result = _verdict(d) if len(d) else "no pairs"
     note = ""
     if result != "holds" and len(d):
@@ -118,6 +124,7 @@ def _paired_rows(summary: pd.DataFrame, axis: str, high: str, low: str, expected
             cells.append(f"{_describe(where, named)} ({r[high] - r[low]:+.2f} dB)")
         cells = "; ".join(cells)
         note = f"{low} is as good or better in {len(lost)} of {len(d)} pairs: {cells}"
+    note = "; ".join(x for x in (note, seeded_note) if x)
     return {**out, "result": result, "n_as_expected": int((d > 0).sum()), "note": note}
 
 

@@ -48,9 +48,13 @@ def test_claims_hold_with_their_exact_differences():
     unrect = _row(t, "rectified vs unrectified")
     assert (unrect["result"], unrect["n_pairs"], unrect["n_as_expected"]) == ("holds", 6, 6)
     assert unrect["median_difference_psnr3d_db"] == pytest.approx(1.0)
+    # the pairs seeded from the reference volume are counted in, and the note says how many
+    assert unrect["note"] == "2 of 6 pairs seeded from the reference volume (init=volume)"
     assert _row(t, "rectified radiative vs alpha")["median_difference_psnr3d_db"] == pytest.approx(3.0)
     mip = _row(t, "mip filter")
     assert (mip["result"], mip["median_difference_psnr3d_db"]) == ("measured", pytest.approx(0.5))
+    assert mip["note"] == "on higher in 9 of 9 pairs; 3 of 9 pairs seeded from the reference volume (init=volume)"
+    assert "seeded" not in _row(t, "init fbp vs uniform")["note"]
     assert _row(t, "init volume")["median_difference_psnr3d_db"] == pytest.approx(4.0)
     not_run = _row(t, "cell r/colmap")
     assert not_run["result"] == "not run" and "median rotation error 3.2 deg" in not_run["note"]
@@ -65,7 +69,8 @@ def test_failed_claims_say_so_and_why():
     unrect = _row(t, "rectified vs unrectified")
     assert (unrect["result"], unrect["n_as_expected"]) == ("mixed", 5)
     assert unrect["note"] == ("radiative_unrectified is as good or better in 1 of 6 pairs: init=uniform, mip=off, "
-                              "poses=gt, views=24 (-1.00 dB)")
+                              "poses=gt, views=24 (-1.00 dB); 2 of 6 pairs seeded from the reference volume "
+                              "(init=volume)")
 
 
 def test_the_headline_claim_says_it_was_not_measured_without_baselines():
