@@ -550,15 +550,20 @@ def test_missing_and_mismatched_inputs(scene_dir: Path, tmp_path: Path) -> None:
     assert not (tmp_path / "r" / "train_log.csv").exists()
 
 
-def test_without_validation_views_the_test_views_never_choose_a_model(scene_dir: Path, tmp_path: Path,
-                                                                     caplog: pytest.LogCaptureFixture) -> None:
-    rad = tmp_path / "rad"
+def _moved_split(scene_dir: Path, rad: Path, old: str, new: str) -> Path:
+    """A copy of the tiny scene's radiographs with every ``old`` view moved to the ``new`` split."""
     shutil.copytree(scene_dir / "rad", rad)
     d = json.loads((rad / "views.json").read_text())
     for v in d["views"]:
-        if v["split"] == "val":
-            v["split"] = "test"
+        if v["split"] == old:
+            v["split"] = new
     (rad / "views.json").write_text(json.dumps(d))
+    return rad
+
+
+def test_without_validation_views_the_test_views_never_choose_a_model(scene_dir: Path, tmp_path: Path,
+                                                                     caplog: pytest.LogCaptureFixture) -> None:
+    rad = _moved_split(scene_dir, tmp_path / "rad", "val", "test")
     with pytest.raises(CtsplatError, match="model_selection: best chooses a model on validation views"):
         loop.train(_cfg(scene_dir, radiographs=str(rad), model_selection="best"), tmp_path / "best")
     assert not (tmp_path / "best").exists()
@@ -568,13 +573,7 @@ def test_without_validation_views_the_test_views_never_choose_a_model(scene_dir:
 
 
 def test_empty_train_split(scene_dir: Path, tmp_path: Path) -> None:
-    rad = tmp_path / "rad"
-    shutil.copytree(scene_dir / "rad", rad)
-    d = json.loads((rad / "views.json").read_text())
-    for v in d["views"]:
-        if v["split"] == "train":
-            v["split"] = "test"
-    (rad / "views.json").write_text(json.dumps(d))
+    rad = _moved_split(scene_dir, tmp_path / "rad", "train", "test")
     with pytest.raises(CtsplatError, match="empty train split"):
         loop.train(_cfg(scene_dir, radiographs=str(rad)), tmp_path / "r")
 
