@@ -946,6 +946,11 @@ def _generated_block() -> str:
     return textwrap.indent(yaml.safe_dump(defs, sort_keys=False, default_flow_style=None, width=110), "  ")
 
 
+def _schema_file(schema_path: str | os.PathLike[str] | None) -> Path:
+    """The schema file to rewrite: ``schema_path``, else the one of this source tree."""
+    return Path(schema_path) if schema_path is not None else Path(__file__).resolve().parent / SCHEMA_RESOURCE
+
+
 def sync_library_defaults(schema_path: str | os.PathLike[str] | None = None) -> Path:
     """Regenerate the library sections of the schema file from the modules' ``*_DEFAULTS``.
 
@@ -963,7 +968,7 @@ def sync_library_defaults(schema_path: str | os.PathLike[str] | None = None) -> 
     pathlib.Path
         The schema file (written only when its text changes).
     """
-    path = Path(schema_path) if schema_path is not None else Path(__file__).resolve().parent / SCHEMA_RESOURCE
+    path = _schema_file(schema_path)
     before = path.read_text(encoding="utf-8")
     lines = before.splitlines(keepends=True)
     b = next(i for i, line in enumerate(lines) if line.startswith(GENERATED_BEGIN))
@@ -981,7 +986,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="regenerate the schema's library sections from the modules' *_DEFAULTS")
     parser.add_argument("--schema", help="schema file to rewrite (default: the one in this source tree)")
     args = parser.parse_args(argv)
-    path = Path(args.schema) if args.schema else Path(__file__).resolve().parent / SCHEMA_RESOURCE
+    path = _schema_file(args.schema)
     before = path.read_text(encoding="utf-8") if path.is_file() else None
     sync_library_defaults(path)
     print(f"{'unchanged' if path.read_text(encoding='utf-8') == before else 'updated'} {path}")

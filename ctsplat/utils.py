@@ -33,6 +33,7 @@ __all__ = [
     "atomic_dir",
     "check_output_dir",
     "scratch_dir",
+    "save_torch_atomic",
     "write_json_atomic",
     "json_safe",
     "code_version",
@@ -314,6 +315,25 @@ def _first_nonfinite(obj: Any, where: str = "") -> str | None:
         if found is not None:
             return found
     return None
+
+
+def save_torch_atomic(path: str | os.PathLike[str], obj: Any) -> None:
+    """``torch.save`` of ``obj`` to ``path`` atomically (:func:`atomic_path`), the same bytes for the same contents.
+
+    The archive is written through a file object: given a path, torch names the archive's inner folder after the
+    file, here the random temporary name, so two saves of one model would never be byte-identical.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output ``.pt`` file.
+    obj : any
+        What ``torch.save`` takes (tensors, dicts, lists, numbers, strings).
+    """
+    import torch
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        torch.save(obj, fh)
 
 
 def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:

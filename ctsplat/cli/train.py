@@ -22,7 +22,11 @@ def load_train_config(path: str | None, overrides: list[str]) -> dict[str, Any]:
 
 
 def _train(args: argparse.Namespace) -> None:
+    from ctsplat.evaluation import evaluate
+    from ctsplat.training import train
+    from ctsplat.training.checkpoint import list_checkpoints
     from ctsplat.training.config import resolve_config
+    from ctsplat.utils import CtsplatError, run_lock
 
     cfg = load_train_config(args.config, args.set or [])
     for key in ("volume", "radiographs", "sfm_dir", "sfm_radiographs", "init", "compositor", "poses", "device"):
@@ -36,15 +40,7 @@ def _train(args: argparse.Namespace) -> None:
     if args.quiet:
         cfg["progress"] = False
     resolve_config(cfg)  # bad settings fail before the run folder is created and locked
-    _train_locked(args, cfg, Path(args.out))
-
-
-def _train_locked(args: argparse.Namespace, cfg: dict[str, Any], out: Path) -> None:
-    from ctsplat.evaluation import evaluate
-    from ctsplat.training import train
-    from ctsplat.training.checkpoint import list_checkpoints
-    from ctsplat.utils import CtsplatError, run_lock
-
+    out = Path(args.out)
     # one lock over training and evaluation, so no other process writes the folder in between
     with run_lock(out):
         earlier = [p.relative_to(out).as_posix() for p in list_checkpoints(out)[-1:]]

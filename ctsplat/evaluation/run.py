@@ -42,7 +42,7 @@ __all__ = [
     "voxelize_model",
     "volume_metrics",
     "readout_sharpening",
-    "check_sharpen_views",
+    "check_validation_choices",
     "peak_memory_mb",
     "forward_fps",
     "orbit_poses",
@@ -447,6 +447,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     trained = json.loads((run_dir / "training.json").read_text())
     dev = resolve_device(device)
     scene = load_scene(cfg)
+    check_validation_choices(scene, cfg, model)
     g = Gaussians.load(model_path, device=dev)
     views = scene.split(split)
     if split == "test" and scene.info.get("test_views_from") == "val":
@@ -582,7 +583,7 @@ def readout_sharpening(cfg: dict[str, Any], volume: np.ndarray, scene: Any, devi
     amounts, radius = sharpen_settings(cfg)
     if not any(amounts):
         return {}
-    check_sharpen_views(scene, cfg)
+    check_validation_choices(scene, cfg, "last")  # the amount only
     val = scene.val
     validator = Validator.from_views(val.images, val.camera, val.Rs, val.ts, np.asarray(scene.volume.affine, float),
                                      device=device)
@@ -598,14 +599,29 @@ def sharpen_settings(cfg: dict[str, Any]) -> tuple[list[float], float]:
     return check_sharpen_config(cfg.get("sharpen") or TRAIN_DEFAULTS["sharpen"])
 
 
-def check_sharpen_views(scene: Any, cfg: dict[str, Any]) -> None:
-    """Fail in one line when ``sharpen`` has amounts to choose from but the scene has no validation views (its
-    ``val`` split would be the test views, which never choose anything)."""
+def check_validation_choices(scene: Any, cfg: dict[str, Any], model: str | None = None) -> None:
+    """Fail in one line when a choice made on validation views (the read-out's ``sharpen`` amount, ``model: best``)
+    meets a scene without validation views: its ``val`` split would be the test views, which never choose anything.
+
+    Parameters
+    ----------
+    scene : ctsplat.scene.Scene
+    cfg : dict
+        The run's ``train`` config.
+    model : str, optional
+        The model scored (``last`` or ``best``); default ``cfg["model_selection"]``.
+    """
+    if scene.eval_split == "val":
+        return
     amounts, _ = sharpen_settings(cfg)
-    if any(amounts) and scene.eval_split != "val":
+    if any(amounts):
         raise CtsplatError(f"train.sharpen.amounts {amounts} is chosen on validation views, but the radiographs in "
                            f"{cfg['radiographs']} have none; render them with a validation split "
                            "(radiographs.<geometry>.n_val or split.val) or set train.sharpen.amounts: [0]")
+    if (model or cfg.get("model_selection", "last")) == "best":
+        raise CtsplatError(f"model_selection: best chooses a model on validation views, but the radiographs in "
+                           f"{cfg['radiographs']} have none (it would choose on the test views); render them "
+                           "with a validation split (n_val or split.val) or set model_selection: last")
 
 
 def _gauge_aligned_metrics(run_dir: Path, g: Any, scene: Any, rk: dict[str, Any]) -> dict[str, Any]:

@@ -6,14 +6,13 @@ nothing behind.
 
 from __future__ import annotations
 
-import os
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-from ctsplat.utils import CtsplatError
+from ctsplat.utils import CtsplatError, atomic_path
 
 __all__ = ["IMAGE_SUFFIXES", "list_photos", "check_photos", "load_rgb", "strip_metadata"]
 
@@ -161,16 +160,14 @@ def strip_metadata(path: str | Path) -> None:
         When the file is not a readable image of its suffix.
     """
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{path.suffix}")
     try:
-        if path.suffix.lower() in (".jpg", ".jpeg"):
-            tmp.write_bytes(_jpeg_without_metadata(path.read_bytes()))
-        else:
-            with Image.open(path) as im:
-                im.load()
-                icc = im.info.get("icc_profile")
-                im.save(tmp, **({"icc_profile": icc} if icc else {}))
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            if path.suffix.lower() in (".jpg", ".jpeg"):
+                tmp.write_bytes(_jpeg_without_metadata(path.read_bytes()))
+            else:
+                with Image.open(path) as im:
+                    im.load()
+                    icc = im.info.get("icc_profile")
+                    im.save(tmp, **({"icc_profile": icc} if icc else {}))
     except (OSError, ValueError) as exc:
-        tmp.unlink(missing_ok=True)
         raise CtsplatError(f"cannot remove the metadata of {path}: {str(exc).splitlines()[0]}") from exc

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 
 from ctsplat.formats.ply import write_ply_vertices
-from ctsplat.utils import CtsplatError, atomic_path
+from ctsplat.utils import CtsplatError, save_torch_atomic
 
 __all__ = ["Gaussians", "quat_to_rotmat", "covariance", "inverse_softplus", "eval_sh", "SH_C0"]
 
@@ -410,9 +410,7 @@ class Gaussians:
             "tensors": {k: v.detach().cpu() for k, v in self.tensors().items()},
             "meta": dict(self.meta),
         }
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as fh:  # a file object: the archive's inner folder is "archive", not the temp name
-                torch.save(payload, fh)
+        save_torch_atomic(path, payload)
 
     @classmethod
     def load(cls, path: str | Path, device: torch.device | str | None = None) -> Gaussians:

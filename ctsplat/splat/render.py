@@ -906,11 +906,11 @@ def render_to_folder(
     g = Gaussians.load(model_path, device=dev)
     vs = ViewSet.load(views_path)
     scale = float(mu_scale if mu_scale is not None else g.meta.get("mu_scale_per_mm", 1.0))
-    fv = None
-    if mip:  # the model's filter, else that of the training views (the views themselves when none), before any subset
+    fv = g.filter_3d_var if mip else None
+    if mip and fv is None:  # that of the training views (the views themselves when none), before any subset
         train_idx = vs.indices("train")
         base = vs if train_idx.size == 0 else ViewSet(vs.camera, [vs.views[i] for i in train_idx])
-        fv = g.filter_3d_var if g.filter_3d_var is not None else compute_3d_filter(g, vs.camera, base.Rs(), base.ts())
+        fv = compute_3d_filter(g, vs.camera, base.Rs(), base.ts())
     if split is not None:
         vs = vs.subset(split)
     out_dir = Path(out_dir)

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ctsplat.training.state import TrainState, make_optimizer
-from ctsplat.utils import CtsplatError, atomic_path
+from ctsplat.utils import CtsplatError, save_torch_atomic
 
 __all__ = ["CHECKPOINT_LOGS", "Checkpoint", "checkpoint_dir", "list_checkpoints", "latest_checkpoint",
            "save_checkpoint", "read_checkpoint", "load_checkpoint", "find_resumable"]
@@ -131,9 +131,7 @@ def save_checkpoint(out_dir: Path, state: TrainState, rng: np.random.Generator, 
         "torch_gen": gen.get_state(),
         "torch_rng": torch.get_rng_state(),
     }
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:  # a file object: the archive's inner folder is "archive", not the temp name
-            torch.save(payload, fh)
+    save_torch_atomic(path, payload)
     for old in list_checkpoints(out_dir)[:-max(1, keep)]:
         old.unlink(missing_ok=True)
     return path

@@ -66,7 +66,7 @@ import numpy as np
 import torch
 
 from ctsplat.evaluation.run import (
-    check_sharpen_views,
+    check_validation_choices,
     peak_memory_mb,
     per_view_rows,
     render_views,
@@ -319,12 +319,8 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     gen = torch.Generator(device="cpu")
     gen.manual_seed(int(cfg["seed"]))
     scene = load_scene(cfg)
-    check_sharpen_views(scene, cfg)  # before any work: the read-out's amount needs validation views
+    check_validation_choices(scene, cfg)  # before any work: the read-out's amount and model: best need them
     if scene.eval_split != "val":
-        if cfg["model_selection"] == "best":
-            raise CtsplatError(f"model_selection: best chooses a model on validation views, but the radiographs in "
-                               f"{cfg['radiographs']} have none (it would choose on the test views); render them "
-                               "with a validation split (n_val or split.val) or set model_selection: last")
         log.warning("the radiographs in %s have no validation views: the periodic evaluation (train_log.csv, "
                     "model_best.pt, the collapse checks) scores the test views; the final model is unaffected",
                     cfg["radiographs"])

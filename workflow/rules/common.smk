@@ -252,8 +252,13 @@ def evaluation_milestones():
     return canonical(CFG["analysis"]["milestones"])
 
 
+def gpus(device):
+    """The executor's gpu resource of a job that runs on ``device``: one on CUDA, none otherwise."""
+    return 1 if str(device).startswith("cuda") else 0
+
+
 def train_gpu(wildcards):
-    return 1 if CFG["device"] == "cuda" else 0
+    return gpus(CFG["device"])
 
 
 def analysis_params():
@@ -288,16 +293,16 @@ def photos_train_params(wildcards):
 
 
 def photos_gpu(wildcards):
-    return 1 if photos_train_params(wildcards)["device"] == "cuda" else 0
+    return gpus(photos_train_params(wildcards)["device"])
 
 
 def project_gpu(wildcards):
     """A GPU for the projector when it runs on CUDA (the workflow's device unless the geometry sets one)."""
-    return 1 if radiographs_params(wildcards)["device"].startswith("cuda") else 0
+    return gpus(radiographs_params(wildcards)["device"])
 
 
 def baseline_gpu(wildcards):
-    return 1 if baselines_params(wildcards)["device"].startswith("cuda") else 0
+    return gpus(baselines_params(wildcards)["device"])
 
 
 def metrics_of(dirs):
