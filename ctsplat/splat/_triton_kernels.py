@@ -321,6 +321,30 @@ def _cam_rotation(cam_ptr, dt: tl.constexpr):
 
 
 @triton.jit
+def _det_cb(t0, t1, t2, t3, t4, t5, s0, s1, s2):
+    """``|T diag(s) Tᵀ|`` for the 2×3 ``T = [[t0, t1, t2], [t3, t4, t5]]``: Σ_{j<k} s_j s_k m_jk², m_jk its minors."""
+    m01 = t0 * t4 - t1 * t3
+    m02 = t0 * t5 - t2 * t3
+    m12 = t1 * t5 - t2 * t4
+    return s0 * s1 * m01 * m01 + s0 * s2 * m02 * m02 + s1 * s2 * m12 * m12
+
+
+@triton.jit
+def _det_cb_bwd(t0, t1, t2, t3, t4, t5, s0, s1, s2, g):
+    """``g`` times the gradient of :func:`_det_cb` with respect to ``t0 .. t5`` and ``s0 .. s2``."""
+    m01 = t0 * t4 - t1 * t3
+    m02 = t0 * t5 - t2 * t3
+    m12 = t1 * t5 - t2 * t4
+    a01 = g * s0 * s1 * m01
+    a02 = g * s0 * s2 * m02
+    a12 = g * s1 * s2 * m12
+    return (2.0 * (a01 * t4 + a02 * t5), 2.0 * (a12 * t5 - a01 * t3), -2.0 * (a02 * t3 + a12 * t4),
+            -2.0 * (a01 * t1 + a02 * t2), 2.0 * (a01 * t0 - a12 * t2), 2.0 * (a02 * t0 + a12 * t1),
+            g * (s1 * m01 * m01 + s2 * m02 * m02), g * (s0 * m01 * m01 + s2 * m12 * m12),
+            g * (s0 * m02 * m02 + s1 * m12 * m12))
+
+
+@triton.jit
 def _proj_state(cam_ptr, means_ptr, ls_ptr, q_ptr, draw_ptr, fv_ptr, i, msk, MODE: tl.constexpr, MIP: tl.constexpr,
                 HAS_F: tl.constexpr, CONE: tl.constexpr):
     dt = means_ptr.dtype.element_ty
@@ -432,8 +456,9 @@ def _proj_state(cam_ptr, means_ptr, ls_ptr, q_ptr, draw_ptr, fv_ptr, i, msk, MOD
     c11 = t3 * t3 * s2f_0 + t4 * t4 * s2f_1 + t5 * t5 * s2f_2
     f00 = c00 + k2
     f11 = c11 + k2
-    dd = f00 * f11 - c01 * c01
-    dh_raw = c00 * c11 - c01 * c01
+    # |Σ̂| by Cauchy–Binet (csrc/project.h det_cb): c00 c11 − c01² cancels for needle-like Gaussians in float32
+    dh_raw = _det_cb(t0, t1, t2, t3, t4, t5, s2f_0, s2f_1, s2f_2)
+    dd = dh_raw + k2 * (c00 + c11) + k2 * k2
     dh = tl.maximum(dh_raw, 1e-20)
     if MODE == 0:
         ampn = tl.sqrt(6.283185307179586 / dd * (s2_0 * s2_1 * s2_2)) * detj
@@ -565,12 +590,11 @@ def project_bwd(cam_ptr, means_ptr, ls_ptr, q_ptr, draw_ptr, fv_ptr, gm2d_ptr, g
     g_b = tl.load(gcon_ptr + i * 3 + 1, mask=msk, other=0.0)
     g_c = tl.load(gcon_ptr + i * 3 + 2, mask=msk, other=0.0)
     gd += -(g_a * f11 - g_b * c01 + g_c * f00) / (dd * dd)
-    g_f00 = g_c / dd + gd * f11
-    g_f11 = g_a / dd + gd * f00
-    g_f01 = -g_b / dd - 2.0 * gd * c01
-    g_c00 = g_f00 + gdh * c11
-    g_c11 = g_f11 + gdh * c00
-    g_c01 = g_f01 - 2.0 * gdh * c01
+    # D = |Σ̂| + k2 (c00 + c11) + k2², |Σ̂| by Cauchy–Binet; the conic's numerators are f11, -c01, f00
+    k2 = tl.load(cam_ptr + 23).to(dt)
+    g_c00 = g_c / dd + gd * k2
+    g_c11 = g_a / dd + gd * k2
+    g_c01 = -g_b / dd
     gt0 = (2.0 * g_c00 * t0 + g_c01 * t3) * s2f_0
     gt1 = (2.0 * g_c00 * t1 + g_c01 * t4) * s2f_1
     gt2 = (2.0 * g_c00 * t2 + g_c01 * t5) * s2f_2
@@ -580,6 +604,16 @@ def project_bwd(cam_ptr, means_ptr, ls_ptr, q_ptr, draw_ptr, fv_ptr, gm2d_ptr, g
     g_s2f0 += g_c00 * t0 * t0 + g_c01 * t0 * t3 + g_c11 * t3 * t3
     g_s2f1 += g_c00 * t1 * t1 + g_c01 * t1 * t4 + g_c11 * t4 * t4
     g_s2f2 += g_c00 * t2 * t2 + g_c01 * t2 * t5 + g_c11 * t5 * t5
+    (d0, d1, d2, d3, d4, d5, ds0, ds1, ds2) = _det_cb_bwd(t0, t1, t2, t3, t4, t5, s2f_0, s2f_1, s2f_2, gd + gdh)
+    gt0 += d0
+    gt1 += d1
+    gt2 += d2
+    gt3 += d3
+    gt4 += d4
+    gt5 += d5
+    g_s2f0 += ds0
+    g_s2f1 += ds1
+    g_s2f2 += ds2
     g_ls0 += 2.0 * s2_0 * g_s2f0
     g_ls1 += 2.0 * s2_1 * g_s2f1
     g_ls2 += 2.0 * s2_2 * g_s2f2

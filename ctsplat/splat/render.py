@@ -18,7 +18,11 @@ Pipeline (all vectorised over Gaussians; no Python loop over Gaussians)
    - ``radiative`` (rectified): integrating the ray-space Gaussian along ``l`` at fixed ``(u, v)`` gives
      ``p(u,v) = Σ_i ρ_i sqrt(2π |Σ̃_i| / |Σ̂_i|) exp(-½ dᵀ Σ̂_i⁻¹ d)``, because for a 3D Gaussian
      ``∫ exp(-½ xᵀ Σ̃⁻¹ x) dl = sqrt(2π / (Σ̃⁻¹)_{ll}) exp(-½ dᵀ Σ̂⁻¹ d)`` and ``1/(Σ̃⁻¹)_{ll} = |Σ̃|/|Σ̂|``.
-     Exact for parallel beam. ``|Σ̃| = |J|² Π_k s_k²`` is evaluated from the scales (stable for flat Gaussians).
+     Exact for parallel beam. ``|Σ̃| = |J|² Π_k s_k²`` is evaluated from the scales (stable for flat Gaussians),
+     and ``|Σ̂| = Σ_{j<k} s_j² s_k² m_jk²`` by the Cauchy–Binet formula, ``m_jk`` the 2×2 minors of ``T = J₂ R_c``
+     (``J₂`` the image rows of ``J``, ``R_c`` the Gaussian's axes in the camera frame): a sum of non-negative terms,
+     where ``Σ̂₀₀ Σ̂₁₁ − Σ̂₀₁²`` would cancel in float32 for needle-like Gaussians (axis ratios above ~1e3) — every
+     backend forms it this way, the hand-written backward passes included.
      Image mass: ``Σ_pixels p · A_px = Σ_i ρ_i (2π)^{3/2} |Σ_i|^{1/2}`` (``A_px`` = pixel area, mm²).
    - ``radiative_unrectified`` (X-Gaussian style): ``p = Σ_i ρ_i exp(-½ dᵀ Σ̂_i⁻¹ d)`` -- the view-dependent
      "integration bias": its image mass is ``ρ 2π |Σ̂|^{1/2} A_px``, which changes with the direction for
@@ -221,8 +225,18 @@ def _as_pose(R: Any, t: Any, like: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     return R_t, t_t
 
 
-def _det2(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-    return a * c - b * b
+def _det_cov2d(T: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:
+    """|T diag(s2) Tᵀ| by the Cauchy–Binet formula: (N, 2, 3) T, (N, 3) s2 → (N,).
+
+    ``Σ_{j<k} s2_j s2_k (T_0j T_1k − T_0k T_1j)²``: a sum of non-negative terms, so it keeps its relative precision
+    for needle-like Gaussians, where ``c00 c11 − c01²`` of the rounded entries cancels to noise (or below zero) in
+    float32 once the 2D axis ratio passes ~1e3.
+    """
+    t0, t1 = T[:, 0, :], T[:, 1, :]
+    m01 = t0[:, 0] * t1[:, 1] - t0[:, 1] * t1[:, 0]
+    m02 = t0[:, 0] * t1[:, 2] - t0[:, 2] * t1[:, 0]
+    m12 = t0[:, 1] * t1[:, 2] - t0[:, 2] * t1[:, 1]
+    return s2[:, 0] * s2[:, 1] * m01**2 + s2[:, 0] * s2[:, 2] * m02**2 + s2[:, 1] * s2[:, 2] * m12**2
 
 
 # ---------------------------------------------------------------------------------------------- projection
@@ -292,10 +306,8 @@ def project(
     else:
         s2f = s2
         comp3d = None
-    rot = quat_to_rotmat(gaussians.quats)
-    m_rs = rot * s2f[:, None, :]  # R diag(s²)
-    cov_w = m_rs @ rot.transpose(-1, -2)
-    cov_c = R_t @ cov_w @ R_t.T  # (N,3,3)
+    rot_c = R_t @ quat_to_rotmat(gaussians.quats)  # (N,3,3) the Gaussians' axes in the camera frame
+    cov_c = (rot_c * s2f[:, None, :]) @ rot_c.transpose(-1, -2)  # (N,3,3)
     x_c = means @ R_t.T + t_t  # (N,3)
     z = x_c[:, 2]
 
@@ -307,6 +319,7 @@ def project(
         c01 = cov_c[:, 0, 1] * jd[0] * jd[1]
         c11 = cov_c[:, 1, 1] * jd[1] ** 2
         detj2 = (jd[0] * jd[1]) ** 2 * torch.ones_like(z)
+        T = rot_c[:, :2, :] * jd[None, :, None]  # (N,2,3) image axes of the Gaussian's scaled axes
         valid = torch.ones(n, dtype=torch.bool, device=dev)
     else:
         fx, fy = cam["fx"], cam["fy"]
@@ -332,12 +345,14 @@ def project(
         jc = J[:, :2, :] @ cov_c @ J[:, :2, :].transpose(-1, -2)
         c00, c01, c11 = jc[:, 0, 0], jc[:, 0, 1], jc[:, 1, 1]
         detj2 = torch.linalg.det(J) ** 2
+        T = J[:, :2, :] @ rot_c
 
     # |Σ̂| (unfiltered 2D); the floor keeps sqrt differentiable for degenerate (edge-on flat) Gaussians
-    det_hat = _det2(c00, c01, c11).clamp_min(1e-20)
+    det_cb = _det_cov2d(T, s2f)
+    det_hat = det_cb.clamp_min(1e-20)
     k2 = _dilation(compositor, mip_2d)
     f00, f01, f11 = c00 + k2, c01, c11 + k2
-    det_f = _det2(f00, f01, f11)
+    det_f = det_cb + k2 * (c00 + c11) + k2 * k2  # |Σ̂ + k2 I|
     conics = torch.stack([f11 / det_f, -f01 / det_f, f00 / det_f], dim=-1)
 
     if compositor == "radiative":

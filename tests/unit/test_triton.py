@@ -322,10 +322,22 @@ def check_compile() -> None:
         assert "fma." not in ptx, f"the finiteness test of a {dt} product compiles to an FMA:\n{ptx}"
 
 
+def check_needles(device: str = "cpu") -> None:
+    """Needle-like Gaussians in float32 against the float64 reference (the 2D determinant without cancellation)."""
+    from needle_helpers import PARAMS, needle_errors
+
+    for model in ("parallel", "cone"):
+        for comp, mip in (("radiative", False), ("radiative", True), ("radiative_unrectified", True)):
+            err = needle_errors("triton", model, comp, mip, device=device)
+            assert err["image"] <= 1e-4, (model, comp, mip, err)
+            assert all(err[p] <= 2e-3 for p in PARAMS), (model, comp, mip, err)
+
+
 GROUPS = {
     "raster-parallel": lambda: check_raster("parallel"),
     "raster-cone": lambda: check_raster("cone"),
     "raster-edges": check_raster_edges,
+    "needles": check_needles,
     "voxelize": check_voxelize,
     "train": check_train,
     "host-reads": check_host_reads,
@@ -448,6 +460,9 @@ class TestCuda:
 
     def test_raster_edges(self):
         check_raster_edges("cuda")
+
+    def test_needles(self):
+        check_needles("cuda")
 
     def test_voxelize(self):
         check_voxelize("cuda")

@@ -37,11 +37,34 @@ static inline T unit_rotmat(const T* q, T* qn, T* Rq) {
     return nq;
 }
 
+// |T diag(s) T^T| for the 2x3 T (row-major) by Cauchy-Binet, sum_{j<k} s_j s_k m_jk^2 with m_jk the 2x2 minors of
+// T: a sum of non-negative terms, so it keeps its relative precision for needle-like Gaussians, where
+// c00 c11 - c01^2 of the rounded entries cancels to noise (or below zero) in float32. V: a scalar or v8f.
+template <typename V>
+static inline V det_cb(const V* t, const V* s) {
+    const V m01 = t[0] * t[4] - t[1] * t[3], m02 = t[0] * t[5] - t[2] * t[3], m12 = t[1] * t[5] - t[2] * t[4];
+    return s[0] * s[1] * m01 * m01 + s[0] * s[2] * m02 * m02 + s[1] * s[2] * m12 * m12;
+}
+
+// adds g * d det_cb / d t to gT and g * d det_cb / d s to gs
+template <typename V>
+static inline void det_cb_bwd(const V* t, const V* s, V g, V* gT, V* gs) {
+    const V m01 = t[0] * t[4] - t[1] * t[3], m02 = t[0] * t[5] - t[2] * t[3], m12 = t[1] * t[5] - t[2] * t[4];
+    const V a01 = g * s[0] * s[1] * m01, a02 = g * s[0] * s[2] * m02, a12 = g * s[1] * s[2] * m12;
+    const V b0 = a01 * t[4] + a02 * t[5], b1 = a12 * t[5] - a01 * t[3], b2 = a02 * t[3] + a12 * t[4];
+    const V b3 = a01 * t[1] + a02 * t[2], b4 = a01 * t[0] - a12 * t[2], b5 = a02 * t[0] + a12 * t[1];
+    gT[0] += b0 + b0; gT[1] += b1 + b1; gT[2] -= b2 + b2;
+    gT[3] -= b3 + b3; gT[4] += b4 + b4; gT[5] += b5 + b5;
+    gs[0] += g * (s[1] * m01 * m01 + s[2] * m02 * m02);
+    gs[1] += g * (s[0] * m01 * m01 + s[2] * m12 * m12);
+    gs[2] += g * (s[0] * m02 * m02 + s[1] * m12 * m12);
+}
+
 // everything the forward computes for one Gaussian (also recomputed by the backward)
 template <typename T>
 struct PState {
     T qn[4], qnorm, Rq[9], M[9], s2[3], s2f[3], xc[3], z, tx, ty, r, clx, cly; int unclx, uncly;
-    T J2[6], Tm[6], c00, c01, c11, f00, f01, f11, D, dh, rho, ampn, amp, u, v, detJ; int valid;
+    T J2[6], Tm[6], c00, c01, c11, f00, f01, f11, cb, D, dh, rho, ampn, amp, u, v, detJ; int valid;
 };
 
 template <typename T>
@@ -85,9 +108,9 @@ static inline void proj_one(const Cam<T>& cam, const T* m, const T* s2in, const 
         S.c11 += S.Tm[3 + k] * S.Tm[3 + k] * S.s2f[k];
     }
     S.f00 = S.c00 + cam.k2; S.f01 = S.c01; S.f11 = S.c11 + cam.k2;
-    S.D = S.f00 * S.f11 - S.f01 * S.f01;
-    S.dh = S.c00 * S.c11 - S.c01 * S.c01;
-    if (S.dh < (T)1e-20) S.dh = (T)1e-20;
+    S.cb = det_cb(S.Tm, S.s2f);  // |S^|
+    S.D = S.cb + cam.k2 * (S.c00 + S.c11) + cam.k2 * cam.k2;  // |S^ + k2 I|
+    S.dh = S.cb < (T)1e-20 ? (T)1e-20 : S.cb;
     S.rho = rho;  // mode 2 (alpha): opacity
     // ampn = amplitude per unit density/opacity (so the backward never divides by rho, which may underflow)
     if (mode == 0) {
@@ -205,9 +228,10 @@ static inline void proj8(const Cam<float>& cam, const float* means, const float*
         S.c01 += S.Tm[k] * S.Tm[3 + k] * S.s2f[k];
         S.c11 += S.Tm[3 + k] * S.Tm[3 + k] * S.s2f[k];
     }
-    S.f00 = S.c00 + bc8(cam.k2); S.f01 = S.c01; S.f11 = S.c11 + bc8(cam.k2);
-    S.D = S.f00 * S.f11 - S.f01 * S.f01;
-    const v8f dh = S.c00 * S.c11 - S.c01 * S.c01;
+    const v8f k2 = bc8(cam.k2);
+    S.f00 = S.c00 + k2; S.f01 = S.c01; S.f11 = S.c11 + k2;
+    const v8f dh = det_cb(S.Tm, S.s2f);
+    S.D = dh + k2 * (S.c00 + S.c11) + k2 * k2;
     S.dh_raw_ok = dh >= bc8(1e-20f);
     S.dh = max8(dh, bc8(1e-20f));
     if (mode == 0) {
@@ -275,14 +299,16 @@ static inline void proj8_bwd(const Cam<float>& cam, const float* means, const fl
     sct8(gdraw, i, 1, 0, g_rho * drho);
     const v8f gA = gat8(gcon, i, 3, 0), gB = gat8(gcon, i, 3, 1), gC = gat8(gcon, i, 3, 2), D = S.D;
     gD += -(gA * S.f11 - gB * S.f01 + gC * S.f00) / (D * D);
-    const v8f g_f00 = gC / D + gD * S.f11, g_f11 = gA / D + gD * S.f00, g_f01 = -gB / D - two * gD * S.f01;
-    const v8f g_c00 = g_f00 + gdh * S.c11, g_c11 = g_f11 + gdh * S.c00, g_c01 = g_f01 - two * gdh * S.c01;
+    // D = |S^| + k2 (c00 + c11) + k2^2 with |S^| = det_cb (gdh is zero where the floor holds)
+    const v8f k2 = bc8(cam.k2);
+    const v8f g_c00 = gC / D + gD * k2, g_c11 = gA / D + gD * k2, g_c01 = -gB / D;
     v8f gT[6];
     for (int k = 0; k < 3; ++k) {
         gT[k] = (two * g_c00 * S.Tm[k] + g_c01 * S.Tm[3 + k]) * S.s2f[k];
         gT[3 + k] = (two * g_c11 * S.Tm[3 + k] + g_c01 * S.Tm[k]) * S.s2f[k];
         g_s2f[k] += g_c00 * S.Tm[k] * S.Tm[k] + g_c01 * S.Tm[k] * S.Tm[3 + k] + g_c11 * S.Tm[3 + k] * S.Tm[3 + k];
     }
+    det_cb_bwd(S.Tm, S.s2f, gD + gdh, gT, g_s2f);
     for (int k = 0; k < 3; ++k) g_ls[k] += two * S.s2[k] * g_s2f[k];
     v8f gJ2[6], gM[9], gRq[9];
     for (int a = 0; a < 2; ++a)
@@ -427,8 +453,7 @@ static void proj_bwd(int64_t n, const T* means, const T* ls, const T* quats, con
                 for (int k = 0; k < 3; ++k) g_ls[k] += ga * S.amp;  // sqrt(prod s2): d/dls_k = 1
             if (mip) {
                 gD += ga * S.amp * (T)(-0.5) / S.D;
-                const T raw_dh = S.c00 * S.c11 - S.c01 * S.c01;
-                if (raw_dh >= (T)1e-20) gdh += ga * S.amp * (T)0.5 / S.dh;
+                if (S.cb >= (T)1e-20) gdh += ga * S.amp * (T)0.5 / S.dh;
             }
             if (has_f)
                 for (int k = 0; k < 3; ++k) g_s2f[k] += ga * S.amp * (T)(-0.5) / S.s2f[k];
@@ -437,10 +462,8 @@ static void proj_bwd(int64_t n, const T* means, const T* ls, const T* quats, con
         // conic = (f11, -f01, f00) / D
         const T gA = gcon[3 * i], gB = gcon[3 * i + 1], gC = gcon[3 * i + 2], D = S.D;
         gD += -(gA * S.f11 - gB * S.f01 + gC * S.f00) / (D * D);
-        T g_f00 = gC / D + gD * S.f11;
-        T g_f11 = gA / D + gD * S.f00;
-        T g_f01 = -gB / D - 2 * gD * S.f01;
-        T g_c00 = g_f00 + gdh * S.c11, g_c11 = g_f11 + gdh * S.c00, g_c01 = g_f01 - 2 * gdh * S.c01;
+        // D = |S^| + k2 (c00 + c11) + k2^2 with |S^| = det_cb (gdh is zero where the floor holds)
+        const T g_c00 = gC / D + gD * cam.k2, g_c11 = gA / D + gD * cam.k2, g_c01 = -gB / D;
         // c = T diag(s2f) T^T
         T gT[6];
         for (int k = 0; k < 3; ++k) {
@@ -448,6 +471,7 @@ static void proj_bwd(int64_t n, const T* means, const T* ls, const T* quats, con
             gT[3 + k] = (2 * g_c11 * S.Tm[3 + k] + g_c01 * S.Tm[k]) * S.s2f[k];
             g_s2f[k] += g_c00 * S.Tm[k] * S.Tm[k] + g_c01 * S.Tm[k] * S.Tm[3 + k] + g_c11 * S.Tm[3 + k] * S.Tm[3 + k];
         }
+        det_cb_bwd(S.Tm, S.s2f, gD + gdh, gT, g_s2f);
         for (int k = 0; k < 3; ++k) g_ls[k] += 2 * S.s2[k] * g_s2f[k];
         // T = J2 M  -> gJ2 = gT M^T, gM = J2^T gT
         T gJ2[6], gM[9];
