@@ -34,8 +34,10 @@ SFM_COLUMNS: dict[str, str] = {
 
 # Per run, the strongest classical reconstruction at the same volume and view count (baselines.csv): the method
 # with the highest test 3D PSNR, an upper bound on the classical methods (each tuned on validation views).
+# ``best_baseline_geometry`` names the view geometry the classical methods ran on, which a workflow may set apart
+# from the Gaussians' (``baselines.geometry``); the run's own is its ``geometry`` column.
 BASELINE_SUMMARY_COLUMNS: tuple[str, ...] = ("best_baseline", "best_baseline_test_psnr3d", "best_baseline_test_ssim3d",
-                                             "test_psnr3d_minus_best_baseline_db")
+                                             "test_psnr3d_minus_best_baseline_db", "best_baseline_geometry")
 #: ``status`` of a grid cell that did not train (``not_run_reason`` says why); trained cells have "trained".
 NOT_RUN = "not run"
 
@@ -87,6 +89,16 @@ def _sfm_columns(run_dir: Path) -> dict[str, Any]:
     return out
 
 
+def _run_geometry(run_dir: Path) -> str | None:
+    """The view geometry a run trained on: the name of its radiographs folder (``.../radiographs/{geometry}``) in
+    its ``config.json``; None when the run has no such record."""
+    path = run_dir / "config.json"
+    if not path.exists():
+        return None
+    radiographs = (_read_json(path).get("config") or {}).get("radiographs")
+    return Path(radiographs).name if radiographs else None
+
+
 def _not_run_reason(run_dir: Path, row: Mapping[str, Any]) -> str | None:
     """Why a cell that trains on SfM output has no results: its volume's SfM run failed (None otherwise)."""
     if not cell_needs_sfm(row):
@@ -101,8 +113,8 @@ def _not_run_reason(run_dir: Path, row: Mapping[str, Any]) -> str | None:
 
 
 def read_baselines(paths: Sequence[str | os.PathLike[str]]) -> pd.DataFrame:
-    """``baselines.csv`` files in one table, with the volume taken from ``.../{volume}/baselines/...`` when a file
-    has no ``volume`` column.
+    """``baselines.csv`` files in one table, with the volume and the geometry taken from
+    ``.../{volume}/baselines/{geometry}/baselines.csv`` when a file has no ``volume`` / ``geometry`` column.
 
     Parameters
     ----------
@@ -112,14 +124,18 @@ def read_baselines(paths: Sequence[str | os.PathLike[str]]) -> pd.DataFrame:
     Returns
     -------
     pandas.DataFrame
-        Their rows (:data:`ctsplat.baselines.BASELINE_COLUMNS` + ``volume``); empty when no path is given.
+        Their rows (:data:`ctsplat.baselines.BASELINE_COLUMNS` + ``volume``, ``geometry``); empty when no path is
+        given.
     """
     frames = []
     for p in paths:
         b = pd.read_csv(p)
+        parts = Path(p).parts
+        at = parts.index("baselines") if "baselines" in parts[:-1] else None
         if "volume" not in b:
-            parts = Path(p).parts
-            b["volume"] = parts[parts.index("baselines") - 1] if "baselines" in parts else ""
+            b["volume"] = parts[at - 1] if at else ""
+        if "geometry" not in b:
+            b["geometry"] = parts[at + 1] if at is not None and at + 2 < len(parts) else ""
         frames.append(b)
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
@@ -137,7 +153,7 @@ def _baseline_columns(df: pd.DataFrame, baselines: pd.DataFrame) -> pd.DataFrame
         best = match.loc[match["psnr3d"].idxmax()]
         score = pd.to_numeric(pd.Series([r.get("test_psnr3d")]), errors="coerce").iloc[0]
         out.loc[i] = [best["method"], float(best["psnr3d"]), float(best["ssim3d"]),
-                      float(score - best["psnr3d"]) if pd.notna(score) else None]
+                      float(score - best["psnr3d"]) if pd.notna(score) else None, best["geometry"] or None]
     return out
 
 
@@ -187,8 +203,10 @@ def gather(
           PSNR2D gain per ``per_iters`` iterations (:func:`velocity_column`);
         - for ``poses: colmap`` runs the pose errors of the volume's ``sfm/summary.json`` (:data:`SFM_COLUMNS`;
           ``sfm_ok`` False when that file is missing), empty for the other runs;
+        - ``geometry``: the view geometry the run trained on (its radiographs folder's name);
         - :data:`BASELINE_SUMMARY_COLUMNS`: the classical method with the highest test 3D PSNR at the run's volume
-          and view count, its test 3D PSNR / SSIM, and the run's test 3D PSNR minus it (dB).
+          and view count, its test 3D PSNR / SSIM, the run's test 3D PSNR minus it (dB), and the geometry the
+          classical methods ran on (which may differ from the run's: ``baselines.geometry``).
 
     Raises
     ------
@@ -215,6 +233,7 @@ def gather(
             rows.append({**row, "status": NOT_RUN, "not_run_reason": reason})
             continue
         row["status"] = "trained"
+        row["geometry"] = _run_geometry(rd)
         if metrics_path.exists():
             metrics = _read_json(metrics_path)
             for m in TEST_METRICS:

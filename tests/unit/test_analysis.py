@@ -489,6 +489,7 @@ def test_gather_compares_each_run_with_the_strongest_baseline_at_its_views(tmp_p
     pd.DataFrame({"method": ["fbp", "asd_pocs", "fbp", "asd_pocs"], "n_views": [8, 8, 16, 16],
                   "psnr3d": [22.0, 27.5, 24.0, 23.0], "ssim3d": [0.6, 0.85, 0.7, 0.65]}).to_csv(
         bdir / "baselines.csv", index=False)
+    (runs[1] / "config.json").write_text(json.dumps({"config": {"radiographs": "results/phantom/radiographs/cone"}}))
     back = gather(runs, tmp_path / "summary.csv", baselines_csvs=[bdir / "baselines.csv"]).set_index("run_dir")
     r8, r16, head = back.loc[str(runs[0])], back.loc[str(runs[1])], back.loc[str(runs[2])]
     assert (r8["best_baseline"], r8["best_baseline_test_psnr3d"]) == ("asd_pocs", 27.5)
@@ -496,3 +497,6 @@ def test_gather_compares_each_run_with_the_strongest_baseline_at_its_views(tmp_p
     assert (r16["best_baseline"], r16["best_baseline_test_ssim3d"]) == ("fbp", 0.7)
     assert r16["test_psnr3d_minus_best_baseline_db"] == pytest.approx(1.0)
     assert pd.isna(head["best_baseline"])  # no baseline of that volume
+    # the geometries: the baselines' from their folder, a run's from its config.json (None without one)
+    assert r8["best_baseline_geometry"] == "circular" and pd.isna(r8["geometry"])
+    assert (r16["geometry"], r16["best_baseline_geometry"]) == ("cone", "circular")

@@ -78,3 +78,14 @@ def test_the_headline_claim_says_it_was_not_measured_without_baselines():
     t = claims_table(s)
     head = t[t["comparison"].str.contains("strongest classical")]
     assert list(head["result"]) == ["no pairs"] and "gather ran without --baselines" in head["note"].iloc[0]
+
+
+def test_the_headline_claim_names_pairs_of_different_geometries():
+    same = claims_table(_summary().assign(geometry="circular", best_baseline_geometry="circular"))
+    assert _row(same, "rectified radiative (init=fbp")["note"] == ""
+    s = _summary().assign(geometry="sphere1200", best_baseline_geometry="circular150")
+    fbp = _row(claims_table(s), "rectified radiative (init=fbp")
+    assert fbp["result"] == "holds"
+    assert fbp["note"] == ("1 of 1 pairs compare different view geometries (Gaussians on sphere1200, classical on "
+                           "circular150): the same volume and view count, not the same views, so those differences "
+                           "are not like for like")
