@@ -748,8 +748,7 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
             f"radiographs.{source}: the detector ({view_set.camera.width} x {view_set.camera.height} px) leaves "
             f"{100 * fov_outside:.1f}% of the object outside the field of view in the worst view; enlarge it "
             f"(or set {source} to null to fit it), or set allow_truncation: true to accept a truncated scan")
-    for w in caught:
-        log.warning("%s", w.message)
+    for w in caught:  # re-raised after the refusal above; the CLI and the workflow log warnings (captureWarnings)
         warnings.warn(w.message, stacklevel=2)
     device = resolve_device(cfg["device"])
     mu = torch.as_tensor(volume.data, dtype=torch.float32) * volume.mu_scale_per_mm

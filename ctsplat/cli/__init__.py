@@ -92,6 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    logging.captureWarnings(True)  # warnings go through the log once, in its format
     try:
         args.func(args)
     except CtsplatError as exc:

@@ -40,3 +40,21 @@ def test_project_and_baseline_commands(tmp_path, capsys):
     assert "must be larger than dso_mm" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
     assert main(["project", "--volume", str(tmp_path / "missing.nii.gz"), "--out", str(tmp_path / "x")]) == 2
+
+
+def test_a_truncation_warning_is_printed_once(tmp_path):
+    import subprocess
+    import sys
+
+    n = 16
+    data = np.full((n, n, n), 0.5, np.float32)
+    vol = tmp_path / "volume.nii.gz"
+    save_volume(Volume(data, np.diag([2.0, 2.0, 2.0, 1.0]), {"volume_id": "w", "intensity": {"mu_scale_per_mm": 0.02}}),
+                vol)
+    cli = "import sys; from ctsplat.cli import main; sys.exit(main())"
+    args = ["project", "--volume", str(vol), "--out", str(tmp_path / "rad"), "--set", "n_views=4", "--set",
+            "detector_width=8", "--set", "detector_height=8", "--set", "pixel_spacing_mm=2.0", "--set",
+            "allow_truncation=true", "--set", "noise.enabled=false"]
+    proc = subprocess.run([sys.executable, "-c", cli, *args], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.count("detector does not cover the volume") == 1, proc.stderr
