@@ -22,6 +22,7 @@ import contextlib
 import logging
 import shutil
 import time
+from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
@@ -214,7 +215,7 @@ def _run(image_dir: Path, names: list[str], tmp: Path, s: dict[str, Any]) -> dic
         "seconds_undistortion": t3 - t2,
         "settings": s,
         "code_version": code_version(),
-        "pycolmap": pycolmap.__version__,
+        "pycolmap": version("pycolmap"),
     }
     shutil.rmtree(work)
     write_json_atomic(tmp / "summary.json", summary)

@@ -36,6 +36,7 @@ import math
 import os
 import shutil
 from collections.abc import Mapping
+from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
@@ -499,8 +500,6 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
         summary["naive_slices"] = naive_slices_sfm(naive_volume, out_dir / ".naive_work", cfg, seed=seed)
         shutil.rmtree(out_dir / ".naive_work", ignore_errors=True)
     cfg.pop("_arc_deg", None)
-    from importlib.metadata import version
-
     summary.update(config=cfg, seed=seed, code_version=code_version(), pycolmap=version("pycolmap"),
                    volume_id=vs.volume_id,
                    radiographs=str(radiographs_dir),
