@@ -486,7 +486,6 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
         model.to_ply(tmp / "model.ply")
         w, h = scene.views[0].camera.width, scene.views[0].camera.height
         report.update({"resolution": [w, h], "downscale": int(s["downscale"]), "extent": scene.extent,
-                       "device": str(device), "threads": torch.get_num_threads(),
-                       "platform": compute_platform(device)})
+                       "device": str(device), "platform": compute_platform(device)})
         write_json_atomic(tmp / "training.json", report)
     return report
