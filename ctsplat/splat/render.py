@@ -465,6 +465,18 @@ def _fused(backend: str, device: torch.device) -> ModuleType | None:
     return _kernel if _use_kernel(backend, device) else None
 
 
+def _check_dtypes(gaussians: Gaussians) -> None:
+    """Every backend renders float32 or float64 Gaussians, all of one dtype (half precision overflows in |Σ̂|)."""
+    dtype = gaussians.means.dtype
+    if dtype not in (torch.float32, torch.float64):
+        raise CtsplatError(f"render takes float32 or float64 Gaussians, got {dtype}; convert them with "
+                           "gaussians.to(dtype=torch.float32)")
+    other = next((k for k, v in gaussians.tensors().items() if v.dtype != dtype), None)
+    if other is not None:
+        raise CtsplatError(f"Gaussians.{other} is {gaussians.tensors()[other].dtype}, the means {dtype}; convert "
+                           f"the model to one dtype (gaussians.to(dtype={dtype}))")
+
+
 def _check_inputs(gaussians: Gaussians, filter_3d_var: torch.Tensor | None) -> None:
     gaussians.validate()
     if filter_3d_var is not None:
@@ -558,6 +570,7 @@ def render(
                            f"{tuple(np.shape(t))}")
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
+    _check_dtypes(gaussians)
     fused = _fused(backend, gaussians.means.device)
     if fused is not None:
         # the fused kernels read raw pointers of every tensor on the means' device, and treat the pose as fixed

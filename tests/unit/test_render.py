@@ -721,6 +721,20 @@ def test_extreme_raw_parameters_have_finite_gradients(compositor):
         assert all(gr is None or bool(torch.isfinite(gr).all()) for gr in grads)
 
 
+@pytest.mark.parametrize("backend", ["reference", "kernel", "triton"])
+def test_half_precision_and_mixed_dtypes_fail_in_one_line_on_every_backend(backend):
+    cam = ParallelCamera(8, 8, 1.0)
+    R, t = torch.eye(3), torch.tensor([0.0, 0.0, 100.0])
+    for dtype in (torch.float16, torch.bfloat16):
+        g = Gaussians.from_values([[0.0, 0, 0]], [[2.0, 1, 1]], [1.0], [[1.0, 0, 0, 0]], dtype=dtype)
+        with pytest.raises(CtsplatError, match=r"float32 or float64 Gaussians, got torch\.(b?float16)"):
+            render(g, cam, R, t, backend=backend)
+    g = Gaussians.from_values([[0.0, 0, 0]], [[2.0, 1, 1]], [1.0], [[1.0, 0, 0, 0]], dtype=torch.float32)
+    g.log_scales = g.log_scales.double()
+    with pytest.raises(CtsplatError, match=r"Gaussians\.log_scales is torch\.float64, the means torch\.float32"):
+        render(g, cam, R, t, backend=backend)
+
+
 def test_edge_inputs_fail_in_one_line_or_keep_the_graph():
     """A reference alpha render that no Gaussian reaches still backpropagates (zero gradients); a parameter on
     another device, a pose that needs a gradient on a fused backend, and a non-finite camera are refused."""
