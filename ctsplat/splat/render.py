@@ -477,8 +477,15 @@ def _check_dtypes(gaussians: Gaussians) -> None:
                            f"the model to one dtype (gaussians.to(dtype={dtype}))")
 
 
-def _check_inputs(gaussians: Gaussians, filter_3d_var: torch.Tensor | None) -> None:
-    gaussians.validate()
+# the parameters each compositor renders: NaN/Inf in these is an error, in the others (a radiative model's colours, an
+# alpha model's densities) it is not, on every backend alike (the fused projection flags only what it reads)
+_RENDERED = {"radiative": ("means", "log_scales", "quats", "density_raw"),
+             "radiative_unrectified": ("means", "log_scales", "quats", "density_raw"),
+             "alpha": ("means", "log_scales", "quats", "opacity_raw", "colors", "sh_rest")}
+
+
+def _check_inputs(gaussians: Gaussians, filter_3d_var: torch.Tensor | None, compositor: str) -> None:
+    gaussians.validate(check_finite=_RENDERED.get(compositor, True))
     if filter_3d_var is not None:
         fv = torch.as_tensor(filter_3d_var)
         # both conditions in one host synchronisation; the messages below tell them apart
@@ -588,10 +595,10 @@ def render(
         proj, radii, visible, nonfinite = _project_kernel(fused, gaussians, cam, R, t, compositor, filter_3d_var,
                                                           mip_2d, sigma_cutoff)
         if nonfinite:
-            _check_inputs(gaussians, filter_3d_var)
+            _check_inputs(gaussians, filter_3d_var, compositor)
             raise CtsplatError("Gaussian parameters contain NaN/Inf; lower the learning rate or prune/reset them")
     else:
-        _check_inputs(gaussians, filter_3d_var)
+        _check_inputs(gaussians, filter_3d_var, compositor)
         proj = project(gaussians, camera, R, t, compositor=compositor, filter_3d_var=filter_3d_var,
                        mip_2d=mip_2d, sigma_cutoff=sigma_cutoff)
         bb = proj.bbox

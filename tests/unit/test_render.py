@@ -735,6 +735,24 @@ def test_half_precision_and_mixed_dtypes_fail_in_one_line_on_every_backend(backe
         render(g, cam, R, t, backend=backend)
 
 
+@pytest.mark.parametrize("backend", ["reference", "auto"])
+def test_nan_in_a_parameter_the_compositor_does_not_render_is_ignored_alike(backend):
+    cam = ParallelCamera(16, 16, 1.0)
+    R, t = torch.eye(3), torch.tensor([0.0, 0.0, 100.0])
+    g = Gaussians.from_values([[0.0, 0, 0]], [[2.0, 1, 1]], [1.0], [[1.0, 0, 0, 0]], opacities=[0.5],
+                              colors=[[0.5]], dtype=torch.float32)
+    clean = {c: render(g, cam, R, t, compositor=c, backend=backend).image for c in ("radiative", "alpha")}
+    g.colors = torch.full_like(g.colors, float("nan"))  # a radiative render never reads the colours
+    assert torch.equal(render(g, cam, R, t, backend=backend).image, clean["radiative"])
+    with pytest.raises(CtsplatError, match="colors"):
+        render(g, cam, R, t, compositor="alpha", backend=backend)
+    g.colors = torch.full_like(g.colors, 0.5)
+    g.density_raw = torch.full_like(g.density_raw, float("nan"))  # nor an alpha render the densities
+    assert torch.equal(render(g, cam, R, t, compositor="alpha", backend=backend).image, clean["alpha"])
+    with pytest.raises(CtsplatError, match="density_raw"):
+        render(g, cam, R, t, backend=backend)
+
+
 def test_edge_inputs_fail_in_one_line_or_keep_the_graph():
     """A reference alpha render that no Gaussian reaches still backpropagates (zero gradients); a parameter on
     another device, a pose that needs a gradient on a fused backend, and a non-finite camera are refused."""
