@@ -307,7 +307,6 @@ def project(
         s2f = s2
         comp3d = None
     rot_c = R_t @ quat_to_rotmat(gaussians.quats)  # (N,3,3) the Gaussians' axes in the camera frame
-    cov_c = (rot_c * s2f[:, None, :]) @ rot_c.transpose(-1, -2)  # (N,3,3)
     x_c = means @ R_t.T + t_t  # (N,3)
     z = x_c[:, 2]
 
@@ -315,11 +314,8 @@ def project(
         u = x_c[:, 0] / cam["sx"] + cam["cx"]
         v_ = x_c[:, 1] / cam["sy"] + cam["cy"]
         jd = torch.tensor([1 / cam["sx"], 1 / cam["sy"]], dtype=dtype, device=dev)
-        c00 = cov_c[:, 0, 0] * jd[0] ** 2
-        c01 = cov_c[:, 0, 1] * jd[0] * jd[1]
-        c11 = cov_c[:, 1, 1] * jd[1] ** 2
         detj2 = (jd[0] * jd[1]) ** 2 * torch.ones_like(z)
-        T = rot_c[:, :2, :] * jd[None, :, None]  # (N,2,3) image axes of the Gaussian's scaled axes
+        T = rot_c[:, :2, :] * jd[None, :, None]  # (N,2,3) the image rows of J times the Gaussian's axes
         valid = torch.ones(n, dtype=torch.bool, device=dev)
     else:
         fx, fy = cam["fx"], cam["fy"]
@@ -342,12 +338,13 @@ def project(
             ],
             dim=-2,
         )  # (N,3,3)
-        jc = J[:, :2, :] @ cov_c @ J[:, :2, :].transpose(-1, -2)
-        c00, c01, c11 = jc[:, 0, 0], jc[:, 0, 1], jc[:, 1, 1]
         detj2 = torch.linalg.det(J) ** 2
         T = J[:, :2, :] @ rot_c
 
-    # |Σ̂| (unfiltered 2D); the floor keeps sqrt differentiable for degenerate (edge-on flat) Gaussians
+    # Σ̂ = T diag(s2f) Tᵀ (px²) and |Σ̂| (unfiltered 2D); the floor keeps sqrt differentiable for degenerate
+    # (edge-on flat) Gaussians
+    ts = T * s2f[:, None, :]
+    c00, c01, c11 = (ts[:, 0] * T[:, 0]).sum(-1), (ts[:, 0] * T[:, 1]).sum(-1), (ts[:, 1] * T[:, 1]).sum(-1)
     det_cb = _det_cov2d(T, s2f)
     det_hat = det_cb.clamp_min(1e-20)
     k2 = _dilation(compositor, mip_2d)
@@ -465,27 +462,33 @@ def _fused(backend: str, device: torch.device) -> ModuleType | None:
     return _kernel if _use_kernel(backend, device) else None
 
 
-def _check_dtypes(gaussians: Gaussians) -> None:
-    """Every backend renders float32 or float64 Gaussians, all of one dtype (half precision overflows in |Σ̂|)."""
-    dtype = gaussians.means.dtype
+def _check_tensors(gaussians: Gaussians) -> None:
+    """Every backend renders float32 or float64 Gaussians, all of one dtype (half precision overflows in |Σ̂|) and
+    on one device (the fused kernels read raw pointers of every tensor on the means' device)."""
+    dtype, dev = gaussians.means.dtype, gaussians.means.device
     if dtype not in (torch.float32, torch.float64):
         raise CtsplatError(f"render takes float32 or float64 Gaussians, got {dtype}; convert them with "
                            "gaussians.to(dtype=torch.float32)")
-    other = next((k for k, v in gaussians.tensors().items() if v.dtype != dtype), None)
-    if other is not None:
-        raise CtsplatError(f"Gaussians.{other} is {gaussians.tensors()[other].dtype}, the means {dtype}; convert "
-                           f"the model to one dtype (gaussians.to(dtype={dtype}))")
+    for name, v in gaussians.tensors().items():
+        if v.dtype != dtype:
+            raise CtsplatError(f"Gaussians.{name} is {v.dtype}, the means {dtype}; convert the model to one dtype "
+                               f"(gaussians.to(dtype={dtype}))")
+        if v.device != dev:
+            raise CtsplatError(f"Gaussians.{name} is on {v.device}, the means on {dev}; move the model to one "
+                               "device (Gaussians.to)")
 
 
 # the parameters each compositor renders: NaN/Inf in these is an error, in the others (a radiative model's colours, an
-# alpha model's densities) it is not, on every backend alike (the fused projection flags only what it reads)
+# alpha model's densities) it is not, on every backend alike (the fused projection flags only what it reads,
+# _PROJECTED, and the rest is checked beside it)
+_PROJECTED = ("means", "log_scales", "quats", "density_raw", "opacity_raw")
 _RENDERED = {"radiative": ("means", "log_scales", "quats", "density_raw"),
              "radiative_unrectified": ("means", "log_scales", "quats", "density_raw"),
              "alpha": ("means", "log_scales", "quats", "opacity_raw", "colors", "sh_rest")}
 
 
 def _check_inputs(gaussians: Gaussians, filter_3d_var: torch.Tensor | None, compositor: str) -> None:
-    gaussians.validate(check_finite=_RENDERED.get(compositor, True))
+    gaussians.validate(check_finite=_RENDERED[compositor])
     if filter_3d_var is not None:
         fv = torch.as_tensor(filter_3d_var)
         # both conditions in one host synchronisation; the messages below tell them apart
@@ -577,21 +580,16 @@ def render(
                            f"{tuple(np.shape(t))}")
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
-    _check_dtypes(gaussians)
+    _check_tensors(gaussians)
     fused = _fused(backend, gaussians.means.device)
     if fused is not None:
-        # the fused kernels read raw pointers of every tensor on the means' device, and treat the pose as fixed
-        dev = gaussians.means.device
-        other = next((k for k, v in gaussians.tensors().items() if v.device != dev), None)
-        if other is not None:
-            raise CtsplatError(f"Gaussians.{other} is on {gaussians.tensors()[other].device}, the means on {dev}; "
-                               "move the model to one device (Gaussians.to)")
+        # the fused kernels treat the pose as fixed
         if any(isinstance(x, torch.Tensor) and x.requires_grad for x in (R, t)):
             raise CtsplatError("the fused render backends give no gradient to the pose (R, t); use "
                                "backend='reference' to differentiate with respect to it")
         # the fused projection flags NaN/Inf in what it reads (one pass, no per-view torch reductions); the full
-        # check then names the parameter. Colours, which it does not read, are checked here (alpha only).
-        gaussians.validate(check_finite=("colors", "sh_rest") if compositor == "alpha" else False)
+        # check then names the parameter. What it renders but does not read (alpha colours) is checked here.
+        gaussians.validate(check_finite=tuple(p for p in _RENDERED[compositor] if p not in _PROJECTED))
         proj, radii, visible, nonfinite = _project_kernel(fused, gaussians, cam, R, t, compositor, filter_3d_var,
                                                           mip_2d, sigma_cutoff)
         if nonfinite:
