@@ -162,7 +162,7 @@ def sweep_overrides(sets: list[str]) -> dict:
 
     Orbit keys (:data:`ORBIT_KEYS`, the rendered C-arm view set: ``radiographs`` types and ranges, ``detector_px``
     for both detector sides, ``pitch_mm`` for ``pixel_spacing_mm``) or ``sfm`` keys; anything else, and keys this
-    script sets itself (``num_threads``: use ``--threads``), is refused.
+    script sets itself (``geometry``), is refused.
     """
     from ctsplat.cli._common import apply_sets
     from ctsplat.config import check_section
@@ -170,8 +170,6 @@ def sweep_overrides(sets: list[str]) -> dict:
 
     extra = apply_sets({}, sets)
     for key in extra:
-        if key == "num_threads":
-            raise CtsplatError("--set num_threads: use --threads")
         if key == "geometry":
             raise CtsplatError("--set geometry: the sweep renders its own C-arm view set")
         if key not in ORBIT_KEYS and key not in SFM_DEFAULTS:
@@ -191,7 +189,7 @@ def main() -> None:
     ap.add_argument("--grid", type=int, default=128, help="volume grid (voxels per axis)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override for every run")
     ap.add_argument("--naive", action="store_true", help="also run naive SfM on the raw axial slices")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (rendering); COLMAP runs on one")
     ap.add_argument("--seed", type=int, default=0, help="orbit jitter + COLMAP seed (labels get a -s<seed> suffix)")
     ap.add_argument("--csv", default=str(OUT / "sfm.csv"))
     args = ap.parse_args()
@@ -216,7 +214,7 @@ def main() -> None:
         runs = runs[:1]
     rows = []
     for vol_name, label, over in runs:
-        cfg = {**over, **extra, "num_threads": args.threads}
+        cfg = {**over, **extra}
         path = volume_path(vol_name, args.grid)
         if args.seed:
             label = f"{label}-s{args.seed}"
@@ -249,8 +247,7 @@ def main() -> None:
     if args.naive:
         vol = load_volume(volume_path("head", args.grid))
         t0 = time.perf_counter()
-        nv = naive_slices_sfm(vol.data, OUT / "sfm_runs" / "head__naive_slices",
-                              {**TUNED, "num_threads": args.threads})
+        nv = naive_slices_sfm(vol.data, OUT / "sfm_runs" / "head__naive_slices", TUNED)
         rows.append({"volume": "head", "label": "naive-axial-slices", "n_views": nv["n_images"],
                      "registration_rate": nv["registration_rate"], "largest_model_rate": nv["registration_rate"],
                      "models_found": nv["models_found"], "model_sizes": " ".join(map(str, nv["model_sizes"][:6])),

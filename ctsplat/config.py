@@ -782,7 +782,6 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("sfm", "isocentric_loss_px"): _POSITIVE,
     ("sfm", "fuse_harmonics"): _COUNT0,  # 0 = off
     ("sfm", "min_shared_images"): {"type": "integer", "minimum": 3},  # a similarity between models needs 3 centres
-    ("sfm", "num_threads"): {"type": "integer", "minimum": -1},  # COLMAP: <= 0 = all cores
     ("sfm", "align_inlier_threshold_frac"): _POSITIVE,
     ("sfm", "align_iterations"): _COUNT,
     ("sfm", "min_registration_rate"): _FRACTION,

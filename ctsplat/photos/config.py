@@ -37,7 +37,7 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
         "abs_pose_min_num_inliers": 15,
         "abs_pose_min_inlier_ratio": 0.15,
         "min_registered": 3,  # fewer registered images in the largest model fail the step
-        "num_threads": 2,  # matching, undistortion: extraction and mapping run on one thread (reproducible models)
+        "num_threads": 2,  # undistortion; extraction, matching and mapping run on one thread (reproducible models)
         "seed": 0,
     },
     "train": {

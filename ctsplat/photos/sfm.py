@@ -31,7 +31,7 @@ import pycolmap
 
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.images import check_photos, list_photos, strip_metadata
-from ctsplat.sfm.colmap import MAPPING_THREADS, extraction_options, write_model
+from ctsplat.sfm.colmap import MAPPING_THREADS, MATCHING_THREADS, extraction_options, write_model
 from ctsplat.utils import CtsplatError, atomic_dir, code_version, write_json_atomic
 
 __all__ = ["run_photo_sfm", "matching_mode"]
@@ -70,7 +70,7 @@ def _extract_and_match(db: Path, image_dir: Path, names: list[str], s: dict[str,
     pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=mode, reader_options=reader,
                               extraction_options=ext, device=pycolmap.Device.cpu)
     mat = pycolmap.FeatureMatchingOptions()
-    mat.num_threads = int(s["num_threads"])
+    mat.num_threads = MATCHING_THREADS
     mat.use_gpu = False
     ver = pycolmap.TwoViewGeometryOptions()
     ver.min_num_inliers = int(s["min_num_inliers"])

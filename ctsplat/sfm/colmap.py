@@ -31,9 +31,9 @@ from ctsplat.geometry import camera_center
 from ctsplat.sfm.align import evaluate_poses, umeyama
 from ctsplat.utils import CtsplatError, atomic_dir
 
-__all__ = ["MAPPING_THREADS", "REFINE_MODES", "colmap_reconstruct", "extraction_options", "colmap_map",
-           "reverse_depth", "fix_reversal", "merge_models", "model_poses", "set_poses_and_triangulate",
-           "isocentric_adjust", "per_image_reproj", "write_model"]
+__all__ = ["MAPPING_THREADS", "MATCHING_THREADS", "REFINE_MODES", "colmap_reconstruct", "extraction_options",
+           "match_features", "colmap_map", "reverse_depth", "fix_reversal", "merge_models", "model_poses",
+           "set_poses_and_triangulate", "isocentric_adjust", "per_image_reproj", "write_model"]
 
 log = logging.getLogger(__name__)
 
@@ -43,8 +43,14 @@ REFINE_MODES = ("refine", "refine_prior", "isocentric")
 MAPPING_THREADS = 1
 """Threads for COLMAP's mapping and every bundle adjustment. Ceres and the parallel triangulation add their parts
 in the order the threads finish, so on more threads the poses differ in the last bits from run to run and the
-incremental mapper grows the difference into different models; feature matching and verification give the same
-result on any number of threads and keep the configured ``num_threads``."""
+incremental mapper grows the difference into different models."""
+
+MATCHING_THREADS = 1
+"""Threads for COLMAP's CPU feature matching. Its (faiss) matcher returns other matches now and then when pairs are
+matched on more than one thread (2 of 30 runs on the same 36 radiographs, 4 of 4 alike on the 66 skull photos), and
+the mapper grows any difference into another model; on one thread the matches repeat. Exact brute-force matching
+repeats on any number of threads but took 17 times as long on the photos (208 s on two threads against 12 s; one
+thread of the default matcher: 17 s)."""
 
 
 def extraction_options() -> pycolmap.FeatureExtractionOptions:
@@ -65,7 +71,6 @@ def extraction_options() -> pycolmap.FeatureExtractionOptions:
 
 
 def _options(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
-    nt = int(cfg["num_threads"])
     ext = extraction_options()
     ext.sift.max_num_features = int(cfg["max_num_features"])
     ext.sift.peak_threshold = float(cfg["peak_threshold"])
@@ -75,7 +80,7 @@ def _options(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
     ext.sift.num_octaves = int(cfg["sift_num_octaves"])
     ext.sift.domain_size_pooling = bool(cfg["sift_domain_size_pooling"])
     mat = pycolmap.FeatureMatchingOptions()
-    mat.num_threads = nt
+    mat.num_threads = MATCHING_THREADS
     mat.use_gpu = False
     mat.sift.max_ratio = float(cfg["max_ratio"])
     mat.sift.max_distance = float(cfg["max_distance"])
@@ -186,7 +191,7 @@ def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics
     with contextlib.suppress(Exception):
         pycolmap.set_random_seed(int(cfg.get("_seed", 0)))
         pycolmap.logging.minloglevel = 1 if log.isEnabledFor(logging.DEBUG) else 2  # glog: 1 WARNING, 2 ERROR
-    ext, mat, ver = _options(cfg)
+    ext, _, _ = _options(cfg)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
     reader.camera_params = ",".join(f"{v:.10g}" for v in intrinsics)
@@ -200,25 +205,51 @@ def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics
     if prior_centres is not None and cfg.get("pose_prior") == "position":
         _write_pose_priors(db_path, image_names, np.asarray(prior_centres, float), float(cfg["prior_sigma_mm"]))
     t1 = time.perf_counter()
-    matching = cfg["matching"]
-    if matching == "exhaustive":
-        pycolmap.match_exhaustive(db_path, matching_options=mat, verification_options=ver, device=pycolmap.Device.cpu)
-    elif matching == "sequential":
-        pair = pycolmap.SequentialPairingOptions()
-        pair.overlap = int(cfg["sequential_overlap"])
-        pair.quadratic_overlap = False
-        pair.num_threads = int(cfg["num_threads"])
-        pycolmap.match_sequential(db_path, matching_options=mat, pairing_options=pair, verification_options=ver,
-                                  device=pycolmap.Device.cpu)
-        if float(cfg.get("_arc_deg", 360.0)) >= 360.0:
-            _match_loop_closure(db_path, image_names, int(cfg["sequential_overlap"]), mat, ver)
-    else:
-        raise CtsplatError(f"unknown sfm.matching {matching!r}; allowed: exhaustive, sequential")
+    match_features(db_path, image_names, cfg)
     t2 = time.perf_counter()
     models, map_stats = colmap_map(db_path, image_dir, work_dir, image_names, cfg, prior_centres=prior_centres,
                                    prior_poses=prior_poses)
     stats.update(map_stats, seconds_features=t1 - t0, seconds_matching=t2 - t1)
     return models, stats
+
+
+def match_features(db_path: str | Path, image_names: list[str], config: dict[str, Any]) -> None:
+    """Match and verify the features in a COLMAP database, exhaustively or along the orbit.
+
+    ``sequential`` matching pairs each image with its ``sequential_overlap`` successors and, on a full orbit
+    (``_arc_deg`` of 360 or more), the last images with the first. Matching runs on :data:`MATCHING_THREADS`, so
+    the same database gets the same matches.
+
+    Parameters
+    ----------
+    db_path : str or Path
+        COLMAP database with images and keypoints; the verified matches are added to it.
+    image_names : list of str, length V
+        Image names in orbit order (the loop-closure pairs).
+    config : dict
+        The ``sfm`` section (:data:`ctsplat.sfm.step.SFM_DEFAULTS`) plus the private ``_seed`` and ``_arc_deg``.
+
+    Raises
+    ------
+    CtsplatError
+        For an unknown ``matching``.
+    """
+    cfg = config
+    matching = cfg["matching"]
+    if matching not in ("exhaustive", "sequential"):
+        raise CtsplatError(f"unknown sfm.matching {matching!r}; allowed: exhaustive, sequential")
+    _, mat, ver = _options(cfg)
+    if matching == "exhaustive":
+        pycolmap.match_exhaustive(db_path, matching_options=mat, verification_options=ver, device=pycolmap.Device.cpu)
+        return
+    pair = pycolmap.SequentialPairingOptions()
+    pair.overlap = int(cfg["sequential_overlap"])
+    pair.quadratic_overlap = False
+    pair.num_threads = MATCHING_THREADS
+    pycolmap.match_sequential(db_path, matching_options=mat, pairing_options=pair, verification_options=ver,
+                              device=pycolmap.Device.cpu)
+    if float(cfg.get("_arc_deg", 360.0)) >= 360.0:
+        _match_loop_closure(Path(db_path), image_names, int(cfg["sequential_overlap"]), mat, ver)
 
 
 def colmap_map(db_path: str | Path, image_dir: str | Path, work_dir: str | Path, image_names: list[str],

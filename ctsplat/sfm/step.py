@@ -136,7 +136,6 @@ SFM_DEFAULTS: dict[str, Any] = {
     "fix_reversal": True,  # pose_prior none: try each model's depth-reversed twin, keep the one matching the design
     "merge_models": True,
     "min_shared_images": 3,  # to merge two partial models
-    "num_threads": 1,  # matching only; extraction, mapping and bundle adjustment run on one (reproducible models)
     # --- alignment and verdict ---
     "align_inlier_threshold_frac": 0.02,  # RANSAC inlier threshold as a fraction of DSO
     "align_iterations": 500,

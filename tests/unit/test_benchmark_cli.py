@@ -84,7 +84,7 @@ def test_baselines_arc_takes_effect_and_bad_options_are_refused(tmp_path, phanto
 @pytest.mark.parametrize(
     ("script", "args", "needle"),
     [
-        ("sfm.py", ["--set", "num_threads=4"], "--set num_threads: use --threads"),
+        ("sfm.py", ["--set", "geometry=carm"], "--set geometry: the sweep renders its own C-arm view set"),
         ("sfm.py", ["--set", "n_views=abc"], "radiographs.n_views: 'abc' is not of type 'integer'"),
         ("sfm.py", ["--set", "max_ratio=2"], "sfm.max_ratio: 2 is greater than the maximum of 1"),
         ("sfm.py", ["--set", "nviews=90"], "--set nviews: unknown key"),
