@@ -70,7 +70,7 @@ def extraction_options() -> pycolmap.FeatureExtractionOptions:
     return ext
 
 
-def _options(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
+def _sift_extraction(cfg: dict[str, Any]) -> pycolmap.FeatureExtractionOptions:
     ext = extraction_options()
     ext.sift.max_num_features = int(cfg["max_num_features"])
     ext.sift.peak_threshold = float(cfg["peak_threshold"])
@@ -79,6 +79,10 @@ def _options(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
     ext.sift.first_octave = int(cfg["sift_first_octave"])
     ext.sift.num_octaves = int(cfg["sift_num_octaves"])
     ext.sift.domain_size_pooling = bool(cfg["sift_domain_size_pooling"])
+    return ext
+
+
+def _matching(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
     mat = pycolmap.FeatureMatchingOptions()
     mat.num_threads = MATCHING_THREADS
     mat.use_gpu = False
@@ -89,7 +93,7 @@ def _options(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
     ver.ransac.max_error = float(cfg["max_error_px"])
     ver.ransac.random_seed = int(cfg.get("_seed", 0))
     ver.detect_watermark = False  # radiographs are centred objects; "watermark" filtering rejects them
-    return ext, mat, ver
+    return mat, ver
 
 
 def _incremental_options(cfg: dict[str, Any]):  # noqa: ANN202
@@ -191,7 +195,7 @@ def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics
     with contextlib.suppress(Exception):
         pycolmap.set_random_seed(int(cfg.get("_seed", 0)))
         pycolmap.logging.minloglevel = 1 if log.isEnabledFor(logging.DEBUG) else 2  # glog: 1 WARNING, 2 ERROR
-    ext, _, _ = _options(cfg)
+    ext = _sift_extraction(cfg)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
     reader.camera_params = ",".join(f"{v:.10g}" for v in intrinsics)
@@ -238,7 +242,7 @@ def match_features(db_path: str | Path, image_names: list[str], config: dict[str
     matching = cfg["matching"]
     if matching not in ("exhaustive", "sequential"):
         raise CtsplatError(f"unknown sfm.matching {matching!r}; allowed: exhaustive, sequential")
-    _, mat, ver = _options(cfg)
+    mat, ver = _matching(cfg)
     if matching == "exhaustive":
         pycolmap.match_exhaustive(db_path, matching_options=mat, verification_options=ver, device=pycolmap.Device.cpu)
         return

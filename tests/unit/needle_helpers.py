@@ -53,3 +53,12 @@ def needle_errors(backend: str, model: str, compositor: str, mip: bool, device: 
             prev = worst.get(name, 0.0)
             worst[name] = err if err != err or prev != prev else max(prev, err)
     return worst
+
+
+def assert_needles_accurate(backend: str, model: str, device: str = "cpu") -> None:
+    """The radiative compositors, with and without the mip filters: image within 1e-4 and every gradient within
+    2e-3 of the float64 reference (relative to its largest value)."""
+    for comp, mip in (("radiative", False), ("radiative", True), ("radiative_unrectified", True)):
+        err = needle_errors(backend, model, comp, mip, device=device)
+        assert err["image"] <= 1e-4, (model, comp, mip, err)
+        assert all(err[p] <= 2e-3 for p in PARAMS), (model, comp, mip, err)

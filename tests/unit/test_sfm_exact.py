@@ -70,14 +70,14 @@ def _exact_database(work: Path, cam: ConeCamera, Rs: np.ndarray, ts: np.ndarray,
     true correspondences, geometrically verified by COLMAP itself (as after feature matching)."""
     import pycolmap
 
-    from ctsplat.sfm.colmap import _options
+    from ctsplat.sfm.colmap import _matching, _sift_extraction
 
     names = write_pngs(np.zeros((len(Rs), cam.height, cam.width), np.uint8), work / "images")
     db_path = work / "database.db"
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
     reader.camera_params = ",".join(f"{v:.10g}" for v in (cam.fx, cam.fy, cam.cx, cam.cy))
-    ext, _, ver = _options(cfg)
+    ext, (_, ver) = _sift_extraction(cfg), _matching(cfg)
     pycolmap.extract_features(db_path, work / "images", image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
     db = pycolmap.Database.open(str(db_path))
