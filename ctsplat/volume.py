@@ -30,6 +30,7 @@ __all__ = [
     "PREPROCESSING_DEFAULTS",
     "WINDOW_PRESETS",
     "check_preprocessing",
+    "preprocessing_in_effect",
     "ingest",
     "resample_stack",
     "hu_to_attenuation",
@@ -124,6 +125,46 @@ def check_preprocessing(cfg: Mapping[str, Any]) -> None:
         raise CtsplatError(f"preprocessing.mask {cfg['mask']!r} unknown; allowed: null, otsu, convex_hull")
     if not cfg["mu_water_per_mm"] > 0 or not cfg["hu_max"] > -1000:
         raise CtsplatError("preprocessing.mu_water_per_mm must be > 0 and hu_max > -1000")
+
+
+def preprocessing_in_effect(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """A ``preprocessing`` section with every setting that has no effect reset to its default.
+
+    ``denoise_weight`` acts only with a ``denoise`` method, ``window`` only with ``intensity: window``,
+    ``mu_water_per_mm`` and ``hu_max`` with every intensity but ``hu``, and ``grid`` only without
+    ``voxel_size_mm``. Ingest records the section in this form, and the workflow compares it in this form, so
+    changing a setting that does nothing neither reruns ingest (and everything after it) nor changes the record.
+
+    Parameters
+    ----------
+    cfg : mapping
+        The section; keys it lacks take :data:`PREPROCESSING_DEFAULTS`.
+
+    Returns
+    -------
+    dict
+        Every key of :data:`PREPROCESSING_DEFAULTS`; the inert ones at their defaults.
+
+    Examples
+    --------
+    >>> preprocessing_in_effect({"denoise": None, "denoise_weight": 0.5})["denoise_weight"]
+    0.02
+    >>> preprocessing_in_effect({"denoise": "tv", "denoise_weight": 0.5})["denoise_weight"]
+    0.5
+    """
+    out = {**PREPROCESSING_DEFAULTS, **cfg}
+    inert = []
+    if out["denoise"] is None:
+        inert.append("denoise_weight")
+    if out["intensity"] != "window":
+        inert.append("window")
+    if out["intensity"] == "hu":
+        inert += ["mu_water_per_mm", "hu_max"]
+    if out["voxel_size_mm"] is not None:
+        inert.append("grid")
+    for key in inert:
+        out[key] = PREPROCESSING_DEFAULTS[key]
+    return out
 
 
 def _window_params(window: str | Sequence[float]) -> tuple[float, float]:
@@ -610,6 +651,7 @@ def ingest(
         raise CtsplatError(f"output {out_path} must end in .nii.gz or .nii")
     cfg = merge_config("preprocessing", preprocessing, PREPROCESSING_DEFAULTS)
     check_preprocessing(cfg)
+    cfg = preprocessing_in_effect(cfg)
     check_rescale(rescale)
     if nonfinite not in NONFINITE_RULES:
         raise CtsplatError(f"nonfinite {nonfinite!r} unknown; allowed: {', '.join(NONFINITE_RULES)}")

@@ -22,6 +22,7 @@ from ctsplat.volume import (
     denoise,
     hu_to_attenuation,
     ingest,
+    preprocessing_in_effect,
 )
 
 
@@ -147,6 +148,29 @@ def test_ingest_is_deterministic(tmp_path):
     np.testing.assert_array_equal(a.data, b.data)
     assert a.volume_id == b.volume_id
     c = ingest(src, tmp_path / "c" / "v.nii.gz", {"grid": 12})
+    assert c.volume_id != a.volume_id
+
+
+def test_a_setting_that_does_nothing_changes_neither_the_volume_nor_its_record(tmp_path):
+    """denoise_weight without denoise, window without intensity: window, grid beside voxel_size_mm: the same
+    volume and the same volume.json as the defaults (the workflow compares the same form and reruns nothing)."""
+    hu, _ = head_like()
+    src = nifti_input(tmp_path, hu)
+    base = {"grid": 12}
+    inert = {"grid": 12, "denoise_weight": 0.3, "window": "bone"}
+    a = ingest(src, tmp_path / "a" / "v.nii.gz", base)
+    b = ingest(src, tmp_path / "b" / "v.nii.gz", inert)
+    np.testing.assert_array_equal(a.data, b.data)
+    meta = [json.loads(json_path_for(tmp_path / d / "v.nii.gz").read_text()) for d in "ab"]
+    assert meta[0]["preprocessing"] == meta[1]["preprocessing"] == preprocessing_in_effect(inert)
+    # the same keys in effect keep their values
+    acting = preprocessing_in_effect({"denoise": "tv", "denoise_weight": 0.3, "intensity": "window", "window": "bone"})
+    assert acting["denoise_weight"] == 0.3 and acting["window"] == "bone"
+    assert preprocessing_in_effect({"voxel_size_mm": 2.0, "grid": 64})["grid"] == PREPROCESSING_DEFAULTS["grid"]
+    assert preprocessing_in_effect({"intensity": "hu", "hu_max": 100.0})["hu_max"] == PREPROCESSING_DEFAULTS["hu_max"]
+    assert preprocessing_in_effect({"intensity": "mu", "hu_max": 100.0})["hu_max"] == 100.0
+    # a setting that acts: another volume
+    c = ingest(src, tmp_path / "c" / "v.nii.gz", {"grid": 12, "denoise": "tv", "denoise_weight": 0.3})
     assert c.volume_id != a.volume_id
 
 

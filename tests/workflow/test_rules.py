@@ -145,6 +145,17 @@ def test_changed_training_params_rerun_only_training(wd):
     assert "Nothing to be done" in same.stdout + same.stderr
 
 
+def test_a_preprocessing_setting_that_does_nothing_reruns_nothing(wd):
+    run_rule(wd, "ingest", f"{VOL}/volume.nii.gz")
+    cfg = yaml.safe_load((wd / "config.yaml").read_text())
+    inert = {**cfg, "preprocessing": {**cfg["preprocessing"], "denoise_weight": 0.5, "window": "bone"}}
+    proc = snakemake(wd, f"{VOL}/volume.nii.gz", "-n", configfile=write_config(wd / "inert.yaml", inert))
+    assert "Nothing to be done" in proc.stdout + proc.stderr, proc.stdout[-3000:]
+    acting = {**cfg, "preprocessing": {**cfg["preprocessing"], "denoise": "tv", "denoise_weight": 0.5}}
+    proc = snakemake(wd, f"{VOL}/volume.nii.gz", "-n", configfile=write_config(wd / "acting.yaml", acting))
+    assert "rule ingest:" in proc.stdout + proc.stderr
+
+
 def test_rule_evaluate(wd):
     run_rule(wd, "evaluate", f"{RUN}/metrics.json")
     metrics = json.loads((wd / RUN / "metrics.json").read_text())

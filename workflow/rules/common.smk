@@ -20,6 +20,7 @@ from ctsplat.grid import (
     with_train_overrides,
 )
 from ctsplat.utils import CtsplatError, config_hash
+from ctsplat.volume import preprocessing_in_effect
 
 try:
     CFG = prepare_config(config, base_dir=os.getcwd())
@@ -127,11 +128,14 @@ def ingest_source(wildcards):
 
 
 def ingest_params(wildcards):
-    """Keyword arguments of ctsplat.volume.ingest for one volume (preprocessing merged over the global one)."""
+    """Keyword arguments of ctsplat.volume.ingest for one volume (preprocessing merged over the global one;
+    settings that do nothing at their defaults, so that changing one reruns nothing)."""
     vol = volume_cfg(wildcards)
     return canonical(
         {
-            "preprocessing": {**CFG["preprocessing"], **vol["preprocessing"]},
+            "preprocessing": preprocessing_in_effect(
+                {**CFG["preprocessing"], **vol["preprocessing"]}
+            ),
             "series_uid": outputs_selector(vol["series_uid"]),
             "allow_modalities": list(vol["allow_modalities"]),
             "skip_corrupt": vol["skip_corrupt"],
