@@ -57,9 +57,50 @@ def orbit_basis(azimuth_deg: np.ndarray, harmonics: int, full_circle: bool) -> n
     return np.stack([np.cos(k * np.pi * x) for k in range(2 * harmonics + 1)], 1)
 
 
+#: A view is an outlier of the fusion when its deviation from the design, less the smooth part, exceeds this many
+#: times the median over the views (and the floor the caller gives): for Gaussian per-view errors the median of
+#: the 3D norm is 1.54 σ, so the bound sits at 5.4 σ, which an inlier passes with a probability of 1 - 1e-6.
+OUTLIER_MEDIAN_RATIO = 3.5
+
+#: Iteratively reweighted least squares steps of the least-absolute-deviation start of :func:`_robust_smooth_fit`.
+_IRLS_STEPS = 50
+
+
+def _robust_smooth_fit(B: np.ndarray, Y: np.ndarray, floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """Fit ``Y ≈ B X`` robustly: least absolute deviations (IRLS), then least squares on the views it keeps.
+
+    Parameters
+    ----------
+    B : ndarray, shape (V, P)
+        Basis along the orbit.
+    Y : ndarray, shape (V, 3)
+        Per-view deviations (mm or radians).
+    floor : float
+        No view within this distance of the fit is an outlier (units of ``Y``).
+
+    Returns
+    -------
+    X : ndarray, shape (P, 3)
+        The fit.
+    keep : ndarray of bool, shape (V,)
+        The views within ``max(floor, OUTLIER_MEDIAN_RATIO × median residual)`` of the fit.
+    """
+    w = np.ones(len(Y))
+    for _ in range(_IRLS_STEPS):  # the L1 fit: one view far off cannot drag it (a least-squares start could)
+        sw = np.sqrt(w)[:, None]
+        X = np.linalg.lstsq(B * sw, Y * sw, rcond=None)[0]
+        r = np.linalg.norm(Y - B @ X, axis=1)
+        w = 1.0 / np.maximum(r, 1e-6 * floor + 1e-12)
+    keep = r <= max(floor, OUTLIER_MEDIAN_RATIO * float(np.median(r)))
+    if keep.sum() > B.shape[1]:
+        X = np.linalg.lstsq(B[keep], Y[keep], rcond=None)[0]
+    return X, keep
+
+
 def fuse_with_design(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: list[str], design_Rs: np.ndarray,
-                     design_ts: np.ndarray, azimuth_deg: np.ndarray, harmonics: int, full_circle: bool = True
-                     ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+                     design_ts: np.ndarray, azimuth_deg: np.ndarray, harmonics: int, full_circle: bool = True, *,
+                     threshold_mm: float | None = None, threshold_deg: float | None = None, iterations: int = 500,
+                     seed: int = 0) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Low frequencies along the orbit from the design, high frequencies from SfM.
 
     SfM on radiographs of extended anatomy recovers the *view-to-view* pose changes well but bends the orbit
@@ -72,6 +113,13 @@ def fuse_with_design(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: lis
     ``R' = exp(ω') R_design``, ``c' = c_design + δ - B B⁺ δ``. The global Sim(3) and any smooth bend
     are thereby taken from the design; what is left of the design's own per-view error is its projection on
     ``B``, about ``sqrt((2K+1) / V)`` of it.
+
+    With ``threshold_mm`` (and ``threshold_deg``) the fusion is robust to views SfM placed wrongly: the Sim(3)
+    is RANSAC's (:func:`robust_sim3`), the smooth parts are least-absolute-deviation fits, and a view whose
+    centre (rotation) deviation is farther from its smooth part than ``max(threshold, OUTLIER_MEDIAN_RATIO ×
+    the median over the views)`` is left out, as if SfM had not registered it; the smooth parts are then refitted
+    by least squares on the rest. Without thresholds one such view bends the fitted smooth part, and with it
+    every other view's pose.
 
     Parameters
     ----------
@@ -89,12 +137,21 @@ def fuse_with_design(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: lis
         ``K`` of :func:`orbit_basis`.
     full_circle : bool
         Whether the orbit closes (360 degrees), see :func:`orbit_basis`.
+    threshold_mm : float, optional
+        Robust fusion: the RANSAC inlier distance of the Sim(3) and the floor of the centre outlier bound (mm).
+    threshold_deg : float, optional
+        Robust fusion: the floor of the rotation outlier bound (degrees); ``threshold_mm`` alone leaves the
+        rotation bound data-driven (``OUTLIER_MEDIAN_RATIO`` × the median).
+    iterations : int
+        RANSAC samples of the robust Sim(3).
+    seed : int
+        Seeds RANSAC.
 
     Returns
     -------
     dict of str to (ndarray, ndarray)
-        The fused poses of the registered views (world->camera, design frame, mm). The input poses unchanged
-        (in their own frame) when fewer than ``max(3, 2K + 2)`` views are registered.
+        The fused poses of the registered views (world->camera, design frame, mm) less the outliers. The input
+        poses unchanged (in their own frame) when fewer than ``max(3, 2K + 2)`` views are registered.
     """
     from scipy.spatial.transform import Rotation
 
@@ -103,16 +160,30 @@ def fuse_with_design(poses: dict[str, tuple[np.ndarray, np.ndarray]], names: lis
         return dict(poses)
     cs = np.stack([camera_center(*poses[names[i]]) for i in idx])
     dc = camera_center(design_Rs[idx], np.asarray(design_ts, float)[idx])
-    s, Rg, tg = umeyama(cs, dc)
+    if threshold_mm is None:
+        s, Rg, tg = umeyama(cs, dc)
+    else:
+        s, Rg, tg, _ = robust_sim3(cs, dc, threshold_mm, iterations=iterations, seed=seed)
     om = np.stack([Rotation.from_matrix(poses[names[i]][0] @ Rg.T @ design_Rs[i].T).as_rotvec() for i in idx])
     dl = s * cs @ Rg.T + tg - dc
     B = orbit_basis(np.asarray(azimuth_deg, float)[idx], harmonics, full_circle)
-    om = om - B @ np.linalg.lstsq(B, om, rcond=None)[0]
-    dl = dl - B @ np.linalg.lstsq(B, dl, rcond=None)[0]
+    keep = np.ones(len(idx), bool)
+    if threshold_mm is None:
+        om = om - B @ np.linalg.lstsq(B, om, rcond=None)[0]
+        dl = dl - B @ np.linalg.lstsq(B, dl, rcond=None)[0]
+    else:
+        X_om, keep_om = _robust_smooth_fit(B, om, np.deg2rad(threshold_deg or 0.0))
+        X_dl, keep_dl = _robust_smooth_fit(B, dl, float(threshold_mm))
+        keep = keep_om & keep_dl
+        if keep.sum() > B.shape[1]:  # both smooth parts from the views that pass both bounds
+            X_om = np.linalg.lstsq(B[keep], om[keep], rcond=None)[0]
+            X_dl = np.linalg.lstsq(B[keep], dl[keep], rcond=None)[0]
+        om, dl = om - B @ X_om, dl - B @ X_dl
     out = {}
     for k, i in enumerate(idx):
-        R = Rotation.from_rotvec(om[k]).as_matrix() @ design_Rs[i]
-        out[names[i]] = (R, -R @ (dc[k] + dl[k]))
+        if keep[k]:
+            R = Rotation.from_rotvec(om[k]).as_matrix() @ design_Rs[i]
+            out[names[i]] = (R, -R @ (dc[k] + dl[k]))
     return out
 
 

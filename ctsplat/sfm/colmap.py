@@ -705,6 +705,8 @@ def set_poses_and_triangulate(rec: Any, poses: dict[str, tuple[np.ndarray, np.nd
                                image_dir: Path, out: Path, cfg: dict[str, Any]) -> Any:
     """Set the model's registered images to ``poses`` and re-triangulate all points from them.
 
+    Registered images that ``poses`` does not name are deregistered: their poses are in another frame.
+
     Parameters
     ----------
     rec : pycolmap.Reconstruction
@@ -725,10 +727,12 @@ def set_poses_and_triangulate(rec: Any, poses: dict[str, tuple[np.ndarray, np.nd
     pycolmap.Reconstruction
         The model with the new poses and freshly triangulated points.
     """
-    for img in rec.images.values():
+    for img in list(rec.images.values()):
         if img.has_pose and img.name in poses:
             R, t = poses[img.name]
             rec.frames[img.frame_id].rig_from_world = pycolmap.Rigid3d(np.hstack([R, np.asarray(t)[:, None]]))
+        elif img.has_pose:
+            rec.deregister_frame(img.frame_id)
     Path(out).mkdir(parents=True, exist_ok=True)
     return pycolmap.triangulate_points(rec, db_path, image_dir, out, clear_points=True,
                                        options=_incremental_options(cfg))

@@ -249,7 +249,8 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
     With ``fix_reversal`` and a ``design`` (and no pose prior), each model is replaced by its depth-reversed twin
     when that fits the design better. With ``fuse_harmonics > 0`` (and ``design`` + ``design_azimuth_deg``), the
     poses are fused with the design (:func:`~ctsplat.sfm.align.fuse_with_design`); the summary then also holds
-    the unfused numbers under ``"unfused"``. Too few registrations do not raise: ``ok`` is False.
+    the unfused numbers under ``"unfused"`` and the registered views the fusion left out as SfM outliers under
+    ``"fusion_outliers"``. Too few registrations do not raise: ``ok`` is False.
 
     Parameters
     ----------
@@ -320,14 +321,19 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
         report["model_sizes"] = sorted((int(m.num_reg_images()) for m in models.values()), reverse=True)
     thr = float(cfg["align_inlier_threshold_frac"]) * scale_mm
     unfused = None
+    outliers: list[str] = []
     if int(cfg["fuse_harmonics"]) > 0 and design is not None and design_azimuth_deg is not None and poses:
         rows0, _ = evaluate_poses(poses, names, Rs_true, ts_true, threshold_mm=thr,
                                   iterations=int(cfg["align_iterations"]), seed=seed)
         s0 = summarize(rows0, report, cfg)
         unfused = {k: s0[k] for k in ("rot_err_deg_median", "rot_err_deg_p90", "rot_err_rotalign_deg_median",
                                       "centre_err_mm_median", "registration_rate")}
+        registered = set(poses)
         poses = fuse_with_design(poses, names, design[0], design[1], design_azimuth_deg, int(cfg["fuse_harmonics"]),
-                                 full_circle=float(cfg.get("_arc_deg", 360.0)) >= 360.0)
+                                 full_circle=float(cfg.get("_arc_deg", 360.0)) >= 360.0, threshold_mm=thr,
+                                 threshold_deg=float(np.degrees(thr / scale_mm)),
+                                 iterations=int(cfg["align_iterations"]), seed=seed)
+        outliers = sorted(registered - set(poses))
         if main is not None:  # the written model carries the fused poses, its points re-triangulated from them
             main = set_poses_and_triangulate(main, poses, out_dir / "colmap" / "database.db", img_dir,
                                               out_dir / "colmap" / "fused", cfg)
@@ -344,6 +350,7 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
     summary["reversal"] = reversal
     if unfused is not None:
         summary["unfused"] = unfused
+        summary["fusion_outliers"] = outliers
     if design is not None:  # the designed orbit itself as the answer (no images): what a prior alone gives
         drows, _ = evaluate_poses({n: (design[0][i], design[1][i]) for i, n in enumerate(names)}, names, Rs_true,
                                   ts_true, threshold_mm=thr, iterations=int(cfg["align_iterations"]), seed=seed)

@@ -7,7 +7,7 @@ import pytest
 from orbit_helpers import design_orbit
 from scipy.spatial.transform import Rotation
 
-from ctsplat.geometry import ConeCamera, project_points, support_radius_mm
+from ctsplat.geometry import ConeCamera, camera_center, project_points, support_radius_mm
 from ctsplat.sfm.align import evaluate_poses, robust_sim3, rotation_error_deg, umeyama
 from ctsplat.sfm.features import enhance_for_features
 from ctsplat.sfm.step import SFM_DEFAULTS, summarize
@@ -197,14 +197,9 @@ def test_orbit_basis_shapes_and_span() -> None:
     assert P.shape == (20, 5) and np.linalg.matrix_rank(P) == 5
 
 
-def test_fuse_with_design_keeps_view_to_view_detail_and_drops_the_smooth_bend() -> None:
-    """SfM poses = truth bent smoothly along the orbit, in another Sim(3) frame; design = truth + white jitter.
-    Fusing takes the bend (and the frame) from the design and the per-view jitter from SfM."""
-    from scipy.spatial.transform import Rotation
-
-    from ctsplat.sfm.align import fuse_with_design
-
-    V = 120
+def bent_sfm_orbit(V: int = 120) -> tuple[dict, dict, list[str], dict]:
+    """(design, truth, names, SfM poses): SfM = truth bent smoothly along the orbit (6 deg, 20 mm), in another
+    Sim(3) frame; design = truth without its white 1 deg jitter."""
     design = design_orbit(V, 360.0, 15.0, 2.0, 500.0)
     truth = design_orbit(V, 360.0, 15.0, 2.0, 500.0, jitter_deg=1.0, seed=4)
     names = [f"v{i}" for i in range(V)]
@@ -217,6 +212,15 @@ def test_fuse_with_design_keeps_view_to_view_detail_and_drops_the_smooth_bend() 
         c = truth["centres"][i] + 20.0 * np.array([np.sin(phi[i]), 0.0, np.cos(3 * phi[i])])
         Rb, cb = R @ Q.T, s * Q @ c + p  # expressed in an arbitrary SfM frame
         sfm[n] = (Rb, -Rb @ cb)
+    return design, truth, names, sfm
+
+
+def test_fuse_with_design_keeps_view_to_view_detail_and_drops_the_smooth_bend() -> None:
+    """SfM poses = truth bent smoothly along the orbit, in another Sim(3) frame; design = truth + white jitter.
+    Fusing takes the bend (and the frame) from the design and the per-view jitter from SfM."""
+    from ctsplat.sfm.align import fuse_with_design
+
+    design, truth, names, sfm = bent_sfm_orbit()
     raw, _ = evaluate_poses(sfm, names, truth["Rs"], truth["ts"], threshold_mm=10.0)
     fused = fuse_with_design(sfm, names, design["Rs"], design["ts"], design["azimuth_deg"], 3)
     rows, _ = evaluate_poses(fused, names, truth["Rs"], truth["ts"], threshold_mm=10.0)
@@ -230,3 +234,37 @@ def test_fuse_with_design_keeps_view_to_view_detail_and_drops_the_smooth_bend() 
     mean_only = fuse_with_design(sfm, names, design["Rs"], design["ts"], design["azimuth_deg"], 0)
     rows0, _ = evaluate_poses(mean_only, names, truth["Rs"], truth["ts"], threshold_mm=10.0)
     assert np.median([r["rot_err_deg"] for r in rows0]) > 2.0
+
+
+def test_robust_fusion_leaves_out_views_sfm_placed_wrongly_and_keeps_the_rest_as_without_them() -> None:
+    """Three views SfM got wrong (a centre 150 mm off, a rotation 25 deg off, both): the robust fusion leaves
+    exactly them out and fuses the others as it would without them; the plain fusion spreads their error."""
+    from ctsplat.sfm.align import fuse_with_design
+
+    design, truth, names, sfm = bent_sfm_orbit()
+    bad = {"v10": (0.0, 150.0), "v47": (25.0, 0.0), "v90": (40.0, 300.0)}
+    wrong = dict(sfm)
+    for n, (deg, mm) in bad.items():
+        R, t = sfm[n]
+        c = camera_center(R, t) + 0.02 * mm * np.array([0.6, 0.0, 0.8])  # the SfM frame's scale is 0.02
+        Rw = Rotation.from_rotvec(np.deg2rad(deg) * np.array([0.0, 0.6, 0.8])).as_matrix() @ R
+        wrong[n] = (Rw, -Rw @ c)
+    args = (names, design["Rs"], design["ts"], design["azimuth_deg"], 3)
+    def median_errors(fused):  # (deg, mm) over the views SfM got right
+        rows, _ = evaluate_poses(fused, names, truth["Rs"], truth["ts"], threshold_mm=10.0)
+        good = [r for r in rows if r["name"] not in bad]
+        return np.median([r["rot_err_deg"] for r in good]), np.median([r["centre_err_mm"] for r in good])
+
+    robust = fuse_with_design(wrong, *args, threshold_mm=10.0, threshold_deg=1.0)
+    assert set(robust) == set(names) - set(bad)
+    clean = median_errors(fuse_with_design({n: sfm[n] for n in names if n not in bad}, *args))
+    rot, centre = median_errors(robust)
+    assert rot < 1.05 * clean[0] and centre < 1.05 * clean[1]  # as if SfM had not registered the three
+    # without the thresholds the three views stay in and bend every other view's fused pose
+    plain = fuse_with_design(wrong, *args)
+    assert set(plain) == set(names)
+    assert median_errors(plain)[0] > 1.5 * clean[0] and median_errors(plain)[1] > 1.5 * clean[1]
+    # no outliers: the robust fusion keeps every view and scores as the plain one
+    same = fuse_with_design(sfm, *args, threshold_mm=10.0, threshold_deg=1.0)
+    assert set(same) == set(names)
+    np.testing.assert_allclose(median_errors(same), median_errors(fuse_with_design(sfm, *args)), rtol=0.05)

@@ -127,6 +127,36 @@ def test_matching_the_same_features_again_gives_the_same_matches(bead_run, tmp_p
         assert again == tables[0]
 
 
+def test_a_view_the_fusion_leaves_out_is_unregistered_everywhere(bead_run, tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """Fusion with the design (fuse_harmonics > 0) that finds an outlier: the view is listed, unregistered in
+    poses.csv and left out of the written model, whose other images carry the fused poses."""
+    import ctsplat.sfm.step as step
+
+    out, _, _ = bead_run
+    fused: dict = {}
+    real = step.fuse_with_design
+
+    def one_outlier(poses, *args, **kwargs):  # the robust fusion as it would leave one view out
+        fused.update(real(poses, *args, **kwargs))
+        fused.pop(sorted(fused)[5])
+        return dict(fused)
+
+    monkeypatch.setattr(step, "fuse_with_design", one_outlier)
+    s = run_sfm(out.parent / "carm", tmp_path / "fused", {**CFG, "fuse_harmonics": 1}, seed=0)
+    (left_out,) = s["fusion_outliers"]
+    assert left_out not in fused and "unfused" in s
+    df = pd.read_csv(tmp_path / "fused" / "poses.csv")
+    assert not df.loc[df["name"] == left_out, "registered"].item()
+    assert int(df["registered"].sum()) == len(fused) == s["n_registered"]
+    rec = pycolmap.Reconstruction(str(tmp_path / "fused" / "sparse" / "0"))
+    names = {img.name for img in rec.images.values() if img.has_pose}
+    assert names == set(fused)
+    for img in rec.images.values():
+        if img.has_pose:
+            np.testing.assert_allclose(img.cam_from_world().matrix()[:, :3], fused[img.name][0], atol=1e-9)
+
+
 def test_colmap_export_is_readable_and_keeps_the_known_intrinsics(bead_run) -> None:
     out, s, _ = bead_run
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
