@@ -239,6 +239,22 @@ def _det_cov2d(T: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:
     return s2[:, 0] * s2[:, 1] * m01**2 + s2[:, 0] * s2[:, 2] * m02**2 + s2[:, 1] * s2[:, 2] * m12**2
 
 
+#: Below this a product of variances is taken from logarithms: in float32 it underflows to 0 for Gaussians whose
+#: scales are all below about e⁻²⁰ mm, and the square root's infinite derivative at 0 turned their gradients NaN.
+_TINY_PRODUCT = 1e-30
+
+
+def _sqrt_via_log(x: torch.Tensor, log_x: torch.Tensor) -> torch.Tensor:
+    """``sqrt(x)``, with ``x`` also given as its logarithm: ``exp(½ log x)`` where ``x < _TINY_PRODUCT``.
+
+    Elsewhere the same numbers as ``torch.sqrt(x)``; where ``x`` may have underflowed, a finite value and gradient.
+    Each branch sees safe inputs where it is not taken, so neither sends NaN through :func:`torch.where`.
+    """
+    tiny = x < _TINY_PRODUCT
+    via_log = torch.exp(0.5 * torch.where(tiny, log_x, torch.zeros_like(log_x)))
+    return torch.where(tiny, via_log, torch.sqrt(torch.where(tiny, torch.ones_like(x), x)))
+
+
 # ---------------------------------------------------------------------------------------------- projection
 def _dilation(compositor: str, mip_2d: bool) -> float:
     """2D filter variance (px²) added to Σ̂: alpha low-pass 0.3 / mip 0.1 / radiative 0, plus the ``EPS_2D`` floor."""
@@ -302,9 +318,12 @@ def project(
         if v.shape[0] != n:
             raise CtsplatError(f"filter_3d_var has {v.shape[0]} entries for {n} Gaussians")
         s2f = s2 + v[:, None]
-        comp3d = torch.sqrt(torch.prod(s2 / s2f, dim=-1))  # sqrt(|Σ|/|Σ'|): mass-conserving
+        log_s2f = torch.log(s2f)
+        # sqrt(|Σ|/|Σ'|): mass-conserving
+        comp3d = _sqrt_via_log(torch.prod(s2 / s2f, dim=-1), (2 * gaussians.log_scales - log_s2f).sum(-1))
     else:
         s2f = s2
+        log_s2f = 2 * gaussians.log_scales
         comp3d = None
     rot_c = R_t @ quat_to_rotmat(gaussians.quats)  # (N,3,3) the Gaussians' axes in the camera frame
     x_c = means @ R_t.T + t_t  # (N,3)
@@ -354,7 +373,8 @@ def project(
 
     if compositor == "radiative":
         det_tilde = detj2 * torch.prod(s2f, dim=-1)  # |Σ̃| = |J|² |Σ'|
-        amp = dens * torch.sqrt(2 * math.pi * det_tilde / det_f)
+        log_ratio = math.log(2 * math.pi) + torch.log(detj2) + log_s2f.sum(-1) - torch.log(det_f)
+        amp = dens * _sqrt_via_log(2 * math.pi * det_tilde / det_f, log_ratio)
         if comp3d is not None:
             amp = amp * comp3d
     elif compositor == "radiative_unrectified":
@@ -866,7 +886,8 @@ def voxelize(
     dens = kept(gaussians.densities)
     if fvar is not None:
         s2f_k = s2 + kept(fvar)
-        dens = dens * torch.sqrt(torch.prod(s2 / s2f_k, -1))
+        log_ratio = (2 * kept(gaussians.log_scales) - torch.log(s2f_k)).sum(-1)
+        dens = dens * _sqrt_via_log(torch.prod(s2 / s2f_k, -1), log_ratio)
     else:
         s2f_k = s2
     # precision R diag(1/s²) Rᵀ: its 6 distinct entries

@@ -718,6 +718,31 @@ def test_extreme_raw_parameters_have_finite_gradients(compositor):
         assert all(gr is None or bool(torch.isfinite(gr).all()) for gr in grads)
 
 
+@pytest.mark.parametrize("log_scale", [-20.0, -30.0, -45.0])
+def test_vanishing_gaussians_keep_finite_exact_values_and_gradients_in_float32(log_scale):
+    """Every scale e^-20..e^-45 mm: the product of the variances underflows in float32, and the amplitude's
+    square root had an infinite derivative there. The reference path now gives the closed form (a Gaussian at a
+    pixel centre, parallel beam, pitch 1: ``ρ sqrt(2π s⁶ / |Σ̂ + k₂I|)``) and its finite gradient."""
+    cam, R, t = ParallelCamera(33, 33, 1.0), np.eye(3), np.array([0.0, 0.0, 300.0])  # the mean on pixel (16, 16)
+    for fv in (None, torch.full((1,), 0.01)):
+        g = Gaussians.from_values(torch.zeros(1, 3), float(np.exp(log_scale)), 0.5, dtype=torch.float32)
+        for p in (g.means, g.log_scales, g.density_raw):
+            p.requires_grad_(True)
+        out = render(g, cam, R, t, backend="reference", filter_3d_var=fv)
+        grads = torch.autograd.grad(out.image.sum(), [g.means, g.log_scales, g.density_raw])
+        assert all(bool(torch.isfinite(gr).all()) for gr in grads)
+        s2 = math.exp(2 * log_scale)
+        v = 0.0 if fv is None else 0.01
+        det_f = (s2 + v + EPS_2D) ** 2
+        amp = 0.5 * math.sqrt(2 * math.pi) * math.exp(3 * log_scale) / math.sqrt(det_f)  # ρ (2π)^½ s³ / |Σ̂'|^½
+        if amp < 1e-36:  # below float32's normal range (e^-45): finite is all there is to check
+            continue
+        assert float(out.image.detach().sum()) == pytest.approx(amp, rel=1e-4)
+        # d amp / d log s_k = amp (1 - s_k² / (s_k² + v + k₂)) across the image, amp along the ray
+        expected = [amp * (1 - s2 / (s2 + v + EPS_2D))] * 2 + [amp]
+        np.testing.assert_allclose(grads[1][0].numpy(), expected, rtol=1e-3)
+
+
 @pytest.mark.parametrize("backend", ["reference", "kernel", "triton"])
 def test_half_precision_and_mixed_dtypes_fail_in_one_line_on_every_backend(backend):
     cam = ParallelCamera(8, 8, 1.0)
