@@ -58,9 +58,11 @@ def orbit_basis(azimuth_deg: np.ndarray, harmonics: int, full_circle: bool) -> n
 
 
 #: A view is an outlier of the fusion when its deviation from the design, less the smooth part, exceeds this many
-#: times the median over the views (and the floor the caller gives): for Gaussian per-view errors the median of
-#: the 3D norm is 1.54 σ, so the bound sits at 5.4 σ, which an inlier passes with a probability of 1 - 1e-6.
-OUTLIER_MEDIAN_RATIO = 3.5
+#: times the median over the views (and the floor the caller gives). That deviation is mostly the design's own
+#: per-view error, which SfM measures: on the head's 180-view orbits with 1° of design error the largest view sat
+#: at 3.8× the median (a correctly registered view, 0.44° from the truth after fusion); a view SfM placed wrongly
+#: sits at tens of times.
+OUTLIER_MEDIAN_RATIO = 8.0
 
 #: Iteratively reweighted least squares steps of the least-absolute-deviation start of :func:`_robust_smooth_fit`.
 _IRLS_STEPS = 50
