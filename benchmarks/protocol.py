@@ -10,7 +10,8 @@ Per volume (``--volumes``: ``phantom`` — the built-in Shepp-Logan head, no bea
    views at random angles and 10 noise-free validation views. One rendering serves every view count when their
    least common multiple is small (150 angles for 25/50/75: every 6th / 3rd / 2nd), else one per count;
 3. ``ctsplat.baselines.run_baselines`` (every classical method the geometry allows, parameters chosen on the
-   validation views), its saved volumes also scored by R²-Gaussian's 3D metrics;
+   validation views; each chosen reconstruction offered the Gaussians' read-out sharpening, ``baselines.sharpen``,
+   its amount chosen on the validation views as well), its saved volumes also scored by R²-Gaussian's 3D metrics;
 4. a Gaussian model per view count (``init: fbp``, i.e. FDK of the training views where available, refined by 20
    ASD-POCS iterations on the same views, ``PROTOCOL_TRAIN``; rectified radiative compositor), trained
    (``ctsplat.training.train``) and evaluated (``ctsplat.evaluation.evaluate``); its voxel read-out is
@@ -205,9 +206,10 @@ def train_config(sets: list[str], iterations: int, n_init: int) -> dict:
 #: baselines keys this script sets per view count
 OWN_BASELINE_KEYS = {"n_views": "--views", "save_volumes": None}
 
-
-def baseline_config(sets: list[str]) -> dict[str, Any]:
-    """The ``--baseline-set KEY=VALUE`` overrides, checked against the ``baselines`` section of the schema."""
+def baseline_config(sets: list[str], *, sharpen: dict[str, Any]) -> dict[str, Any]:
+    """The baselines settings beside the library defaults: ``sharpen`` (the Gaussians' read-out sharpening, offered
+    to the classical reconstructions alike), then the ``--baseline-set KEY=VALUE`` overrides, checked against the
+    ``baselines`` section of the schema."""
     from ctsplat.cli._common import section_config
     from ctsplat.utils import CtsplatError
 
@@ -215,7 +217,7 @@ def baseline_config(sets: list[str]) -> dict[str, Any]:
     for key, option in OWN_BASELINE_KEYS.items():
         if key in user:
             raise CtsplatError(f"--baseline-set {key} is set by this benchmark" + (f"; use {option}" if option else ""))
-    return user
+    return {"sharpen": dict(sharpen), **user}
 
 
 def gaussian_row(name: str, vol: Path, rad: Path, n: int, shared: dict, run_dir: Path) -> dict:
@@ -295,7 +297,7 @@ def run(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     shared = train_config(args.set, args.iterations, args.n_init)  # refused before any work
-    baseline_settings = baseline_config(args.baseline_set)  # likewise
+    baseline_settings = baseline_config(args.baseline_set, sharpen=shared["sharpen"])  # likewise
     data = Path(args.data)
     for name in args.volumes:
         if name != "phantom" and not (data / name).exists():

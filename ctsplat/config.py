@@ -901,10 +901,10 @@ def _json_type(v: Any) -> dict[str, Any]:
 
 
 def _refinement(section: str, dotted: str) -> dict[str, Any]:
-    """The schema refinement of one library key: training keys take their range from
-    :data:`ctsplat.training.config.TRAIN_BOUNDS` (the one definition, also checked by the library), the others from
-    :data:`REFINE`."""
-    if section == "train":
+    """The schema refinement of one library key: training keys (and the baselines' ``sharpen``, the same rule) take
+    their range from :data:`ctsplat.training.config.TRAIN_BOUNDS` (the one definition, also checked by the library),
+    the others from :data:`REFINE`."""
+    if section == "train" or (section == "baselines" and dotted.startswith("sharpen.")):  # the read-out's rule
         from ctsplat.training.config import TRAIN_BOUNDS
 
         if dotted in TRAIN_BOUNDS:

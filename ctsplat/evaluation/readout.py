@@ -68,8 +68,8 @@ def check_sharpen_config(section: dict[str, Any]) -> tuple[list[float], float]:
     return [float(a) for a in amounts], float(radius)
 
 
-def choose_sharpening(volume: np.ndarray, validator: Any, *, amounts: list[float], radius_voxels: float = 1.0
-                      ) -> tuple[np.ndarray, dict[str, Any]]:
+def choose_sharpening(volume: np.ndarray, validator: Any, *, amounts: list[float], radius_voxels: float = 1.0,
+                      clip: bool = False) -> tuple[np.ndarray, dict[str, Any]]:
     """The sharpened read-out whose re-projection scores best on the validation views.
 
     Parameters
@@ -82,6 +82,8 @@ def choose_sharpening(volume: np.ndarray, validator: Any, *, amounts: list[float
         Candidate amounts (see :func:`sharpen`); ties go to the first.
     radius_voxels : float
         Blur radius of every candidate (voxels).
+    clip : bool
+        Clip every candidate to [0, 1] before scoring (the classical baselines' ``clip``).
 
     Returns
     -------
@@ -101,7 +103,7 @@ def choose_sharpening(volume: np.ndarray, validator: Any, *, amounts: list[float
 
     t0 = time.perf_counter()
     choice = choose("sharpen", [{"amount": float(a)} for a in amounts],
-                    lambda amount: sharpen(volume, amount=amount, radius_voxels=radius_voxels), validator, clip=False)
+                    lambda amount: sharpen(volume, amount=amount, radius_voxels=radius_voxels), validator, clip=clip)
     info = {"sharpen_amount": choice.params["amount"], "sharpen_radius_voxels": float(radius_voxels),
             "sharpen_val_psnr": [t["val_psnr"] for t in choice.trials],
             "sharpen_seconds": time.perf_counter() - t0}

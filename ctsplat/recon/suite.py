@@ -29,7 +29,7 @@ from ctsplat.recon.fdk import is_circular_cone, short_scan_shortfall
 from ctsplat.recon.select import Choice, Validator, choose, choose_iterative, rank
 from ctsplat.utils import CtsplatError, scratch_dir
 
-__all__ = ["METHODS", "applicable_methods", "bin_detector", "auto_binning", "classical_reconstructions",
+__all__ = ["METHODS", "applicable_methods", "bin_detector", "auto_binning", "classical_reconstructions", "sharpened",
            "best_choice"]
 
 log = logging.getLogger(__name__)
@@ -171,6 +171,8 @@ def classical_reconstructions(train_p: np.ndarray, train_vs: ViewSet, val_p: np.
         if m not in usable:
             log.info("baselines: %s does not apply to this geometry; skipped", m)
     clip = bool(cfg["clip"])
+    amounts = [float(a) for a in cfg["sharpen"]["amounts"]]
+    radius = float(cfg["sharpen"]["radius_voxels"])
     filters = _as_list(cfg["fbp_filters"])
     patience = int(cfg["patience"]) if cfg["patience"] else None
     it_p, it_vs = bin_detector(train_p, train_vs, binning)
@@ -225,10 +227,51 @@ def classical_reconstructions(train_p: np.ndarray, train_vs: ViewSet, val_p: np.
                     train_p, train_vs, reference, sharpness=sharpness, snr_db=snr_db, clip=clip, lib_path=cache,
                     max_iterations=int(cfg["mbir_max_iterations"]), num_threads=int(cfg["mbir_threads"])),
                     validator, clip=clip)
+        if any(amounts):
+            c = sharpened(c, validator, amounts=amounts, radius_voxels=radius, clip=clip)
         log.info("baselines: %s chose %s (validation PSNR %.2f dB, %.1f s)", c.method, c.params, c.val_psnr,
                  c.seconds)
         out.append(c)
     return out
+
+
+def sharpened(choice: Choice, validator: Validator, *, amounts: list[float], radius_voxels: float,
+              clip: bool = True) -> Choice:
+    """A method's chosen reconstruction sharpened by the amount its validation views prefer.
+
+    The rule of the Gaussians' read-out (:func:`ctsplat.evaluation.readout.choose_sharpening`): unsharp masking
+    with each of ``amounts`` (0 keeps the reconstruction), the best re-projection PSNR on the validation views wins.
+
+    Parameters
+    ----------
+    choice : Choice
+        The method's choice (its volume on the reference grid).
+    validator : Validator
+        The validation views the parameters were chosen on.
+    amounts : list of float
+        Candidate amounts.
+    radius_voxels : float
+        Blur radius (voxels).
+    clip : bool
+        Clip the candidates to [0, 1] (the baselines' ``clip``).
+
+    Returns
+    -------
+    Choice
+        The same method with the chosen volume, its validation PSNR, ``params["sharpen_amount"]``, the sharpening's
+        seconds added to ``seconds`` and ``selection_seconds``, and one trial per amount.
+    """
+    from ctsplat.evaluation.readout import choose_sharpening
+
+    volume, info = choose_sharpening(choice.volume, validator, amounts=amounts, radius_voxels=radius_voxels, clip=clip)
+    scores = info["sharpen_val_psnr"]
+    chosen = info["sharpen_amount"]
+    extra = info["sharpen_seconds"]
+    trials = [*choice.trials, *({"method": choice.method, **choice.params, "sharpen_amount": a, "val_psnr": v,
+                                 "seconds": extra / len(amounts)} for a, v in zip(amounts, scores, strict=True))]
+    return replace(choice, params={**choice.params, "sharpen_amount": chosen}, val_psnr=scores[amounts.index(chosen)],
+                   volume=volume, seconds=choice.seconds + extra,
+                   selection_seconds=choice.selection_seconds + extra, trials=trials)
 
 
 def best_choice(choices: list[Choice]) -> Choice | None:

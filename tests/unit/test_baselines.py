@@ -186,6 +186,20 @@ def test_run_baselines_on_a_cone_beam_geometry(tmp_path):
     assert list(df["method"]) == ["fdk", "sart", "asd_pocs"]
     assert (df["psnr3d"] > 18).all() and df["best_on_val"].sum() == 1, df
     assert json.loads(df["params"][1])["detector_binning"] == 1
+    assert all("sharpen_amount" not in json.loads(p) for p in df["params"])  # off by default
+    # offered the read-out sharpening: the same reconstructions, each sharpened by the amount validation prefers
+    amounts = [0.0, 0.3, 0.6]
+    sharp = run_baselines(vol_path, rad, tmp_path / "sharp", {**QUICK, "sharpen": {"amounts": amounts}})
+    for (_, a), (_, b) in zip(df.iterrows(), sharp.iterrows(), strict=True):
+        params = json.loads(b["params"])
+        chosen = params.pop("sharpen_amount")
+        assert params == json.loads(a["params"]) and chosen in amounts
+        assert b["val_psnr"] >= a["val_psnr"]  # amount 0 (the reconstruction itself) is a candidate
+        assert (chosen == 0) == (b["val_psnr"] == a["val_psnr"])
+    saved = load_volume(tmp_path / "sharp" / "fdk_n024.nii.gz").data
+    trials = pd.read_csv(tmp_path / "sharp" / "trials.csv")
+    assert len(trials[trials["sharpen_amount"].notna()]) == len(amounts) * len(sharp)
+    assert saved.min() >= 0 and saved.max() <= 1  # clipped like every baseline
 
 
 def test_a_cone_arc_too_short_for_fdk_skips_it_and_runs_the_others(tmp_path, caplog):
@@ -243,6 +257,8 @@ def test_baseline_choice_reads_validation_views_only(tmp_path):
     ({"sart_iterations": 3}, "sart_iterations"),
     ({"methods": ["fdk"]}, "cannot reconstruct this geometry"),
     ({"detector_binning": 5}, "baselines.detector_binning 5 must be >= 1 and divide"),
+    ({"sharpen": {"amounts": [0, -0.5]}}, "baselines.sharpen.amounts"),
+    ({"sharpen": {"radius_voxels": 0}}, "baselines.sharpen.radius_voxels"),
 ])
 def test_bad_baseline_options_fail_before_any_work(tmp_path, settings, message):
     vol = make_volume(12)

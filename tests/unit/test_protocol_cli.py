@@ -95,7 +95,46 @@ def test_protocol_baseline_budget_run_skips_the_gaussians_and_keeps_its_own_cach
     chosen = pd.read_csv(folders[0] / "baselines.csv")
     assert json.loads(chosen["params"].iloc[0])["relaxation"] == 0.5
     assert json.loads(chosen["params"].iloc[0])["iterations"] == 1
-    assert json.loads((out / "protocol.json").read_text())["baselines"]["sart_max_iterations"] == 1
+    info = json.loads((out / "protocol.json").read_text())
+    assert info["baselines"]["sart_max_iterations"] == 1
+    # the classical reconstruction is offered the Gaussians' read-out sharpening, chosen on validation alike
+    assert info["baselines"]["sharpen"] == info["train"]["sharpen"] and len(info["train"]["sharpen"]["amounts"]) > 1
+    assert "sharpen_amount" in json.loads(chosen["params"].iloc[0])
+
+
+def script(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / name), *map(str, args)],
+                          capture_output=True, text=True, env=env, cwd=cwd, timeout=600)
+
+
+@pytest.mark.slow
+def test_sharpening_a_finished_suite_gives_what_the_suite_gives_when_it_sharpens(tmp_path):
+    """protocol_sharpen.py on a suite made without sharpening equals a suite made with it, number for number."""
+    common = ["--volumes", "phantom", "--views", "6", "--size", "16", "--skip-gaussians", "--baseline-set",
+              "methods=[fdk,sart]", "--baseline-set", "sart_max_iterations=2"]
+    amounts = "[0, 0.3, 0.6, 1.0]"
+    plain, sharp = tmp_path / "plain", tmp_path / "sharp"
+    for out, sharpen in ((plain, "[0]"), (sharp, amounts)):
+        res = script("protocol.py", *common, "--baseline-set", f"sharpen.amounts={sharpen}", "--out", out,
+                     cwd=tmp_path)
+        assert res.returncode == 0, res.stderr[-3000:]
+    res = script("protocol_sharpen.py", plain, "--amounts", "0", "0.3", "0.6", "1.0", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    after = pd.read_csv(plain / "sharpened.csv").set_index("method")
+    made = pd.read_csv(next((sharp / "cache").rglob("baselines.csv"))).set_index("method")
+    assert sorted(after.index) == sorted(made.index) == ["fdk", "sart"]
+    for method, row in after.iterrows():
+        assert row["sharpen_amount"] == json.loads(made.loc[method, "params"])["sharpen_amount"]
+        assert row["val_psnr_sharpened"] == pytest.approx(made.loc[method, "val_psnr"], abs=1e-6)
+        assert row["val_psnr_sharpened"] >= row["val_psnr"]
+    table = pd.read_csv(sharp / "protocol.csv").set_index("method")
+    for method, row in after.iterrows():
+        label = next(m for m in table.index if m.split(":")[0] == method)
+        assert row["psnr3d_r2_sharpened"] == pytest.approx(table.loc[label, "psnr3d_r2"], abs=1e-6)
+    # a suite that was sharpened when it was made is refused, not sharpened twice
+    res = script("protocol_sharpen.py", sharp, cwd=tmp_path)
+    assert res.returncode == 2 and "were sharpened when they were made" in res.stderr.strip().splitlines()[-1]
 
 
 def regions(*args: str, cwd: Path) -> subprocess.CompletedProcess:
@@ -140,6 +179,16 @@ def test_protocol_regions_splits_the_error_by_region(tmp_path):
                                               (["--threshold", "1.5"], "--threshold must be in [0, 1)")])
 def test_protocol_regions_refuses_bad_input(tmp_path, args, needle):
     res = regions(tmp_path / "empty", *args, cwd=tmp_path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert needle in res.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "empty").exists()
+
+
+@pytest.mark.parametrize(("args", "needle"), [([], "no baseline suite with saved volumes under"),
+                                              (["--amounts", "0.5"], "--amounts must be >= 0 and hold 0"),
+                                              (["--radius-voxels", "0"], "--radius-voxels must be > 0")])
+def test_protocol_sharpen_refuses_bad_input(tmp_path, args, needle):
+    res = script("protocol_sharpen.py", tmp_path / "empty", *args, cwd=tmp_path)
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert needle in res.stderr.strip().splitlines()[-1]
     assert not (tmp_path / "empty").exists()
