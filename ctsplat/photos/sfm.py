@@ -31,7 +31,7 @@ import pycolmap
 
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.images import check_photos, list_photos, strip_metadata
-from ctsplat.sfm.colmap import MAPPING_THREADS, MATCHING_THREADS, extraction_options, write_model
+from ctsplat.sfm.colmap import MAPPING_THREADS, extraction_options, match_pairs, matching_options, write_model
 from ctsplat.utils import CtsplatError, atomic_dir, code_version, write_json_atomic
 
 __all__ = ["run_photo_sfm", "matching_mode"]
@@ -69,21 +69,12 @@ def _extract_and_match(db: Path, image_dir: Path, names: list[str], s: dict[str,
     mode = pycolmap.CameraMode.SINGLE if s["camera_mode"] == "single" else pycolmap.CameraMode.PER_IMAGE
     pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=mode, reader_options=reader,
                               extraction_options=ext, device=pycolmap.Device.cpu)
-    mat = pycolmap.FeatureMatchingOptions()
-    mat.num_threads = MATCHING_THREADS
-    mat.use_gpu = False
     ver = pycolmap.TwoViewGeometryOptions()
     ver.min_num_inliers = int(s["min_num_inliers"])
     ver.ransac.random_seed = int(s["seed"])
     how = matching_mode(s, len(names))
-    if how == "exhaustive":
-        pycolmap.match_exhaustive(db, matching_options=mat, verification_options=ver, device=pycolmap.Device.cpu)
-    else:
-        pair = pycolmap.SequentialPairingOptions()
-        pair.overlap = int(s["sequential_overlap"])
-        pair.loop_detection = False  # needs a vocabulary tree file; photo sets here are ordered captures
-        pycolmap.match_sequential(db, matching_options=mat, pairing_options=pair, verification_options=ver,
-                                  device=pycolmap.Device.cpu)
+    # sequential without loop detection, which needs a vocabulary tree file: photo sets here are ordered captures
+    match_pairs(db, how, matching_options(), ver, overlap=int(s["sequential_overlap"]), quadratic_overlap=True)
     return how
 
 

@@ -32,6 +32,7 @@ from ctsplat.sfm.align import evaluate_poses, umeyama
 from ctsplat.utils import CtsplatError, atomic_dir
 
 __all__ = ["MAPPING_THREADS", "MATCHING_THREADS", "REFINE_MODES", "colmap_reconstruct", "extraction_options",
+           "matching_options", "match_pairs",
            "match_features", "colmap_map", "reverse_depth", "fix_reversal", "merge_models", "model_poses",
            "set_poses_and_triangulate", "isocentric_adjust", "per_image_reproj", "write_model"]
 
@@ -82,10 +83,52 @@ def _sift_extraction(cfg: dict[str, Any]) -> pycolmap.FeatureExtractionOptions:
     return ext
 
 
-def _matching(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
+def matching_options() -> pycolmap.FeatureMatchingOptions:
+    """Feature matching options for the CPU, on :data:`MATCHING_THREADS` (the caller sets the SIFT parameters).
+
+    Returns
+    -------
+    pycolmap.FeatureMatchingOptions
+    """
     mat = pycolmap.FeatureMatchingOptions()
     mat.num_threads = MATCHING_THREADS
     mat.use_gpu = False
+    return mat
+
+
+def match_pairs(db_path: str | Path, how: str, matching: pycolmap.FeatureMatchingOptions,
+                verification: pycolmap.TwoViewGeometryOptions, *, overlap: int, quadratic_overlap: bool) -> None:
+    """Match and verify a database's features: every pair, or each image with its successors.
+
+    Parameters
+    ----------
+    db_path : str or Path
+        COLMAP database with images and keypoints; the verified matches are added to it.
+    how : {"exhaustive", "sequential"}
+        Every pair, or each image with its ``overlap`` successors in name order.
+    matching : pycolmap.FeatureMatchingOptions
+        From :func:`matching_options`, its SIFT parameters set.
+    verification : pycolmap.TwoViewGeometryOptions
+        Two-view geometry verification.
+    overlap : int
+        Successors per image (sequential).
+    quadratic_overlap : bool
+        Sequential: also the successors at quadratic distances (COLMAP's default).
+    """
+    if how == "exhaustive":
+        pycolmap.match_exhaustive(db_path, matching_options=matching, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
+        return
+    pair = pycolmap.SequentialPairingOptions()
+    pair.overlap = int(overlap)
+    pair.quadratic_overlap = bool(quadratic_overlap)
+    pair.num_threads = MATCHING_THREADS
+    pycolmap.match_sequential(db_path, matching_options=matching, pairing_options=pair,
+                              verification_options=verification, device=pycolmap.Device.cpu)
+
+
+def _matching(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
+    mat = matching_options()
     mat.sift.max_ratio = float(cfg["max_ratio"])
     mat.sift.max_distance = float(cfg["max_distance"])
     ver = pycolmap.TwoViewGeometryOptions()
@@ -243,16 +286,8 @@ def match_features(db_path: str | Path, image_names: list[str], config: dict[str
     if matching not in ("exhaustive", "sequential"):
         raise CtsplatError(f"unknown sfm.matching {matching!r}; allowed: exhaustive, sequential")
     mat, ver = _matching(cfg)
-    if matching == "exhaustive":
-        pycolmap.match_exhaustive(db_path, matching_options=mat, verification_options=ver, device=pycolmap.Device.cpu)
-        return
-    pair = pycolmap.SequentialPairingOptions()
-    pair.overlap = int(cfg["sequential_overlap"])
-    pair.quadratic_overlap = False
-    pair.num_threads = MATCHING_THREADS
-    pycolmap.match_sequential(db_path, matching_options=mat, pairing_options=pair, verification_options=ver,
-                              device=pycolmap.Device.cpu)
-    if float(cfg.get("_arc_deg", 360.0)) >= 360.0:
+    match_pairs(db_path, matching, mat, ver, overlap=int(cfg["sequential_overlap"]), quadratic_overlap=False)
+    if matching == "sequential" and float(cfg.get("_arc_deg", 360.0)) >= 360.0:
         _match_loop_closure(Path(db_path), image_names, int(cfg["sequential_overlap"]), mat, ver)
 
 
