@@ -39,9 +39,14 @@ COLUMNS = ["volume", "views", "method", "params", "val_psnr", "val_psnr_sharpene
            "sharpen_seconds"]
 
 
-def suites(out: Path) -> list[Path]:
-    """Every baseline suite folder (``baselines.json`` beside saved volumes) under a protocol ``--out`` folder."""
-    return sorted(p.parent for p in (out / "cache").glob("*-s*/baselines_*/baselines.json"))
+def suites(out: Path) -> tuple[list[Path], list[Path]]:
+    """The baseline suite folders (``baselines.json`` beside saved volumes) under a protocol ``--out`` folder:
+    those made without sharpening, and those whose reconstructions were sharpened when made (not sharpened
+    twice)."""
+    found = sorted(p.parent for p in (out / "cache").glob("*-s*/baselines_*/baselines.json"))
+    made_sharp = [f for f in found if any(json.loads((f / "baselines.json").read_text())["config"]
+                                          .get("sharpen", {}).get("amounts", [0.0]))]
+    return [f for f in found if f not in made_sharp], made_sharp
 
 
 def sharpen_suite(folder: Path, *, amounts: list[float], radius_voxels: float, threshold: float,
@@ -56,9 +61,6 @@ def sharpen_suite(folder: Path, *, amounts: list[float], radius_voxels: float, t
 
     info = json.loads((folder / "baselines.json").read_text())
     cfg = info["config"]
-    if any(cfg.get("sharpen", {}).get("amounts", [0.0])):
-        raise CtsplatError(f"{folder}: its reconstructions were sharpened when they were made (baselines.sharpen); "
-                           "this script is for suites made without it")
     reference = load_volume(info["volume_path"])
     p_all, vs_all = load_radiographs(info["radiographs_dir"])
     if vs_all.volume_id != reference.volume_id:
@@ -95,7 +97,7 @@ def sharpen_suite(folder: Path, *, amounts: list[float], radius_voxels: float, t
             "psnr3d_object": region_scores(volume.astype(np.float64), ref, threshold=threshold)["psnr3d_object"],
             "psnr3d_object_sharpened": region_scores(sharp.volume.astype(np.float64), ref,
                                                      threshold=threshold)["psnr3d_object"],
-            "sharpen_seconds": sharp.seconds - choice.seconds})
+            "sharpen_seconds": sharp.selection_seconds - choice.selection_seconds})
     return rows
 
 
@@ -115,18 +117,21 @@ def run(argv: list[str] | None = None) -> int:
     ap.add_argument("--threshold", type=float, default=0.01, help="reference value above which a voxel is object")
     ap.add_argument("--device", default="auto", help="the validation re-projection's device")
     args = ap.parse_args(argv)
-    if 0.0 not in args.amounts or min(args.amounts) < 0:
-        raise CtsplatError(f"--amounts must be >= 0 and hold 0 (the reconstruction itself), got {args.amounts}")
+    if 0.0 not in args.amounts or min(args.amounts) < 0 or max(args.amounts) > 4:
+        raise CtsplatError(f"--amounts must be in [0, 4] and hold 0 (the reconstruction itself), got {args.amounts}")
     if not args.radius_voxels > 0:
         raise CtsplatError(f"--radius-voxels must be > 0, got {args.radius_voxels}")
     if not 0.0 <= args.threshold < 1.0:
         raise CtsplatError(f"--threshold must be in [0, 1), got {args.threshold}")
     tables = []
     for out in map(Path, args.out):
-        found = suites(out)
+        found, made_sharp = suites(out)
+        for folder in made_sharp:
+            print(f"skipped {folder}: its reconstructions were sharpened when they were made (baselines.sharpen)",
+                  file=sys.stderr)
         if not found:
-            raise CtsplatError(f"no baseline suite with saved volumes under {out}/cache; give a protocol.py --out "
-                               "folder")
+            raise CtsplatError(f"no baseline suite made without sharpening, with saved volumes, under {out}/cache; "
+                               "give a protocol.py --out folder")
         rows = [row for folder in found for row in sharpen_suite(folder, amounts=list(args.amounts),
                                                                    radius_voxels=args.radius_voxels,
                                                                    threshold=args.threshold, device=args.device)]

@@ -131,9 +131,10 @@ def preprocessing_in_effect(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """A ``preprocessing`` section with every setting that has no effect reset to its default.
 
     ``denoise_weight`` acts only with a ``denoise`` method, ``window`` only with ``intensity: window``,
-    ``mu_water_per_mm`` and ``hu_max`` with every intensity but ``hu``, and ``grid`` only without
-    ``voxel_size_mm``. Ingest records the section in this form, and the workflow compares it in this form, so
-    changing a setting that does nothing neither reruns ingest (and everything after it) nor changes the record.
+    ``mu_water_per_mm`` with every intensity but ``hu``, ``hu_max`` only with ``attenuation`` and ``mu``, and
+    ``grid`` only without ``voxel_size_mm``. Ingest records the section in this form, and the workflow compares it
+    in this form, so changing a setting that does nothing neither reruns ingest (and everything after it) nor
+    changes the record.
 
     Parameters
     ----------
@@ -159,7 +160,9 @@ def preprocessing_in_effect(cfg: Mapping[str, Any]) -> dict[str, Any]:
     if out["intensity"] != "window":
         inert.append("window")
     if out["intensity"] == "hu":
-        inert += ["mu_water_per_mm", "hu_max"]
+        inert.append("mu_water_per_mm")
+    if out["intensity"] in ("window", "hu"):
+        inert.append("hu_max")
     if out["voxel_size_mm"] is not None:
         inert.append("grid")
     for key in inert:

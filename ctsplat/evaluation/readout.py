@@ -91,7 +91,8 @@ def choose_sharpening(volume: np.ndarray, validator: Any, *, amounts: list[float
         The chosen read-out.
     info : dict
         ``sharpen_amount`` (chosen), ``sharpen_radius_voxels``, ``sharpen_val_psnr`` (dB per candidate, in
-        ``amounts`` order) and ``sharpen_seconds`` (filtering and scoring, s).
+        ``amounts`` order), ``sharpen_filter_seconds`` (filtering only, per candidate) and ``sharpen_seconds``
+        (filtering and scoring, s).
 
     Examples
     --------
@@ -102,9 +103,13 @@ def choose_sharpening(volume: np.ndarray, validator: Any, *, amounts: list[float
     from ctsplat.recon.select import choose
 
     t0 = time.perf_counter()
+    # amount 0 is the volume as given (sharpen would also clip it at 0, which an unclipped reconstruction is not)
     choice = choose("sharpen", [{"amount": float(a)} for a in amounts],
-                    lambda amount: sharpen(volume, amount=amount, radius_voxels=radius_voxels), validator, clip=clip)
+                    lambda amount: volume if amount == 0 else sharpen(volume, amount=amount,
+                                                                      radius_voxels=radius_voxels),
+                    validator, clip=clip)
     info = {"sharpen_amount": choice.params["amount"], "sharpen_radius_voxels": float(radius_voxels),
             "sharpen_val_psnr": [t["val_psnr"] for t in choice.trials],
+            "sharpen_filter_seconds": [t["seconds"] for t in choice.trials],
             "sharpen_seconds": time.perf_counter() - t0}
     return choice.volume, info

@@ -258,20 +258,20 @@ def sharpened(choice: Choice, validator: Validator, *, amounts: list[float], rad
     Returns
     -------
     Choice
-        The same method with the chosen volume, its validation PSNR, ``params["sharpen_amount"]``, the sharpening's
-        seconds added to ``seconds`` and ``selection_seconds``, and one trial per amount.
+        The same method with the chosen volume, its validation PSNR, ``params["sharpen_amount"]``, the chosen
+        amount's filtering time added to ``seconds`` and every amount's to ``selection_seconds`` (validation scoring
+        excluded, as for the method's own candidates), and one trial per amount.
     """
     from ctsplat.evaluation.readout import choose_sharpening
 
     volume, info = choose_sharpening(choice.volume, validator, amounts=amounts, radius_voxels=radius_voxels, clip=clip)
-    scores = info["sharpen_val_psnr"]
-    chosen = info["sharpen_amount"]
-    extra = info["sharpen_seconds"]
+    scores, filtering = info["sharpen_val_psnr"], info["sharpen_filter_seconds"]
+    k = amounts.index(info["sharpen_amount"])
     trials = [*choice.trials, *({"method": choice.method, **choice.params, "sharpen_amount": a, "val_psnr": v,
-                                 "seconds": extra / len(amounts)} for a, v in zip(amounts, scores, strict=True))]
-    return replace(choice, params={**choice.params, "sharpen_amount": chosen}, val_psnr=scores[amounts.index(chosen)],
-                   volume=volume, seconds=choice.seconds + extra,
-                   selection_seconds=choice.selection_seconds + extra, trials=trials)
+                                 "seconds": sec} for a, v, sec in zip(amounts, scores, filtering, strict=True))]
+    return replace(choice, params={**choice.params, "sharpen_amount": amounts[k]}, val_psnr=scores[k],
+                   volume=volume, seconds=choice.seconds + filtering[k],
+                   selection_seconds=choice.selection_seconds + sum(filtering), trials=trials)
 
 
 def best_choice(choices: list[Choice]) -> Choice | None:

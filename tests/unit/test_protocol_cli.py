@@ -132,9 +132,10 @@ def test_sharpening_a_finished_suite_gives_what_the_suite_gives_when_it_sharpens
     for method, row in after.iterrows():
         label = next(m for m in table.index if m.split(":")[0] == method)
         assert row["psnr3d_r2_sharpened"] == pytest.approx(table.loc[label, "psnr3d_r2"], abs=1e-6)
-    # a suite that was sharpened when it was made is refused, not sharpened twice
+    # a suite that was sharpened when it was made is skipped, not sharpened twice
     res = script("protocol_sharpen.py", sharp, cwd=tmp_path)
-    assert res.returncode == 2 and "were sharpened when they were made" in res.stderr.strip().splitlines()[-1]
+    assert res.returncode == 2 and "were sharpened when they were made" in res.stderr
+    assert "no baseline suite made without sharpening" in res.stderr.strip().splitlines()[-1]
 
 
 def regions(*args: str, cwd: Path) -> subprocess.CompletedProcess:
@@ -184,8 +185,9 @@ def test_protocol_regions_refuses_bad_input(tmp_path, args, needle):
     assert not (tmp_path / "empty").exists()
 
 
-@pytest.mark.parametrize(("args", "needle"), [([], "no baseline suite with saved volumes under"),
-                                              (["--amounts", "0.5"], "--amounts must be >= 0 and hold 0"),
+@pytest.mark.parametrize(("args", "needle"), [([], "no baseline suite made without sharpening"),
+                                              (["--amounts", "0.5"], "--amounts must be in [0, 4] and hold 0"),
+                                              (["--amounts", "0", "5"], "--amounts must be in [0, 4]"),
                                               (["--radius-voxels", "0"], "--radius-voxels must be > 0")])
 def test_protocol_sharpen_refuses_bad_input(tmp_path, args, needle):
     res = script("protocol_sharpen.py", tmp_path / "empty", *args, cwd=tmp_path)

@@ -99,6 +99,17 @@ def test_a_sharp_read_out_is_left_as_it_is(validation) -> None:
     np.testing.assert_array_equal(out, vol.data)
 
 
+def test_amount_zero_is_the_volume_as_given_negative_values_included(validation) -> None:
+    """An unclipped reconstruction (FBP/FDK with clip off) keeps its negative values when 0 wins, and is scored
+    with them."""
+    vol, v = validation
+    ringing = (vol.data - 0.05 * (vol.data == 0)).astype(np.float32)  # undershoot in the air, as a ramp filter leaves
+    out, info = choose_sharpening(ringing, v, amounts=[0.0], radius_voxels=1.0)
+    np.testing.assert_array_equal(out, ringing)
+    assert info["sharpen_val_psnr"] == [pytest.approx(v.score(ringing), abs=1e-12)]
+    assert len(info["sharpen_filter_seconds"]) == 1
+
+
 @pytest.mark.parametrize(("section", "message"), [
     ({"amounts": []}, r"train\.sharpen\.amounts must be a non-empty list of numbers in \[0, 4\]"),
     ({"amounts": [0, -0.1]}, r"train\.sharpen\.amounts must be .*got \[0, -0\.1\]"),

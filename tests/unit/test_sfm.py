@@ -264,6 +264,16 @@ def test_robust_fusion_leaves_out_views_sfm_placed_wrongly_and_keeps_the_rest_as
     plain = fuse_with_design(wrong, *args)
     assert set(plain) == set(names)
     assert median_errors(plain)[0] > 1.5 * clean[0] and median_errors(plain)[1] > 1.5 * clean[1]
+    # few views for the basis: none left out (the L1 fit passes through most of them, so their median says
+    # nothing); SfM exact here, the design 1 deg off per view
+    for n_views, seed in ((16, 0), (25, 0), (25, 3)):  # each left 3-4 correct views out without that rule
+        few = design_orbit(n_views, 360.0, 15.0, 2.0, 500.0)
+        exact = design_orbit(n_views, 360.0, 15.0, 2.0, 500.0, jitter_deg=1.0, seed=seed)
+        few_names = [f"v{i}" for i in range(n_views)]
+        exact_poses = {n: (exact["Rs"][i], exact["ts"][i]) for i, n in enumerate(few_names)}
+        kept = fuse_with_design(exact_poses, few_names, few["Rs"], few["ts"], few["azimuth_deg"], 6,
+                                threshold_mm=10.0, threshold_deg=1.15)
+        assert set(kept) == set(few_names), (n_views, seed)
     # no outliers: the robust fusion keeps every view and scores as the plain one
     same = fuse_with_design(sfm, *args, threshold_mm=10.0, threshold_deg=1.0)
     assert set(same) == set(names)

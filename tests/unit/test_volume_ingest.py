@@ -169,6 +169,8 @@ def test_a_setting_that_does_nothing_changes_neither_the_volume_nor_its_record(t
     assert preprocessing_in_effect({"voxel_size_mm": 2.0, "grid": 64})["grid"] == PREPROCESSING_DEFAULTS["grid"]
     assert preprocessing_in_effect({"intensity": "hu", "hu_max": 100.0})["hu_max"] == PREPROCESSING_DEFAULTS["hu_max"]
     assert preprocessing_in_effect({"intensity": "mu", "hu_max": 100.0})["hu_max"] == 100.0
+    window = preprocessing_in_effect({"intensity": "window", "hu_max": 100.0, "mu_water_per_mm": 0.03})
+    assert window["hu_max"] == PREPROCESSING_DEFAULTS["hu_max"] and window["mu_water_per_mm"] == 0.03
     # a setting that acts: another volume
     c = ingest(src, tmp_path / "c" / "v.nii.gz", {"grid": 12, "denoise": "tv", "denoise_weight": 0.3})
     assert c.volume_id != a.volume_id
