@@ -255,6 +255,13 @@ def _sqrt_via_log(x: torch.Tensor, log_x: torch.Tensor) -> torch.Tensor:
     return torch.where(tiny, via_log, torch.sqrt(torch.where(tiny, torch.ones_like(x), x)))
 
 
+def _filter_compensation(log_scales: torch.Tensor, s2: torch.Tensor, s2f: torch.Tensor,
+                         log_s2f: torch.Tensor) -> torch.Tensor:
+    """``sqrt(|Σ| / |Σ'|)`` of the 3D filter (mass-conserving): (N, 3) log scales, variances, filtered variances
+    and their logarithms → (N,); finite in value and gradient for vanishing scales."""
+    return _sqrt_via_log(torch.prod(s2 / s2f, dim=-1), (2 * log_scales - log_s2f).sum(-1))
+
+
 # ---------------------------------------------------------------------------------------------- projection
 def _dilation(compositor: str, mip_2d: bool) -> float:
     """2D filter variance (px²) added to Σ̂: alpha low-pass 0.3 / mip 0.1 / radiative 0, plus the ``EPS_2D`` floor."""
@@ -319,8 +326,7 @@ def project(
             raise CtsplatError(f"filter_3d_var has {v.shape[0]} entries for {n} Gaussians")
         s2f = s2 + v[:, None]
         log_s2f = torch.log(s2f)
-        # sqrt(|Σ|/|Σ'|): mass-conserving
-        comp3d = _sqrt_via_log(torch.prod(s2 / s2f, dim=-1), (2 * gaussians.log_scales - log_s2f).sum(-1))
+        comp3d = _filter_compensation(gaussians.log_scales, s2, s2f, log_s2f)
     else:
         s2f = s2
         log_s2f = 2 * gaussians.log_scales
@@ -886,8 +892,7 @@ def voxelize(
     dens = kept(gaussians.densities)
     if fvar is not None:
         s2f_k = s2 + kept(fvar)
-        log_ratio = (2 * kept(gaussians.log_scales) - torch.log(s2f_k)).sum(-1)
-        dens = dens * _sqrt_via_log(torch.prod(s2 / s2f_k, -1), log_ratio)
+        dens = dens * _filter_compensation(kept(gaussians.log_scales), s2, s2f_k, torch.log(s2f_k))
     else:
         s2f_k = s2
     # precision R diag(1/s²) Rᵀ: its 6 distinct entries
