@@ -116,12 +116,12 @@ def prepare(name: str, data: Path, out: Path, size: int, n_train: int) -> tuple[
     return vol, rad
 
 
-def r2_scores(volume_path: Path, reference: np.ndarray) -> tuple[float | None, float | None]:
-    """R²-Gaussian's 3D PSNR/SSIM of a saved reconstruction (None when it was not saved)."""
+def r2_scores(volume_path: Path | None, reference: np.ndarray) -> tuple[float | None, float | None]:
+    """R²-Gaussian's 3D PSNR/SSIM of a saved reconstruction (None when it was not saved: no path)."""
     from ctsplat.evaluation.metrics import psnr3d_r2, ssim3d_r2
     from ctsplat.formats.volume import load_volume
 
-    if not volume_path.exists():
+    if volume_path is None:
         return None, None
     vol = load_volume(volume_path).data
     return psnr3d_r2(vol, reference), ssim3d_r2(vol, reference)
@@ -133,6 +133,13 @@ def baselines_folder(rad: Path, views: list[int], settings: dict[str, Any]) -> P
 
     tag = f"_{config_hash(settings)[:8]}" if settings else ""
     return rad.parent / f"baselines_{rad.name}_v{'-'.join(map(str, views))}{tag}"
+
+
+def saved_volume(bdir: Path, method: str, filt: Any, n: int) -> Path | None:
+    """The reconstruction a baseline suite saved for one method and view count (``{method}[_{filter}]_n{n}``), or
+    None when it saved none."""
+    stem = [f"{method}_{filt}_n{n:03d}.nii.gz"] if isinstance(filt, str) and filt else []
+    return next((bdir / s for s in [*stem, f"{method}_n{n:03d}.nii.gz"] if (bdir / s).exists()), None)
 
 
 def baseline_rows(name: str, vol: Path, rad: Path, views: list[int], out: Path,
@@ -159,10 +166,7 @@ def baseline_rows(name: str, vol: Path, rad: Path, views: list[int], out: Path,
     for _, b in table.iterrows():
         method, filt, n = str(b["method"]), b.get("filter"), int(b["n_views"])
         label = f"{method}:{filt}" if isinstance(filt, str) and filt else method
-        stem = [f"{method}_{filt}_n{n:03d}.nii.gz"] if isinstance(filt, str) and filt else []
-        path = next((bdir / s for s in [*stem, f"{method}_n{n:03d}.nii.gz"] if (bdir / s).exists()),
-                    bdir / f"{method}_n{n:03d}.nii.gz")
-        p_r2, s_r2 = r2_scores(path, reference)
+        p_r2, s_r2 = r2_scores(saved_volume(bdir, method, filt, n), reference)
         seconds = float(b["seconds"])
         rows.append({"volume": name, "views": n, "method": label, "psnr3d_r2": p_r2, "ssim3d_r2": s_r2,
                      "psnr3d": float(b["psnr3d"]), "ssim3d": float(b["ssim3d"]),

@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from _common import cli_main  # noqa: E402
-from protocol import PROTOCOL_TRAIN  # noqa: E402
+from protocol import PROTOCOL_TRAIN, saved_volume  # noqa: E402
 from protocol_regions import region_scores  # noqa: E402
 
 COLUMNS = ["volume", "views", "method", "params", "val_psnr", "val_psnr_sharpened", "sharpen_amount", "psnr3d_r2",
@@ -75,9 +75,7 @@ def sharpen_suite(folder: Path, *, amounts: list[float], radius_voxels: float, t
     rows = []
     for r in info["results"]:
         n = int(r["n_views"])
-        stem = f"{r['method']}_{r['filter']}_n{n:03d}" if r.get("filter") else f"{r['method']}_n{n:03d}"
-        path = next((folder / f"{s}.nii.gz" for s in (stem, f"{r['method']}_n{n:03d}")
-                     if (folder / f"{s}.nii.gz").exists()), None)
+        path = saved_volume(folder, r["method"], r.get("filter"), n)
         if path is None:
             raise CtsplatError(f"{folder}: no saved volume of {r['method']} at {n} views; rerun protocol.py")
         params = json.loads(r["params"])
