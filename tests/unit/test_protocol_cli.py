@@ -16,10 +16,15 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def bench(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+def script(name: str, *args: str, cwd: Path, timeout: float = 600) -> subprocess.CompletedProcess:
+    """Run ``benchmarks/{name}`` with ``args`` in ``cwd`` (the repository on the path)."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / "protocol.py"), *map(str, args)],
-                          capture_output=True, text=True, env=env, cwd=cwd, timeout=600)
+    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / name), *map(str, args)],
+                          capture_output=True, text=True, env=env, cwd=cwd, timeout=timeout)
+
+
+def bench(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return script("protocol.py", *args, cwd=cwd)
 
 
 @pytest.mark.parametrize(
@@ -102,12 +107,6 @@ def test_protocol_baseline_budget_run_skips_the_gaussians_and_keeps_its_own_cach
     assert "sharpen_amount" in json.loads(chosen["params"].iloc[0])
 
 
-def script(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / name), *map(str, args)],
-                          capture_output=True, text=True, env=env, cwd=cwd, timeout=600)
-
-
 @pytest.mark.slow
 def test_sharpening_a_finished_suite_gives_what_the_suite_gives_when_it_sharpens(tmp_path):
     """protocol_sharpen.py on a suite made without sharpening equals a suite made with it, number for number."""
@@ -139,9 +138,7 @@ def test_sharpening_a_finished_suite_gives_what_the_suite_gives_when_it_sharpens
 
 
 def regions(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / "protocol_regions.py"), *map(str, args)],
-                          capture_output=True, text=True, env=env, cwd=cwd, timeout=120)
+    return script("protocol_regions.py", *args, cwd=cwd, timeout=120)
 
 
 def test_protocol_regions_splits_the_error_by_region(tmp_path):
