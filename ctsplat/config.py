@@ -786,6 +786,8 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("sfm", "align_iterations"): _COUNT,
     ("sfm", "min_registration_rate"): _FRACTION,
     ("sfm", "max_median_rotation_error_deg"): {"type": "number", "exclusiveMinimum": 0, "maximum": 180},
+    ("sfm", "max_median_centre_error_frac"): _POSITIVE,
+    ("sfm", "min_alignment_inlier_rate"): _FRACTION,
     ("train", "supervision"): {"enum": ["line_integral", "transmission"]},
     ("train", "densify.split_mass"): {"enum": ["conserve", "halve"]},
     ("train", "densify.strategy"): {"enum": ["gradient", "error", "both"]},

@@ -27,6 +27,8 @@ SFM_COLUMNS: dict[str, str] = {
     "sfm_rot_err_deg_median": "rot_err_deg_median",
     "sfm_rot_err_deg_p90": "rot_err_deg_p90",
     "sfm_centre_err_mm_median": "centre_err_mm_median",
+    "sfm_centre_err_frac_median": "centre_err_frac_median",
+    "sfm_alignment_inlier_rate": "alignment_inlier_rate",
     "sfm_registration_rate": "registration_rate",
     "sfm_ok": "ok",
 }

@@ -26,8 +26,8 @@ def run(args: argparse.Namespace) -> None:
     if args.volume is not None and not Path(args.volume).exists():
         raise CtsplatError(f"volume {args.volume} does not exist; run `ctsplat ingest` first")
     summary = run_sfm(args.radiographs, args.out_dir, cfg, seed=args.seed, volume_path=args.volume)
-    keys = ("ok", "n_views", "n_registered", "registration_rate", "models_found", "rot_err_deg_median",
-            "centre_err_mm_median")
+    keys = ("ok", "reason", "n_views", "n_registered", "registration_rate", "models_found", "rot_err_deg_median",
+            "centre_err_mm_median", "centre_err_frac_median", "alignment_inlier_rate")
     print(json.dumps({k: summary.get(k) for k in keys}))
 
 

@@ -141,16 +141,25 @@ SFM_DEFAULTS: dict[str, Any] = {
     "align_iterations": 500,
     "min_registration_rate": 0.8,  # ok needs at least this fraction of views in the main model
     "max_median_rotation_error_deg": 2.0,  # ... and at most this median rotation error
+    # ... and a median camera-centre error of at most this fraction of DSO: a depth-ambiguous orbit can have
+    # right rotations and wrong distances
+    "max_median_centre_error_frac": 0.05,
+    # ... and at least this share of the registered views within the alignment's inlier threshold
+    "min_alignment_inlier_rate": 0.5,
     "naive_slices": False,  # also run SfM on the raw axial slices (the failure case) and report it
     "keep_work": False,  # keep the COLMAP work folder (database, models) as colmap/; images/ is always kept
 }
 
 
-def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str, Any]) -> dict[str, Any]:
+def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str, Any], *,
+              dso_mm: float | None = None, alignment: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Summary numbers of one SfM run: registration rates, median / p90 errors, models, and the ``ok`` verdict.
 
-    ``ok`` needs a registration rate of at least ``min_registration_rate`` and a median rotation error of at
-    most ``max_median_rotation_error_deg``; otherwise ``reason`` says which numbers fell short.
+    ``ok`` needs a registration rate of at least ``min_registration_rate``, a median rotation error of at most
+    ``max_median_rotation_error_deg``, a median camera-centre error of at most ``max_median_centre_error_frac``
+    of ``dso_mm`` (when given) and at least ``min_alignment_inlier_rate`` of the registered views within the
+    alignment's inlier threshold (when ``alignment`` is given); otherwise ``reason`` names each number that fell
+    short.
 
     Parameters
     ----------
@@ -161,6 +170,11 @@ def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str,
         ``merged``).
     cfg : dict
         The ``sfm`` section (the verdict thresholds).
+    dso_mm : float, optional
+        Source-to-isocentre distance (mm), the scale of the centre-error check; None skips that check.
+    alignment : mapping, optional
+        The alignment of :func:`ctsplat.sfm.align.evaluate_poses` (``ok``, ``n_inliers``, ``n_used``); None
+        skips the inlier check.
 
     Returns
     -------
@@ -168,7 +182,17 @@ def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str,
         ``n_views``, ``n_registered``, ``registration_rate`` and ``largest_model_rate`` (fractions),
         ``models_found``, ``model_sizes``, ``merged``, ``rot_err_deg_median`` / ``_p90`` and
         ``rot_err_rotalign_deg_median`` (degrees), ``centre_err_mm_median`` / ``_p90`` (mm),
-        ``reproj_err_px_median`` (px) (each None when no value is finite), ``ok`` and, when not ok, ``reason``.
+        ``centre_err_frac_median`` (of DSO), ``alignment_inlier_rate`` (fraction), ``reproj_err_px_median`` (px)
+        (each None when it has no value), ``ok`` and, when not ok, ``reason``.
+
+    Examples
+    --------
+    >>> rows = [{"registered": True, "rot_err_deg": 0.4, "centre_err_mm": 30.0}] * 10
+    >>> cfg = dict(SFM_DEFAULTS)
+    >>> summarize(rows, {"model_sizes": [10]}, cfg)["ok"]
+    True
+    >>> summarize(rows, {"model_sizes": [10]}, cfg, dso_mm=400.0)["reason"]
+    'median centre error 0.075 of DSO (need <= 0.05)'
     """
     V = len(rows)
     reg = [r for r in rows if r["registered"] and np.isfinite(r["rot_err_deg"])]
@@ -196,13 +220,28 @@ def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str,
         "centre_err_mm_p90": q(cen, 90),
         "reproj_err_px_median": q(rep, 50),
     }
-    ok = (out["registration_rate"] >= cfg["min_registration_rate"] and out["rot_err_deg_median"] is not None
-          and out["rot_err_deg_median"] <= cfg["max_median_rotation_error_deg"])
-    out["ok"] = bool(ok)
-    if not ok:
-        out["reason"] = (f"registration rate {out['registration_rate']:.2f} (need >= {cfg['min_registration_rate']}),"
-                         f" median rotation error {out['rot_err_deg_median']} deg"
-                         f" (need <= {cfg['max_median_rotation_error_deg']})")
+    centre = out["centre_err_mm_median"]
+    out["centre_err_frac_median"] = centre / dso_mm if dso_mm and centre is not None else None
+    aligned = alignment is not None and alignment.get("ok") and int(alignment.get("n_used", 0)) > 0
+    out["alignment_inlier_rate"] = (int(alignment["n_inliers"]) / int(alignment["n_used"])
+                                    if alignment is not None and aligned else None)
+    short = []
+    if out["registration_rate"] < cfg["min_registration_rate"]:
+        short.append(f"registration rate {out['registration_rate']:.2f} (need >= {cfg['min_registration_rate']})")
+    rot_median = out["rot_err_deg_median"]
+    if rot_median is None or rot_median > cfg["max_median_rotation_error_deg"]:
+        shown = "none (fewer than 3 views registered)" if rot_median is None else f"{rot_median:.3g} deg"
+        short.append(f"median rotation error {shown} (need <= {cfg['max_median_rotation_error_deg']} deg)")
+    frac = out["centre_err_frac_median"]
+    if frac is not None and frac > cfg["max_median_centre_error_frac"]:
+        short.append(f"median centre error {frac:.3g} of DSO (need <= {cfg['max_median_centre_error_frac']})")
+    inliers = out["alignment_inlier_rate"]
+    if inliers is not None and inliers < cfg["min_alignment_inlier_rate"]:
+        short.append(f"{inliers:.2f} of the registered views within the alignment threshold"
+                     f" (need >= {cfg['min_alignment_inlier_rate']})")
+    out["ok"] = not short
+    if short:
+        out["reason"] = "; ".join(short)
     return out
 
 
@@ -272,7 +311,7 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
         Image file name prefix.
     scale_mm : float
         Length scale of the orbit (DSO, mm); the alignment inlier threshold is ``align_inlier_threshold_frac``
-        times this.
+        times this, and the verdict's centre-error bound ``max_median_centre_error_frac`` times this.
     prior_centres : ndarray, shape (V, 3), optional
         Designed camera centres (world mm) for ``pose_prior: position``.
     prior_poses : tuple of ndarray, optional
@@ -345,7 +384,7 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
         r["in_main_model"] = r["name"] in reproj or (main is not None and main.find_image_with_name(r["name"])
                                                        is not None and r["registered"] and r["name"] in
                                                        model_poses(main))
-    summary = summarize(rows, report, cfg)
+    summary = summarize(rows, report, cfg, dso_mm=scale_mm, alignment=align)
     summary["colmap"] = stats
     summary["reversal"] = reversal
     if unfused is not None:

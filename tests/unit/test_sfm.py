@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from ctsplat.geometry import ConeCamera, camera_center, project_points, support_radius_mm
 from ctsplat.sfm.align import evaluate_poses, robust_sim3, rotation_error_deg, umeyama
 from ctsplat.sfm.features import enhance_for_features
-from ctsplat.sfm.step import SFM_DEFAULTS, summarize
+from ctsplat.sfm.step import SFM_DEFAULTS, sfm_failure, summarize
 from ctsplat.utils import CtsplatError, merge_config
 
 
@@ -179,6 +179,28 @@ def test_evaluate_poses_with_too_few_registrations_reports_not_ok() -> None:
     assert all(np.isnan(r["rot_err_deg"]) for r in rows)
     summ = summarize(rows, {"models_found": 1, "model_sizes": [2]}, merge_config("sfm", {}, SFM_DEFAULTS))
     assert summ["ok"] is False and summ["registration_rate"] == 0.0 and "registration rate" in summ["reason"]
+
+
+def test_the_verdict_fails_right_rotations_with_wrong_centres_or_few_inliers() -> None:
+    """Rotations alone do not make an orbit: wrong camera distances, or most views off the alignment, fail."""
+    cfg = merge_config("sfm", {}, SFM_DEFAULTS)
+    report = {"models_found": 1, "model_sizes": [20]}
+    rows = [{"registered": True, "rot_err_deg": 0.3, "centre_err_mm": 10.0 + i} for i in range(20)]
+    good = summarize(rows, report, cfg, dso_mm=400.0, alignment={"ok": True, "n_inliers": 17, "n_used": 20})
+    assert good["ok"] is True and good["centre_err_frac_median"] == pytest.approx(19.5 / 400.0)
+    assert good["alignment_inlier_rate"] == pytest.approx(0.85)
+    far = [dict(r, centre_err_mm=30.0 + i) for i, r in enumerate(rows)]  # median 39.5 mm, 9.9 % of DSO
+    bad = summarize(far, report, cfg, dso_mm=400.0, alignment={"ok": True, "n_inliers": 7, "n_used": 20})
+    assert bad["ok"] is False and bad["rot_err_deg_median"] <= cfg["max_median_rotation_error_deg"]
+    assert bad["reason"] == ("median centre error 0.0988 of DSO (need <= 0.05); 0.35 of the registered views"
+                             " within the alignment threshold (need >= 0.5)")
+    assert sfm_failure(bad) == bad["reason"]
+    loose = merge_config("sfm", {"max_median_centre_error_frac": 0.1, "min_alignment_inlier_rate": 0.3},
+                         SFM_DEFAULTS)
+    assert summarize(far, report, loose, dso_mm=400.0, alignment={"ok": True, "n_inliers": 7, "n_used": 20})["ok"]
+    unscaled = summarize(far, report, cfg)  # no DSO, no alignment: only registration and rotation are checked
+    assert unscaled["ok"] is True and unscaled["centre_err_frac_median"] is None
+    assert unscaled["alignment_inlier_rate"] is None
 
 
 def test_unknown_config_key_is_rejected() -> None:

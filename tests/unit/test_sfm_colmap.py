@@ -74,6 +74,8 @@ def test_bead_views_register_in_one_model_with_accurate_poses(bead_run) -> None:
     # tiny size, 112 px and f ~ 200 px, the recovered orbit is tilted by a few degrees - see benchmarks/sfm.py)
     assert s["rot_err_deg_median"] < 10.0
     assert s["centre_err_mm_median"] < 0.05 * ORBIT["dso_mm"]
+    assert s["centre_err_frac_median"] == pytest.approx(s["centre_err_mm_median"] / ORBIT["dso_mm"])
+    assert s["alignment_inlier_rate"] == s["alignment"]["n_inliers"] / s["alignment"]["n_used"] >= 0.5
     assert s["ok"] is True
     on_disk = json.loads((out / "summary.json").read_text())
     assert on_disk["registration_rate"] == pytest.approx(s["registration_rate"])
