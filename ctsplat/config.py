@@ -15,6 +15,7 @@ import argparse
 import copy
 import functools
 import importlib
+import math
 import os
 import textwrap
 from collections.abc import Iterable, Mapping
@@ -136,9 +137,24 @@ def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any] | None 
     """
     schema = load_schema() if schema is None else schema
     filled = copy.deepcopy(dict(config))
+    _reject_non_finite(filled)
     cls = _validator_with_defaults()
     _raise_first_error(cls(schema).iter_errors(filled))
     return filled
+
+
+def _reject_non_finite(value: Any, prefix: tuple[Any, ...] = ()) -> None:
+    """Refuse NaN and infinite numbers anywhere in a config (JSON schema ranges let NaN through, and ``--set x=NaN``
+    or YAML's ``.nan`` parse as numbers); one line naming the key path."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise CtsplatError(f"invalid config at {_key_path(list(prefix))}: {value} is not a finite number; give a "
+                           "finite value")
+    if isinstance(value, Mapping):
+        for k, v in value.items():
+            _reject_non_finite(v, (*prefix, k))
+    elif isinstance(value, list | tuple):
+        for i, v in enumerate(value):
+            _reject_non_finite(v, (*prefix, i))
 
 
 def _raise_first_error(errors: Iterable[Any], prefix: Iterable[Any] = ()) -> None:
@@ -227,7 +243,9 @@ def check_values(values: Mapping[str, Any], schema: Mapping[str, Any], where: st
     """
     from jsonschema import Draft202012Validator
 
-    _raise_first_error(Draft202012Validator(schema).iter_errors(dict(values)), where.split(".") if where else ())
+    prefix = tuple(where.split(".")) if where else ()
+    _reject_non_finite(dict(values), prefix)
+    _raise_first_error(Draft202012Validator(schema).iter_errors(dict(values)), prefix)
 
 
 def check_section(section: str, values: Mapping[str, Any], where: str | None = None) -> dict[str, Any]:

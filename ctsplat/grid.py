@@ -360,10 +360,16 @@ def parse_run_dir(path: str | os.PathLike[str]) -> dict[str, Any]:
         if "~" in p:
             key, _, val = p.partition("~")
             if key in ALL_AXES:
-                out[key] = int(val) if key in INT_AXES else float(val) if key in FLOAT_AXES else val
+                try:
+                    out[key] = int(val) if key in INT_AXES else float(val) if key in FLOAT_AXES else val
+                except ValueError:
+                    kind = "an integer" if key in INT_AXES else "a number"
+                    raise CtsplatError(f"{path}: not a run folder ({p}: {key} must be {kind}); point at the "
+                                       "workflow's results folder or a run folder in it") from None
     missing = [a for a in GRID_AXES if a not in out]
     if missing:
-        raise CtsplatError(f"{path}: not a run folder (no {missing[0]}~<value> component)")
+        raise CtsplatError(f"{path}: not a run folder (no {missing[0]}~<value> component); point at the workflow's "
+                           "results folder or a run folder in it")
     if "runs" in parts:
         i = len(parts) - 1 - parts[::-1].index("runs")
         if i >= 1:

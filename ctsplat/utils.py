@@ -35,6 +35,7 @@ __all__ = [
     "scratch_dir",
     "save_torch_atomic",
     "write_json_atomic",
+    "read_json_object",
     "json_safe",
     "code_version",
     "compute_platform",
@@ -334,6 +335,51 @@ def save_torch_atomic(path: str | os.PathLike[str], obj: Any) -> None:
 
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         torch.save(obj, fh)
+
+
+def read_json_object(path: str | os.PathLike[str], *, what: str, fix: str) -> dict[str, Any]:
+    """The JSON object (a mapping) a file holds, or a one-line error naming the file, what is wrong and ``fix``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    what : str
+        What the file is, for the message (``"view set"``, ``"run config"``).
+    fix : str
+        How to get a good one, for the message (``"re-render the radiographs"``).
+
+    Returns
+    -------
+    dict
+        The parsed object.
+
+    Raises
+    ------
+    CtsplatError
+        When the file is missing, not UTF-8 JSON, or holds something other than an object.
+
+    Examples
+    --------
+    >>> _ = Path("list.json").write_text("[1, 2]")
+    >>> read_json_object("list.json", what="run config", fix="train the run again")
+    Traceback (most recent call last):
+    ...
+    ctsplat.utils.CtsplatError: run config list.json holds a JSON array, not an object; train the run again
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CtsplatError(f"{what} {path} does not exist; {fix}")
+    try:
+        obj = json.loads(path.read_text())
+    except UnicodeDecodeError:
+        raise CtsplatError(f"{what} {path} is not a text (JSON) file; {fix}") from None
+    except json.JSONDecodeError as exc:
+        raise CtsplatError(f"{what} {path} is not valid JSON ({exc}); {fix}") from None
+    if not isinstance(obj, dict):
+        kind = {list: "array", str: "string", bool: "boolean", type(None): "null"}.get(type(obj), "number")
+        raise CtsplatError(f"{what} {path} holds a JSON {kind}, not an object; {fix}")
+    return obj
 
 
 def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:

@@ -23,7 +23,7 @@ import numpy as np
 import scipy.sparse as sparse
 from threadpoolctl import threadpool_limits
 
-from ctsplat.formats.volume import Volume, compute_volume_id, save_volume
+from ctsplat.formats.volume import Volume, compute_volume_id, json_path_for, save_volume
 from ctsplat.utils import CtsplatError, code_version, merge_config
 
 __all__ = [
@@ -591,6 +591,16 @@ def _map_intensity(values: np.ndarray, cfg: dict[str, Any], units: str) -> tuple
 # --------------------------------------------------------------------------------------------------
 
 
+def _check_not_the_source(source: Path, out_path: Path) -> None:
+    """Refuse an output (or its ``volume.json`` sidecar) that is the source file or lies in the source folder."""
+    src = source.resolve()
+    for out in (out_path, json_path_for(out_path)):
+        target = out.resolve()
+        if target == src or src in target.parents:
+            raise CtsplatError(f"output {out} is, or lies inside, the source {source}; writing it would change the "
+                               "input: choose an output path outside it")
+
+
 def ingest(
     source: str | Path | Any,
     out_path: str | Path,
@@ -652,6 +662,8 @@ def ingest(
     out_path = Path(out_path)
     if not out_path.name.endswith((".nii.gz", ".nii")):
         raise CtsplatError(f"output {out_path} must end in .nii.gz or .nii")
+    if not isinstance(source, SliceStack):
+        _check_not_the_source(Path(source), out_path)
     cfg = merge_config("preprocessing", preprocessing, PREPROCESSING_DEFAULTS)
     check_preprocessing(cfg)
     cfg = preprocessing_in_effect(cfg)

@@ -80,8 +80,9 @@ def main(argv: list[str] | None = None) -> int:
     Returns
     -------
     int
-        0 on success, 2 for a user error (:class:`~ctsplat.utils.CtsplatError`) or a file-system error
-        (``OSError``: unreadable input, unwritable or blocked output path), 130 when interrupted (Ctrl-C), 143 when
+        0 on success, 2 for a user error (:class:`~ctsplat.utils.CtsplatError`), a file-system error
+        (``OSError``: unreadable input, unwritable or blocked output path) or too little memory for the sizes asked
+        for (``MemoryError``), 130 when interrupted (Ctrl-C), 143 when
         terminated (SIGTERM: ``kill``, a cluster's cancel or time limit). Every
         output file is written under a temporary name first, so an error leaves no half-written file.
     """
@@ -97,6 +98,12 @@ def main(argv: list[str] | None = None) -> int:
         args.func(args)
     except CtsplatError as exc:
         print(f"ctsplat {args.command}: error: {one_line(str(exc))}", file=sys.stderr)
+        return 2
+    except MemoryError as exc:
+        logging.getLogger(__name__).debug("out of memory", exc_info=True)
+        print(f"ctsplat {args.command}: error: out of memory ({one_line(str(exc)) or 'an allocation failed'}); "
+              "choose smaller sizes (grid, size, views, image size) or run on a machine with more memory",
+              file=sys.stderr)
         return 2
     except OSError as exc:
         logging.getLogger(__name__).debug("file-system error", exc_info=True)  # the traceback with -v

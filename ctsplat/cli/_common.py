@@ -25,6 +25,8 @@ def load_section(path: str | None, section: str) -> dict[str, Any]:
     try:
         # JSON by its own parser: YAML 1.1 reads exponents without a dot (5e-05, as json.dumps writes them) as text
         cfg = (json.loads(p.read_text()) if p.suffix.lower() == ".json" else yaml.safe_load(p.read_text())) or {}
+    except UnicodeDecodeError:
+        raise CtsplatError(f"config file {p} is not a text (YAML/JSON) file; give the config file") from None
     except (yaml.YAMLError, json.JSONDecodeError) as exc:
         raise CtsplatError(f"config file {p} is not valid YAML/JSON: {str(exc).splitlines()[0]}") from exc
     if not isinstance(cfg, dict):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from ctsplat.cli._common import load_section
@@ -29,6 +30,8 @@ def _rescale(text: str) -> list[float]:
     parts = [float(x) for x in text.split(",")]
     if len(parts) != 2:
         raise argparse.ArgumentTypeError("rescale must be SLOPE,INTERCEPT (e.g. 1,-1024)")
+    if not all(math.isfinite(x) for x in parts):
+        raise argparse.ArgumentTypeError(f"rescale SLOPE,INTERCEPT must be finite numbers (e.g. 1,-1024), got {text}")
     if not parts[0] > 0:
         raise argparse.ArgumentTypeError(f"rescale SLOPE must be > 0, got {parts[0]:g}")
     return parts
@@ -36,6 +39,9 @@ def _rescale(text: str) -> list[float]:
 
 def _voxel(text: str) -> float | list[float]:
     parts = [float(x) for x in text.split(",")]
+    if len(parts) not in (1, 3) or not all(math.isfinite(x) and x > 0 for x in parts):
+        raise argparse.ArgumentTypeError(f"voxel size must be S or X,Y,Z in mm, each a finite number > 0 (e.g. "
+                                         f"0.5,0.5,1.25), got {text}")
     return parts[0] if len(parts) == 1 else parts
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 from ctsplat.utils import CtsplatError
 
@@ -29,8 +30,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> None:
     from ctsplat.splat.render import render_to_folder
 
-    if args.mu_scale is not None and not args.mu_scale > 0:
-        raise CtsplatError(f"--mu-scale must be > 0 (densities are multiplied by it), got {args.mu_scale:g}")
+    if args.mu_scale is not None and not 0 < args.mu_scale < math.inf:
+        raise CtsplatError(f"--mu-scale must be a finite number > 0 (densities are multiplied by it), got "
+                           f"{args.mu_scale:g}")
     info = render_to_folder(args.model, args.views, args.out, compositor=args.compositor, split=args.split,
                             mip=args.mip, mu_scale=args.mu_scale, device=args.device)
     print(f"rendered {info['n_views']} views of {info['n_gaussians']} Gaussians in {info['seconds']:.2f} s "

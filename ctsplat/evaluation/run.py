@@ -31,6 +31,7 @@ from ctsplat.utils import (
     code_version,
     compute_platform,
     json_safe,
+    read_json_object,
     resolve_device,
     write_json_atomic,
 )
@@ -435,7 +436,10 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     if unknown:
         raise CtsplatError(f"evaluate settings: {unknown[0]!r} is not an evaluation key; allowed: "
                            f"{', '.join(EVALUATION_KEYS)}")
-    run_cfg = json.loads((run_dir / "config.json").read_text())
+    fix = "train the run again (`ctsplat train`)"
+    run_cfg = read_json_object(run_dir / "config.json", what="run config", fix=fix)
+    if not isinstance(run_cfg.get("config"), dict):
+        raise CtsplatError(f"run config {run_dir / 'config.json'} has no 'config' object; {fix}")
     cfg = {**run_cfg["config"], **(settings or {})}
     model = model or cfg.get("model_selection", "last")
     if model not in ("last", "best"):
@@ -444,7 +448,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     if not model_path.exists():
         raise CtsplatError(f"{run_dir} has no {model_path.name} (model: {model}); evaluate model: last, or retrain "
                            "with a version that writes it")
-    trained = json.loads((run_dir / "training.json").read_text())
+    trained = read_json_object(run_dir / "training.json", what="training record", fix=fix)
     dev = resolve_device(device)
     scene = load_scene(cfg)
     check_validation_choices(scene, cfg, model)

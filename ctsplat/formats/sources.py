@@ -560,6 +560,8 @@ def find_dicom_series(
     folder = Path(folder)
     if not folder.exists():
         raise CtsplatError(f"input {folder} does not exist; give a DICOM folder, a .nii/.nii.gz file or a TIFF stack")
+    if not folder.is_dir():
+        raise CtsplatError(f"input {folder} is a file, not a DICOM folder; give the folder that holds the DICOM slices")
     files = _walk_files(folder)
     if not files:
         raise CtsplatError(f"input folder {folder} is empty; point ingest at a folder that contains DICOM slices")
@@ -819,6 +821,8 @@ def _read_dicom_series(
             ds = _dcmread(path, stop_before_pixels=False)
             if ds is None:
                 raise ValueError("not readable as DICOM")
+            if "PixelData" not in ds:  # pydicom returns an empty dataset (with a warning) for truncated pixel data
+                raise ValueError("the file ends before its pixel data is complete (truncated)")
         except Exception as exc:  # noqa: BLE001
             _handle_corrupt(path, label(path), f"{type(exc).__name__}: {exc}".split("\n")[0][:120], skip_corrupt,
                             skipped)
@@ -1015,8 +1019,11 @@ def _apply_missing_rescale(
 def _stack_from_affine(data: np.ndarray, affine: np.ndarray, units: str, source: dict[str, Any]) -> SliceStack:
     """Regular grid with a (possibly sheared along k) RAS affine -> SliceStack (slices ascending)."""
     a = np.asarray(affine, float)
+    if not np.isfinite(a).all():
+        raise CtsplatError("volume affine has NaN or infinite entries; fix the NIfTI header (qform/sform)")
     di, dj = np.linalg.norm(a[:3, 0]), np.linalg.norm(a[:3, 1])
-    if di <= 0 or dj <= 0 or np.linalg.norm(a[:3, 2]) <= 0:
+    dk = np.linalg.norm(a[:3, 2])
+    if di <= 0 or dj <= 0 or dk <= 0:
         raise CtsplatError("volume affine has a zero-length axis; fix the NIfTI header (qform/sform)")
     u, v = a[:3, 0] / di, a[:3, 1] / dj
     if abs(u @ v) > 1e-4:
@@ -1026,7 +1033,7 @@ def _stack_from_affine(data: np.ndarray, affine: np.ndarray, units: str, source:
     n = np.cross(u, v)
     if float(a[:3, 2] @ n) < 0:
         data, origins = data[:, :, ::-1], origins[::-1]
-    if abs(a[:3, 2] @ n) < 1e-6:
+    if abs(a[:3, 2] @ n) < 1e-6 * dk:  # relative: micrometre voxels are still a volume
         raise CtsplatError("volume affine's third axis lies in the slice plane; fix the NIfTI header")
     return SliceStack(
         data=np.ascontiguousarray(data, dtype=np.float32),
@@ -1076,7 +1083,16 @@ def read_nifti(path: str | Path, *, units: str = "hu") -> SliceStack:
         "value_range": _finite_range(data),
         "units": units,
     }
-    return _stack_from_affine(data, img.affine, units, source)
+    with nib.openers.ImageOpener(str(path)) as fh:  # the header as stored: nibabel's load sets zero pixdims to 1
+        stored = type(img.header).from_fileobj(fh, check=False)
+    pixdim = [float(z) for z in stored["pixdim"][1:4]]
+    if int(stored["sform_code"]) == 0 and int(stored["qform_code"]) == 0 and not all(z != 0 for z in pixdim):
+        raise CtsplatError(f"NIfTI {path} has voxel sizes (pixdim) {pixdim} and no qform/sform, so its voxel size is "
+                           "unknown; write the voxel size into the header")
+    try:
+        return _stack_from_affine(data, img.affine, units, source)
+    except CtsplatError as exc:
+        raise CtsplatError(f"NIfTI {path}: {exc}") from None
 
 
 def _finite_range(data: np.ndarray) -> list[float] | None:

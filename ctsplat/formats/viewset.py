@@ -16,7 +16,6 @@ Poses follow ``docs/conventions.md``: world mm, world-to-camera ``x_cam = R x_wo
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 from dataclasses import dataclass, field
@@ -26,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from ctsplat.geometry.cameras import Camera, camera_center, camera_from_dict, rotmat_to_qvec
-from ctsplat.utils import CtsplatError, atomic_dir, code_version, scratch_dir, write_json_atomic
+from ctsplat.utils import CtsplatError, atomic_dir, code_version, read_json_object, scratch_dir, write_json_atomic
 
 __all__ = [
     "VIEWSET_FORMAT",
@@ -194,7 +193,17 @@ class ViewSet:
         if version != VIEWSET_FORMAT_VERSION:
             raise CtsplatError(f"view set format_version {version} is not supported (this ctsplat reads "
                                f"{VIEWSET_FORMAT_VERSION}); re-render the radiographs")
+        if not isinstance(d["views"], list) or not all(isinstance(v, dict) for v in d["views"]):
+            raise ValueError("'views' is not a list of view objects")
         views = [View.from_dict(v) for v in d["views"]]
+        ids = [v.id for v in views]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"view id {next(i for i in ids if ids.count(i) > 1)} appears more than once")
+        for v in views:  # a file written by hand or another tool: its poses must be rotations
+            for R in (v.R, *(() if v.design is None else (v.design.R,))):
+                if not (np.isfinite(R).all() and np.allclose(R @ R.T, np.eye(3), atol=1e-4)
+                        and np.linalg.det(R) > 0):
+                    raise ValueError(f"view {v.id}: R is not a rotation matrix (orthonormal, determinant +1)")
         return cls(camera_from_dict(d["camera"]), views, str(d.get("volume_id", "unknown")),
                    np.asarray(d.get("isocenter_mm", [0, 0, 0]), float), dict(d.get("meta", {})))
 
@@ -203,10 +212,7 @@ class ViewSet:
         path = Path(path)
         if not path.exists():
             raise CtsplatError(f"view set {path} does not exist; run `ctsplat project` first")
-        try:
-            d = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise CtsplatError(f"view set {path} is not valid JSON ({exc}); re-render it") from exc
+        d = read_json_object(path, what="view set", fix="re-render it (`ctsplat project`)")
         try:
             return cls.from_dict(d)
         except CtsplatError:

@@ -24,7 +24,6 @@ References
 from __future__ import annotations
 
 import hashlib
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,7 +31,7 @@ from typing import Any
 import nibabel as nib
 import numpy as np
 
-from ctsplat.utils import CtsplatError, atomic_path, write_json_atomic
+from ctsplat.utils import CtsplatError, atomic_path, read_json_object, write_json_atomic
 
 __all__ = ["Volume", "load_volume", "save_volume", "json_path_for", "compute_volume_id", "check_attenuation"]
 
@@ -224,7 +223,11 @@ def load_volume(path: str | Path) -> Volume:
     meta: dict[str, Any] = {}
     jp = json_path_for(path)
     if jp.exists():
-        meta = json.loads(jp.read_text())
+        meta = read_json_object(jp, what="volume sidecar", fix="ingest the volume again (it writes both files)")
+        recorded = meta.get("shape")
+        if recorded is not None and list(recorded) != list(data.shape):
+            raise CtsplatError(f"volume sidecar {jp} describes a {recorded} volume, but {path} is {list(data.shape)}: "
+                               "they belong to different volumes; ingest the volume again (it writes both files)")
     return Volume(data=data, affine=np.asarray(img.affine, float), meta=meta)
 
 

@@ -141,6 +141,9 @@ def run_photo_sfm(image_dir: str | Path, out_dir: str | Path, settings: dict[str
     if s["mapper"] not in ("incremental", "global"):
         raise CtsplatError(f"unknown photos.sfm.mapper {s['mapper']!r}; allowed: incremental, global")
     check_photos(image_dir, names, single_camera=s["camera_mode"] == "single")
+    if len(names) < int(s["min_registered"]):  # said before COLMAP runs: no model can register more than this
+        raise CtsplatError(f"{image_dir} holds {len(names)} photos; SfM needs at least {s['min_registered']} "
+                           "registered in one model (photos.sfm.min_registered): add photos of the object")
     matching_mode(s, len(names))
     with contextlib.suppress(Exception):
         pycolmap.set_random_seed(int(s["seed"]))

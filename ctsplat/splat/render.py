@@ -934,7 +934,8 @@ def render_to_folder(
     views_path : str or Path
         ``views.json`` of a radiograph view set.
     out_dir : str or Path
-        Output folder (created).
+        Output folder: new, empty or an earlier render (with ``render.json``), and neither an input nor a folder
+        holding one; written whole or not at all (:func:`ctsplat.utils.atomic_dir`).
     compositor : {"radiative", "radiative_unrectified", "alpha"}
     split : {"train", "val", "test"} or None
         Only this split's views.
@@ -952,15 +953,15 @@ def render_to_folder(
         The ``render.json`` content (``n_views``, ``n_gaussians``, ``seconds``, ...).
     """
     import time
-    from pathlib import Path
 
     import imageio.v3 as iio
     import numpy as np
     import tifffile
 
     from ctsplat.formats.viewset import ViewSet
-    from ctsplat.utils import atomic_path, code_version, resolve_device, write_json_atomic
+    from ctsplat.utils import atomic_dir, check_output_dir, code_version, resolve_device, write_json_atomic
 
+    check_output_dir(out_dir, marker="render.json", inputs=(model_path, views_path))  # before the slow part
     dev = resolve_device(device)
     g = Gaussians.load(model_path, device=dev)
     vs = ViewSet.load(views_path)
@@ -972,8 +973,6 @@ def render_to_folder(
         fv = compute_3d_filter(g, vs.camera, base.Rs(), base.ts())
     if split is not None:
         vs = vs.subset(split)
-    out_dir = Path(out_dir)
-    (out_dir / "png").mkdir(parents=True, exist_ok=True)
     images = []
     t0 = time.perf_counter()
     with torch.no_grad():
@@ -984,15 +983,16 @@ def render_to_folder(
             images.append(img.detach().cpu().float().numpy())
     seconds = time.perf_counter() - t0
     stack = np.stack(images).astype(np.float32)
-    with atomic_path(out_dir / "images.tif") as tmp:
-        tifffile.imwrite(tmp, stack, photometric="minisblack", metadata={"axes": "QYX"})
-    for view, img in zip(vs.views, stack, strict=True):
-        vis = np.exp(-img.astype(np.float64)) if compositor != "alpha" else img
-        png = np.round(np.clip(vis, 0.0, 1.0) * 65535.0).astype(np.uint16)
-        with atomic_path(out_dir / "png" / f"view_{view.id:04d}.png") as tmp:
-            iio.imwrite(tmp, png, extension=".png")
     info = {"model": str(model_path), "views": str(views_path), "compositor": compositor, "split": split,
             "mip": mip, "mu_scale": scale, "n_views": len(vs), "n_gaussians": len(g), "seconds": seconds,
             "code_version": code_version()}
-    write_json_atomic(out_dir / "render.json", info)
+    # the whole folder or nothing: it replaces an earlier render only once every file is written
+    with atomic_dir(out_dir, marker="render.json", inputs=(model_path, views_path)) as tmp:
+        tifffile.imwrite(tmp / "images.tif", stack, photometric="minisblack", metadata={"axes": "QYX"})
+        (tmp / "png").mkdir()
+        for view, img in zip(vs.views, stack, strict=True):
+            vis = np.exp(-img.astype(np.float64)) if compositor != "alpha" else img
+            png = np.round(np.clip(vis, 0.0, 1.0) * 65535.0).astype(np.uint16)
+            iio.imwrite(tmp / "png" / f"view_{view.id:04d}.png", png, extension=".png")
+        write_json_atomic(tmp / "render.json", info)
     return info

@@ -415,6 +415,8 @@ def test_gather_errors(tmp_path):
         gather([], tmp_path / "s.csv")
     with pytest.raises(CtsplatError, match="not a run folder"):
         gather([tmp_path], tmp_path / "s.csv")
+    with pytest.raises(CtsplatError, match=r"not a run folder \(views~abc: views must be an integer\)"):
+        gather([tmp_path / "init~fbp/compositor~alpha/mip~off/poses~gt/views~abc/seed~0"], tmp_path / "s.csv")
     rd = tmp_path / "v" / "runs" / "init~fbp/compositor~alpha/mip~off/poses~gt/views~3/seed~0"
     rd.mkdir(parents=True)
     with pytest.raises(CtsplatError, match="neither metrics.json nor train_log.csv"):

@@ -64,6 +64,10 @@ def test_defaults_filled_from_empty_config():
         ({"volumes": {"v": {"source": "x", "tiff_voxel_size_mm": -1}}}, "volumes.v.tiff_voxel_size_mm"),
         ({"volumes": {"v": {"source": "x", "phantom": {"variant": "kak"}}}}, "volumes.v.phantom.variant"),
         ({"analysis": {"milestones": {"psnr9d": 3}}}, "analysis.milestones"),
+        # NaN is inside every JSON schema range (each comparison is false): refused as not finite
+        ({"sfm": {"settings": {"min_registration_rate": float("nan")}}}, "sfm.settings.min_registration_rate"),
+        ({"radiographs": {"c": {"elevation_range_deg": [0.0, float("inf")]}}},
+         "radiographs.c.elevation_range_deg[1]"),
     ],
 )
 def test_bad_values_name_the_key_path(config, where):

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from ctsplat.cli import main
-from ctsplat.formats.volume import Volume, save_volume
+from ctsplat.formats.volume import Volume, load_volume, save_volume
+from ctsplat.utils import LOCK_NAME
 
 ROOT = Path(__file__).resolve().parents[2]
 CTSPLAT = [sys.executable, "-c", "import sys; from ctsplat.cli import main; sys.exit(main())"]  # the console script
@@ -109,6 +110,9 @@ def test_read_only_output_folder(scene, tmp_path, capsys):
         (["train", "--set", "nan_lr_decay=2"], "train.nan_lr_decay: 2 is greater than or equal to the maximum of 1"),
         (["baseline", "--set", "sart_relaxation=-1"], "baselines.sart_relaxation: -1 is less than or equal"),
         (["project", "--set", "split={train: 0.9, val: 0.25, test: 0.25}"], "fractions must sum to 1, got 1.4"),
+        (["project", "--set", "wobble_deg=NaN"], "radiographs.wobble_deg: nan is not a finite number"),
+        (["train", "--set", "lr.means=Infinity"], "train.lr.means: inf is not a finite number"),
+        (["baseline", "--set", "asd_pocs_alpha=[0.1, .nan]"], "baselines.asd_pocs_alpha[1]: nan is not a finite"),
     ],
 )
 def test_wrong_set_values_are_refused_before_running(scene, tmp_path, capsys, args, needle):
@@ -210,9 +214,15 @@ def test_cone_source_inside_the_object(scene, tmp_path, capsys):
         (["ingest", "{vol}", "{tmp}/v.nii.gz", "--voxel-size", "-1"], "preprocessing.voxel_size_mm: -1.0 is less"),
         (["phantom", "{tmp}/ph", "--no-beads", "--n-beads", "3"], "--n-beads has no effect with --no-beads"),
         (["phantom", "{tmp}/ph", "--n-beads", "-1"], "phantom.n_beads: -1 is less than the minimum of 0"),
+        # 28 PiB: more than any address space, so the allocation fails at once on every machine
+        (["phantom", "{tmp}/ph", "--size", "100000"], "out of memory (Unable to allocate"),
         (["sfm", "{rad}", "{tmp}/sfm", "--volume", "{vol}"], "--volume is only read with naive_slices"),
         (["sfm", "{rad}", "{tmp}/sfm", "--set", "geometry=carm"], "drop geometry"),
-        (["render", "{tmp}/m.pt", "{rad}/views.json", "{tmp}/r", "--mu-scale", "0"], "--mu-scale must be > 0"),
+        (["render", "{tmp}/m.pt", "{rad}/views.json", "{tmp}/r", "--mu-scale", "0"], "--mu-scale must be a finite"),
+        (["ingest", "{vol}", "{tmp}/v.nii.gz", "--voxel-size", "nan"], "voxel_size_mm: nan is not a finite number"),
+        (["ingest", "{vol}", "{vol}", "--grid", "8"], "is, or lies inside, the source"),
+        (["ingest", "{vol}", "--list-series"], "is a file, not a DICOM folder"),
+        (["gather", "{rad}", "--out", "{tmp}/s.csv", "--milestone", "psnr2d=nan"], "psnr2d: nan is not a finite"),
         (["gather", "{rad}", "--out", "{tmp}/s.csv", "--milestone", "psnr9d=3"], "'psnr9d' was unexpected"),
         (["gather", "{rad}", "--out", "{tmp}/s.csv", "--max-gap-iters", "-1"], "analysis.max_gap_iters: -1"),
         (["analyse", "{tmp}/s.csv", "--kde-windows", "0"], "analysis.kde_windows: 0 is less than the minimum"),
@@ -228,6 +238,16 @@ def test_options_that_would_be_ignored_or_are_out_of_range_are_refused(scene, tm
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"ctsplat {args[0]}: error: ") and needle in err and "\n" not in err
     assert list(tmp_path.iterdir()) == []
+    assert load_volume(vol).volume_id == "cli"  # an output path that is the input leaves it as it was
+
+
+@pytest.mark.parametrize("value", ["1,2", "nan", "1,2,inf", "0"])
+def test_tiff_voxel_size_must_be_one_or_three_finite_positive_numbers(tmp_path, capsys, value):
+    with pytest.raises(SystemExit) as stop:
+        main(["ingest", str(tmp_path / "stack.tif"), str(tmp_path / "v.nii.gz"), "--tiff-voxel-size", value])
+    assert stop.value.code == 2
+    assert f"voxel size must be S or X,Y,Z in mm, each a finite number > 0 (e.g. 0.5,0.5,1.25), got {value}" in (
+        capsys.readouterr().err)
 
 
 # ------------------------------------------------------------------------------------------------ run outputs
@@ -312,6 +332,19 @@ def test_a_failed_train_or_evaluate_leaves_no_folder_or_lock_behind(tmp_path, ca
     mine.mkdir()
     assert main(["evaluate", str(mine)]) == 2
     assert "is not a finished training run" in capsys.readouterr().err and list(mine.iterdir()) == []
+    for name, text, needle in (("config.json", "{", "run config"), ("config.json", "[1]", "holds a JSON array"),
+                               ("config.json", '{"config_hash": "x"}', "has no 'config' object"),
+                               ("training.json", "{", "training record")):
+        run = tmp_path / f"broken_{name}_{len(text)}"
+        run.mkdir()
+        for file in ("config.json", "training.json"):
+            (run / file).write_text(text if file == name else '{"config": {}}')
+        (run / "model.pt").write_bytes(b"")
+        assert main(["evaluate", str(run)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"{run / name}" in err and needle in err and "train the run again" in err and "\n" not in err
+        written = sorted(p.name for p in run.iterdir() if p.name != LOCK_NAME)  # the lock file stays, unlocked
+        assert written == ["config.json", "model.pt", "training.json"]
 
 
 def test_train_reads_a_run_folders_config_json(tmp_path):

@@ -77,13 +77,18 @@ def test_mixed_sizes_need_a_camera_per_image(tmp_path: Path) -> None:
     assert sizes == {"a.jpg": (64, 48), "b.jpg": (64, 48), "c.jpg": (48, 64)}
 
 
-def test_too_few_registered_images_fail_with_the_count(tmp_path: Path) -> None:
+def test_too_few_registered_images_fail_with_the_count(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     photos = tmp_path / "photos"
     photos.mkdir()
     for i in range(3):  # unrelated noise: features, but no two-view geometry between them
         _jpeg(photos / f"{i}.jpg", 160, 120, seed=10 + i)
     out = tmp_path / "sfm"
     with pytest.raises(CtsplatError, match=r"registered only 0 of 3 photos .*need >= 3"):
+        run_photo_sfm(photos, out, {"num_threads": 1})
+    _nothing_written(tmp_path, out)
+    (photos / "2.jpg").unlink()  # two photos cannot give three registered ones: said before COLMAP runs
+    monkeypatch.setattr("ctsplat.photos.sfm._run", lambda *a: pytest.fail("COLMAP ran on too few photos"))
+    with pytest.raises(CtsplatError, match=r"holds 2 photos; SfM needs at least 3 registered"):
         run_photo_sfm(photos, out, {"num_threads": 1})
     _nothing_written(tmp_path, out)
 

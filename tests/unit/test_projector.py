@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import re
 import warnings
 from pathlib import Path
 
@@ -448,6 +449,50 @@ def test_a_view_set_with_a_view_missing_its_rotation_is_named(tmp_path) -> None:
     (tmp_path / "rad" / "views.json").write_text(json.dumps(d))
     with pytest.raises(CtsplatError, match=r"views\.json is malformed \(no 'R' entry\); re-render it"):
         ViewSet.load(tmp_path / "rad" / "views.json")
+
+
+@pytest.mark.parametrize(
+    ("edit", "needle"),
+    [
+        (lambda d: d["views"][1].update(R=(2 * np.asarray(d["views"][1]["R"])).tolist()),
+         "view 1: R is not a rotation matrix"),
+        (lambda d: d["views"][1].update(R=(-np.asarray(d["views"][1]["R"])).tolist()),
+         "view 1: R is not a rotation matrix"),  # orthonormal but a reflection
+        (lambda d: d["views"][2].update(id=d["views"][0]["id"]), "view id 0 appears more than once"),
+        (lambda d: d.update(views="abc"), "'views' is not a list of view objects"),
+    ],
+)
+def test_a_view_set_that_is_not_a_set_of_camera_poses_is_refused(tmp_path, edit, needle) -> None:
+    data = np.ones((8, 8, 8), np.float32)
+    save_volume(Volume(data, np.eye(4), {"volume_id": "vs"}), tmp_path / "v.nii.gz")
+    render_radiographs(tmp_path / "v.nii.gz", tmp_path / "rad", {"n_views": 4, "detector_width": 8,
+                                                                  "detector_height": 8})
+    path = tmp_path / "rad" / "views.json"
+    d = json.loads(path.read_text())
+    edit(d)
+    path.write_text(json.dumps(d))
+    with pytest.raises(CtsplatError, match=rf"views\.json is malformed \({re.escape(needle)}.*\); re-render it"):
+        ViewSet.load(path)
+
+
+@pytest.mark.parametrize(("text", "needle"), [("[]", "holds a JSON array, not an object"),
+                                                ("{", "is not valid JSON"), (b"\x89PNG\xff", "is not a text")])
+def test_a_view_set_file_that_is_not_a_json_object_is_named(tmp_path, text, needle) -> None:
+    path = tmp_path / "views.json"
+    path.write_bytes(text if isinstance(text, bytes) else text.encode())
+    with pytest.raises(CtsplatError, match=rf"^view set {re.escape(str(path))} {needle}.*re-render it"):
+        ViewSet.load(path)
+
+
+def test_a_volume_sidecar_that_does_not_belong_to_the_volume_is_refused(tmp_path) -> None:
+    save_volume(Volume(np.ones((8, 8, 8), np.float32), np.eye(4), {"volume_id": "a"}), tmp_path / "a.nii.gz")
+    save_volume(Volume(np.ones((6, 6, 6), np.float32), np.eye(4), {"volume_id": "b"}), tmp_path / "b.nii.gz")
+    (tmp_path / "a.json").write_bytes((tmp_path / "b.json").read_bytes())
+    with pytest.raises(CtsplatError, match=r"a\.json describes a \[6, 6, 6\] volume, but .*a\.nii\.gz is \[8, 8, 8\]"):
+        load_volume(tmp_path / "a.nii.gz")
+    (tmp_path / "a.json").write_text("{")
+    with pytest.raises(CtsplatError, match=r"volume sidecar .*a\.json is not valid JSON .*ingest the volume again"):
+        load_volume(tmp_path / "a.nii.gz")
 
 
 def test_radiograph_folder_is_written_whole_or_not_at_all(tmp_path) -> None:

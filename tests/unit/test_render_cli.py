@@ -91,3 +91,39 @@ def test_render_cli_uses_the_filter_a_model_was_saved_with(tmp_path):
     v = vs.views[0]
     ref = render(g, vs.camera, v.R, v.t, filter_3d_var=g.filter_3d_var, mip_2d=True).image.numpy()
     np.testing.assert_allclose(tifffile.imread(out / "images.tif")[0], ref, rtol=1e-5, atol=1e-6)
+
+
+def test_render_cli_writes_the_whole_folder_or_nothing(tmp_path, capsys, monkeypatch):
+    """A failure while writing leaves no folder (and an earlier render as it was); a non-finite density factor and
+    an output folder that holds other files (the radiographs themselves) are refused before anything is written."""
+    _setup(tmp_path)
+    args = [str(tmp_path / "model.pt"), str(tmp_path / "views.json")]
+    out = tmp_path / "render"
+    assert main(["render", *args, str(out), "--mu-scale", "inf"]) == 2
+    assert "--mu-scale must be a finite number > 0" in capsys.readouterr().err and not out.exists()
+    assert main(["render", *args, str(tmp_path)]) == 2  # the folder of model.pt and views.json
+    assert "holds, the input" in capsys.readouterr().err
+    other = tmp_path / "radiographs"
+    other.mkdir()
+    (other / "line_integrals.tif").write_bytes(b"not a render")
+    assert main(["render", *args, str(other)]) == 2
+    assert "not an earlier output" in capsys.readouterr().err
+    assert (other / "line_integrals.tif").read_bytes() == b"not a render"
+
+    assert main(["render", *args, str(out)]) == 0
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert len(before) == 5  # images.tif, render.json and one PNG per view
+
+    def fail_on_the_third_png(path, image, **kwargs):
+        if path.name == "view_0002.png":
+            raise OSError(28, "No space left on device")
+        return real_imwrite(path, image, **kwargs)
+
+    real_imwrite = iio.imwrite
+    monkeypatch.setattr(iio, "imwrite", fail_on_the_third_png)
+    assert main(["render", *args, str(out), "--mu-scale", "2"]) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no scratch folder left
+    assert main(["render", *args, str(tmp_path / "new"), "--mu-scale", "2"]) == 2
+    assert not (tmp_path / "new").exists()

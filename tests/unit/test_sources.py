@@ -230,6 +230,35 @@ def test_nifti_input_roundtrip_and_flipped_slice_axis(tmp_path):
     np.testing.assert_allclose(np.sort(vol.ravel()), np.sort(data.ravel()), atol=1e-3)
 
 
+def _write_nifti_as_is(path: Path, header: nib.Nifti1Header, data: np.ndarray) -> None:
+    """A single-file NIfTI with exactly this header (``nib.save`` would fix pixdim and the sform)."""
+    header.set_data_shape(data.shape)
+    header.set_data_dtype(data.dtype)
+    header["vox_offset"] = 352
+    with open(path, "wb") as fh:
+        header.write_to(fh)
+        fh.write(b"\0" * (352 - fh.tell()) + data.tobytes(order="F"))
+
+
+def test_nifti_header_without_a_usable_geometry_is_named(tmp_path):
+    data = np.zeros((6, 5, 4), np.float32)
+    nan_sform = nib.Nifti1Header()
+    nan_sform.set_sform(np.eye(4), code=1)
+    nan_sform["srow_x"][0] = np.nan
+    _write_nifti_as_is(tmp_path / "nan.nii", nan_sform, data)
+    msg = assert_fails_cleanly(tmp_path / "nan.nii", tmp_path, "NaN or infinite entries")
+    assert str(tmp_path / "nan.nii") in msg and "qform/sform" in msg
+    zero = nib.Nifti1Header()  # no qform / sform: the voxel size is pixdim alone
+    zero["pixdim"][1:4] = 0.0
+    _write_nifti_as_is(tmp_path / "zero.nii", zero, data)
+    assert_fails_cleanly(tmp_path / "zero.nii", tmp_path, r"pixdim\) \[0.0, 0.0, 0.0\] and no qform/sform")
+    tiny = np.diag([1e-6, 1e-6, 1e-6, 1.0])  # micrometre voxels are a volume, not a degenerate header
+    nib.save(nib.Nifti1Image(np.arange(120, dtype=np.float32).reshape(6, 5, 4), tiny), tmp_path / "tiny.nii.gz")
+    vol = ingest(tmp_path / "tiny.nii.gz", tmp_path / "t" / "v.nii.gz", {"voxel_size_mm": 1e-6})
+    assert vol.shape == (6, 5, 4)
+    np.testing.assert_allclose(vol.spacing_mm, 1e-6)
+
+
 def test_tiff_stack_file_and_folder(tmp_path):
     arr = np.arange(4 * 5 * 6, dtype=np.uint16).reshape(4, 5, 6)  # (Z, Y, X)
     tifffile.imwrite(tmp_path / "stack.tif", arr, photometric="minisblack")
@@ -286,12 +315,14 @@ def test_non_dicom_files_only(tmp_path):
     assert_fails_cleanly(d, tmp_path, "no DICOM image files")
 
 
-@pytest.mark.parametrize("cut", ["pixels", "header"])
+@pytest.mark.parametrize("cut", ["pixels", "header", "encapsulated pixels"])
 def test_truncated_file_named_and_skippable(tmp_path, caplog, cut):
-    files = make_series(tmp_path / "s", shape=(8, 6, 6))
+    # encapsulated (JPEG 2000) pixel data cut short: pydicom reads the header and returns an empty dataset
+    syntax = {"transfer_syntax": "1.2.840.10008.1.2.4.90"} if cut == "encapsulated pixels" else {}
+    files = make_series(tmp_path / "s", shape=(32, 32, 6) if syntax else (8, 6, 6), **syntax)
     bad = files[2]
     raw = bad.read_bytes()
-    bad.write_bytes(raw[:-40] if cut == "pixels" else raw[:400])
+    bad.write_bytes(raw[:400] if cut == "header" else raw[:-40])
     msg = assert_fails_cleanly(tmp_path / "s", tmp_path, "corrupt or truncated")
     assert place(tmp_path / "s", bad) in msg and "skip" in msg
     assert bad.name not in msg  # DICOM file names are often SOP Instance UIDs
