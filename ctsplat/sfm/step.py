@@ -440,7 +440,6 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
     >>> summary = run_sfm("results/head/radiographs/carm", "results/head/sfm", settings)  # doctest: +SKIP
     >>> print(summary["ok"], summary["registration_rate"], summary["rot_err_deg_median"])  # doctest: +SKIP
     """
-    import pandas as pd
 
     cfg = merge_config("sfm", config, SFM_DEFAULTS)
     if cfg["matching"] not in ("exhaustive", "sequential"):
@@ -469,7 +468,22 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
                            "orbit: carm")
     cfg["_arc_deg"] = float(vs.meta.get("arc_deg") or 360.0)
     out_dir = Path(out_dir)
+    created = next((d for d in [*reversed(out_dir.parents), out_dir] if not d.exists()), None)  # the topmost new
     out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        return _register_and_write(p, vs, out_dir, cfg, seed, naive_volume, radiographs_dir)
+    except BaseException:
+        if created is not None:  # a failed first run leaves no folder behind (a rerun keeps an earlier run's)
+            shutil.rmtree(created, ignore_errors=True)
+        raise
+
+
+def _register_and_write(p: np.ndarray, vs: ViewSet, out_dir: Path, cfg: dict[str, Any], seed: int,
+                        naive_volume: np.ndarray | None, radiographs_dir: str | Path) -> dict[str, Any]:
+    """:func:`run_sfm` after its checks: enhance, register, align and write the outputs into ``out_dir``."""
+    import pandas as pd
+
+    cam = vs.camera
     iso = vs.isocenter_mm
     W, H = cam.width, cam.height
     ids = vs.ids()

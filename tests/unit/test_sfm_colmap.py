@@ -252,6 +252,26 @@ def test_bad_config_fails_fast_and_writes_nothing(tmp_path: Path) -> None:
     assert not (tmp_path / "out").exists() and not (tmp_path / "bad").exists()
 
 
+def test_a_run_that_fails_while_registering_leaves_no_new_folder(tmp_path: Path, monkeypatch) -> None:
+    aff, _ = _grid()
+    save_volume(Volume(np.full((N, N, N), 0.1, np.float32), aff, {}), tmp_path / "v.nii.gz")
+    rad = _carm(tmp_path / "v.nii.gz", tmp_path / "carm", n_views=4, detector_width=16, detector_height=16)
+
+    def fail(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("ctsplat.sfm.step.colmap_reconstruct", fail)
+    with pytest.raises(OSError, match="No space left"):
+        run_sfm(rad, tmp_path / "new" / "sfm", {})
+    assert not (tmp_path / "new").exists()
+    earlier = tmp_path / "earlier"
+    earlier.mkdir()
+    (earlier / "summary.json").write_text("{}")
+    with pytest.raises(OSError, match="No space left"):
+        run_sfm(rad, earlier, {})
+    assert [q.name for q in earlier.iterdir()] == ["summary.json"]  # an earlier run's folder is kept
+
+
 def test_cli_sfm_help_and_bad_set(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from ctsplat.cli import main
 
