@@ -15,7 +15,6 @@ import argparse
 import copy
 import functools
 import importlib
-import math
 import os
 import textwrap
 from collections.abc import Iterable, Mapping
@@ -24,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from ctsplat.grid import expand_grid, needs_sfm, uses_colmap
-from ctsplat.utils import CtsplatError, merge_config
+from ctsplat.utils import CtsplatError, first_nonfinite, merge_config
 
 __all__ = [
     "LIBRARY_SECTIONS",
@@ -143,18 +142,13 @@ def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any] | None 
     return filled
 
 
-def _reject_non_finite(value: Any, prefix: tuple[Any, ...] = ()) -> None:
+def _reject_non_finite(values: Any, prefix: str = "") -> None:
     """Refuse NaN and infinite numbers anywhere in a config (JSON schema ranges let NaN through, and ``--set x=NaN``
     or YAML's ``.nan`` parse as numbers); one line naming the key path."""
-    if isinstance(value, float) and not math.isfinite(value):
-        raise CtsplatError(f"invalid config at {_key_path(list(prefix))}: {value} is not a finite number; give a "
-                           "finite value")
-    if isinstance(value, Mapping):
-        for k, v in value.items():
-            _reject_non_finite(v, (*prefix, k))
-    elif isinstance(value, list | tuple):
-        for i, v in enumerate(value):
-            _reject_non_finite(v, (*prefix, i))
+    where = first_nonfinite(values, prefix)
+    if where is not None:
+        raise CtsplatError(f"invalid config at {where or '<config>'}: not a finite number (NaN or infinite); give "
+                           "a finite value")
 
 
 def _raise_first_error(errors: Iterable[Any], prefix: Iterable[Any] = ()) -> None:
@@ -243,9 +237,8 @@ def check_values(values: Mapping[str, Any], schema: Mapping[str, Any], where: st
     """
     from jsonschema import Draft202012Validator
 
-    prefix = tuple(where.split(".")) if where else ()
-    _reject_non_finite(dict(values), prefix)
-    _raise_first_error(Draft202012Validator(schema).iter_errors(dict(values)), prefix)
+    _reject_non_finite(dict(values), where)
+    _raise_first_error(Draft202012Validator(schema).iter_errors(dict(values)), where.split(".") if where else ())
 
 
 def check_section(section: str, values: Mapping[str, Any], where: str | None = None) -> dict[str, Any]:

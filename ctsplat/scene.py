@@ -26,7 +26,6 @@ Targets are line integrals of the *normalised* volume (radiograph line integrals
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from ctsplat.formats.viewset import SPLITS, ViewSet, load_radiographs
-from ctsplat.utils import CtsplatError
+from ctsplat.utils import CtsplatError, read_json_object
 
 __all__ = ["ViewData", "Scene", "load_scene", "even_subset"]
 
@@ -248,7 +247,7 @@ def _colmap_train(cfg: dict[str, Any], volume: Any, mu_scale: float
         raise CtsplatError(f"{summary_path} does not exist; run the sfm step before training with poses: colmap")
     from ctsplat.sfm.step import sfm_failure  # pycolmap loads only for poses: colmap
 
-    summary = json.loads(summary_path.read_text())
+    summary = read_json_object(summary_path, what="SfM summary", fix="run the sfm step again")
     rate = float(summary.get("registration_rate", 0.0))
     n_total = int(summary.get("n_views", 0))
     failure = sfm_failure(summary)

@@ -36,6 +36,7 @@ __all__ = [
     "save_torch_atomic",
     "write_json_atomic",
     "read_json_object",
+    "first_nonfinite",
     "json_safe",
     "code_version",
     "compute_platform",
@@ -299,7 +300,7 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def _first_nonfinite(obj: Any, where: str = "") -> str | None:
+def first_nonfinite(obj: Any, where: str = "") -> str | None:
     """Key path (``a.b[2]``) of the first NaN/Infinity in ``obj``, or None."""
     if isinstance(obj, np.ndarray):
         obj = obj.tolist()
@@ -312,7 +313,7 @@ def _first_nonfinite(obj: Any, where: str = "") -> str | None:
     else:
         return None
     for key, value in items:
-        found = _first_nonfinite(value, key)
+        found = first_nonfinite(value, key)
         if found is not None:
             return found
     return None
@@ -368,8 +369,10 @@ def read_json_object(path: str | os.PathLike[str], *, what: str, fix: str) -> di
     ctsplat.utils.CtsplatError: run config list.json holds a JSON array, not an object; train the run again
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise CtsplatError(f"{what} {path} does not exist; {fix}")
+    if path.is_dir():
+        raise CtsplatError(f"{what} {path} is a folder, not a JSON file; give the file itself")
     try:
         obj = json.loads(path.read_text())
     except UnicodeDecodeError:
@@ -410,7 +413,7 @@ def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
     except ValueError as exc:
         if "Out of range float" not in str(exc):
             raise
-        where = _first_nonfinite(obj)
+        where = first_nonfinite(obj)
         raise CtsplatError(
             f"{path}: refusing to write NaN/Infinity at {where or '<top>'} (not valid JSON); fix the value, or "
             f"pass the object through ctsplat.utils.json_safe to write undefined numbers as null"

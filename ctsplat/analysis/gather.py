@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -13,7 +12,7 @@ import pandas as pd
 from ctsplat.analysis.stats import convergence_velocity, mean_iters_per_s, milestones
 from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, PER_VIEW_COLUMNS, read_per_view, read_train_log
 from ctsplat.grid import GRID_AXES, cell_needs_sfm, parse_run_dir, run_axes, uses_colmap
-from ctsplat.utils import CtsplatError, atomic_path, dotted_items
+from ctsplat.utils import CtsplatError, atomic_path, dotted_items, read_json_object
 
 __all__ = ["TEST_METRICS", "SFM_COLUMNS", "BASELINE_SUMMARY_COLUMNS", "NOT_RUN", "velocity_column",
            "sfm_summary_path", "read_baselines", "gather", "read_summary", "load_runs", "load_per_view"]
@@ -270,12 +269,8 @@ def gather(
 
 def _read_json(path: Path) -> dict[str, Any]:
     """A run's JSON file, or one line naming it when it does not parse."""
-    try:
-        with open(path) as fh:
-            return json.load(fh)
-    except json.JSONDecodeError as exc:
-        raise CtsplatError(f"{path} is not valid JSON ({exc.msg} at line {exc.lineno}); the step that wrote it was "
-                           "interrupted or the file was edited: run that step again") from None
+    return read_json_object(path, what="run file", fix="the step that wrote it was interrupted or the file was "
+                                                       "edited: run that step again")
 
 
 def read_summary(path: str | os.PathLike[str]) -> pd.DataFrame:

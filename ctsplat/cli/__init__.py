@@ -99,11 +99,14 @@ def main(argv: list[str] | None = None) -> int:
     except CtsplatError as exc:
         print(f"ctsplat {args.command}: error: {one_line(str(exc))}", file=sys.stderr)
         return 2
-    except MemoryError as exc:
+    except (MemoryError, RuntimeError) as exc:
+        # torch.OutOfMemoryError (a GPU allocation) is a RuntimeError; other RuntimeErrors are bugs: traceback
+        if not isinstance(exc, MemoryError) and type(exc).__name__ != "OutOfMemoryError":
+            raise
         logging.getLogger(__name__).debug("out of memory", exc_info=True)
-        print(f"ctsplat {args.command}: error: out of memory ({one_line(str(exc)) or 'an allocation failed'}); "
-              "choose smaller sizes (grid, size, views, image size) or run on a machine with more memory",
-              file=sys.stderr)
+        what = one_line(str(exc)).split(". ")[0] or "an allocation failed"
+        print(f"ctsplat {args.command}: error: out of memory ({what}); choose smaller sizes (grid, size, views, "
+              "image size) or run on a machine with more memory", file=sys.stderr)
         return 2
     except OSError as exc:
         logging.getLogger(__name__).debug("file-system error", exc_info=True)  # the traceback with -v

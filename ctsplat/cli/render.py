@@ -17,7 +17,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("model", help="model .pt written by training (Gaussians.save)")
     p.add_argument("views", help="views.json (radiograph view set)")
-    p.add_argument("out", help="output folder")
+    p.add_argument("out", help="output folder: new, empty or an earlier render (render.json), replaced whole")
     p.add_argument("--compositor", default="radiative", choices=["radiative", "radiative_unrectified", "alpha"])
     p.add_argument("--split", default=None, choices=["train", "val", "test"], help="only this split's views")
     p.add_argument("--mip", action="store_true", help="3D (from the train views) + 2D mip filters")

@@ -822,7 +822,7 @@ def _read_dicom_series(
             if ds is None:
                 raise ValueError("not readable as DICOM")
             if "PixelData" not in ds:  # pydicom returns an empty dataset (with a warning) for truncated pixel data
-                raise ValueError("the file ends before its pixel data is complete (truncated)")
+                raise ValueError("no pixel data (the file is truncated or holds a header only)")
         except Exception as exc:  # noqa: BLE001
             _handle_corrupt(path, label(path), f"{type(exc).__name__}: {exc}".split("\n")[0][:120], skip_corrupt,
                             skipped)
@@ -1086,8 +1086,8 @@ def read_nifti(path: str | Path, *, units: str = "hu") -> SliceStack:
     with nib.openers.ImageOpener(str(path)) as fh:  # the header as stored: nibabel's load sets zero pixdims to 1
         stored = type(img.header).from_fileobj(fh, check=False)
     pixdim = [float(z) for z in stored["pixdim"][1:4]]
-    if int(stored["sform_code"]) == 0 and int(stored["qform_code"]) == 0 and not all(z != 0 for z in pixdim):
-        raise CtsplatError(f"NIfTI {path} has voxel sizes (pixdim) {pixdim} and no qform/sform, so its voxel size is "
+    if int(stored["sform_code"]) == 0 and any(z == 0 for z in pixdim):  # the qform scales by pixdim as well
+        raise CtsplatError(f"NIfTI {path} has voxel sizes (pixdim) {pixdim} and no sform, so its voxel size is "
                            "unknown; write the voxel size into the header")
     try:
         return _stack_from_affine(data, img.affine, units, source)

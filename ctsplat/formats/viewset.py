@@ -199,20 +199,17 @@ class ViewSet:
         ids = [v.id for v in views]
         if len(set(ids)) != len(ids):
             raise ValueError(f"view id {next(i for i in ids if ids.count(i) > 1)} appears more than once")
-        for v in views:  # a file written by hand or another tool: its poses must be rotations
-            for R in (v.R, *(() if v.design is None else (v.design.R,))):
-                if not (np.isfinite(R).all() and np.allclose(R @ R.T, np.eye(3), atol=1e-4)
+        for v in views:  # a file written by hand or another tool: its poses must be rotations (to ~4 decimals)
+            for key, R in (("R", v.R), *(() if v.design is None else (("design.R", v.design.R),))):
+                if not (np.isfinite(R).all() and np.allclose(R @ R.T, np.eye(3), atol=1e-3)
                         and np.linalg.det(R) > 0):
-                    raise ValueError(f"view {v.id}: R is not a rotation matrix (orthonormal, determinant +1)")
+                    raise ValueError(f"view {v.id}: {key} is not a rotation matrix (orthonormal, determinant +1)")
         return cls(camera_from_dict(d["camera"]), views, str(d.get("volume_id", "unknown")),
                    np.asarray(d.get("isocenter_mm", [0, 0, 0]), float), dict(d.get("meta", {})))
 
     @classmethod
     def load(cls, path: str | Path) -> ViewSet:
-        path = Path(path)
-        if not path.exists():
-            raise CtsplatError(f"view set {path} does not exist; run `ctsplat project` first")
-        d = read_json_object(path, what="view set", fix="re-render it (`ctsplat project`)")
+        d = read_json_object(path, what="view set", fix="render it with `ctsplat project`")
         try:
             return cls.from_dict(d)
         except CtsplatError:

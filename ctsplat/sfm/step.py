@@ -30,6 +30,7 @@ Schönberger, J. L., Frahm, J.-M. (2016). Structure-from-motion revisited. CVPR.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -222,9 +223,8 @@ def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str,
     }
     centre = out["centre_err_mm_median"]
     out["centre_err_frac_median"] = centre / dso_mm if dso_mm and centre is not None else None
-    aligned = alignment is not None and alignment.get("ok") and int(alignment.get("n_used", 0)) > 0
-    out["alignment_inlier_rate"] = (int(alignment["n_inliers"]) / int(alignment["n_used"])
-                                    if alignment is not None and aligned else None)
+    aligned = alignment is not None and bool(alignment.get("ok")) and int(alignment.get("n_used", 0)) > 0
+    out["alignment_inlier_rate"] = int(alignment["n_inliers"]) / int(alignment["n_used"]) if aligned else None
     short = []
     if out["registration_rate"] < cfg["min_registration_rate"]:
         short.append(f"registration rate {out['registration_rate']:.2f} (need >= {cfg['min_registration_rate']})")
@@ -278,7 +278,7 @@ def sfm_failure(summary: Mapping[str, Any] | str | os.PathLike[str]) -> str | No
 
 def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, float, float], Rs_true: np.ndarray,
                       ts_true: np.ndarray, out_dir: str | Path, config: dict[str, Any], *, seed: int = 0,
-                      prefix: str = "view", scale_mm: float = 1.0, prior_centres: np.ndarray | None = None,
+                      prefix: str = "view", scale_mm: float, prior_centres: np.ndarray | None = None,
                       prior_poses: tuple[np.ndarray, np.ndarray] | None = None, masks: np.ndarray | None = None,
                       design: tuple[np.ndarray, np.ndarray] | None = None,
                       design_azimuth_deg: np.ndarray | None = None, ids: np.ndarray | None = None
@@ -468,13 +468,16 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
                            "orbit: carm")
     cfg["_arc_deg"] = float(vs.meta.get("arc_deg") or 360.0)
     out_dir = Path(out_dir)
-    created = next((d for d in [*reversed(out_dir.parents), out_dir] if not d.exists()), None)  # the topmost new
+    new_dirs = [d for d in [out_dir, *out_dir.parents] if not d.exists()]  # innermost first
     out_dir.mkdir(parents=True, exist_ok=True)
     try:
         return _register_and_write(p, vs, out_dir, cfg, seed, naive_volume, radiographs_dir)
     except BaseException:
-        if created is not None:  # a failed first run leaves no folder behind (a rerun keeps an earlier run's)
-            shutil.rmtree(created, ignore_errors=True)
+        if new_dirs:  # a failed first run leaves no folder behind, and no parent it made that is still empty
+            shutil.rmtree(out_dir, ignore_errors=True)
+            for d in new_dirs[1:]:
+                with contextlib.suppress(OSError):
+                    d.rmdir()
         raise
 
 
@@ -483,6 +486,8 @@ def _register_and_write(p: np.ndarray, vs: ViewSet, out_dir: Path, cfg: dict[str
     """:func:`run_sfm` after its checks: enhance, register, align and write the outputs into ``out_dir``."""
     import pandas as pd
 
+    # the verdict goes first: until the new one is written, training refuses whatever poses the folder holds
+    (out_dir / "summary.json").unlink(missing_ok=True)
     cam = vs.camera
     iso = vs.isocenter_mm
     W, H = cam.width, cam.height
@@ -556,8 +561,8 @@ def _register_and_write(p: np.ndarray, vs: ViewSet, out_dir: Path, cfg: dict[str
             "format": VIEWSET_FORMAT, "format_version": VIEWSET_FORMAT_VERSION, "volume_id": vs.volume_id,
             "isocenter_mm": np.asarray(iso, float).tolist(), "camera": cam.to_dict(), "views": [], "meta": vs_meta})
     if naive_volume is not None:
-        summary["naive_slices"] = naive_slices_sfm(naive_volume, out_dir / ".naive_work", cfg, seed=seed)
-        shutil.rmtree(out_dir / ".naive_work", ignore_errors=True)
+        with scratch_dir(out_dir, prefix=".naive_work.") as naive_work:
+            summary["naive_slices"] = naive_slices_sfm(naive_volume, naive_work, cfg, seed=seed)
     cfg.pop("_arc_deg", None)
     summary.update(config=cfg, seed=seed, code_version=code_version(), pycolmap=version("pycolmap"),
                    volume_id=vs.volume_id,

@@ -8,6 +8,7 @@ import itertools
 from importlib import resources
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -68,6 +69,7 @@ def test_defaults_filled_from_empty_config():
         ({"sfm": {"settings": {"min_registration_rate": float("nan")}}}, "sfm.settings.min_registration_rate"),
         ({"radiographs": {"c": {"elevation_range_deg": [0.0, float("inf")]}}},
          "radiographs.c.elevation_range_deg[1]"),
+        ({"train": {"lr": {"means": np.float32("nan")}}}, "train.lr.means"),  # a config built in code
     ],
 )
 def test_bad_values_name_the_key_path(config, where):

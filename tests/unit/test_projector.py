@@ -480,7 +480,7 @@ def test_a_view_set_that_is_not_a_set_of_camera_poses_is_refused(tmp_path, edit,
 def test_a_view_set_file_that_is_not_a_json_object_is_named(tmp_path, text, needle) -> None:
     path = tmp_path / "views.json"
     path.write_bytes(text if isinstance(text, bytes) else text.encode())
-    with pytest.raises(CtsplatError, match=rf"^view set {re.escape(str(path))} {needle}.*re-render it"):
+    with pytest.raises(CtsplatError, match=rf"^view set {re.escape(str(path))} {needle}.*render it with"):
         ViewSet.load(path)
 
 

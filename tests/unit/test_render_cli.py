@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import imageio.v3 as iio
 import numpy as np
+import pytest
 import tifffile
 import torch
 
@@ -127,3 +129,26 @@ def test_render_cli_writes_the_whole_folder_or_nothing(tmp_path, capsys, monkeyp
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no scratch folder left
     assert main(["render", *args, str(tmp_path / "new"), "--mu-scale", "2"]) == 2
     assert not (tmp_path / "new").exists()
+
+
+def test_render_cli_names_a_view_set_folder_and_a_gpu_out_of_memory(tmp_path, capsys, monkeypatch):
+    _setup(tmp_path)
+    assert main(["render", str(tmp_path / "model.pt"), str(tmp_path), str(tmp_path / "r")]) == 2
+    assert f"view set {tmp_path} is a folder, not a JSON file" in capsys.readouterr().err
+
+    def oom(*args, **kwargs):
+        raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has 1.2 GiB free.")
+
+    module = sys.modules["ctsplat.splat.render"]  # the package's ``render`` is the function, not the module
+    monkeypatch.setattr(module, "render_to_folder", oom)
+    assert main(["render", str(tmp_path / "model.pt"), str(tmp_path / "views.json"), str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("ctsplat render: error: out of memory (CUDA out of memory); choose smaller sizes (grid, size, "
+                   "views, image size) or run on a machine with more memory")
+
+    def bug(*args, **kwargs):
+        raise RuntimeError("shape mismatch")
+
+    monkeypatch.setattr(module, "render_to_folder", bug)
+    with pytest.raises(RuntimeError, match="shape mismatch"):  # a bug keeps its traceback
+        main(["render", str(tmp_path / "model.pt"), str(tmp_path / "views.json"), str(tmp_path / "r")])

@@ -17,7 +17,7 @@ from ctsplat.formats.viewset import ViewSet  # noqa: E402
 from ctsplat.formats.volume import Volume, save_volume  # noqa: E402
 from ctsplat.projector import render_radiographs  # noqa: E402
 from ctsplat.sfm.colmap import match_features  # noqa: E402
-from ctsplat.sfm.step import SFM_DEFAULTS, run_sfm  # noqa: E402
+from ctsplat.sfm.step import SFM_DEFAULTS, run_sfm, sfm_failure  # noqa: E402
 from ctsplat.utils import CtsplatError  # noqa: E402
 
 N, SP = 40, 4.0  # 40^3 voxels of 4 mm
@@ -264,12 +264,19 @@ def test_a_run_that_fails_while_registering_leaves_no_new_folder(tmp_path: Path,
     with pytest.raises(OSError, match="No space left"):
         run_sfm(rad, tmp_path / "new" / "sfm", {})
     assert not (tmp_path / "new").exists()
+    (tmp_path / "results").mkdir()
+    with pytest.raises(OSError, match="No space left"):  # only the folders the run made go
+        run_sfm(rad, tmp_path / "results" / "head" / "sfm", {})
+    assert (tmp_path / "results").is_dir() and list((tmp_path / "results").iterdir()) == []
     earlier = tmp_path / "earlier"
     earlier.mkdir()
-    (earlier / "summary.json").write_text("{}")
+    (earlier / "summary.json").write_text('{"ok": true}')
+    (earlier / "aligned_views.json").write_text("{}")
     with pytest.raises(OSError, match="No space left"):
         run_sfm(rad, earlier, {})
-    assert [q.name for q in earlier.iterdir()] == ["summary.json"]  # an earlier run's folder is kept
+    # the earlier run's verdict goes with the failed rerun: nothing trains on poses no summary vouches for
+    assert [q.name for q in earlier.iterdir()] == ["aligned_views.json"]
+    assert "does not exist" in sfm_failure(earlier / "summary.json")
 
 
 def test_cli_sfm_help_and_bad_set(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -251,7 +251,11 @@ def test_nifti_header_without_a_usable_geometry_is_named(tmp_path):
     zero = nib.Nifti1Header()  # no qform / sform: the voxel size is pixdim alone
     zero["pixdim"][1:4] = 0.0
     _write_nifti_as_is(tmp_path / "zero.nii", zero, data)
-    assert_fails_cleanly(tmp_path / "zero.nii", tmp_path, r"pixdim\) \[0.0, 0.0, 0.0\] and no qform/sform")
+    assert_fails_cleanly(tmp_path / "zero.nii", tmp_path, r"pixdim\) \[0.0, 0.0, 0.0\] and no sform")
+    zero.set_qform(np.eye(4), code=1)  # a qform scales by pixdim too
+    zero["pixdim"][1:4] = 0.0
+    _write_nifti_as_is(tmp_path / "zero_q.nii", zero, data)
+    assert_fails_cleanly(tmp_path / "zero_q.nii", tmp_path, r"pixdim\) \[0.0, 0.0, 0.0\] and no sform")
     tiny = np.diag([1e-6, 1e-6, 1e-6, 1.0])  # micrometre voxels are a volume, not a degenerate header
     nib.save(nib.Nifti1Image(np.arange(120, dtype=np.float32).reshape(6, 5, 4), tiny), tmp_path / "tiny.nii.gz")
     vol = ingest(tmp_path / "tiny.nii.gz", tmp_path / "t" / "v.nii.gz", {"voxel_size_mm": 1e-6})
