@@ -896,7 +896,8 @@ def _read_dicom_series(
     if abs(np.linalg.norm(row_lps) - 1) > 1e-3 or abs(np.linalg.norm(col_lps) - 1) > 1e-3 or abs(
         row_lps @ col_lps
     ) > 1e-3:
-        raise CtsplatError(f"ImageOrientationPatient {iop.tolist()} is not 2 orthonormal unit vectors; fix the header")
+        raise CtsplatError(f"ImageOrientationPatient {iop.tolist()} of series {pick.label()} in {folder} (e.g. "
+                           f"{label(ref['path'])}) is not 2 orthonormal unit vectors; fix the header")
     row_lps = row_lps / np.linalg.norm(row_lps)
     col_lps = col_lps / np.linalg.norm(col_lps)
     normal_lps = np.cross(row_lps, col_lps)
@@ -1147,9 +1148,16 @@ def read_tiff_stack(
             )
             if not files:
                 raise CtsplatError(f"folder {path} holds no .tif/.tiff files")
-            pages = [tifffile.imread(p) for p in files]
-            if len({p.shape for p in pages}) != 1:
-                raise CtsplatError(f"TIFF slices in {path} differ in size; all slices must have the same shape")
+            pages = []
+            for p in files:
+                try:
+                    pages.append(tifffile.imread(p))
+                except Exception as exc:  # noqa: BLE001 - named here: the folder's message would not say which
+                    raise CtsplatError(f"TIFF slice {p} is not a readable TIFF file (truncated, corrupt or not a "
+                                       f"TIFF: {type(exc).__name__}: {exc}); re-export it or remove it") from None
+                if pages[-1].shape != pages[0].shape:
+                    raise CtsplatError(f"TIFF slices in {path} differ in size: {p.name} is {pages[-1].shape}, "
+                                       f"{files[0].name} is {pages[0].shape}; all slices must have the same shape")
             arr = np.stack(pages, axis=0)
         else:
             arr = tifffile.imread(path)

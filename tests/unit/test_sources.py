@@ -278,6 +278,12 @@ def test_tiff_stack_file_and_folder(tmp_path):
         np.testing.assert_allclose(np.diff(stack.positions_mm), 0.7)
     with pytest.raises(CtsplatError, match="voxel size"):
         read_tiff_stack(tmp_path / "stack.tif", None)
+    tifffile.imwrite(folder / "img_3.tif", arr[0, :4])  # the slice that does not fit is named
+    with pytest.raises(CtsplatError, match=r"differ in size: img_3.tif is \(4, 6\), img_1.tif is \(5, 6\)"):
+        read_source(folder, tiff_voxel_size_mm=0.5)
+    (folder / "img_3.tif").write_bytes(b"junk" * 10)
+    with pytest.raises(CtsplatError, match=r"TIFF slice .*img_3\.tif is not a readable TIFF .*remove it"):
+        read_source(folder, tiff_voxel_size_mm=0.5)
 
 
 # ------------------------------------------------------------------------------------------ compressed
@@ -438,6 +444,13 @@ def test_different_orientations_rejected(tmp_path):
     ds.ImageOrientationPatient = [f"{x:.6f}" for x in (*(r @ [1, 0, 0]), *(r @ [0, 1, 0]))]
     ds.save_as(files[4])
     assert_fails_cleanly(tmp_path / "s", tmp_path, "different ImageOrientationPatient")
+
+
+
+def test_non_orthonormal_orientation_names_the_series_and_a_file(tmp_path):
+    make_series(tmp_path / "s", row=(1.0, 0.0, 0.0), col=(1.0, 0.0, 0.0))
+    msg = assert_fails_cleanly(tmp_path / "s", tmp_path, "is not 2 orthonormal unit vectors")
+    assert "series " in msg and "file 1 of 5" in msg
 
 
 def test_grid_list_is_in_output_axis_order(tmp_path):
