@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import logging
 import math
 import os
 import random
@@ -15,6 +16,7 @@ import sys
 import tempfile
 import threading
 import traceback
+import warnings
 from collections import Counter
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -27,6 +29,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CtsplatError",
+    "LoggedWarning",
+    "log_warnings_once",
     "Terminated",
     "terminate_as_interrupt",
     "atomic_path",
@@ -66,6 +70,18 @@ class CtsplatError(ValueError):
         ...
     ctsplat.utils.CtsplatError: n_views must be a positive integer, got 0; set radiographs.n_views
     """
+
+
+class LoggedWarning(UserWarning):
+    """A warning that ctsplat also writes to its log: a command or workflow step that routes warnings to the log
+    (``logging.captureWarnings``) ignores this category, so that the log says it once."""
+
+
+def log_warnings_once() -> None:
+    """Route Python warnings to the log (``logging.captureWarnings``), except :class:`LoggedWarning`s, which the
+    library has logged already; for the CLI and the workflow's steps."""
+    logging.captureWarnings(True)
+    warnings.filterwarnings("ignore", category=LoggedWarning)
 
 
 _UMASK = os.umask(0o022)  # reading the process umask requires setting it; put it straight back

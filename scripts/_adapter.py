@@ -28,7 +28,7 @@ if _SM is not None:
 @contextlib.contextmanager
 def logged(snakemake) -> Iterator[logging.Logger]:  # noqa: ANN001 (the Snakemake script object)
     """Send logging, warnings, stdout and stderr (tracebacks included) of the step to ``snakemake.log[0]``."""
-    from ctsplat.utils import terminate_as_interrupt
+    from ctsplat.utils import log_warnings_once, terminate_as_interrupt
 
     terminate_as_interrupt()  # a cancelled job (SIGTERM) removes its temporary files before it ends
     log_path = Path(snakemake.log[0])
@@ -36,8 +36,8 @@ def logged(snakemake) -> Iterator[logging.Logger]:  # noqa: ANN001 (the Snakemak
     with open(log_path, "w", buffering=1) as fh, contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
         logging.basicConfig(stream=fh, level=logging.INFO, force=True,
                             format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-        logging.captureWarnings(True)
         warnings.simplefilter("default")
+        log_warnings_once()  # after the filter above, which would show the warnings the library logged already
         log = logging.getLogger(f"ctsplat.workflow.{snakemake.rule}")
         if "torch" in sys.modules:
             sys.modules["torch"].set_num_threads(int(snakemake.threads))

@@ -12,7 +12,7 @@ import importlib
 import logging
 import sys
 
-from ctsplat.utils import CtsplatError, Terminated, terminate_as_interrupt
+from ctsplat.utils import CtsplatError, Terminated, log_warnings_once, terminate_as_interrupt
 
 # module name -> imported lazily so `ctsplat --help` stays fast and a broken optional step
 # does not take the whole CLI down.
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    logging.captureWarnings(True)  # warnings go through the log once, in its format
+    log_warnings_once()  # warnings go through the log once, in its format
     try:
         args.func(args)
     except CtsplatError as exc:

@@ -60,7 +60,7 @@ from typing import Any
 
 import numpy as np
 
-from ctsplat.utils import CtsplatError
+from ctsplat.utils import CtsplatError, LoggedWarning
 
 __all__ = [
     "SliceStack",
@@ -239,7 +239,7 @@ def outputs_selector(selector: str | None) -> str | None:
     return salted_hash(key) if re.fullmatch(r"\d+(\.\d+)+", key) else str(selector)
 
 
-class SliceGapWarning(UserWarning):
+class SliceGapWarning(LoggedWarning):
     """A DICOM series has gaps between slices much larger than its spacing (slices probably missing)."""
 
 

@@ -383,3 +383,16 @@ def test_terminated_command_removes_its_temporary_outputs(tmp_path):
     assert proc.returncode == 143, err
     assert "ctsplat project: terminated; files are written whole or not at all" in err
     assert not list(tmp_path.glob(".rad.*")) and not out.exists()
+
+
+def test_a_warning_the_library_logs_is_said_once(tmp_path):
+    """A slice gap is logged by the reader and raised as a warning for library callers; the command's log, which
+    also carries Python warnings, says it once."""
+    from ctsplat.formats.sources import write_dicom_series
+
+    hu = np.zeros((8, 8, 6))
+    files = write_dicom_series(hu, tmp_path / "dicom", spacing_mm=(1.0, 1.0, 1.0), origin_lps=(0.0, 0.0, 0.0))
+    Path(sorted(files)[2]).unlink()  # a missing slice: a gap of twice the spacing
+    done = ctsplat("ingest", tmp_path / "dicom", tmp_path / "v.nii.gz", "--grid", "8")
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.count("gap(s) larger than") == 1, done.stderr
