@@ -526,6 +526,20 @@ class _FileLabels:
 _NO_UID_KEYS = ("StudyInstanceUID", "FrameOfReferenceUID", "SeriesNumber", "Modality", "SeriesDescription")
 
 
+def _why(exc: BaseException, *, with_type: bool = True, limit: int = 160) -> str:
+    """An exception's first line, shortened at a word boundary (pydicom's messages can run to paragraphs).
+
+    Examples
+    --------
+    >>> _why(ValueError("fewer bytes than expected\\nsecond line"), limit=18)
+    'ValueError: fewer bytes than ...'
+    """
+    text = str(exc).split("\n")[0]
+    if len(text) > limit:
+        text = text[:limit].rsplit(" ", 1)[0] + " ..."
+    return f"{type(exc).__name__}: {text}" if with_type else text
+
+
 def _handle_corrupt(path: Path, label: str, why: str, skip_corrupt: bool, skipped: list[Path]) -> None:
     if not skip_corrupt:
         raise CtsplatError(
@@ -573,8 +587,7 @@ def find_dicom_series(
             try:
                 ds = _dcmread(path, stop_before_pixels=True)
             except Exception as exc:  # noqa: BLE001 - DICOM prefix present but the header does not parse
-                _handle_corrupt(path, label(path), f"{type(exc).__name__}: {exc}".split("\n")[0][:120],
-                                skip_corrupt, skipped)
+                _handle_corrupt(path, label(path), _why(exc), skip_corrupt, skipped)
                 continue
             if ds is None:
                 continue
@@ -824,8 +837,7 @@ def _read_dicom_series(
             if "PixelData" not in ds:  # pydicom returns an empty dataset (with a warning) for truncated pixel data
                 raise ValueError("no pixel data (the file is truncated or holds a header only)")
         except Exception as exc:  # noqa: BLE001
-            _handle_corrupt(path, label(path), f"{type(exc).__name__}: {exc}".split("\n")[0][:120], skip_corrupt,
-                            skipped)
+            _handle_corrupt(path, label(path), _why(exc), skip_corrupt, skipped)
             continue
         if int(ds.get("NumberOfFrames", 1) or 1) > 1:
             raise CtsplatError(
@@ -863,7 +875,7 @@ def _read_dicom_series(
                 warnings.simplefilter("ignore")
                 pixels = pixel_array(ds)  # no cached copy on the dataset
         except Exception as exc:  # noqa: BLE001 - truncated pixel data, bad encapsulation ...
-            msg = str(exc).split("\n")[0][:160]
+            msg = _why(exc, with_type=False)
             if "missing" in msg.lower() and "plugin" in msg.lower():
                 pkg = _DECODER_PACKAGES.get(str(ds.file_meta.TransferSyntaxUID), "pylibjpeg")
                 raise CtsplatError(f"{label(path)}: no decoder for its compressed pixel data; install {pkg}") from None
