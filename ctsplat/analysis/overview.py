@@ -7,7 +7,6 @@ files (``volume.nii.gz``, a radiographs folder, an ``sfm`` folder) and call them
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Sequence
@@ -22,7 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from ctsplat.utils import CtsplatError, atomic_path  # noqa: E402
+from ctsplat.utils import CtsplatError, atomic_path, read_json_object  # noqa: E402
 
 __all__ = [
     "plot_volume_slices",
@@ -235,5 +234,5 @@ def radiographs_figure(radiographs_dir: str | os.PathLike[str], out: str | os.Pa
 def sfm_figure(sfm_dir: str | os.PathLike[str], out: str | os.PathLike[str]) -> plt.Figure:
     """:func:`plot_sfm` of an sfm folder (``poses.csv`` and ``summary.json``)."""
     sfm_dir = Path(sfm_dir)
-    summary = json.loads((sfm_dir / "summary.json").read_text())
+    summary = read_json_object(sfm_dir / "summary.json", what="SfM summary", fix="run the sfm step again")
     return plot_sfm(pd.read_csv(sfm_dir / "poses.csv"), summary, out)

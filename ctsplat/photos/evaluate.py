@@ -42,6 +42,7 @@ from ctsplat.utils import (
     code_version,
     compute_platform,
     json_safe,
+    read_json_object,
     resolve_device,
     write_json_atomic,
 )
@@ -233,7 +234,7 @@ def run_config(run_dir: str | Path) -> dict[str, Any]:
     run_dir = Path(run_dir)
     if not (run_dir / "config.json").is_file() or not (run_dir / "model.pt").is_file():
         raise CtsplatError(f"{run_dir} is not a photo run (config.json and model.pt); run `ctsplat photos-train`")
-    return json.loads((run_dir / "config.json").read_text())
+    return read_json_object(run_dir / "config.json", what="photo run config", fix="run `ctsplat photos-train` again")
 
 
 def run_scene(config: dict[str, Any], device: torch.device | str = "cpu") -> PhotoScene:

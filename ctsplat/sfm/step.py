@@ -31,7 +31,6 @@ Schönberger, J. L., Frahm, J.-M. (2016). Structure-from-motion revisited. CVPR.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import math
 import os
@@ -71,6 +70,7 @@ from ctsplat.utils import (
     code_version,
     json_safe,
     merge_config,
+    read_json_object,
     scratch_dir,
     write_json_atomic,
 )
@@ -270,7 +270,7 @@ def sfm_failure(summary: Mapping[str, Any] | str | os.PathLike[str]) -> str | No
         path = Path(summary)
         if not path.exists():
             return f"{path} does not exist (the sfm step did not run)"
-        summary = json.loads(path.read_text())
+        summary = read_json_object(path, what="SfM summary", fix="run the sfm step again")
     if summary.get("ok", False):
         return None
     return str(summary.get("reason") or "the SfM summary is not ok and records no reason")
