@@ -201,7 +201,11 @@ def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, 
         path = sfm_dir / "images" / im.name
         if not path.is_file():
             raise CtsplatError(f"SfM image {path} is missing; run `ctsplat photos-sfm` again")
-        rgb = load_rgb(path, int(downscale))
+        try:
+            rgb = load_rgb(path, int(downscale))
+        except (OSError, SyntaxError, ValueError) as exc:  # PIL's errors for a corrupt or truncated file
+            raise CtsplatError(f"corrupt or truncated SfM image {path}: {str(exc).splitlines()[0]}; run `ctsplat "
+                               "photos-sfm` again") from None
         if rgb.shape[:2] != (pc.height, pc.width):
             raise CtsplatError(f"{path} is {rgb.shape[1]}x{rgb.shape[0]} after downscaling, its camera says "
                                f"{pc.width}x{pc.height}")

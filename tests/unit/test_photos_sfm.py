@@ -16,6 +16,7 @@ from PIL import Image
 
 from ctsplat.photos.dataset import load_scene
 from ctsplat.photos.sfm import run_photo_sfm
+from ctsplat.utils import CtsplatError
 
 ROOT = Path(__file__).resolve().parents[2]
 SKULL = Path(os.environ.get("CTSPLAT_SHARED_DATA", ROOT.parent / "shared" / "data")) / "skull_photos"
@@ -95,6 +96,10 @@ def test_ten_neighbouring_skull_photos_register_in_one_model(skull_subset: Path,
             errors.append(np.linalg.norm(uv - xy, axis=1))
         err = np.concatenate(errors)
         assert np.median(err) < 0.5 / factor and np.percentile(err, 90) < 1.5 / factor, (factor, np.median(err))
+    broken = sorted((out / "images").iterdir())[0]  # a truncated copy is named with what to do
+    broken.write_bytes(broken.read_bytes()[:2000])
+    with pytest.raises(CtsplatError, match=rf"corrupt or truncated SfM image .*{broken.name}: .*photos-sfm` again"):
+        load_scene(out, downscale=4)
 
 
 def test_the_same_photos_give_the_same_model(skull_subset: Path, tmp_path: Path) -> None:
