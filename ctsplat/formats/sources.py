@@ -1122,6 +1122,17 @@ def _natural_key(p: Path) -> list[Any]:
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", p.name)]
 
 
+def _read_tiff(path: Path, what: str, fix: str) -> np.ndarray:
+    """``tifffile.imread``, or one line naming the file that does not read."""
+    import tifffile
+
+    try:
+        return tifffile.imread(path)
+    except Exception as exc:  # noqa: BLE001 - tifffile raises many kinds for a broken file
+        raise CtsplatError(f"{what} {path} is not a readable TIFF file (truncated, corrupt or not a TIFF: "
+                           f"{type(exc).__name__}: {exc}); {fix}") from None
+
+
 def read_tiff_stack(
     path: str | Path, voxel_size_mm: float | Sequence[float] | None, *, units: str = "raw"
 ) -> SliceStack:
@@ -1144,7 +1155,6 @@ def read_tiff_stack(
     SliceStack
         ``data`` (X, Y, Z) float32, centred on the world origin.
     """
-    import tifffile
 
     path = Path(path)
     if voxel_size_mm is None:
@@ -1152,32 +1162,22 @@ def read_tiff_stack(
     vs = np.broadcast_to(np.asarray(voxel_size_mm, float), (3,)).copy()
     if np.any(vs <= 0):
         raise CtsplatError(f"TIFF voxel size must be positive, got {vs.tolist()}")
-    try:
-        if path.is_dir():
-            files = sorted(
-                (p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff") and not p.name.startswith(".")),
-                key=_natural_key,
-            )
-            if not files:
-                raise CtsplatError(f"folder {path} holds no .tif/.tiff files")
-            pages = []
-            for p in files:
-                try:
-                    pages.append(tifffile.imread(p))
-                except Exception as exc:  # noqa: BLE001 - named here: the folder's message would not say which
-                    raise CtsplatError(f"TIFF slice {p} is not a readable TIFF file (truncated, corrupt or not a "
-                                       f"TIFF: {type(exc).__name__}: {exc}); re-export it or remove it") from None
-                if pages[-1].shape != pages[0].shape:
-                    raise CtsplatError(f"TIFF slices in {path} differ in size: {p.name} is {pages[-1].shape}, "
-                                       f"{files[0].name} is {pages[0].shape}; all slices must have the same shape")
-            arr = np.stack(pages, axis=0)
-        else:
-            arr = tifffile.imread(path)
-    except CtsplatError:
-        raise
-    except Exception as exc:  # noqa: BLE001
-        raise CtsplatError(f"TIFF stack {path} is not a readable TIFF file (truncated, corrupt or not a TIFF: "
-                           f"{type(exc).__name__}: {exc}); re-export it") from None
+    if path.is_dir():
+        files = sorted(
+            (p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff") and not p.name.startswith(".")),
+            key=_natural_key,
+        )
+        if not files:
+            raise CtsplatError(f"folder {path} holds no .tif/.tiff files")
+        pages = []
+        for p in files:  # one at a time, so that the message names the slice
+            pages.append(_read_tiff(p, "TIFF slice", "re-export it or remove it"))
+            if pages[-1].shape != pages[0].shape:
+                raise CtsplatError(f"TIFF slices in {path} differ in size: {p.name} is {pages[-1].shape}, "
+                                   f"{files[0].name} is {pages[0].shape}; all slices must have the same shape")
+        arr = np.stack(pages, axis=0)
+    else:
+        arr = _read_tiff(path, "TIFF stack", "re-export it")
     if arr.ndim != 3 or arr.shape[0] < 2:
         raise CtsplatError(f"TIFF stack {path} has shape {arr.shape}; need >= 2 greyscale slices (Z, Y, X)")
     data = np.ascontiguousarray(arr.transpose(2, 1, 0), dtype=np.float32)  # (X, Y, Z)

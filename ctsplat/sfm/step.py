@@ -440,7 +440,6 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
     >>> summary = run_sfm("results/head/radiographs/carm", "results/head/sfm", settings)  # doctest: +SKIP
     >>> print(summary["ok"], summary["registration_rate"], summary["rot_err_deg_median"])  # doctest: +SKIP
     """
-
     cfg = merge_config("sfm", config, SFM_DEFAULTS)
     if cfg["matching"] not in ("exhaustive", "sequential"):
         raise CtsplatError(f"unknown sfm.matching {cfg['matching']!r}; allowed: exhaustive, sequential")
