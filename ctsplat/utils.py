@@ -147,6 +147,11 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     path : str or os.PathLike
         The final output file. Its parent folder is created if missing.
 
+    Raises
+    ------
+    CtsplatError
+        When ``path`` is an existing folder or ends with a path separator.
+
     Yields
     ------
     pathlib.Path
@@ -161,7 +166,15 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     >>> out.read_text().splitlines()
     ['view,psnr2d', '0,31.2']
     """
+    text = os.fspath(path)
     path = Path(path)
+    # Path() drops a trailing separator, so "out/" would silently become a file named "out"
+    if text.endswith((os.sep, os.altsep or os.sep)):
+        raise CtsplatError(f"{text} names a folder (it ends in a separator), but a file is to be written there; "
+                           f"give a file path, e.g. {path / 'out.csv'} or {path}")
+    if path.is_dir():
+        raise CtsplatError(f"{text} is a folder, but a file is to be written there; remove or rename the folder, "
+                           "or give another file path")
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = "".join(path.suffixes) if path.suffixes else ""
     stem = path.name[: len(path.name) - len(suffix)] if suffix else path.name

@@ -422,6 +422,14 @@ def test_gather_errors(tmp_path):
     with pytest.raises(CtsplatError, match="neither metrics.json nor train_log.csv"):
         gather([rd], tmp_path / "s.csv")
     assert not (tmp_path / "s.csv").exists()
+    good = _fake_run(tmp_path / "r")
+    (tmp_path / "existing").mkdir()
+    # "new/" would otherwise be written as a file named "new", and "existing" fail with an OSError
+    with pytest.raises(CtsplatError, match="new/ names a folder .* give a file path"):
+        gather([good], f"{tmp_path / 'new'}/")
+    with pytest.raises(CtsplatError, match="existing is a folder, but a file is to be written there; remove"):
+        gather([good], tmp_path / "existing")
+    assert not (tmp_path / "new").exists() and list((tmp_path / "existing").iterdir()) == []
 
 
 def test_gather_writes_milestone_iterations_as_integers_when_some_run_misses_one(tmp_path):

@@ -70,7 +70,7 @@ def test_blocked_output_path_is_one_line_and_leaves_no_json(scene, tmp_path):
     (blocked / "vol.nii.gz").mkdir(parents=True)  # a folder where the volume file is to go
     res = ctsplat("ingest", vol, blocked / "vol.nii.gz", "--grid", "8")
     assert res.returncode == 2
-    assert_one_line_error(res.stderr, "ingest", "Is a directory", "vol.nii.gz")
+    assert_one_line_error(res.stderr, "ingest", "vol.nii.gz is a folder, but a file is to be written there")
     assert sorted(p.name for p in blocked.iterdir()) == ["vol.nii.gz"]  # no vol.json beside it, no temp files
 
 
