@@ -100,7 +100,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--baselines", nargs="*", help="baselines.csv files from `ctsplat baseline` (gather: each run "
                    "against the strongest classical method at its views; analyse: the baselines figure)")
     p.add_argument("--milestone", action="append", metavar="METRIC=VALUE",
-                   help="milestone threshold, repeatable; adds to or overrides " + _default("milestones"))
+                   help="milestone threshold of psnr2d, ssim2d, psnr3d or ssim3d, repeatable; metrics not given "
+                        "keep analysis.milestones of the config schema")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

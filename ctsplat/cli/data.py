@@ -92,7 +92,7 @@ def _check_ingest_options(args: argparse.Namespace, cfg: dict) -> None:
                            "not both")
     intensity = cfg.get("intensity", schema_defaults("preprocessing")["intensity"])
     for option, key, used_by in (("--window", "window", ("window",)), ("--hu-max", "hu_max", ("attenuation", "mu")),
-                                 ("--mu-water", "mu_water_per_mm", ("attenuation", "mu"))):
+                                 ("--mu-water", "mu_water_per_mm", ("attenuation", "mu", "window"))):
         if getattr(args, key) is not None and intensity not in used_by:
             raise CtsplatError(f"{option} only applies to intensity {' / '.join(used_by)}, not {intensity}; add "
                                f"--intensity {used_by[0]} or drop {option}")

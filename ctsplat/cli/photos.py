@@ -70,9 +70,9 @@ def _common(p: argparse.ArgumentParser) -> None:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "photos-sfm", help="COLMAP poses of a folder of photographs (undistorted PINHOLE scene)",
-        description="SIFT features, exhaustive (small sets) or sequential matching, incremental mapping and "
-                    "undistortion: writes OUT_DIR/images, OUT_DIR/sparse/0 and OUT_DIR/summary.json (registered "
-                    "and unregistered images, mean reprojection error, points).")
+        description="SIFT features, exhaustive (small sets) or sequential matching, incremental (default) or global "
+                    "mapping and undistortion: writes OUT_DIR/images, OUT_DIR/sparse/0 and OUT_DIR/summary.json "
+                    "(registered and unregistered images, mean reprojection error, points).")
     p.add_argument("images", help="folder of JPEG/PNG/TIFF photographs")
     p.add_argument("out_dir", help="output folder (replaced on success)")
     _common(p)

@@ -5,21 +5,34 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 from ctsplat.cli._common import section_config
 from ctsplat.utils import CtsplatError
 
 
+def sfm_settings(config: str | None, sets: list[str] | None) -> dict[str, Any]:
+    """The sfm settings of ``--config`` and ``--set``, checked; without ``geometry``.
+
+    ``geometry`` names the workflow's C-arm view set; here the view set is the RADIOGRAPHS argument. A workflow
+    config carries it (and is read for its other settings), while a ``--set geometry=...`` would be ignored, so
+    that is refused.
+    """
+    if any(item.partition("=")[0].strip() == "geometry" for item in sets or []):
+        raise CtsplatError("sfm.geometry only names the workflow's C-arm view set; `ctsplat sfm` registers the "
+                           "RADIOGRAPHS folder it is given: drop geometry")
+    cfg = section_config(config, sets, "sfm")
+    cfg.pop("geometry", None)
+    return cfg
+
+
 def run(args: argparse.Namespace) -> None:
     from ctsplat.sfm import run_sfm
 
-    cfg = section_config(args.config, args.set, "sfm")
+    cfg = sfm_settings(args.config, args.set)
     if not Path(args.radiographs).is_dir():
         raise CtsplatError(f"radiographs folder {args.radiographs} does not exist; run `ctsplat project --set "
                            "camera=cone --set orbit=carm` first")
-    if "geometry" in cfg:  # names the workflow's view set; here the view set is the RADIOGRAPHS argument
-        raise CtsplatError("sfm.geometry only names the workflow's C-arm view set; `ctsplat sfm` registers the "
-                           "RADIOGRAPHS folder it is given: drop geometry")
     if args.volume is not None and not cfg.get("naive_slices"):
         raise CtsplatError("--volume is only read with naive_slices: true (SfM on the axial slices); add --set "
                            "naive_slices=true or drop --volume")

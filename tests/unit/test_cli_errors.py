@@ -307,6 +307,24 @@ def test_step_configs_are_read_from_a_workflow_config():
         load_section(head, "radiographs")
 
 
+@pytest.mark.parametrize("name", ["config.yaml", "ct0051_head.yaml", "full_protocol.yaml"])
+def test_ctsplat_sfm_takes_a_workflow_config_whose_geometry_names_the_view_set(name):
+    """A workflow config's sfm.settings name the C-arm view set (geometry); `ctsplat sfm` registers its RADIOGRAPHS
+    argument instead, so it reads the other settings and leaves geometry out; `--set geometry=...` is refused."""
+    import yaml
+
+    from ctsplat.cli.sfm import sfm_settings
+    from ctsplat.utils import CtsplatError
+
+    path = ROOT / "config" / name
+    workflow = yaml.safe_load(path.read_text())["sfm"]["settings"]
+    assert workflow["geometry"] == "carm"
+    cfg = sfm_settings(str(path), ["matching=sequential"])
+    assert cfg == {**{k: v for k, v in workflow.items() if k != "geometry"}, "matching": "sequential"}
+    with pytest.raises(CtsplatError, match="drop geometry"):
+        sfm_settings(str(path), ["geometry=carm"])
+
+
 def test_hu_max_sets_where_mu_clips(tmp_path):
     from ctsplat.formats.sources import write_dicom_series
     from ctsplat.formats.volume import load_volume

@@ -274,6 +274,14 @@ def test_cli_ingest_and_errors(tmp_path, capsys):
     vol = load_volume(out)
     np.testing.assert_allclose(vol.spacing_mm, 2.0)
     assert vol.meta["intensity"]["level_hu"] == 40 and vol.meta["intensity"]["width_hu"] == 80
+    # a window's top maps to mu_water (1 + HU_top / 1000): --mu-water sets the scale the radiographs use
+    out2 = tmp_path / "cli2" / "volume.nii.gz"
+    assert main(["ingest", str(src), str(out2), "--voxel-size", "2", "--intensity", "window", "--window", "40,80",
+                 "--mu-water", "0.02"]) == 0
+    assert load_volume(out2).meta["intensity"]["mu_scale_per_mm"] == pytest.approx(0.02 * (1 + 80 / 1000))
+    assert vol.meta["intensity"]["mu_scale_per_mm"] == pytest.approx(0.019 * (1 + 80 / 1000))
+    assert main(["ingest", str(src), str(tmp_path / "x" / "v.nii.gz"), "--intensity", "hu", "--mu-water", "0.02"]) == 2
+    assert "--mu-water only applies to intensity attenuation / mu / window, not hu" in capsys.readouterr().err
     assert main(["ingest", str(tmp_path / "missing"), str(tmp_path / "x" / "v.nii.gz")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "does not exist" in err[0]

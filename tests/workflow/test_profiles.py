@@ -30,6 +30,19 @@ def test_slurm_template_profile():
     assert "slurm-status-command: squeue" in text  # documented for clusters without accounting
 
 
+def test_slurm_profile_gives_every_shipped_config_the_resources_it_asks_for():
+    """The profile's set-resources / set-threads override a config's `resources`, so they must cover the largest
+    request of every config in config/ (a smaller memory or time limit would kill those jobs on the cluster)."""
+    prof = yaml.safe_load((ROOT / "profiles" / "slurm" / "config.yaml").read_text())
+    short = []
+    for path in sorted((ROOT / "config").glob("*.yaml")):
+        for rule, res in (yaml.safe_load(path.read_text()).get("resources") or {}).items():
+            given = {**prof["set-resources"][rule], "threads": prof["set-threads"].get(rule)}
+            short += [f"{path.name}: {rule}.{key} {res[key]} > {given[key]}" for key in ("mem_mb", "runtime", "threads")
+                      if key in res and given[key] is not None and given[key] < res[key]]
+    assert not short, short
+
+
 def test_default_workflow_profile():
     prof = yaml.safe_load((ROOT / "profiles" / "default" / "config.yaml").read_text())
     assert "params" in prof["rerun-triggers"] and "executor" not in prof
