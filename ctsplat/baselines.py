@@ -549,7 +549,8 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
     val_rows = vs_all.indices("val")
     if val_rows.size == 0:
         raise CtsplatError(f"radiographs in {radiographs_dir} have no validation views to choose the baselines' "
-                           "parameters on; render them with a non-zero radiographs split.val")
+                           "parameters on; render them with validation views (radiographs n_val for a circular orbit, "
+                           "else split.val)")
     val_vs = vs_all.subset("val")
     test_rows = vs_all.indices("test")
     subsets = [select_views(vs_all, cfg["split"], c) for c in counts]  # errors on an empty split, before any work

@@ -89,6 +89,76 @@ def _shipped_schema() -> dict[str, Any]:
     return yaml.safe_load(resources.files("ctsplat").joinpath(SCHEMA_RESOURCE).read_text(encoding="utf-8"))
 
 
+def load_config_text(text: str) -> Any:
+    """Parse a YAML (or JSON) config, refusing a key repeated within one mapping.
+
+    PyYAML, and with it Snakemake's ``--configfile``, keeps the last of two equal keys without a word, so a second
+    ``volumes: head:`` or ``train:`` block would silently replace the first.
+
+    Parameters
+    ----------
+    text : str
+        The file's text.
+
+    Returns
+    -------
+    object
+        What :func:`yaml.safe_load` returns.
+
+    Raises
+    ------
+    CtsplatError
+        For a repeated key, naming it and its line.
+    yaml.YAMLError
+        For text that is not YAML.
+
+    Examples
+    --------
+    >>> load_config_text("train:\\n  iterations: 5\\ntrain:\\n  iterations: 6\\n")
+    Traceback (most recent call last):
+    ...
+    ctsplat.utils.CtsplatError: key 'train' appears twice in one mapping (again on line 3); keep one
+    """
+    import yaml
+
+    class UniqueKeyLoader(yaml.SafeLoader):
+        def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+            seen: set[Any] = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=deep)
+                if key in seen:
+                    raise CtsplatError(f"key {key!r} appears twice in one mapping (again on line "
+                                       f"{key_node.start_mark.line + 1}); keep one")
+                seen.add(key)
+            return super().construct_mapping(node, deep=deep)
+
+    return yaml.load(text, Loader=UniqueKeyLoader)  # noqa: S506 (a SafeLoader subclass)
+
+
+def check_config_files(paths: Iterable[str | os.PathLike[str]]) -> None:
+    """Refuse a workflow config file that repeats a key (:func:`load_config_text`), naming the file.
+
+    Parameters
+    ----------
+    paths : iterable of path-like
+        The files given to ``--configfile`` (or the default config).
+
+    Raises
+    ------
+    CtsplatError
+        For the first repeated key.
+    """
+    import yaml
+
+    for path in paths:
+        try:
+            load_config_text(Path(path).read_text(encoding="utf-8"))
+        except CtsplatError as exc:
+            raise CtsplatError(f"config file {path}: {exc}") from None
+        except (OSError, UnicodeDecodeError, yaml.YAMLError):
+            continue  # Snakemake read it already, and reports what it cannot read
+
+
 def _key_path(parts: Iterable[Any]) -> str:
     """``grid.axes.views[0]`` from the path parts of a validation error (``<config>`` for the root)."""
     out = ""
@@ -136,10 +206,28 @@ def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any] | None 
     """
     schema = load_schema() if schema is None else schema
     filled = copy.deepcopy(dict(config))
+    _reject_non_string_keys(filled)
     _reject_non_finite(filled)
     cls = _validator_with_defaults()
     _raise_first_error(cls(schema).iter_errors(filled))
     return filled
+
+
+def _reject_non_string_keys(values: Any, prefix: str = "") -> None:
+    """Refuse mapping keys that YAML read as something other than text: a volume named ``2024:`` becomes the
+    integer 2024 (``0051:`` the octal 41, ``on:`` True), which the schema's name patterns never see and the rules
+    cannot find again. One line naming the key and how to quote it."""
+    if isinstance(values, Mapping):
+        for key, value in values.items():
+            if not isinstance(key, str):
+                where = f"{prefix}." if prefix else ""
+                raise CtsplatError(f"invalid config at {where}{key!r}: YAML read this name as the "
+                                   f"{type(key).__name__} {key!r}, not text; quote it in the config file (e.g. "
+                                   f"'{key}':; YAML reads an unquoted name with a leading 0 as an octal number)")
+            _reject_non_string_keys(value, f"{prefix}.{key}" if prefix else key)
+    elif isinstance(values, list):
+        for i, value in enumerate(values):
+            _reject_non_string_keys(value, f"{prefix}[{i}]")
 
 
 def _reject_non_finite(values: Any, prefix: str = "") -> None:
@@ -166,10 +254,23 @@ def _raise_first_error(errors: Iterable[Any], prefix: Iterable[Any] = ()) -> Non
     if err.validator == "additionalProperties":
         allowed = sorted((err.schema.get("properties") or {}).keys())
         msg += f" (allowed: {', '.join(allowed)})" if allowed else ""
+    if err.validator == "type" and isinstance(err.instance, str) and _reads_as_non_text(err.instance):
+        msg += (" (the value is text: quoted in the file, or a nested value of Snakemake's --config, which arrives "
+                "as text; write it unquoted in a --configfile)")
     raise CtsplatError(f"invalid config at {where}: {msg}")
 
 
-def check_split(split: Mapping[str, Any], where: str) -> None:
+def _reads_as_non_text(text: str) -> bool:
+    """Whether ``text`` would be a number, boolean or null had YAML read it unquoted."""
+    import yaml
+
+    try:
+        return not isinstance(yaml.safe_load(text), str)
+    except yaml.YAMLError:
+        return False
+
+
+def check_split(split: Mapping[str, Any], where: str, given: Iterable[str] | None = None) -> None:
     """Check that train/val/test fractions sum to 1 (within 1e-6).
 
     The orbits would normalise any sum, so a typo (``train: 0.9`` beside ``val: 0.25``) silently changes every
@@ -181,6 +282,9 @@ def check_split(split: Mapping[str, Any], where: str) -> None:
         ``{"train": f, "val": f, "test": f}`` with the defaults filled.
     where : str
         Key path shown in the error, e.g. ``radiographs.circular.split``.
+    given : iterable of str, optional
+        The fractions the user wrote; the error marks the others as defaults (a user who wrote ``train`` and
+        ``val`` alone may not know that ``test`` took its default). None: all were given.
 
     Raises
     ------
@@ -192,7 +296,8 @@ def check_split(split: Mapping[str, Any], where: str) -> None:
         return  # a wrong type is the schema's error
     total = sum(float(v) for v in values.values())
     if abs(total - 1.0) > 1e-6:
-        shown = ", ".join(f"{k}: {v:g}" for k, v in values.items())
+        given = set(values) if given is None else set(given)
+        shown = ", ".join(f"{k}: {v:g}" + ("" if k in given else " (default)") for k, v in values.items())
         raise CtsplatError(f"invalid config at {where}: fractions must sum to 1, got {total:g} ({shown}); e.g. "
                            "train: 0.7, val: 0.15, test: 0.15")
 
@@ -274,7 +379,8 @@ def check_section(section: str, values: Mapping[str, Any], where: str | None = N
     merge_config(where, values, getattr(importlib.import_module(mod_name), attr))  # unknown keys, as the step says
     check_values(values, section_schema(section), where)
     if section == "radiographs" and isinstance(values.get("split"), Mapping):
-        check_split({"train": 0.7, "val": 0.15, "test": 0.15, **values["split"]}, f"{where}.split")
+        check_split({"train": 0.7, "val": 0.15, "test": 0.15, **values["split"]}, f"{where}.split",
+                    given=values["split"])
     return values
 
 
@@ -385,34 +491,38 @@ def _library_section_values(config: Mapping[str, Any]) -> list[tuple[str, str, d
     return out
 
 
-def check_volume_sources(volumes: Mapping[str, Mapping[str, Any]], base_dir: str | os.PathLike[str] = ".") -> None:
-    """Check that every volume source is ``phantom`` or an existing path.
+def check_volume_sources(volumes: Mapping[str, Mapping[str, Any]], base_dir: str | os.PathLike[str] = ".", *,
+                         min_photos: int = 1) -> None:
+    """Check that every volume source is ``phantom`` or an existing path of the kind its volume reads.
 
     Parameters
     ----------
     volumes : mapping
-        The ``volumes`` section: name -> ``{source: ...}``.
+        The ``volumes`` section: name -> ``{source: ...}`` (a leading ``~`` is the user's home).
     base_dir : path-like
         Folder that relative source paths are resolved from (the workflow's working directory).
+    min_photos : int
+        Photographs a volume of kind ``photos`` needs at least (``photos.sfm.min_registered``).
 
     Raises
     ------
     CtsplatError
-        For the first missing source, naming ``volumes.<name>.source``.
+        For the first missing source, a scan file that is neither NIfTI nor TIFF, a scan folder that is empty or
+        holds only photographs, or a photo folder with fewer than ``min_photos`` images; naming
+        ``volumes.<name>.source``.
     """
+    from ctsplat.formats.sources import SCAN_FILE_SUFFIXES
+
     for name, vol in volumes.items():
         source = vol["source"]
-        if vol.get("kind", "ct") == "photos":
-            path = Path(source) if Path(source).is_absolute() else Path(base_dir) / source
-            if not path.is_dir():
-                raise CtsplatError(f"photo folder not found at volumes.{name}.source: {source!r} (resolved to "
-                                   f"{path.resolve()}); a volume of kind photos needs a folder of photographs")
+        if source == "phantom" and vol.get("kind", "ct") != "photos":
             continue
-        if source == "phantom":
-            continue
-        path = Path(source)
+        path = Path(source).expanduser()
         if not path.is_absolute():
             path = Path(base_dir) / path
+        if vol.get("kind", "ct") == "photos":
+            _check_photo_folder(name, source, path, min_photos)
+            continue
         if not path.exists():
             raise CtsplatError(
                 f"volume source not found at volumes.{name}.source: {source!r} (resolved to {path.resolve()}); "
@@ -420,17 +530,57 @@ def check_volume_sources(volumes: Mapping[str, Mapping[str, Any]], base_dir: str
             )
         if path.is_dir():
             _check_scan_folder(name, source, path)
+        elif not path.name.lower().endswith(SCAN_FILE_SUFFIXES):
+            raise CtsplatError(f"volume source at volumes.{name}.source is a file that is neither NIfTI nor a TIFF "
+                               f"stack: {source!r} (suffixes {', '.join(SCAN_FILE_SUFFIXES)}); for DICOM give the "
+                               "folder holding the slices")
+
+
+def _check_photo_folder(name: str, source: str, path: Path, min_photos: int) -> None:
+    """A photo volume's source must be a folder with at least ``min_photos`` images."""
+    from ctsplat.photos.images import list_photos
+
+    if not path.is_dir():
+        raise CtsplatError(f"photo folder not found at volumes.{name}.source: {source!r} (resolved to "
+                           f"{path.resolve()}); a volume of kind photos needs a folder of photographs")
+    try:
+        n = len(list_photos(path))
+    except CtsplatError as exc:
+        raise CtsplatError(f"invalid config at volumes.{name}.source: {exc}") from None
+    if n < min_photos:
+        raise CtsplatError(f"invalid config at volumes.{name}.source: {source!r} holds {n} photographs; SfM needs "
+                           f"at least {min_photos} registered in one model (photos.sfm.min_registered): add photos "
+                           "of the object")
+
+
+#: Names the workflow writes beside the volume folders in ``results/``.
+RESERVED_VOLUME_NAMES = ("summary.csv", "figures", "logs", "benchmarks", "report.html")
+
+
+def _check_volume_names(volumes: Mapping[str, Any]) -> None:
+    """Volume names become ``results/{name}/``: none may be one of the workflow's own entries there, and no two may
+    differ only in case (they would share a folder on case-insensitive file systems)."""
+    seen: dict[str, str] = {}
+    for name in volumes:
+        if name.lower() in RESERVED_VOLUME_NAMES:
+            raise CtsplatError(f"invalid config at volumes.{name}: results/{name} is the workflow's own; rename the "
+                               f"volume (reserved: {', '.join(RESERVED_VOLUME_NAMES)})")
+        if name.lower() in seen:
+            raise CtsplatError(f"invalid config at volumes.{name}: {seen[name.lower()]!r} and {name!r} differ only in "
+                               "case, and would share one results folder on case-insensitive file systems; rename one")
+        seen[name.lower()] = name
 
 
 def _check_scan_folder(name: str, source: str, path: Path) -> None:
     """A CT source folder must hold files, and not only photographs (a photo folder needs ``kind: photos``)."""
+    from ctsplat.formats.sources import TIFF_SUFFIXES
     from ctsplat.photos.images import IMAGE_SUFFIXES
 
     suffixes = [Path(f).suffix.lower() for _, _, files in os.walk(path) for f in files if not f.startswith(".")]
     if not suffixes:
         raise CtsplatError(f"volume source at volumes.{name}.source is an empty folder: {source!r} (resolved to "
                            f"{path.resolve()}); give the folder with the scan's files")
-    photo = [x for x in suffixes if x in IMAGE_SUFFIXES and x not in (".tif", ".tiff")]  # TIFF stacks are scans
+    photo = [x for x in suffixes if x in IMAGE_SUFFIXES and x not in TIFF_SUFFIXES]  # TIFF stacks are scans
     if len(photo) == len(suffixes):
         raise CtsplatError(f"volume source at volumes.{name}.source holds photographs ({len(photo)} "
                            f"{'/'.join(sorted(set(photo)))} files), not a scan: for the photo path set "
@@ -532,10 +682,21 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
     # a rule given only some of threads / mem_mb / runtime keeps the defaults of the others
     for rule, spec in load_schema()["properties"]["resources"]["properties"].items():
         cfg["resources"][rule] = {**spec["default"], **cfg["resources"].get(rule, {})}
-    check_volume_sources(cfg["volumes"], base_dir)
+    _check_volume_names(cfg["volumes"])
+    check_volume_sources(cfg["volumes"], base_dir, min_photos=int(cfg["photos"]["sfm"]["min_registered"]))
     for name, vol in cfg["volumes"].items():
+        if isinstance(vol["source"], str) and vol["source"].startswith("~"):
+            vol["source"] = str(Path(vol["source"]).expanduser())
         if vol["kind"] != "photos":
             _check_volume_preprocessing(name, vol.get("preprocessing") or {}, cfg["preprocessing"])
+            if vol.get("series_uid") is not None:
+                vol["series_uid"] = str(vol["series_uid"])  # a series number, as `ingest --series-uid` takes it
+            continue
+        ct_keys = sorted(set((config.get("volumes") or {}).get(name) or {}) - {"source", "kind"})
+        if ct_keys:
+            raise CtsplatError(f"invalid config at volumes.{name}.{ct_keys[0]}: a volume of kind photos reads only "
+                               f"source; {', '.join(ct_keys)} apply to CT volumes (photo settings live in photos:), "
+                               "so remove them")
     # photo folders take the photos path (workflow/rules/photos.smk), never the CT grid
     cfg["photo_volumes"] = {n: v for n, v in cfg["volumes"].items() if v["kind"] == "photos"}
     cfg["volumes"] = {n: v for n, v in cfg["volumes"].items() if v["kind"] != "photos"}
@@ -577,10 +738,12 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
             f"invalid config at baselines.geometry: {cfg['baselines']['geometry']!r} is a C-arm orbit (orbit: carm) "
             "with no validation views to choose the baselines' parameters on; name a circular or sphere geometry"
         )
-    from ctsplat.geometry.orbits import check_orbit_settings
+    from ctsplat.geometry.orbits import check_orbit_settings, classical_methods, has_held_out_views
 
     for geo, values in cfg["radiographs"].items():
-        check_split(values["split"], f"radiographs.{geo}.split")
+        user_split = ((config.get("radiographs") or {}).get(geo) or {}).get("split")
+        check_split(values["split"], f"radiographs.{geo}.split",
+                    given=user_split if isinstance(user_split, Mapping) else None)
         check_orbit_settings(values, f"invalid config at radiographs.{geo}")
     check_grid_exclude(cfg)
     sfm_settings = cfg["sfm"]["settings"]
@@ -615,7 +778,13 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
                 "orbit: carm (config/README.md)"
             )
     grid_geo = cfg["radiographs"][cfg["grid"]["geometry"]]
-    no_val = grid_geo["n_val"] == 0 or (grid_geo["n_val"] is None and float(grid_geo["split"]["val"]) == 0)
+    no_val = not has_held_out_views(grid_geo, "val")
+    if not has_held_out_views(grid_geo, "test"):
+        raise CtsplatError(
+            f"invalid config at radiographs.{cfg['grid']['geometry']}: the grid's geometry renders no test views, so "
+            f"the runs' test metrics would be measured on views that chose their settings; give it test views "
+            f"({'n_test or ' if grid_geo['orbit'] == 'circular' else ''}split.test)"
+        )
     if cfg["train"]["model_selection"] == "best" and no_val:
         raise CtsplatError(
             f"invalid config at train.model_selection: best chooses a model on validation views, but geometry "
@@ -644,6 +813,21 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
             )
     if cfg["baselines"]["enabled"]:
         base = cfg["baselines"]["geometry"]
+        base_geo = cfg["radiographs"][base]
+        for split, why in (("val", "to choose the baselines' parameters on"), ("test", "to score them on")):
+            if not has_held_out_views(base_geo, split):
+                raise CtsplatError(
+                    f"invalid config at radiographs.{base}: the baselines' geometry renders no {split} views {why}; "
+                    f"give it {split} views ({f'n_{split} or ' if base_geo['orbit'] == 'circular' else ''}split."
+                    f"{split}) or set baselines.enabled: false"
+                )
+        possible = classical_methods(base_geo)
+        wanted = list(cfg["baselines"]["settings"]["methods"])
+        if wanted and not set(wanted) & set(possible):
+            raise CtsplatError(
+                f"invalid config at baselines.settings.methods: {wanted} cannot reconstruct geometry {base!r} "
+                f"({base_geo['camera']} beam, orbit {base_geo['orbit']}); it allows {', '.join(possible)}"
+            )
         counts = cfg["baselines"]["n_views"] or []
         available = _training_views(cfg["radiographs"][base])
         if any(int(c) > available for c in counts):
@@ -707,6 +891,8 @@ _FRACTION = {"type": "number", "minimum": 0, "maximum": 1}
 _ANGLE_DEG = {"type": "number", "minimum": 0, "maximum": 180}
 _COUNT = {"type": "integer", "minimum": 1}
 _COUNT0 = {"type": "integer", "minimum": 0}
+#: A random seed: what NumPy's legacy generators and every RNG the steps use accept (0 .. 2³² − 1).
+_SEED = {"type": "integer", "minimum": 0, "maximum": 2**32 - 1}
 REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("preprocessing", "voxel_size_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
     ("preprocessing", "grid"): {"type": ["integer", "array", "null"], "minimum": 2,
@@ -851,7 +1037,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("photos", "sfm.abs_pose_min_inlier_ratio"): _FRACTION,
     ("photos", "sfm.min_registered"): {"type": "integer", "minimum": 3},
     ("photos", "sfm.num_threads"): _COUNT,
-    ("photos", "sfm.seed"): {"type": "integer", "minimum": 0},
+    ("photos", "sfm.seed"): _SEED,
     ("photos", "train.iterations"): _COUNT,
     ("photos", "train.downscale"): {"enum": [1, 2, 4, 8]},
     ("photos", "train.test_every"): {"type": "integer", "minimum": 0},
@@ -892,7 +1078,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("photos", "train.mcmc.scale_reg"): _NON_NEGATIVE,
     ("photos", "train.log_every"): _COUNT,
     ("photos", "train.num_threads"): _COUNT,
-    ("photos", "train.seed"): {"type": "integer", "minimum": 0},
+    ("photos", "train.seed"): _SEED,
     ("photos", "train.device"): {"enum": ["auto", "cpu", "cuda"]},
     ("photos", "evaluate.turntable_frames"): {"type": "integer", "minimum": 0},
     ("photos", "evaluate.gallery_views"): {"type": "integer", "minimum": 0},

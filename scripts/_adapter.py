@@ -27,8 +27,9 @@ if _SM is not None:
 
 @contextlib.contextmanager
 def logged(snakemake) -> Iterator[logging.Logger]:  # noqa: ANN001 (the Snakemake script object)
-    """Send logging, warnings, stdout and stderr (tracebacks included) of the step to ``snakemake.log[0]``."""
-    from ctsplat.utils import log_warnings_once, terminate_as_interrupt
+    """Send logging, warnings, stdout and stderr of the step to ``snakemake.log[0]``: a ctsplat error as its one
+    line (the job then exits 1), any other exception with its traceback."""
+    from ctsplat.utils import CtsplatError, log_warnings_once, terminate_as_interrupt
 
     terminate_as_interrupt()  # a cancelled job (SIGTERM) removes its temporary files before it ends
     log_path = Path(snakemake.log[0])
@@ -44,6 +45,9 @@ def logged(snakemake) -> Iterator[logging.Logger]:  # noqa: ANN001 (the Snakemak
         log.info("rule %s, wildcards %s, threads %s", snakemake.rule, dict(snakemake.wildcards), snakemake.threads)
         try:
             yield log
+        except CtsplatError as exc:  # the library's one-line errors say what to fix: no traceback under them
+            log.error("rule %s failed: %s", snakemake.rule, exc)
+            raise SystemExit(1) from None
         except Exception:
             log.exception("rule %s failed", snakemake.rule)
             raise

@@ -22,13 +22,17 @@ def load_section(path: str | None, section: str) -> dict[str, Any]:
         raise CtsplatError(f"config file {p} does not exist")
     import yaml
 
+    from ctsplat.config import load_config_text
+
     try:
         # JSON by its own parser: YAML 1.1 reads exponents without a dot (5e-05, as json.dumps writes them) as text
-        cfg = (json.loads(p.read_text()) if p.suffix.lower() == ".json" else yaml.safe_load(p.read_text())) or {}
+        cfg = (json.loads(p.read_text()) if p.suffix.lower() == ".json" else load_config_text(p.read_text())) or {}
     except UnicodeDecodeError:
         raise CtsplatError(f"config file {p} is not a text (YAML/JSON) file; give the config file") from None
     except (yaml.YAMLError, json.JSONDecodeError) as exc:
         raise CtsplatError(f"config file {p} is not valid YAML/JSON: {str(exc).splitlines()[0]}") from exc
+    except CtsplatError as exc:
+        raise CtsplatError(f"config file {p}: {exc}") from None
     if not isinstance(cfg, dict):
         raise CtsplatError(f"config file {p} must hold a mapping (the {section} section)")
     if isinstance(cfg.get("config"), dict) and "config_hash" in cfg:  # a run folder's record of its settings

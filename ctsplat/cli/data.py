@@ -66,20 +66,6 @@ def run_phantom(args: argparse.Namespace) -> None:
     print(out)
 
 
-def _source_kind(source: str) -> str:
-    """``nifti``, ``tiff`` or ``dicom``: how :func:`ctsplat.formats.sources.read_source` will read ``source``."""
-    from pathlib import Path
-
-    p = Path(source)
-    name = p.name.lower()
-    if p.is_file():
-        return "nifti" if name.endswith((".nii", ".nii.gz")) else "tiff" if name.endswith((".tif", ".tiff")) else "?"
-    if p.is_dir():
-        entries = [e for e in p.iterdir() if not e.name.startswith(".")]
-        if entries and all(e.is_file() and e.suffix.lower() in (".tif", ".tiff") for e in entries):
-            return "tiff"
-    return "dicom"
-
 
 def _check_ingest_options(args: argparse.Namespace, cfg: dict) -> None:
     """Refuse options that would have no effect (combinations, or options of another input kind)."""
@@ -96,7 +82,9 @@ def _check_ingest_options(args: argparse.Namespace, cfg: dict) -> None:
         if getattr(args, key) is not None and intensity not in used_by:
             raise CtsplatError(f"{option} only applies to intensity {' / '.join(used_by)}, not {intensity}; add "
                                f"--intensity {used_by[0]} or drop {option}")
-    kind = _source_kind(args.source)
+    from ctsplat.formats.sources import source_kind
+
+    kind = source_kind(args.source)
     dicom_only = {"--series-uid": args.series_uid, "--allow-modality": args.allow_modality,
                   "--skip-corrupt": args.skip_corrupt or None, "--rescale": args.rescale}
     for option, value in dicom_only.items():

@@ -63,6 +63,10 @@ import numpy as np
 from ctsplat.utils import CtsplatError, LoggedWarning
 
 __all__ = [
+    "NIFTI_SUFFIXES",
+    "SCAN_FILE_SUFFIXES",
+    "source_kind",
+    "TIFF_SUFFIXES",
     "SliceStack",
     "SeriesInfo",
     "SliceGapWarning",
@@ -86,6 +90,11 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Diagonal LPS <-> RAS flip (its own inverse).
+#: File names :func:`read_source` reads as one scan (a folder is a DICOM series or a TIFF-slice folder).
+NIFTI_SUFFIXES = (".nii", ".nii.gz")
+TIFF_SUFFIXES = (".tif", ".tiff")
+SCAN_FILE_SUFFIXES = NIFTI_SUFFIXES + TIFF_SUFFIXES
+
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0])
 
 #: Tolerances for geometry consistency checks.
@@ -1164,7 +1173,7 @@ def read_tiff_stack(
         raise CtsplatError(f"TIFF voxel size must be positive, got {vs.tolist()}")
     if path.is_dir():
         files = sorted(
-            (p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff") and not p.name.startswith(".")),
+            (p for p in path.iterdir() if p.suffix.lower() in TIFF_SUFFIXES and not p.name.startswith(".")),
             key=_natural_key,
         )
         if not files:
@@ -1219,33 +1228,39 @@ def read_source(
     SliceStack
     """
     source = Path(source)
-    name = source.name.lower()
     if not source.exists():
         raise CtsplatError(f"input {source} does not exist; give a DICOM folder, a .nii/.nii.gz file or a TIFF stack")
-    is_tiff_folder = source.is_dir() and _only_tiffs(source)
-    if rescale is not None and (source.is_file() or is_tiff_folder):
+    kind = source_kind(source)
+    if rescale is not None and kind != "dicom":
         raise CtsplatError(
             f"rescale applies to DICOM input only, not {source} (NIfTI carries its own scl_slope/scl_inter, "
             f"TIFF values are raw); remove it"
         )
-    if source.is_file():
-        if name.endswith((".nii", ".nii.gz")):
-            return read_nifti(source)
-        if name.endswith((".tif", ".tiff")):
-            return read_tiff_stack(source, tiff_voxel_size_mm)
+    if kind == "nifti":
+        return read_nifti(source)
+    if kind == "tiff":
+        return read_tiff_stack(source, tiff_voxel_size_mm)
+    if kind is None:
         raise CtsplatError(
             f"input file {source} is not a .nii/.nii.gz or .tif stack; for DICOM give the folder holding the slices"
         )
-    if is_tiff_folder:
-        return read_tiff_stack(source, tiff_voxel_size_mm)
     return read_dicom_series(
         source, series_uid=series_uid, allow_modalities=allow_modalities, skip_corrupt=skip_corrupt, rescale=rescale
     )
 
 
-def _only_tiffs(folder: Path) -> bool:
-    entries = [p for p in folder.iterdir() if not p.name.startswith(".")]
-    return bool(entries) and all(p.is_file() and p.suffix.lower() in (".tif", ".tiff") for p in entries)
+def source_kind(source: str | os.PathLike[str]) -> str | None:
+    """How :func:`read_source` reads ``source``: ``"nifti"`` or ``"tiff"`` (a stack file, or a folder of TIFF slices
+    only), ``"dicom"`` (any other folder, or a path that does not exist), None for a file of another kind."""
+    source = Path(source)
+    if source.is_file():
+        name = source.name.lower()
+        return "nifti" if name.endswith(NIFTI_SUFFIXES) else "tiff" if name.endswith(TIFF_SUFFIXES) else None
+    if source.is_dir():
+        entries = [p for p in source.iterdir() if not p.name.startswith(".")]
+        if entries and all(p.is_file() and p.suffix.lower() in TIFF_SUFFIXES for p in entries):
+            return "tiff"
+    return "dicom"
 
 
 # --------------------------------------------------------------------------------------------------

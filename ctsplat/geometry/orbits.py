@@ -33,6 +33,8 @@ from ctsplat.utils import CtsplatError
 
 __all__ = [
     "check_orbit_settings",
+    "classical_methods",
+    "has_held_out_views",
     "arc_azimuths",
     "fibonacci_directions",
     "stratified_directions",
@@ -87,6 +89,66 @@ def check_orbit_settings(cfg: Mapping[str, Any], where: str = "radiographs") -> 
                            "splits by the split fractions (set n_val and n_test to null)")
     if cfg.get("pixel_spacing_mm") is not None and cfg.get("detector_size_factor") is not None:
         raise CtsplatError(f"{where}: set pixel_spacing_mm or detector_size_factor, not both")
+
+
+def classical_methods(cfg: Mapping[str, Any]) -> tuple[str, ...]:
+    """The classical reconstructions a geometry's settings admit, before any view is rendered.
+
+    The settings' side of :func:`ctsplat.recon.suite.applicable_methods`, which decides on the rendered view set:
+    a circular orbit without wobble is planar, so parallel beams take the slice-wise methods and MBIR, cone beams
+    FDK (which the suite still drops on a short scan under 180° plus the fan angle); every other orbit takes the 3D
+    iterative methods only.
+
+    Parameters
+    ----------
+    cfg : mapping
+        One geometry's settings with the defaults filled (``orbit``, ``camera``, ``wobble_deg``).
+
+    Returns
+    -------
+    tuple of str
+        Names of :data:`ctsplat.recon.suite.METHODS`.
+
+    Examples
+    --------
+    >>> classical_methods({"orbit": "circular", "camera": "parallel", "wobble_deg": 0.0})
+    ('fbp', 'sart', 'asd_pocs', 'mbir')
+    >>> classical_methods({"orbit": "sphere", "camera": "cone", "wobble_deg": 0.0})
+    ('sart', 'asd_pocs')
+    """
+    planar = cfg.get("orbit") == "circular" and float(cfg.get("wobble_deg") or 0.0) == 0.0
+    if planar and cfg.get("camera") == "parallel":
+        return ("fbp", "sart", "asd_pocs", "mbir")
+    if planar and cfg.get("camera") == "cone":
+        return ("fdk", "sart", "asd_pocs")
+    return ("sart", "asd_pocs")
+
+
+def has_held_out_views(cfg: Mapping[str, Any], split: str) -> bool:
+    """Whether a geometry's settings render ``val`` or ``test`` views.
+
+    A circular orbit's ``n_val`` / ``n_test`` win over its split fractions; other orbits split by the fractions
+    (a C-arm orbit renders training views only).
+
+    Parameters
+    ----------
+    cfg : mapping
+        One geometry's settings with the defaults filled (``orbit``, ``split``, ``n_val``, ``n_test``).
+    split : {"val", "test"}
+
+    Returns
+    -------
+    bool
+
+    Examples
+    --------
+    >>> has_held_out_views({"orbit": "circular", "n_test": 0, "split": {"test": 0.15}}, "test")
+    False
+    """
+    if cfg.get("orbit") == "carm":
+        return False
+    count = cfg.get(f"n_{split}")
+    return int(count) > 0 if count is not None else float(cfg["split"].get(split, 0.0)) > 0
 
 
 def arc_azimuths(n: int, arc_deg: float, start_deg: float = 0.0, offsets: np.ndarray | None = None) -> np.ndarray:

@@ -165,8 +165,9 @@ def classical_reconstructions(train_p: np.ndarray, train_vs: ViewSet, val_p: np.
     wanted = [m for m in METHODS if m in cfg["methods"]]
     run = [m for m in wanted if m in usable]
     if wanted and not run:
-        raise CtsplatError(f"baselines.methods {wanted} cannot reconstruct this geometry ({train_vs.camera.model} "
-                           f"beam, orbit {train_vs.meta.get('orbit', '?')}); it allows {', '.join(usable)}")
+        raise CtsplatError(f"baselines methods {wanted} (baselines.settings.methods in a workflow config) cannot "
+                           f"reconstruct this geometry ({train_vs.camera.model} beam, orbit "
+                           f"{train_vs.meta.get('orbit', '?')}); it allows {', '.join(usable)}")
     for m in wanted:
         if m not in usable:
             log.info("baselines: %s does not apply to this geometry; skipped", m)

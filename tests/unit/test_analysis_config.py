@@ -14,8 +14,10 @@ import yaml
 
 from ctsplat.config import (
     LIBRARY_SECTIONS,
+    check_config_files,
     check_library_sections,
     check_section,
+    load_config_text,
     load_schema,
     prepare_config,
     schema_defaults,
@@ -203,6 +205,7 @@ def test_grid_geometry_must_exist():
 
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
 def test_shipped_configs_validate(path):
+    check_config_files([path])  # no repeated key
     with open(path) as fh:
         config = yaml.safe_load(fh)
     cfg = validate_config(config)
@@ -279,10 +282,40 @@ def test_baseline_view_counts_must_fit_the_baselines_geometry():
         ({"radiographs": {"c": {"split": {"train": 0.85, "val": 0.0, "test": 0.15}}},
           "train": {"model_selection": "best"}},
          "invalid config at train.model_selection: best chooses a model on validation views, but geometry 'c'"),
+        # test metrics on the views that chose the settings: refused, not labelled after the fact
+        ({"radiographs": {"c": {"n_test": 0}}},
+         "invalid config at radiographs.c: the grid's geometry renders no test views, so the runs' test metrics would "
+         "be measured on views that chose their settings; give it test views (n_test or split.test)"),
+        ({"radiographs": {"s": {"orbit": "sphere", "split": {"train": 0.85, "val": 0.15, "test": 0.0}}}},
+         "renders no test views, so the runs' test metrics would be measured on views that chose their settings; "
+         "give it test views (split.test)"),
+        ({"radiographs": {"c": {"n_val": 0}}, "baselines": {"enabled": True}},
+         "invalid config at radiographs.c: the baselines' geometry renders no val views to choose the baselines' "
+         "parameters on; give it val views (n_val or split.val) or set baselines.enabled: false"),
+        ({"baselines": {"enabled": True, "settings": {"methods": ["fdk"]}}},
+         "invalid config at baselines.settings.methods: ['fdk'] cannot reconstruct geometry 'circular' (parallel "
+         "beam, orbit circular); it allows fbp, sart, asd_pocs, mbir"),
+        ({"radiographs": {"s": {"orbit": "sphere", "camera": "cone"}},
+          "baselines": {"settings": {"methods": ["mbir"]}}},
+         "invalid config at baselines.settings.methods: ['mbir'] cannot reconstruct geometry 's' (cone beam, orbit "
+         "sphere); it allows sart, asd_pocs"),
+        ({"grid": {"axes": {"seed": [2**64]}}}, "invalid config at grid.axes.seed[0]: 18446744073709551616 is greater"),
+        ({"volumes": {"p": {"source": "phantom", "phantom": {"seed": -1}}}}, "volumes.p.phantom.seed: -1 is less"),
+        ({"volumes": {2024: {"source": "phantom"}}},
+         "invalid config at volumes.2024: YAML read this name as the int 2024, not text; quote it in the config file "
+         "(e.g. '2024':;"),
+        ({"radiographs": {1: {"camera": "parallel"}}},
+         "invalid config at radiographs.1: YAML read this name as the int 1"),
+        ({"volumes": {"logs": {"source": "phantom"}}},
+         "invalid config at volumes.logs: results/logs is the workflow's own; rename the volume"),
+        ({"volumes": {"Head": {"source": "phantom"}, "head": {"source": "phantom"}}},
+         "invalid config at volumes.head: 'Head' and 'head' differ only in case"),
     ],
     ids=["volume-range", "volume-type", "volume-window", "window", "volume-hu", "hu", "sfm-percentiles",
          "fbp-filter", "radiographs-device", "no-train-views", "sphere-n-val", "spacing-and-size", "sharpen-no-val",
-         "best-no-val"],
+         "best-no-val", "no-test-views", "sphere-no-test-views", "baselines-no-val", "baselines-method-parallel",
+         "baselines-method-sphere", "seed-too-large", "phantom-seed", "numeric-volume-name", "numeric-geometry-name",
+         "reserved-volume-name", "volume-names-by-case"],
 )
 def test_values_that_would_fail_a_job_fail_at_parse_time(config, message):
     with pytest.raises(CtsplatError) as err:
@@ -304,10 +337,92 @@ def test_ct_source_folder_must_hold_a_scan(tmp_path):
     prepare_config({"volumes": {"v": {"source": str(tmp_path / "photos")}}})
 
 
+def test_scan_and_photo_sources_are_checked_for_their_kind_before_any_job(tmp_path, monkeypatch):
+    """A file that is neither NIfTI nor TIFF, a photo folder without enough photographs, CT keys on a photo volume:
+    each one line at parse time; `~` is the home folder, and a numeric series_uid is a series number."""
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(CtsplatError, match=r"volumes\.v\.source is a file that is neither NIfTI nor a TIFF stack: "
+                                           r"'notes\.txt' \(suffixes \.nii, \.nii\.gz, \.tif, \.tiff\)"):
+        prepare_config({"volumes": {"v": {"source": "notes.txt"}}}, base_dir=tmp_path)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (photos / "readme.txt").write_text("x")
+    ct = {"p": {"source": "phantom"}}
+    with pytest.raises(CtsplatError, match=r"invalid config at volumes\.s\.source: photo folder .* holds no images"):
+        prepare_config({"volumes": {**ct, "s": {"source": "photos", "kind": "photos"}}}, base_dir=tmp_path)
+    (photos / "a.jpg").write_bytes(b"")
+    (photos / "b.JPG").write_bytes(b"")
+    with pytest.raises(CtsplatError, match=r"'photos' holds 2 photographs; SfM needs at least 3 registered in one "
+                                           r"model \(photos\.sfm\.min_registered\)"):
+        prepare_config({"volumes": {**ct, "s": {"source": "photos", "kind": "photos"}}}, base_dir=tmp_path)
+    (photos / "c.png").write_bytes(b"")
+    cfg = prepare_config({"volumes": {**ct, "s": {"source": "photos", "kind": "photos"}}}, base_dir=tmp_path)
+    assert list(cfg["photo_volumes"]) == ["s"]
+    with pytest.raises(CtsplatError, match=r"invalid config at volumes\.s\.preprocessing: a volume of kind photos "
+                                           r"reads only source; preprocessing, series_uid apply to CT volumes"):
+        prepare_config({"volumes": {**ct, "s": {"source": "photos", "kind": "photos", "series_uid": "x",
+                                                "preprocessing": {"grid": 16}}}}, base_dir=tmp_path)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    (tmp_path / "scan.nii.gz").write_bytes(b"")
+    cfg = prepare_config({"volumes": {"v": {"source": "~/scan.nii.gz", "series_uid": 3}}}, base_dir="/")
+    assert cfg["volumes"]["v"]["source"] == str(tmp_path / "scan.nii.gz")
+    assert cfg["volumes"]["v"]["series_uid"] == "3"
+
+
+def test_a_number_given_as_text_is_named_as_text():
+    """Snakemake's --config passes a nested value as text ("train={'iterations': 5}" gives '5')."""
+    with pytest.raises(CtsplatError, match=r"train\.iterations: '5' is not of type 'integer' \(the value is text: "
+                                           r"quoted in the file, or a nested value of Snakemake's --config"):
+        prepare_config({"train": {"iterations": "5"}})
+    with pytest.raises(CtsplatError, match=r"train\.iterations: 'five' is not of type 'integer'$"):
+        prepare_config({"train": {"iterations": "five"}})
+
+
+def test_split_error_marks_the_fractions_filled_in_by_default():
+    with pytest.raises(CtsplatError, match=r"got 1\.15 \(train: 0\.7, val: 0\.3, test: 0\.15 \(default\)\)"):
+        prepare_config({"radiographs": {"c": {"split": {"train": 0.7, "val": 0.3}}}})
+
+
+def test_config_text_with_a_repeated_key_is_refused_naming_key_line_and_file(tmp_path):
+    text = "volumes:\n  head: {source: a}\n  head: {source: phantom}\ntrain:\n  iterations: 5\n"
+    with pytest.raises(CtsplatError, match=r"^key 'head' appears twice in one mapping \(again on line 3\); keep one$"):
+        load_config_text(text)
+    assert load_config_text("a: {x: 1}\nb: {x: 2}\n") == {"a": {"x": 1}, "b": {"x": 2}}  # equal keys, two mappings
+    (tmp_path / "ok.yaml").write_text("train: {iterations: 5}\n")
+    (tmp_path / "twice.yaml").write_text(text)
+    check_config_files([tmp_path / "ok.yaml"])
+    with pytest.raises(CtsplatError, match=r"config file .*twice\.yaml: key 'head' appears twice"):
+        check_config_files([tmp_path / "ok.yaml", tmp_path / "twice.yaml"])
+    from ctsplat.cli._common import load_section
+
+    with pytest.raises(CtsplatError, match=r"config file .*twice\.yaml: key 'head' appears twice"):
+        load_section(str(tmp_path / "twice.yaml"), "train")
+
+
+def test_classical_methods_from_settings_match_those_of_the_rendered_view_set():
+    """The parse-time rule (settings) and the baseline step's (rendered views) agree on every orbit kind."""
+    from ctsplat.formats.volume import Volume
+    from ctsplat.geometry.orbits import classical_methods
+    from ctsplat.projector import RADIOGRAPHS_DEFAULTS, build_view_set
+    from ctsplat.recon.suite import applicable_methods
+
+    data = np.zeros((16, 16, 16), np.float32)
+    data[4:12, 4:12, 4:12] = 1.0
+    volume = Volume(data, np.diag([2.0, 2.0, 2.0, 1.0]), {"volume_id": "cube", "intensity": {"mu_scale_per_mm": 0.02}})
+    kinds = [{"camera": "parallel"}, {"camera": "cone"}, {"camera": "cone", "wobble_deg": 5.0},
+             {"camera": "parallel", "wobble_deg": 5.0}, {"camera": "parallel", "orbit": "sphere"},
+             {"camera": "cone", "orbit": "sphere"}]
+    for kind in kinds:
+        settings = {**RADIOGRAPHS_DEFAULTS, "n_views": 24, "detector_width": 24, "detector_height": 24, **kind}
+        view_set = build_view_set(volume, settings)
+        assert set(applicable_methods(view_set)) == set(classical_methods(settings)), kind
+
+
 def test_photo_validation_fold_must_lie_below_test_every(tmp_path):
     photos = tmp_path / "photos"
     photos.mkdir()
-    (photos / "a.jpg").write_bytes(b"")
+    for name in ("a.jpg", "b.jpg", "c.jpg"):
+        (photos / name).write_bytes(b"")
     config = {"volumes": {"p": {"source": "phantom"}, "skull": {"source": str(photos), "kind": "photos"}},
               "photos": {"train": {"holdout": "validation", "validation_offset": 50}}}
     with pytest.raises(CtsplatError, match=r"photos\.train\.validation_offset: 50 must be 1\.\.7"):

@@ -215,7 +215,8 @@ def test_a_cone_arc_too_short_for_fdk_skips_it_and_runs_the_others(tmp_path, cap
                            {**QUICK, "save_volumes": False, "methods": ["fdk", "sart"]})
     assert list(df["method"]) == ["sart"]
     assert any("FDK skipped: FDK short scan covers" in r.getMessage() for r in caplog.records)
-    with pytest.raises(CtsplatError, match=r"baselines.methods \['fdk'\] cannot reconstruct this geometry"):
+    with pytest.raises(CtsplatError, match=r"methods \['fdk'\] \(baselines.settings.methods in a workflow config\) "
+                                           "cannot reconstruct"):
         run_baselines(tmp_path / "volume.nii.gz", tmp_path / "rad", tmp_path / "out2", {**QUICK, "methods": ["fdk"]})
 
 

@@ -267,6 +267,8 @@ def test_evaluation_writes_metrics_gallery_and_turntable(tmp_path: Path) -> None
 def test_photo_volumes_stay_out_of_the_ct_grid(tmp_path: Path) -> None:
     photos = tmp_path / "photos"
     photos.mkdir()
+    for name in ("01.jpg", "02.jpg", "03.jpg"):  # photos.sfm.min_registered
+        (photos / name).write_bytes(b"")
     cfg = prepare_config({"volumes": {"phantom": {"source": "phantom"},
                                       "skull": {"source": str(photos), "kind": "photos"}}})
     assert list(cfg["volumes"]) == ["phantom"] and list(cfg["photo_volumes"]) == ["skull"]

@@ -116,6 +116,37 @@ def test_bad_config_fails_before_any_job(tmp_path, config, message):
     assert not (tmp_path / "results").exists()  # nothing ran, nothing written
 
 
+def test_a_config_file_that_repeats_a_key_fails_before_any_job(tmp_path):
+    """Snakemake's YAML loader keeps the last of two equal keys; the workflow names the repeat instead."""
+    config = tmp_path / "twice.yaml"
+    config.write_text("volumes:\n  head: {source: missing/ct}\n  head: {source: phantom}\n")
+    proc = snakemake(tmp_path, "-n", configfile=config, check=False)
+    assert proc.returncode != 0
+    out = proc.stderr + proc.stdout
+    assert f"config file {config}: key 'head' appears twice in one mapping (again on line 3)" in out
+    assert not (tmp_path / "results").exists()
+
+
+def test_a_job_that_fails_on_bad_input_logs_one_line_without_a_traceback(tmp_path):
+    """A source that passes the parse-time checks (a .nii.gz name) but is not NIfTI: the ingest job fails with the
+    library's one-line error in its log, and writes no volume."""
+    (tmp_path / "fake.nii.gz").write_bytes(b"not gzip")
+    config = write_config(tmp_path / "bad.yaml", {**_tiny(), "volumes": {"v": {"source": "fake.nii.gz"}}})
+    proc = snakemake(tmp_path, "--cores", "1", "results/v/volume.nii.gz", configfile=config, check=False)
+    assert proc.returncode != 0
+    log = (tmp_path / "results" / "logs" / "ingest" / "v.log").read_text()
+    assert "Traceback" not in log
+    [line] = [x for x in log.splitlines() if "ERROR" in x]
+    assert "rule ingest failed: " in line and "fake.nii.gz" in line
+    assert not (tmp_path / "results" / "v" / "volume.nii.gz").exists()
+
+
+def _tiny():
+    import yaml
+
+    return yaml.safe_load((ROOT / "config" / "test_tiny.yaml").read_text())
+
+
 def test_cuda_device_requests_a_gpu_for_the_jobs_that_run_on_it(tmp_path):
     """`--config device=cuda` on top of the default grid: the jobs that then run on CUDA (training, evaluation, the
     projector and the baselines, which follow the workflow's device) get resources gpu=1, the others none."""

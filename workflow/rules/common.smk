@@ -7,7 +7,12 @@ from pathlib import Path
 from snakemake.utils import Paramspace
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS, RUN_FIGURE_KEYS
-from ctsplat.config import canonical, on_workflow_device, prepare_config
+from ctsplat.config import (
+    canonical,
+    check_config_files,
+    on_workflow_device,
+    prepare_config,
+)
 from ctsplat.formats.sources import outputs_selector
 from ctsplat.training.config import EVALUATION_KEYS
 from ctsplat.sfm.step import sfm_failure
@@ -23,6 +28,11 @@ from ctsplat.utils import CtsplatError, config_hash
 from ctsplat.volume import preprocessing_in_effect
 
 try:
+    # the default config when none was given (the Snakefile's configfile directive)
+    check_config_files(
+        workflow.config_settings.configfiles
+        or [f"{workflow.basedir}/config/config.yaml"]
+    )
     CFG = prepare_config(config, base_dir=os.getcwd())
 except CtsplatError as exc:
     raise WorkflowError(f"ctsplat config error: {exc}") from None
