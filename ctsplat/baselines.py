@@ -446,8 +446,8 @@ def sirt_volume(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *
 def select_views(view_set: ViewSet, split: str, n: int) -> np.ndarray:
     """Row indices of ``n`` views of ``split`` spread evenly in azimuth order (all when ``n`` is 0 or too large).
 
-    Same rule as training's ``views`` setting: sort the split's views by ``azimuth mod 360`` and take
-    positions ``floor(m * N / n)``, ``m = 0..n-1``.
+    Training's ``views`` rule, :func:`ctsplat.scene.spread_views`: sort the split's views by ``azimuth mod 360``
+    and take positions ``floor(m * N / n)``, ``m = 0..n-1``.
 
     Parameters
     ----------
@@ -468,14 +468,11 @@ def select_views(view_set: ViewSet, split: str, n: int) -> np.ndarray:
     CtsplatError
         When the split has no views.
     """
-    rows = view_set.indices(split)
-    if rows.size == 0:
+    from ctsplat.scene import spread_views
+
+    if view_set.indices(split).size == 0:
         raise CtsplatError(f"view set has no '{split}' views; re-render with a non-zero {split} fraction")
-    order = np.argsort(np.mod([view_set.views[i].azimuth_deg for i in rows], 360.0), kind="stable")
-    rows = rows[order]
-    if n <= 0 or n >= rows.size:
-        return rows
-    return rows[np.floor(np.arange(n) * rows.size / n).astype(int)]
+    return spread_views(view_set, split, n)
 
 
 #: Columns of ``baselines.csv``: the first seven as before (the analysis figures read them), then the validation

@@ -36,7 +36,7 @@ import numpy as np
 from ctsplat.formats.viewset import SPLITS, ViewSet, load_radiographs
 from ctsplat.utils import CtsplatError, read_json_object
 
-__all__ = ["ViewData", "Scene", "load_scene", "even_subset"]
+__all__ = ["ViewData", "Scene", "load_scene", "even_subset", "spread_views"]
 
 log = logging.getLogger(__name__)
 
@@ -227,6 +227,27 @@ def even_subset(n_total: int, n: int) -> np.ndarray:
     return np.floor(np.arange(n) * n_total / n).astype(int)
 
 
+def spread_views(view_set: ViewSet, split: str, n: int) -> np.ndarray:
+    """Rows of ``n`` views of ``split`` spread evenly in azimuth: the split sorted by ``azimuth mod 360`` (stable),
+    then :func:`even_subset`. Training's ``views`` setting and the baselines' view counts both take this subset.
+
+    Parameters
+    ----------
+    view_set : ViewSet
+    split : {"train", "val", "test"}
+    n : int
+        How many; ``<= 0`` or ``>=`` the split's size takes all.
+
+    Returns
+    -------
+    ndarray of int
+        Row indices into ``view_set.views`` (and its image stack), in azimuth order.
+    """
+    rows = view_set.indices(split)
+    order = np.argsort(np.mod([view_set.views[i].azimuth_deg for i in rows], 360.0), kind="stable")
+    return rows[order][even_subset(rows.size, n)]
+
+
 def _check_volume(vs: ViewSet, volume: Any, where: str) -> None:
     if vs.volume_id != volume.volume_id:
         raise CtsplatError(
@@ -342,13 +363,11 @@ def load_scene(cfg: dict[str, Any]) -> Scene:
         if split_rows["train"].size == 0:
             raise CtsplatError(f"radiographs in {cfg['radiographs']} have an empty train split; re-render with a "
                                "non-zero train fraction")
-        rows = split_rows["train"]
-        order = np.argsort(np.mod(np.asarray([vs.views[i].azimuth_deg for i in rows]), 360.0), kind="stable")
         want = int(cfg["views"])
-        if want > rows.size:
+        if want > split_rows["train"].size:
             raise CtsplatError(f"train.views asks for {want} training views but {cfg['radiographs']} has only "
-                               f"{rows.size}; lower views or render more")
-        rows = rows[order][even_subset(rows.size, want)]
+                               f"{split_rows['train'].size}; lower views or render more")
+        rows = spread_views(vs, "train", want)
         train = ViewData.from_view_set(vs, images, rows, "train", mu_scale)
         if source == "perturbed" and len(train):
             train.true_Rs, train.true_ts = train.Rs, train.ts

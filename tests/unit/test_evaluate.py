@@ -14,14 +14,20 @@ from ctsplat.evaluation import run as ev
 from ctsplat.utils import CtsplatError
 
 
-def test_view_metrics_match_metrics_module() -> None:
+def test_view_metrics_match_scikit_image_per_view() -> None:
+    """Per view: PSNR and SSIM of scikit-image with each reference view's own range (line integrals have no fixed
+    range); LPIPS a number only where the package exists, else null with a reason."""
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
     rng = np.random.default_rng(0)
-    refs = rng.random((3, 16, 16)).astype(np.float32) * 5
+    refs = rng.random((3, 16, 16)).astype(np.float32) * np.array([5.0, 1.0, 20.0], np.float32)[:, None, None]
     preds = refs + rng.normal(0, 0.1, refs.shape).astype(np.float32)
     vm = ev.view_metrics(preds, refs, with_lpips=True)
     for i in range(3):
-        assert vm["psnr2d"][i] == pytest.approx(metrics.psnr(preds[i], refs[i]))
-        assert vm["ssim2d"][i] == pytest.approx(metrics.ssim2d(preds[i], refs[i]))
+        r, p = refs[i].astype(np.float64), preds[i].astype(np.float64)
+        span = r.max() - r.min()
+        assert vm["psnr2d"][i] == pytest.approx(peak_signal_noise_ratio(r, p, data_range=span), rel=1e-9)
+        assert vm["ssim2d"][i] == pytest.approx(structural_similarity(p, r, data_range=span), rel=1e-9)
     value, reason = metrics.lpips_distance(preds[0], refs[0])
     if value is None:  # never a made-up number
         assert vm["lpips"] == [None] * 3 and vm["lpips_reason"] == reason and reason
@@ -212,6 +218,20 @@ def test_r2_metrics_normalise_a_reference_outside_unit_range() -> None:
     test, ref = test / ref.max(), ref / ref.max()  # min-max of a reference with min 0: scale by its max
     assert metrics.psnr3d_r2(test * 40.0, ref * 40.0) == pytest.approx(metrics.psnr3d_r2(test, ref))
     assert metrics.ssim3d_r2(test * 40.0, ref * 40.0) == pytest.approx(metrics.ssim3d_r2(test, ref))
+
+
+def test_r2_metrics_min_max_a_shifted_reference() -> None:
+    """A reference with a non-zero minimum (HU-like, below 0) is min-max normalised with the test volume under the
+    same map, min-max written out here; SSIM is not shift-invariant, so the shift must be removed."""
+    test, ref = _volumes_with_empty_margins()
+    test, ref = test / ref.max(), ref / ref.max()
+    lo, hi = -1000.0, 2000.0
+    shifted_test, shifted_ref = lo + (hi - lo) * test, lo + (hi - lo) * ref  # ref spans exactly [lo, hi]
+    t, r = metrics.normalise_r2(shifted_test, shifted_ref)
+    np.testing.assert_allclose(r, (shifted_ref - lo) / (hi - lo), atol=1e-12)
+    np.testing.assert_allclose(t, (shifted_test - lo) / (hi - lo), atol=1e-12)
+    assert metrics.ssim3d_r2(shifted_test, shifted_ref) == pytest.approx(metrics.ssim3d_r2(test, ref), abs=1e-9)
+    assert metrics.psnr3d_r2(shifted_test, shifted_ref) == pytest.approx(metrics.psnr3d_r2(test, ref), abs=1e-9)
 
 
 def test_r2_metrics_edge_cases() -> None:

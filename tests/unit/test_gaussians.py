@@ -71,6 +71,26 @@ def test_sh_basis_is_orthonormal_on_the_sphere():
     torch.testing.assert_close(gram, torch.eye(16, dtype=torch.float64), atol=1e-4, rtol=0)
 
 
+def test_sh_basis_signs_follow_3dgs_from_scipy_spherical_harmonics():
+    """Each basis function, sign included, against scipy's complex Y_l^m (Condon–Shortley phase): 3DGS's real basis
+    at index l² + l + m is √2 Im Y_l^|m| for m < 0, Y_l^0, √2 Re Y_l^m for m > 0 (the phase kept, so -C1 y, C1 z,
+    -C1 x at degree 1). Orthonormality alone cannot see a flipped sign; a PLY read by 3DGS viewers would."""
+    from scipy.special import sph_harm_y
+
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(50, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    polar, azimuth = np.arccos(d[:, 2]), np.arctan2(d[:, 1], d[:, 0])
+    want = []
+    for degree in (1, 2, 3):
+        for m in range(-degree, degree + 1):
+            y = sph_harm_y(degree, abs(m), polar, azimuth)
+            want.append(math.sqrt(2) * (y.imag if m < 0 else y.real) if m else y.real)
+    rest = eval_sh(torch.eye(15, dtype=torch.float64).expand(50, 15, 15), torch.tensor(d))
+    np.testing.assert_allclose(rest.numpy(), np.stack(want, -1), atol=1e-12)
+    np.testing.assert_allclose(SH_C0, sph_harm_y(0, 0, 0.0, 0.0).real, rtol=1e-12)
+
+
 def test_save_load_round_trip(tmp_path):
     g = _random(sh_degree=2, colors=np.random.default_rng(1).uniform(size=(7, 3)))
     g.meta["step"] = 12

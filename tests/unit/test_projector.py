@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import os
 import re
 import warnings
@@ -375,6 +376,10 @@ def test_carm_view_set_fits_the_object_and_stores_the_design(tmp_path) -> None:
     assert len(vs) == 10 and set(vs.indices("train")) == set(range(10)) and vs.has_design()
     radius = support_radius_mm(data, aff, vs.isocenter_mm)
     assert vs.camera.pitch_mm == pytest.approx(fitted_pitch_mm(radius, 300.0, 600.0, 20))
+    # independently: the ray from the source to the detector's edge (u = W/2 pitch at DSD) passes the isocentre
+    # at the sphere's radius (point-to-line distance DSO u / sqrt(u² + DSD²)), i.e. it grazes the bounding sphere
+    edge_u = 20 / 2 * vs.camera.pitch_mm
+    assert 300.0 * edge_u / math.hypot(edge_u, 600.0) == pytest.approx(radius, rel=1e-9)
     p, back = load_radiographs(tmp_path / "a")
     assert p.shape == (10, 20, 20) and back.has_design()
     # the object's shadow fits on the detector: no ray through the corner pixels hits it

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from ctsplat.geometry import ConeCamera, camera_center, project_points, support_radius_mm
 from ctsplat.sfm.align import evaluate_poses, robust_sim3, rotation_error_deg, umeyama
-from ctsplat.sfm.features import enhance_for_features
+from ctsplat.sfm.features import enhance_for_features, feature_masks
 from ctsplat.sfm.step import SFM_DEFAULTS, sfm_failure, summarize
 from ctsplat.utils import CtsplatError, merge_config
 
@@ -300,3 +300,24 @@ def test_robust_fusion_leaves_out_views_sfm_placed_wrongly_and_keeps_the_rest_as
     same = fuse_with_design(sfm, *args, threshold_mm=10.0, threshold_deg=1.0)
     assert set(same) == set(names)
     np.testing.assert_allclose(median_errors(same), median_errors(fuse_with_design(sfm, *args)), rtol=0.05)
+
+
+def test_feature_masks_keep_the_support_shrunk_by_the_margin() -> None:
+    """A disc of radius 20 px with a faint halo below the background threshold: features are kept exactly where a
+    pixel lies more than `margin_px` inside the disc (the distance to the disc's edge, written out), in every
+    view of a stack; no margin keeps everything."""
+    yy, xx = np.mgrid[0:64, 0:80].astype(float)
+    r = np.hypot(yy - 30.0, xx - 44.0)
+    disc = np.where(r <= 20.0, 1.0 - r / 40.0, 0.01)  # halo 0.01 < 0.02 x max
+    masks = feature_masks(np.stack([disc, disc[:, ::-1]]), background_frac=0.02, margin_px=4.0)
+    assert masks.shape == (2, 64, 80) and set(np.unique(masks)) == {0, 255}
+    inside = r <= 20.0
+    # distance from a pixel centre of the disc to its nearest pixel outside, to within the pixel grid (1 px)
+    keep = masks[0] == 255
+    assert keep[r < 20.0 - 4.0 - 1.0].all() and not keep[r > 20.0 - 4.0 + 1.0].any()
+    assert not keep[~inside].any()
+    np.testing.assert_array_equal(masks[1], masks[0][:, ::-1])
+    assert (feature_masks(disc, 0.02, 0.0) == 255).all()
+    # the image border counts as background: a support touching it is eroded from there too
+    edge = feature_masks(np.ones((10, 10)), 0.02, 2.0)[0] == 255
+    assert edge[2:8, 2:8].all() and not edge[:2].any() and not edge[:, -2:].any()

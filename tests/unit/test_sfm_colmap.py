@@ -300,6 +300,38 @@ def _model(names: list[str], Rs: np.ndarray, ts: np.ndarray):  # noqa: ANN202 - 
     return rec
 
 
+def test_reverse_depth_gives_the_weak_perspective_twin_and_twice_the_original() -> None:
+    """The Necker twin: points mirrored in z, every camera at its old distance from the points' centroid, and each
+    point's camera-frame x, y about the centroid unchanged (z negated), so an orthographic view cannot tell the two
+    apart; reversing twice gives the model back (cameras that look at the centroid, as on a C-arm orbit)."""
+    from ctsplat.sfm.colmap import model_poses, reverse_depth
+
+    iso = np.array([0.0, 0.0, 5.0])  # off the world origin, so the mirror plane z = 0 matters
+    orb = design_orbit(12, 360.0, 10.0, 2.0, 400.0, iso)
+    names = [f"view_{i:04d}.png" for i in range(12)]
+    rec = _model(names, orb["Rs"], orb["ts"])
+    pts = np.random.default_rng(0).uniform(-20.0, 20.0, (30, 3))
+    pts += iso - pts.mean(0)  # the centroid at the isocentre, which the cameras look at
+    ids = [rec.add_point3D(x, pycolmap.Track()) for x in pts]
+    before = model_poses(rec)
+    reverse_depth(rec)
+    after = model_poses(rec)
+    mirror = np.diag([1.0, 1.0, -1.0])
+    centroid = pts.mean(0)
+    np.testing.assert_allclose(np.array([rec.points3D[i].xyz for i in ids]), pts @ mirror, atol=1e-9)
+    for n in names:
+        (R, t), (R2, t2) = before[n], after[n]
+        c, c2 = -R.T @ t, -R2.T @ t2
+        assert np.linalg.norm(c2 - mirror @ centroid) == pytest.approx(np.linalg.norm(c - centroid), rel=1e-9)
+        seen, seen2 = (pts - centroid) @ R.T, (pts @ mirror - mirror @ centroid) @ R2.T
+        np.testing.assert_allclose(seen2[:, :2], seen[:, :2], atol=1e-9)
+        np.testing.assert_allclose(seen2[:, 2], -seen[:, 2], atol=1e-9)
+    reverse_depth(rec)
+    for n, (R, t) in model_poses(rec).items():
+        np.testing.assert_allclose(R, before[n][0], atol=1e-9)
+        np.testing.assert_allclose(t, before[n][1], atol=1e-6)
+
+
 def test_merge_models_maps_a_partial_model_into_the_largest_frame() -> None:
     from scipy.spatial.transform import Rotation
 

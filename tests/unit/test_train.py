@@ -21,6 +21,7 @@ from train_helpers import MU, N, tiny_phantom, tiny_train_cfg, write_tiny_scene
 
 from ctsplat import scene as sc
 from ctsplat.evaluation import evaluate
+from ctsplat.splat.gaussians import quat_to_rotmat
 from ctsplat.training import checkpoint, config, loop, seeding, state
 from ctsplat.training.densify import GradientDensify
 from ctsplat.utils import CtsplatError
@@ -194,6 +195,24 @@ def _state_from(means, scales, dens, cfg) -> state.TrainState:
     return state.TrainState(params=params, opt=opt, grad_accum=torch.zeros(n), grad_count=torch.ones(n))
 
 
+def test_train_views_are_spread_evenly_in_azimuth_from_any_start(tmp_path: Path) -> None:
+    """`views: 5` of 20 parallel views at 200° + 9° k: sorted by azimuth mod 360 (2, 11, 200, ..., 353), every
+    fourth — the azimuths written out here, and the baselines' subset (select_views) at the same count."""
+    from ctsplat.baselines import select_views
+    from ctsplat.formats.viewset import load_radiographs
+    from ctsplat.projector import render_radiographs
+
+    data, aff = tiny_phantom()
+    write_tiny_scene(tmp_path, data, aff, volume_id="tiny01", n_views=4)
+    render_radiographs(tmp_path / "volume.nii.gz", tmp_path / "rad200",
+                       {"detector_width": 24, "detector_height": 24, "n_views": 20, "start_deg": 200.0,
+                        "device": "cpu"})
+    scene = sc.load_scene(config.resolve_config(_cfg(tmp_path, radiographs=str(tmp_path / "rad200"), views=5)))
+    np.testing.assert_allclose(scene.train.azimuth_deg, [2.0, 218.0, 254.0, 290.0, 326.0], atol=1e-9)
+    _, view_set = load_radiographs(tmp_path / "rad200")
+    assert [view_set.views[i].id for i in select_views(view_set, "train", 5)] == list(scene.train.ids)
+
+
 def test_densify_clone_split_prune_and_cap(scene_dir: Path) -> None:
     cfg = config.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "clone_max_scale_voxels": 1.5,
                                                      "prune_density": 1e-3, "max_gaussians": 100}))
@@ -247,22 +266,31 @@ def test_densify_clone_split_prune_and_cap(scene_dir: Path) -> None:
     assert c2["cloned"] + c2["split"] == 1 and c2["split"] == 1 and c2["n"] == 4
 
 
-def test_split_children_are_drawn_from_the_parent_gaussian(scene_dir: Path) -> None:
-    """The two children of a split sample N(μ, Σ) of their (axis-aligned, anisotropic) parent: the sample
-    covariance of 1200 children against Σ = diag(s²)."""
+@pytest.mark.parametrize("rotated", [False, True], ids=["axis-aligned", "rotated"])
+def test_split_children_are_drawn_from_the_parent_gaussian(scene_dir: Path, rotated: bool) -> None:
+    """The two children of a split sample N(μ, Σ) of their anisotropic parent: the sample covariance of 1200
+    children against Σ = R diag(s²) Rᵀ (scipy's rotation; a transposed R would give another Σ), and the children
+    keep the parent's rotation."""
+    from scipy.spatial.transform import Rotation
+
     cfg = config.resolve_config(_cfg(scene_dir, densify={"grad_threshold": 1.0, "clone_max_scale_voxels": 1.5,
                                                          "max_gaussians": 10_000}))
     scene = sc.load_scene(cfg)
     m, parent_scales = 600, np.array([6.0, 4.0, 2.5])  # every axis above 1.5 voxels: split, not cloned
+    rot = Rotation.from_euler("zyx", [50, 30, 20] if rotated else [0, 0, 0], degrees=True)
     centre = scene.volume.center_mm()
     st = _state_from(np.tile(centre, (m, 1)), np.tile(parent_scales, (m, 1)), [0.6] * m, cfg)
+    wxyz = torch.tensor(rot.as_quat()[[3, 0, 1, 2]], dtype=st.params["quats"].dtype)
+    st.params["quats"].data.copy_(wxyz.expand(m, 4))
     st.grad_accum = torch.full((m,), 3.0)
     counts = _densify(st, cfg, scene, torch.Generator().manual_seed(0))
     assert counts["split"] == m and 2 * m - 5 <= counts["n"] <= 2 * m  # a far tail sample may leave the volume
     g = state.as_gaussians({k: v.detach() for k, v in st.params.items()})
     np.testing.assert_allclose(g.scales.numpy(), np.tile(parent_scales / 1.6, (len(g), 1)), rtol=1e-5)
+    np.testing.assert_allclose(quat_to_rotmat(g.quats).numpy(), np.tile(rot.as_matrix(), (len(g), 1, 1)), atol=1e-6)
     offsets = g.means.double().numpy() - centre
-    np.testing.assert_allclose(np.cov(offsets.T), np.diag(parent_scales**2), atol=0.12 * parent_scales[0] ** 2)
+    sigma = rot.as_matrix() @ np.diag(parent_scales**2) @ rot.as_matrix().T
+    np.testing.assert_allclose(np.cov(offsets.T), sigma, atol=0.12 * parent_scales[0] ** 2)
     assert abs(offsets.mean(0)).max() < 0.1 * parent_scales[0]
 
 

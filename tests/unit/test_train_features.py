@@ -265,6 +265,21 @@ def test_redundant_pruning_removes_a_duplicate_and_keeps_the_image(offset):
     assert GradientDensify(settings, compositor="radiative", iterations=10).merge(st) == 0
 
 
+def test_redundant_merge_under_alpha_keeps_the_pair_s_combined_opacity():
+    """Two coincident Gaussians of opacities o1, o2 cover their centre pixel by 1 - (1 - o1)(1 - o2) under alpha
+    compositing; the kept one takes that opacity, every other Gaussian is left as it was."""
+    rng = np.random.default_rng(2)
+    means = np.vstack([rng.uniform(-12, 12, (6, 3)), [[1.0, 2.0, 3.0]] * 2])
+    g = Gaussians.from_values(means, np.full((8, 3), 1.5), 1.0, opacities=[0.2, 0.4, 0.6, 0.8, 0.5, 0.9, 0.3, 0.5])
+    params = {k: v.detach().clone() for k, v in g.tensors().items() if k in state.PARAM_GROUPS}
+    settings = {"enabled": True, "distance": 0.1, "scale_tol": 0.1, "cov_tol": 0.1}
+    drop, updates = features.merge_redundant(params, settings, "alpha")
+    assert drop.tolist() == [False] * 7 + [True] and set(updates) == {"opacity_raw"}
+    kept = torch.sigmoid(updates["opacity_raw"]).numpy()
+    assert kept[6] == pytest.approx(1 - (1 - 0.3) * (1 - 0.5), abs=1e-6)
+    np.testing.assert_allclose(kept[:6], [0.2, 0.4, 0.6, 0.8, 0.5, 0.9], atol=1e-6)
+
+
 def test_prune_until_end_removes_what_grew_after_densification_stopped():
     rng = np.random.default_rng(0)
     means = rng.uniform(-10, 10, (12, 3))
