@@ -125,8 +125,14 @@ def load_config_text(text: str) -> Any:
         def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
             seen: set[Any] = set()
             for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *anchor`: keys written here override it
+                    continue
                 key = self.construct_object(key_node, deep=deep)
-                if key in seen:
+                try:
+                    repeated = key in seen
+                except TypeError:  # an unhashable key: SafeLoader's own error below says so
+                    break
+                if repeated:
                     raise CtsplatError(f"key {key!r} appears twice in one mapping (again on line "
                                        f"{key_node.start_mark.line + 1}); keep one")
                 seen.add(key)
@@ -221,9 +227,10 @@ def _reject_non_string_keys(values: Any, prefix: str = "") -> None:
         for key, value in values.items():
             if not isinstance(key, str):
                 where = f"{prefix}." if prefix else ""
+                octal = " (with a leading 0 it was read as an octal number)" if type(key) is int else ""
                 raise CtsplatError(f"invalid config at {where}{key!r}: YAML read this name as the "
-                                   f"{type(key).__name__} {key!r}, not text; quote it in the config file (e.g. "
-                                   f"'{key}':; YAML reads an unquoted name with a leading 0 as an octal number)")
+                                   f"{type(key).__name__} {key!r}{octal}, not text; quote it in the config file "
+                                   "exactly as you wrote it (e.g. \"0051\":)")
             _reject_non_string_keys(value, f"{prefix}.{key}" if prefix else key)
     elif isinstance(values, list):
         for i, value in enumerate(values):
@@ -511,7 +518,7 @@ def check_volume_sources(volumes: Mapping[str, Mapping[str, Any]], base_dir: str
         holds only photographs, or a photo folder with fewer than ``min_photos`` images; naming
         ``volumes.<name>.source``.
     """
-    from ctsplat.formats.sources import SCAN_FILE_SUFFIXES
+    from ctsplat.formats.sources import SCAN_FILE_SUFFIXES, source_kind
 
     for name, vol in volumes.items():
         source = vol["source"]
@@ -530,7 +537,7 @@ def check_volume_sources(volumes: Mapping[str, Mapping[str, Any]], base_dir: str
             )
         if path.is_dir():
             _check_scan_folder(name, source, path)
-        elif not path.name.lower().endswith(SCAN_FILE_SUFFIXES):
+        elif source_kind(path) is None:
             raise CtsplatError(f"volume source at volumes.{name}.source is a file that is neither NIfTI nor a TIFF "
                                f"stack: {source!r} (suffixes {', '.join(SCAN_FILE_SUFFIXES)}); for DICOM give the "
                                "folder holding the slices")
@@ -783,7 +790,7 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
         raise CtsplatError(
             f"invalid config at radiographs.{cfg['grid']['geometry']}: the grid's geometry renders no test views, so "
             f"the runs' test metrics would be measured on views that chose their settings; give it test views "
-            f"({'n_test or ' if grid_geo['orbit'] == 'circular' else ''}split.test)"
+            f"({_held_out_key(grid_geo, 'test')})"
         )
     if cfg["train"]["model_selection"] == "best" and no_val:
         raise CtsplatError(
@@ -814,13 +821,12 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
     if cfg["baselines"]["enabled"]:
         base = cfg["baselines"]["geometry"]
         base_geo = cfg["radiographs"][base]
-        for split, why in (("val", "to choose the baselines' parameters on"), ("test", "to score them on")):
-            if not has_held_out_views(base_geo, split):
-                raise CtsplatError(
-                    f"invalid config at radiographs.{base}: the baselines' geometry renders no {split} views {why}; "
-                    f"give it {split} views ({f'n_{split} or ' if base_geo['orbit'] == 'circular' else ''}split."
-                    f"{split}) or set baselines.enabled: false"
-                )
+        if not has_held_out_views(base_geo, "val"):
+            raise CtsplatError(
+                f"invalid config at radiographs.{base}: the baselines' geometry renders no val views to choose the "
+                f"baselines' parameters on; give it val views ({_held_out_key(base_geo, 'val')}) or set "
+                "baselines.enabled: false"
+            )
         possible = classical_methods(base_geo)
         wanted = list(cfg["baselines"]["settings"]["methods"])
         if wanted and not set(wanted) & set(possible):
@@ -837,6 +843,14 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
                 f"radiographs.{base}.n_views"
             )
     return cfg
+
+
+def _held_out_key(geometry: Mapping[str, Any], split: str) -> str:
+    """The key that sets a geometry's ``val`` / ``test`` views: a circular orbit's ``n_<split>`` (which wins over
+    the fractions when set), else ``split.<split>``."""
+    if geometry["orbit"] != "circular":
+        return f"split.{split}"
+    return f"n_{split}" if geometry.get(f"n_{split}") is not None else f"n_{split} or split.{split}"
 
 
 def _training_views(geometry: Mapping[str, Any]) -> int:

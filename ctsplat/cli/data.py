@@ -66,7 +66,6 @@ def run_phantom(args: argparse.Namespace) -> None:
     print(out)
 
 
-
 def _check_ingest_options(args: argparse.Namespace, cfg: dict) -> None:
     """Refuse options that would have no effect (combinations, or options of another input kind)."""
     from ctsplat.config import schema_defaults
@@ -171,7 +170,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     q.add_argument("--window", type=_window, help="window preset (brain, soft_tissue, bone, lung) or LEVEL,WIDTH")
     q.add_argument("--hu-max", dest="hu_max", type=float,
                    help="HU mapped to 1.0 by attenuation, and where mu clips (default 3000)")
-    q.add_argument("--mu-water", dest="mu_water_per_mm", type=float, help="mu of water in 1/mm (default 0.019)")
+    q.add_argument("--mu-water", dest="mu_water_per_mm", type=float,
+                   help="mu of water in 1/mm (default 0.019); with --intensity window it sets the window top's mu, "
+                        "the radiographs' scale")
     q.add_argument("--denoise", choices=["tv", "bilateral"], help="optional denoising")
     q.add_argument("--mask", choices=["otsu", "convex_hull"], help="optional body mask; air outside")
     q.add_argument("--series-uid", metavar="ID",

@@ -89,12 +89,12 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Diagonal LPS <-> RAS flip (its own inverse).
 #: File names :func:`read_source` reads as one scan (a folder is a DICOM series or a TIFF-slice folder).
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
 TIFF_SUFFIXES = (".tif", ".tiff")
 SCAN_FILE_SUFFIXES = NIFTI_SUFFIXES + TIFF_SUFFIXES
 
+#: Diagonal LPS <-> RAS flip (its own inverse).
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0])
 
 #: Tolerances for geometry consistency checks.

@@ -95,14 +95,15 @@ def classical_methods(cfg: Mapping[str, Any]) -> tuple[str, ...]:
     """The classical reconstructions a geometry's settings admit, before any view is rendered.
 
     The settings' side of :func:`ctsplat.recon.suite.applicable_methods`, which decides on the rendered view set:
-    a circular orbit without wobble is planar, so parallel beams take the slice-wise methods and MBIR, cone beams
-    FDK (which the suite still drops on a short scan under 180° plus the fan angle); every other orbit takes the 3D
-    iterative methods only.
+    a circular orbit without wobble (``wobble_deg`` or ``wobble_cycles`` 0) is planar, so parallel beams take the
+    slice-wise methods and MBIR, cone beams FDK (which the suite still drops on a short scan under 180° plus the fan
+    angle); every other orbit takes the 3D iterative methods only.
 
     Parameters
     ----------
     cfg : mapping
-        One geometry's settings with the defaults filled (``orbit``, ``camera``, ``wobble_deg``).
+        One geometry's settings with the defaults filled (``orbit``, ``camera``, ``wobble_deg``,
+        ``wobble_cycles``).
 
     Returns
     -------
@@ -116,7 +117,8 @@ def classical_methods(cfg: Mapping[str, Any]) -> tuple[str, ...]:
     >>> classical_methods({"orbit": "sphere", "camera": "cone", "wobble_deg": 0.0})
     ('sart', 'asd_pocs')
     """
-    planar = cfg.get("orbit") == "circular" and float(cfg.get("wobble_deg") or 0.0) == 0.0
+    wobble = float(cfg.get("wobble_deg") or 0.0) * float(cfg.get("wobble_cycles", 2.0) or 0.0)
+    planar = cfg.get("orbit") == "circular" and wobble == 0.0
     if planar and cfg.get("camera") == "parallel":
         return ("fbp", "sart", "asd_pocs", "mbir")
     if planar and cfg.get("camera") == "cone":

@@ -285,13 +285,15 @@ def test_baseline_view_counts_must_fit_the_baselines_geometry():
         # test metrics on the views that chose the settings: refused, not labelled after the fact
         ({"radiographs": {"c": {"n_test": 0}}},
          "invalid config at radiographs.c: the grid's geometry renders no test views, so the runs' test metrics would "
-         "be measured on views that chose their settings; give it test views (n_test or split.test)"),
+         "be measured on views that chose their settings; give it test views (n_test)"),
+        ({"radiographs": {"c": {"split": {"train": 0.85, "val": 0.15, "test": 0.0}}}},
+         "give it test views (n_test or split.test)"),
         ({"radiographs": {"s": {"orbit": "sphere", "split": {"train": 0.85, "val": 0.15, "test": 0.0}}}},
          "renders no test views, so the runs' test metrics would be measured on views that chose their settings; "
          "give it test views (split.test)"),
         ({"radiographs": {"c": {"n_val": 0}}, "baselines": {"enabled": True}},
          "invalid config at radiographs.c: the baselines' geometry renders no val views to choose the baselines' "
-         "parameters on; give it val views (n_val or split.val) or set baselines.enabled: false"),
+         "parameters on; give it val views (n_val) or set baselines.enabled: false"),
         ({"baselines": {"enabled": True, "settings": {"methods": ["fdk"]}}},
          "invalid config at baselines.settings.methods: ['fdk'] cannot reconstruct geometry 'circular' (parallel "
          "beam, orbit circular); it allows fbp, sart, asd_pocs, mbir"),
@@ -302,8 +304,10 @@ def test_baseline_view_counts_must_fit_the_baselines_geometry():
         ({"grid": {"axes": {"seed": [2**64]}}}, "invalid config at grid.axes.seed[0]: 18446744073709551616 is greater"),
         ({"volumes": {"p": {"source": "phantom", "phantom": {"seed": -1}}}}, "volumes.p.phantom.seed: -1 is less"),
         ({"volumes": {2024: {"source": "phantom"}}},
-         "invalid config at volumes.2024: YAML read this name as the int 2024, not text; quote it in the config file "
-         "(e.g. '2024':;"),
+         "invalid config at volumes.2024: YAML read this name as the int 2024 (with a leading 0 it was read as an "
+         "octal number), not text; quote it in the config file exactly as you wrote it (e.g. \"0051\":)"),
+        ({"volumes": {True: {"source": "phantom"}}},
+         "invalid config at volumes.True: YAML read this name as the bool True, not text; quote it"),
         ({"radiographs": {1: {"camera": "parallel"}}},
          "invalid config at radiographs.1: YAML read this name as the int 1"),
         ({"volumes": {"logs": {"source": "phantom"}}},
@@ -313,8 +317,10 @@ def test_baseline_view_counts_must_fit_the_baselines_geometry():
     ],
     ids=["volume-range", "volume-type", "volume-window", "window", "volume-hu", "hu", "sfm-percentiles",
          "fbp-filter", "radiographs-device", "no-train-views", "sphere-n-val", "spacing-and-size", "sharpen-no-val",
-         "best-no-val", "no-test-views", "sphere-no-test-views", "baselines-no-val", "baselines-method-parallel",
-         "baselines-method-sphere", "seed-too-large", "phantom-seed", "numeric-volume-name", "numeric-geometry-name",
+         "best-no-val", "no-test-views", "no-test-fraction", "sphere-no-test-views", "baselines-no-val",
+         "baselines-method-parallel",
+         "baselines-method-sphere", "seed-too-large", "phantom-seed", "numeric-volume-name", "bool-volume-name",
+         "numeric-geometry-name",
          "reserved-volume-name", "volume-names-by-case"],
 )
 def test_values_that_would_fail_a_job_fail_at_parse_time(config, message):
@@ -388,6 +394,11 @@ def test_config_text_with_a_repeated_key_is_refused_naming_key_line_and_file(tmp
     with pytest.raises(CtsplatError, match=r"^key 'head' appears twice in one mapping \(again on line 3\); keep one$"):
         load_config_text(text)
     assert load_config_text("a: {x: 1}\nb: {x: 2}\n") == {"a": {"x": 1}, "b": {"x": 2}}  # equal keys, two mappings
+    # a YAML merge key brings keys that the mapping may override; an unhashable key stays YAML's own error
+    merged = load_config_text("base: &b {iterations: 5, seed: 1}\ntrain:\n  <<: *b\n  seed: 2\n")
+    assert merged["train"] == {"iterations": 5, "seed": 2}
+    with pytest.raises(yaml.YAMLError, match="unhashable"):
+        load_config_text("? [a, b]\n: 1\n")
     (tmp_path / "ok.yaml").write_text("train: {iterations: 5}\n")
     (tmp_path / "twice.yaml").write_text(text)
     check_config_files([tmp_path / "ok.yaml"])
@@ -410,7 +421,8 @@ def test_classical_methods_from_settings_match_those_of_the_rendered_view_set():
     data[4:12, 4:12, 4:12] = 1.0
     volume = Volume(data, np.diag([2.0, 2.0, 2.0, 1.0]), {"volume_id": "cube", "intensity": {"mu_scale_per_mm": 0.02}})
     kinds = [{"camera": "parallel"}, {"camera": "cone"}, {"camera": "cone", "wobble_deg": 5.0},
-             {"camera": "parallel", "wobble_deg": 5.0}, {"camera": "parallel", "orbit": "sphere"},
+             {"camera": "parallel", "wobble_deg": 5.0}, {"camera": "parallel", "wobble_deg": 5.0, "wobble_cycles": 0.0},
+             {"camera": "parallel", "orbit": "sphere"},
              {"camera": "cone", "orbit": "sphere"}]
     for kind in kinds:
         settings = {**RADIOGRAPHS_DEFAULTS, "n_views": 24, "detector_width": 24, "detector_height": 24, **kind}

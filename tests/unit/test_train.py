@@ -197,9 +197,8 @@ def _state_from(means, scales, dens, cfg) -> state.TrainState:
 
 def test_train_views_are_spread_evenly_in_azimuth_from_any_start(tmp_path: Path) -> None:
     """`views: 5` of 20 parallel views at 200° + 9° k: sorted by azimuth mod 360 (2, 11, 200, ..., 353), every
-    fourth — the azimuths written out here, and the baselines' subset (select_views) at the same count."""
-    from ctsplat.baselines import select_views
-    from ctsplat.formats.viewset import load_radiographs
+    fourth — the azimuths written out here (the baselines' subset, the same `spread_views`, is checked against
+    hand-written azimuths in test_baselines.py)."""
     from ctsplat.projector import render_radiographs
 
     data, aff = tiny_phantom()
@@ -209,8 +208,6 @@ def test_train_views_are_spread_evenly_in_azimuth_from_any_start(tmp_path: Path)
                         "device": "cpu"})
     scene = sc.load_scene(config.resolve_config(_cfg(tmp_path, radiographs=str(tmp_path / "rad200"), views=5)))
     np.testing.assert_allclose(scene.train.azimuth_deg, [2.0, 218.0, 254.0, 290.0, 326.0], atol=1e-9)
-    _, view_set = load_radiographs(tmp_path / "rad200")
-    assert [view_set.views[i].id for i in select_views(view_set, "train", 5)] == list(scene.train.ids)
 
 
 def test_densify_clone_split_prune_and_cap(scene_dir: Path) -> None:
