@@ -332,6 +332,33 @@ def test_reverse_depth_gives_the_weak_perspective_twin_and_twice_the_original() 
         np.testing.assert_allclose(t, before[n][1], atol=1e-6)
 
 
+def test_fix_reversal_keeps_whichever_twin_fits_the_design() -> None:
+    """A model in its depth-reversed (Necker) form is replaced by its twin, which fits the designed orbit (rotation
+    error 180° before, ~0 after); a model that already fits is kept."""
+    from ctsplat.sfm.colmap import fix_reversal, model_poses, reverse_depth
+    from ctsplat.sfm.step import SFM_DEFAULTS
+
+    orb = design_orbit(12, 360.0, 10.0, 2.0, 400.0)
+    names = [f"view_{i:04d}.png" for i in range(12)]
+    design = {n: (orb["Rs"][i], orb["ts"][i]) for i, n in enumerate(names)}
+    pts = np.random.default_rng(0).uniform(-20.0, 20.0, (30, 3))
+    pts -= pts.mean(0)
+    models = {}
+    for k, flip in enumerate((True, False)):
+        rec = _model(names, orb["Rs"], orb["ts"])
+        for x in pts:
+            rec.add_point3D(x, pycolmap.Track())
+        models[k] = reverse_depth(rec) if flip else rec
+    report = fix_reversal(models, design, dict(SFM_DEFAULTS), threshold=8.0)
+    assert [r["reversed"] for r in report] == [True, False]
+    assert report[0]["design_rot_err_deg"] == pytest.approx(180.0, abs=1e-6)
+    assert report[0]["reversed_design_rot_err_deg"] < 1e-3 and report[1]["design_rot_err_deg"] < 1e-3
+    for k in (0, 1):
+        for n, (R, t) in model_poses(models[k]).items():
+            np.testing.assert_allclose(R, design[n][0], atol=1e-6)
+            np.testing.assert_allclose(t, design[n][1], atol=1e-4)
+
+
 def test_merge_models_maps_a_partial_model_into_the_largest_frame() -> None:
     from scipy.spatial.transform import Rotation
 
