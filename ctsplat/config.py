@@ -545,19 +545,15 @@ def check_volume_sources(volumes: Mapping[str, Mapping[str, Any]], base_dir: str
 
 def _check_photo_folder(name: str, source: str, path: Path, min_photos: int) -> None:
     """A photo volume's source must be a folder with at least ``min_photos`` images."""
-    from ctsplat.photos.images import list_photos
+    from ctsplat.photos.images import check_photo_count, list_photos
 
     if not path.is_dir():
         raise CtsplatError(f"photo folder not found at volumes.{name}.source: {source!r} (resolved to "
                            f"{path.resolve()}); a volume of kind photos needs a folder of photographs")
     try:
-        n = len(list_photos(path))
+        check_photo_count(source, len(list_photos(path)), min_photos)
     except CtsplatError as exc:
         raise CtsplatError(f"invalid config at volumes.{name}.source: {exc}") from None
-    if n < min_photos:
-        raise CtsplatError(f"invalid config at volumes.{name}.source: {source!r} holds {n} photographs; SfM needs "
-                           f"at least {min_photos} registered in one model (photos.sfm.min_registered): add photos "
-                           "of the object")
 
 
 #: Names the workflow writes beside the volume folders in ``results/``.

@@ -14,7 +14,7 @@ from PIL import Image
 
 from ctsplat.utils import CtsplatError, atomic_path
 
-__all__ = ["IMAGE_SUFFIXES", "list_photos", "check_photos", "load_rgb", "strip_metadata"]
+__all__ = ["IMAGE_SUFFIXES", "list_photos", "check_photo_count", "check_photos", "load_rgb", "strip_metadata"]
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
@@ -44,6 +44,28 @@ def list_photos(folder: str | Path) -> list[str]:
         raise CtsplatError(f"photo folder {folder} holds no images ({', '.join(IMAGE_SUFFIXES)}); "
                            "point it at the folder with the photographs")
     return names
+
+
+def check_photo_count(folder: str | Path, n_photos: int, min_registered: int) -> None:
+    """Refuse a folder with fewer photos than SfM must register in one model: no model can register more.
+
+    Parameters
+    ----------
+    folder : str or Path
+        The photo folder (named in the error).
+    n_photos : int
+        Photographs in it.
+    min_registered : int
+        ``photos.sfm.min_registered``.
+
+    Raises
+    ------
+    CtsplatError
+        When ``n_photos < min_registered``.
+    """
+    if n_photos < int(min_registered):
+        raise CtsplatError(f"{folder} holds {n_photos} photos; SfM needs at least {min_registered} registered in one "
+                           "model (photos.sfm.min_registered): add photos of the object")
 
 
 def check_photos(folder: str | Path, names: list[str], *, single_camera: bool) -> dict[str, tuple[int, int]]:

@@ -30,7 +30,7 @@ import numpy as np
 import pycolmap
 
 from ctsplat.photos.config import photo_settings
-from ctsplat.photos.images import check_photos, list_photos, strip_metadata
+from ctsplat.photos.images import check_photo_count, check_photos, list_photos, strip_metadata
 from ctsplat.sfm.colmap import MAPPING_THREADS, extraction_options, match_pairs, matching_options, write_model
 from ctsplat.utils import CtsplatError, atomic_dir, code_version, write_json_atomic
 
@@ -141,9 +141,7 @@ def run_photo_sfm(image_dir: str | Path, out_dir: str | Path, settings: dict[str
     if s["mapper"] not in ("incremental", "global"):
         raise CtsplatError(f"unknown photos.sfm.mapper {s['mapper']!r}; allowed: incremental, global")
     check_photos(image_dir, names, single_camera=s["camera_mode"] == "single")
-    if len(names) < int(s["min_registered"]):  # said before COLMAP runs: no model can register more than this
-        raise CtsplatError(f"{image_dir} holds {len(names)} photos; SfM needs at least {s['min_registered']} "
-                           "registered in one model (photos.sfm.min_registered): add photos of the object")
+    check_photo_count(image_dir, len(names), s["min_registered"])  # before COLMAP runs
     matching_mode(s, len(names))
     with contextlib.suppress(Exception):
         pycolmap.set_random_seed(int(s["seed"]))

@@ -358,8 +358,8 @@ def test_scan_and_photo_sources_are_checked_for_their_kind_before_any_job(tmp_pa
         prepare_config({"volumes": {**ct, "s": {"source": "photos", "kind": "photos"}}}, base_dir=tmp_path)
     (photos / "a.jpg").write_bytes(b"")
     (photos / "b.JPG").write_bytes(b"")
-    with pytest.raises(CtsplatError, match=r"'photos' holds 2 photographs; SfM needs at least 3 registered in one "
-                                           r"model \(photos\.sfm\.min_registered\)"):
+    with pytest.raises(CtsplatError, match=r"volumes\.s\.source: photos holds 2 photos; SfM needs at least 3 "
+                                           r"registered in one model \(photos\.sfm\.min_registered\)"):
         prepare_config({"volumes": {**ct, "s": {"source": "photos", "kind": "photos"}}}, base_dir=tmp_path)
     (photos / "c.png").write_bytes(b"")
     cfg = prepare_config({"volumes": {**ct, "s": {"source": "photos", "kind": "photos"}}}, base_dir=tmp_path)
