@@ -24,7 +24,7 @@ import scipy.sparse as sparse
 from threadpoolctl import threadpool_limits
 
 from ctsplat.formats.volume import Volume, compute_volume_id, json_path_for, save_volume
-from ctsplat.utils import CtsplatError, code_version, merge_config
+from ctsplat.utils import CtsplatError, code_version, merge_config, read_json_object
 
 __all__ = [
     "PREPROCESSING_DEFAULTS",
@@ -68,7 +68,8 @@ WINDOW_PRESETS: dict[str, tuple[float, float]] = {
 #: - ``hu_max``: HU mapped to 1.0 by ``"attenuation"`` (denser values clip).
 #: - ``window``: preset name (see ``WINDOW_PRESETS``) or ``[level, width]`` for ``"window"``.
 #: - ``denoise``: null, ``"tv"`` (3D Chambolle TV, weight ``denoise_weight``) or ``"bilateral"``
-#:   (per axial slice, ``sigma_color = denoise_weight``); applied to the mapped values.
+#:   (per axial slice, ``sigma_color = denoise_weight``); applied to the mapped values, with the weight in units
+#:   of the mapping's full scale (:func:`intensity_full_scale`), so it smooths alike whatever the intensity.
 #: - ``mask``: null, ``"otsu"`` (largest Otsu foreground component, holes filled) or ``"convex_hull"``
 #:   (that, then the per-slice convex hull); everything outside is set to air (HU -1000).
 PREPROCESSING_DEFAULTS: dict[str, Any] = {
@@ -252,6 +253,27 @@ def _grid_axes(
     return h, counts, start, mode
 
 
+#: float32 arrays of the output grid's size that ingest holds at its peak (resampled, coverage, mapped, denoised,
+#: mask, the copy written), beside the two of the in-plane pass (output rows x columns x source slices).
+_GRID_COPIES, _INPLANE_COPIES = 6, 2
+
+
+def _check_grid_fits(counts: np.ndarray, n_slices: int, spacing_mm: np.ndarray) -> None:
+    """Refuse an output grid whose arrays would not fit in this machine's memory, before allocating any."""
+    import os
+
+    need = 4 * (_GRID_COPIES * float(np.prod(counts)) + _INPLANE_COPIES * float(counts[0] * counts[1] * n_slices))
+    try:
+        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return  # no way to ask: the allocation itself will say
+    if need > total:
+        shape = " x ".join(str(int(c)) for c in counts)
+        raise CtsplatError(f"the output grid {shape} ({float(spacing_mm.min()):.3g} mm voxels) needs about "
+                           f"{need / 2**30:.0f} GiB, more than this machine's {total / 2**30:.0f} GiB of memory; "
+                           f"choose a larger voxel_size_mm or a smaller grid")
+
+
 def resample_stack(
     stack: Any,
     *,
@@ -320,6 +342,7 @@ def resample_stack(
     h, counts, start, mode = _grid_axes(
         lo, hi, first, last, np.array([di, dj, gap]), voxel_size_mm, grid, ornt[:, 0].astype(int)
     )
+    _check_grid_fits(counts, n_k, h)
     out_u = start[0] + np.arange(counts[0]) * h[0]
     out_v = start[1] + np.arange(counts[1]) * h[1]
     out_n = start[2] + np.arange(counts[2]) * h[2]
@@ -473,6 +496,30 @@ def body_mask(values: np.ndarray, method: str = "otsu") -> np.ndarray:
     return fg
 
 
+def intensity_full_scale(intensity: dict[str, Any], cfg: dict[str, Any]) -> float:
+    """The value span that an intensity mapping's [0, 1] stands for: 1 for the normalised mappings, μ at ``hu_max``
+    (1/mm) for ``mu``, and for ``hu`` (where ``hu_max`` has no say) air to the default ``hu_max``, 4000 HU.
+
+    Parameters
+    ----------
+    intensity : dict
+        The mapping's record (``kind``), as ingest writes it into ``volume.json``.
+    cfg : dict
+        Preprocessing settings (``mu_water_per_mm``, ``hu_max``).
+
+    Returns
+    -------
+    float
+        In the mapped values' units.
+    """
+    kind = intensity["kind"]
+    if kind == "attenuation_per_mm":
+        return float(cfg["mu_water_per_mm"]) * (1.0 + float(cfg["hu_max"]) / 1000.0)
+    if kind == "hu":
+        return float(PREPROCESSING_DEFAULTS["hu_max"]) + 1000.0
+    return 1.0
+
+
 def denoise(values: np.ndarray, method: str, weight: float) -> np.ndarray:
     """Denoise a volume.
 
@@ -591,6 +638,35 @@ def _map_intensity(values: np.ndarray, cfg: dict[str, Any], units: str) -> tuple
 # --------------------------------------------------------------------------------------------------
 
 
+def _check_not_ingested(source: Path) -> None:
+    """Refuse a NIfTI that ingest wrote (its provenance JSON beside it says so) unless it kept HU: ingest reads NIfTI
+    values as HU, and a normalised volume read as HU maps onto water, one constant value."""
+    sidecar = json_path_for(source)
+    if not source.name.endswith((".nii.gz", ".nii")) or not sidecar.is_file():
+        return
+    try:
+        meta = read_json_object(sidecar, what="volume provenance", fix="")
+    except CtsplatError:
+        return  # not ours
+    kind = meta.get("intensity", {}).get("kind") if isinstance(meta.get("intensity"), dict) else None
+    if meta.get("created_by") == "ctsplat.volume.ingest" and kind != "hu":
+        raise CtsplatError(f"{source} is a volume ingest already wrote ({sidecar.name}: intensity {kind}), not a "
+                           f"scan in HU; use it as it is (project, baseline and train read it), or ingest the "
+                           f"original scan again with other settings")
+
+
+def _warn_unless_hu(values: np.ndarray, source: Any) -> None:
+    """Warn when NIfTI values, which ingest reads as HU, hold no air (-1000 HU) or exceed 4000
+    (:func:`ctsplat.formats.sources.looks_like_hu`)."""
+    from ctsplat.formats.sources import looks_like_hu
+
+    finite = values[np.isfinite(values)]
+    if finite.size and not looks_like_hu(finite):
+        log.warning("%s: ingest reads NIfTI values as Hounsfield units, but these (%g .. %g) hold no air near -1000 "
+                    "HU or exceed 4000; if the file is not a CT in HU the intensity mapping is wrong", source,
+                    float(finite.min()), float(finite.max()))
+
+
 def _check_not_the_source(source: Path, out_path: Path) -> None:
     """Refuse an output (or its ``volume.json`` sidecar) that is the source file or lies in the source folder."""
     src = source.resolve()
@@ -664,6 +740,7 @@ def ingest(
         raise CtsplatError(f"output {out_path} must end in .nii.gz or .nii")
     if not isinstance(source, SliceStack):
         _check_not_the_source(Path(source), out_path)
+        _check_not_ingested(Path(source))
     cfg = merge_config("preprocessing", preprocessing, PREPROCESSING_DEFAULTS)
     check_preprocessing(cfg)
     cfg = preprocessing_in_effect(cfg)
@@ -680,6 +757,8 @@ def ingest(
             source, series_uid=series_uid, allow_modalities=allow_modalities, skip_corrupt=skip_corrupt,
             tiff_voxel_size_mm=tiff_voxel_size_mm, rescale=rescale,
         )
+    if stack.units == "hu" and stack.source.get("kind") == "nifti":
+        _warn_unless_hu(stack.data, source)
     t_read = time.perf_counter()
     steps: list[dict[str, Any]] = [
         {"step": "read", "kind": stack.source.get("kind"), "lps_to_ras": stack.source.get("kind") == "dicom"}
@@ -697,8 +776,10 @@ def ingest(
     mapped, intensity = _map_intensity(values, cfg, stack.units)
     steps.append({"step": "intensity", **{k: v for k, v in intensity.items() if k != "formula"}})
     if cfg["denoise"]:
-        mapped = denoise(mapped, cfg["denoise"], float(cfg["denoise_weight"]))
-        steps.append({"step": "denoise", "method": cfg["denoise"], "weight": float(cfg["denoise_weight"])})
+        weight = float(cfg["denoise_weight"]) * intensity_full_scale(intensity, cfg)
+        mapped = denoise(mapped, cfg["denoise"], weight)
+        steps.append({"step": "denoise", "method": cfg["denoise"], "weight": float(cfg["denoise_weight"]),
+                      "weight_in_value_units": weight})
     if mask is not None:
         # air: HU -1000 through the same mapping (0 for attenuation/window/mu), the minimum for raw data
         if stack.units == "hu":

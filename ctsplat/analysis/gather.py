@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -13,6 +14,8 @@ from ctsplat.analysis.stats import convergence_velocity, mean_iters_per_s, miles
 from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, PER_VIEW_COLUMNS, read_per_view, read_train_log
 from ctsplat.grid import GRID_AXES, cell_needs_sfm, parse_run_dir, run_axes, uses_colmap
 from ctsplat.utils import CtsplatError, atomic_path, dotted_items, read_json_object
+
+log = logging.getLogger(__name__)
 
 __all__ = ["TEST_METRICS", "SFM_COLUMNS", "BASELINE_SUMMARY_COLUMNS", "NOT_RUN", "velocity_column",
            "sfm_summary_path", "read_baselines", "gather", "read_summary", "load_runs", "load_per_view"]
@@ -125,8 +128,9 @@ def read_baselines(paths: Sequence[str | os.PathLike[str]]) -> pd.DataFrame:
     Returns
     -------
     pandas.DataFrame
-        Their rows (:data:`ctsplat.baselines.BASELINE_COLUMNS` + ``volume``, ``geometry``); empty when no path is
-        given.
+        Their rows (:data:`ctsplat.baselines.BASELINE_COLUMNS` + ``volume``, ``geometry``, ``volume_id`` from the
+        ``baselines.json`` beside the file (None without one) and ``baselines_csv``, the file); empty when no path
+        is given.
     """
     frames = []
     for p in paths:
@@ -137,8 +141,19 @@ def read_baselines(paths: Sequence[str | os.PathLike[str]]) -> pd.DataFrame:
             b["volume"] = parts[at - 1] if at else ""
         if "geometry" not in b:
             b["geometry"] = parts[at + 1] if at is not None and at + 2 < len(parts) else ""
+        sidecar = Path(p).with_name("baselines.json")
+        b["volume_id"] = _read_json(sidecar).get("volume_id") if sidecar.is_file() else None
+        b["baselines_csv"] = str(p)
         frames.append(b)
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def _same_volume(baselines: pd.DataFrame, run: Mapping[str, Any]) -> pd.Series:
+    """Which baseline rows reconstruct the run's volume: the same ``volume_id`` (the content hash) where both
+    record one, else the same volume name (the folder above ``baselines/`` and ``runs/``)."""
+    vid = run.get("volume_id")
+    known = baselines["volume_id"].notna() & isinstance(vid, str)
+    return (known & (baselines["volume_id"] == vid)) | (~known & (baselines["volume"] == run.get("volume")))
 
 
 def _baseline_columns(df: pd.DataFrame, baselines: pd.DataFrame) -> pd.DataFrame:
@@ -147,14 +162,23 @@ def _baseline_columns(df: pd.DataFrame, baselines: pd.DataFrame) -> pd.DataFrame
     if baselines.empty or "views" not in df:
         return out
     b = baselines.assign(psnr3d=pd.to_numeric(baselines["psnr3d"], errors="coerce")).dropna(subset=["psnr3d"])
+    used: set[str] = set()
     for i, r in df.iterrows():
-        match = b[(b["volume"] == r["volume"]) & (b["n_views"] == int(r["views"]))]
+        if pd.isna(r.get("views")):
+            continue
+        match = b[_same_volume(b, r) & (b["n_views"] == int(r["views"]))]
         if match.empty:
             continue
+        used.update(match["baselines_csv"])
         best = match.loc[match["psnr3d"].idxmax()]
         score = pd.to_numeric(pd.Series([r.get("test_psnr3d")]), errors="coerce").iloc[0]
         out.loc[i] = [best["method"], float(best["psnr3d"]), float(best["ssim3d"]),
                       float(score - best["psnr3d"]) if pd.notna(score) else None, best["geometry"] or None]
+    for path in dict.fromkeys(baselines["baselines_csv"]):
+        if path not in used:
+            log.warning("gather: no run matches the baselines in %s (a run matches by its volume_id, recorded in "
+                        "baselines.json beside the file, else by the volume folder name, and by its view count); "
+                        "they are left out of the summary", path)
     return out
 
 
@@ -262,9 +286,29 @@ def gather(
                             for r, c in zip(df["run_dir"], colmap, strict=True)], index=df.index)
         df = df.drop(columns=[c for c in SFM_COLUMNS if c in df]).join(sfm)
     df = df.join(_baseline_columns(df, read_baselines(baselines_csvs)))
+    _check_summary_path(out_csv, run_dirs, baselines_csvs)
     with atomic_path(out_csv) as tmp:
         df.to_csv(tmp, index=False, lineterminator="\n")
     return df
+
+
+def _check_summary_path(out_csv: str | os.PathLike[str], run_dirs: Sequence[str | os.PathLike[str]],
+                        baselines_csvs: Sequence[str | os.PathLike[str]]) -> None:
+    """Refuse a summary path that is not a ``.csv``, is one of the baselines files read, or lies in a run folder:
+    writing it would replace a run's own file or an input (a folder is :func:`ctsplat.utils.atomic_path`'s to
+    name)."""
+    out = Path(out_csv)
+    if str(out_csv).endswith(("/", os.sep)) or out.is_dir():
+        return
+    if out.suffix.lower() != ".csv":
+        raise CtsplatError(f"gather: the summary {out} must be a .csv file (e.g. {out.with_suffix('.csv').name})")
+    target = out.resolve()
+    if any(target == Path(b).resolve() for b in baselines_csvs):
+        raise CtsplatError(f"gather: the summary {out} is one of the baselines files it reads; write it elsewhere")
+    for rd in map(Path, run_dirs):
+        if rd.resolve() in target.parents:
+            raise CtsplatError(f"gather: the summary {out} lies inside the run folder {rd}; write it elsewhere "
+                               f"(e.g. beside the volumes' folders, as the workflow's results/summary.csv)")
 
 
 def _read_json(path: Path) -> dict[str, Any]:

@@ -114,8 +114,11 @@ def run_ingest(args: argparse.Namespace) -> None:
             cfg[key] = value
     if args.native:
         cfg["voxel_size_mm"], cfg["grid"] = None, None
+    # an option on the command line replaces the file's choice of output grid, whichever key the file used
     if args.voxel_size_mm is not None:
         cfg["grid"] = None
+    if args.grid is not None:
+        cfg["voxel_size_mm"] = None
     _check_ingest_options(args, cfg)
     check_section("preprocessing", cfg)
     if args.out is None:

@@ -18,9 +18,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("model", help="model .pt written by training (Gaussians.save)")
     p.add_argument("views", help="views.json (radiograph view set)")
     p.add_argument("out", help="output folder: new, empty or an earlier render (render.json), replaced whole")
-    p.add_argument("--compositor", default="radiative", choices=["radiative", "radiative_unrectified", "alpha"])
+    p.add_argument("--compositor", default=None, choices=["radiative", "radiative_unrectified", "alpha"],
+                   help="default: the one the model was trained with (radiative for a model that does not say)")
     p.add_argument("--split", default=None, choices=["train", "val", "test"], help="only this split's views")
-    p.add_argument("--mip", action="store_true", help="3D (from the train views) + 2D mip filters")
+    p.add_argument("--mip", action=argparse.BooleanOptionalAction, default=None,
+                   help="3D (the model's own, else from the train views) + 2D mip filters; default: as the model "
+                   "was trained")
     p.add_argument("--mu-scale", type=float, default=None,
                    help="multiply densities (default: model meta mu_scale_per_mm, else 1 = normalised units)")
     p.add_argument("--device", default="cpu", help="cpu, cuda or auto")

@@ -645,11 +645,20 @@ def select_series(series: Sequence[SeriesInfo], selector: str) -> list[SeriesInf
     Returns
     -------
     list of SeriesInfo
-        The matches: by ``id`` or UID first (at most one), else every series with that number.
+        The matches: by ``id`` or UID first (at most one), else every series with that number (compared as
+        integers, as DICOM's IS type holds them: ``2`` and ``000002`` name the same series).
     """
     key = selector.strip()
     exact = [s for s in series if key.lower() == s.id.lower() or (s.uid and key == s.uid)]
-    return exact or [s for s in series if s.number and key == s.number]
+    return exact or [s for s in series if s.number and _same_number(key, s.number)]
+
+
+def _same_number(a: str, b: str) -> bool:
+    """Whether two SeriesNumber texts name the same integer (exact text when either is not one)."""
+    try:
+        return int(a) == int(b)
+    except ValueError:
+        return a == b
 
 
 def _choose_series(

@@ -915,9 +915,9 @@ def render_to_folder(
     views_path: Any,
     out_dir: Any,
     *,
-    compositor: str = "radiative",
+    compositor: str | None = None,
     split: str | None = None,
-    mip: bool = False,
+    mip: bool | None = None,
     mu_scale: float | None = None,
     device: str = "cpu",
 ) -> dict[str, Any]:
@@ -936,12 +936,14 @@ def render_to_folder(
     out_dir : str or Path
         Output folder: new, empty or an earlier render (with ``render.json``), and neither an input nor a folder
         holding one; written whole or not at all (:func:`ctsplat.utils.atomic_dir`).
-    compositor : {"radiative", "radiative_unrectified", "alpha"}
+    compositor : {"radiative", "radiative_unrectified", "alpha"} or None
+        Default: the one the model was trained with (``meta["compositor"]``), else ``"radiative"``.
     split : {"train", "val", "test"} or None
         Only this split's views.
-    mip : bool
+    mip : bool or None
         The model's own 3D filter (the one it was trained with, when it was saved with one), else one computed from
-        the view set's ``train`` views (all views if it has none); and the 2D mip filter.
+        the view set's ``train`` views (all views if it has none); and the 2D mip filter. Default: as the model was
+        trained (``meta["mip"]``, else whether it was saved with a 3D filter).
     mu_scale : float or None
         Density factor (1/mm per normalised unit); default the model's ``meta["mu_scale_per_mm"]``, else 1.
     device : str
@@ -966,6 +968,10 @@ def render_to_folder(
     g = Gaussians.load(model_path, device=dev)
     vs = ViewSet.load(views_path)
     scale = float(mu_scale if mu_scale is not None else g.meta.get("mu_scale_per_mm", 1.0))
+    if compositor is None:
+        compositor = str(g.meta.get("compositor", "radiative"))
+    if mip is None:
+        mip = bool(g.meta.get("mip", g.filter_3d_var is not None))
     fv = g.filter_3d_var if mip else None
     if mip and fv is None:  # that of the training views (the views themselves when none), before any subset
         train_idx = vs.indices("train")

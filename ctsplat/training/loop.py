@@ -543,7 +543,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                                    f"in {out_dir}); lower train.lr or check the inputs")
             if not float(row["psnr2d"]) <= float(state.health.get("best_psnr", -math.inf)):
                 state.health.update(best_psnr=float(row["psnr2d"]), best_iteration=it)
-                _save_model(state, cfg, out_dir / "model_best.pt", chash)
+                _save_model(state, cfg, out_dir / "model_best.pt", chash, scene.mu_scale)
         if it % int(cfg["checkpoint_every"]) == 0 or it == total:
             state.health["loss_sum"] = float(loss_sum)
             state.elapsed_s = time.perf_counter() - t_start
@@ -558,13 +558,15 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     return _write_model(state, cfg, scene, out_dir, device, train_time, chash)
 
 
-def _save_model(state: TrainState, cfg: dict[str, Any], path: Path, chash: str) -> Any:
-    """Write the current model to ``path`` (``.pt``) with its provenance and iteration; returns the Gaussians."""
+def _save_model(state: TrainState, cfg: dict[str, Any], path: Path, chash: str, mu_scale: float) -> Any:
+    """Write the current model to ``path`` (``.pt``) with its provenance, iteration and how it renders (compositor,
+    mip, ``mu_scale_per_mm``: densities are normalised, times it in 1/mm); returns the Gaussians."""
     g = as_gaussians({k: v.detach() for k, v in state.params.items()})
     if state.filter_var is not None:  # the 3D filter this model was rendered with: evaluation uses the same
         g.filter_3d_var = state.filter_var.detach()
     g.meta.update(config_hash=chash, uses_reference_volume=cfg["init"] in REFERENCE_INITS, init=cfg["init"],
-                  compositor=cfg["compositor"], iteration=state.iteration)
+                  compositor=cfg["compositor"], mip=bool(cfg["mip"]), mu_scale_per_mm=float(mu_scale),
+                  iteration=state.iteration)
     if "best_psnr" in state.health:
         g.meta.update(best_iteration=int(state.health["best_iteration"]), best_val_psnr=state.health["best_psnr"])
     g.save(path)
@@ -575,7 +577,7 @@ def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: 
                  train_time: float, chash: str) -> dict[str, Any]:
     """The final model (``model.pt``, ``model.ply``) and the training summary (``training.json``); the best
     validation model (``model_best.pt``) was written at the periodic evaluations."""
-    g = _save_model(state, cfg, out_dir / "model.pt", chash)
+    g = _save_model(state, cfg, out_dir / "model.pt", chash, scene.mu_scale)
     g.to_ply(out_dir / "model.ply")
     summary = {
         "wall_time_s": round(train_time, 3),

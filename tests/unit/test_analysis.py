@@ -432,6 +432,48 @@ def test_gather_errors(tmp_path):
     assert not (tmp_path / "new").exists() and list((tmp_path / "existing").iterdir()) == []
 
 
+def test_gather_refuses_a_summary_that_would_replace_an_input(tmp_path):
+    """The summary is a CSV written beside the runs: a path with another suffix (pandas would compress it by the
+    suffix), one inside a run folder, or a baselines file it reads is refused, and the file is left as it was."""
+    good = _fake_run(tmp_path / "r")
+    volume = good / "model_volume.nii.gz"
+    volume.write_bytes(b"a volume")
+    bl = tmp_path / "bl.csv"
+    pd.DataFrame({"method": ["fbp"], "n_views": [8], "psnr3d": [20.0], "ssim3d": [0.5]}).to_csv(bl, index=False)
+    before = bl.read_bytes()
+    for out, match in ((tmp_path / "summary.nii.gz", "must be a .csv file"), (volume, "must be a .csv file"),
+                       (good / "summary.csv", "lies inside the run folder"), (bl, "one of the baselines files")):
+        with pytest.raises(CtsplatError, match=match):
+            gather([good], out, baselines_csvs=[bl])
+    assert volume.read_bytes() == b"a volume" and bl.read_bytes() == before
+    assert not (tmp_path / "summary.nii.gz").exists() and not (good / "summary.csv").exists()
+
+
+def test_gather_matches_baselines_outside_the_layout_by_volume_id_and_names_a_file_it_cannot_match(tmp_path,
+                                                                                                  caplog):
+    """A baselines.csv made by ``ctsplat baseline --out`` anywhere carries its volume's id in baselines.json; a run
+    of that volume matches it by the id, a run of another volume of the same name does not, and a file no run
+    matches is named in a warning instead of silently leaving the columns empty."""
+    run = _fake_run(tmp_path)
+    other = _fake_run(tmp_path / "elsewhere")  # volume "phantom" as well, but other content
+    for rd, vid in ((run, "vol-a"), (other, "vol-b")):
+        m = json.loads((rd / "metrics.json").read_text())
+        (rd / "metrics.json").write_text(json.dumps({**m, "volume_id": vid}))
+    bdir = tmp_path / "my_baselines"
+    bdir.mkdir()
+    pd.DataFrame({"method": ["fbp"], "n_views": [8], "psnr3d": [21.0], "ssim3d": [0.6]}).to_csv(
+        bdir / "baselines.csv", index=False)
+    (bdir / "baselines.json").write_text(json.dumps({"volume_id": "vol-a"}))
+    back = gather([run, other], tmp_path / "s.csv", baselines_csvs=[bdir / "baselines.csv"]).set_index("run_dir")
+    assert back.loc[str(run), "best_baseline_test_psnr3d"] == 21.0
+    assert pd.isna(back.loc[str(other), "best_baseline"])
+    assert "no run matches" not in caplog.text
+    (bdir / "baselines.json").write_text(json.dumps({"volume_id": "vol-c"}))
+    back = gather([run], tmp_path / "s.csv", baselines_csvs=[bdir / "baselines.csv"])
+    assert back["best_baseline"].isna().all()
+    assert f"no run matches the baselines in {bdir / 'baselines.csv'}" in caplog.text
+
+
 def test_gather_writes_milestone_iterations_as_integers_when_some_run_misses_one(tmp_path):
     runs = [_fake_run(tmp_path, seed=0, slope=0.01), _fake_run(tmp_path, seed=1, slope=0.001)]  # 30 dB at 1000 / never
     gather(runs, tmp_path / "s.csv", thresholds={"psnr2d": 30.0})

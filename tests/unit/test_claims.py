@@ -80,6 +80,17 @@ def test_the_headline_claim_says_it_was_not_measured_without_baselines():
     assert list(head["result"]) == ["no pairs"] and "gather ran without --baselines" in head["note"].iloc[0]
 
 
+def test_the_headline_claim_stays_when_the_baseline_columns_are_empty_or_the_grid_has_no_mip():
+    """gather always writes the baseline columns, empty without baselines: the headline row says "no pairs" then;
+    a grid with the mip filter off only is compared at mip off, and says so."""
+    s = _summary().assign(best_baseline=None, best_baseline_test_psnr3d=None, best_baseline_test_ssim3d=None)
+    head = claims_table(s)[lambda t: t["comparison"].str.contains("strongest classical")]
+    assert list(head["result"]) == ["no pairs"] and "baselines.enabled is false" in head["note"].iloc[0]
+    off = claims_table(_summary()[lambda t: t["mip"] != "on"])
+    fbp = _row(off, "rectified radiative (init=fbp, mip off")
+    assert (fbp["result"], fbp["median_difference_psnr3d_db"]) == ("holds", pytest.approx(30.0 - 26.0))
+
+
 def test_the_headline_claim_names_pairs_of_different_geometries():
     same = claims_table(_summary().assign(geometry="circular", best_baseline_geometry="circular"))
     assert _row(same, "rectified radiative (init=fbp")["note"] == ""

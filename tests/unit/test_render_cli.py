@@ -95,6 +95,28 @@ def test_render_cli_uses_the_filter_a_model_was_saved_with(tmp_path):
     np.testing.assert_allclose(tifffile.imread(out / "images.tif")[0], ref, rtol=1e-5, atol=1e-6)
 
 
+def test_render_cli_defaults_to_how_the_model_was_trained(tmp_path):
+    """Without --compositor / --mip / --mu-scale, a model is drawn with the compositor, mip filters and density
+    factor it records; the options still override them."""
+    g, vs = _setup(tmp_path)
+    g.meta.update(compositor="alpha", mip=True, mu_scale_per_mm=0.25)
+    g.save(tmp_path / "model.pt")
+    args = [str(tmp_path / "model.pt"), str(tmp_path / "views.json")]
+    train = vs.subset("train")
+    fv = compute_3d_filter(g, vs.camera, train.Rs(), train.ts())
+    v = vs.views[0]
+    assert main(["render", *args, str(tmp_path / "as_trained")]) == 0
+    ref = render(g, vs.camera, v.R, v.t, compositor="alpha", filter_3d_var=fv, mip_2d=True).image
+    np.testing.assert_allclose(tifffile.imread(tmp_path / "as_trained" / "images.tif")[0], ref.numpy(), rtol=1e-5,
+                               atol=1e-6)
+    assert main(["render", *args, str(tmp_path / "asked"), "--compositor", "radiative", "--no-mip"]) == 0
+    ref = render(g, vs.camera, v.R, v.t).image * 0.25
+    np.testing.assert_allclose(tifffile.imread(tmp_path / "asked" / "images.tif")[0], ref.numpy(), rtol=1e-5,
+                               atol=1e-6)
+    info = json.loads((tmp_path / "asked" / "render.json").read_text())
+    assert info["compositor"] == "radiative" and info["mip"] is False and info["mu_scale"] == 0.25
+
+
 def test_render_cli_writes_the_whole_folder_or_nothing(tmp_path, capsys, monkeypatch):
     """A failure while writing leaves no folder (and an earlier render as it was); a non-finite density factor and
     an output folder that holds other files (the radiographs themselves) are refused before anything is written."""

@@ -233,3 +233,17 @@ def test_real_head_with_missing_slices_warns_where_and_leaks_nothing(ct0051_head
     assert len(warned) == 1 and "WARNING" in warned[0]  # said once: the log, not the log and py.warnings
     assert all(f"at {lo:g} and {hi:g} mm along the slice normal" in line for line in warned)
     assert_no_identifiers(proc.stdout + proc.stderr + (out.parent / "volume.json").read_text(), head_secrets)
+
+
+def test_a_series_number_selects_its_series_as_an_integer():
+    """SeriesNumber is an integer (DICOM IS): ``2``, ``02`` and ``000002`` (as a scanner may write it) name the same
+    series; a number no series has names none, and an id or UID wins over a number."""
+    from ctsplat.formats.sources import SeriesInfo, select_series
+
+    series = [SeriesInfo(uid="1.2.3", files=[], modality="CT", number="000002", description="", id="00000000000000a2"),
+              SeriesInfo(uid="1.2.4", files=[], modality="CT", number="7", description="", id="00000000000000b7")]
+    for selector in ("2", "02", "000002", " 2 "):
+        assert [s.id for s in select_series(series, selector)] == ["00000000000000a2"]
+    assert [s.id for s in select_series(series, "0007")] == ["00000000000000b7"]
+    assert select_series(series, "3") == [] and select_series(series, "2.0") == []
+    assert [s.id for s in select_series(series, "00000000000000B7")] == ["00000000000000b7"]

@@ -354,6 +354,37 @@ def test_a_mip_model_is_saved_and_scored_with_the_filter_it_was_trained_with(sce
     assert math.isfinite(evaluate(run, device="cpu", write=False, model="best")["psnr2d"])
 
 
+def test_ctsplat_render_draws_a_trained_model_as_it_was_trained_in_line_integral_units(scene_dir: Path,
+                                                                                     tmp_path: Path) -> None:
+    """A model records how it renders (compositor, mip, ``mu_scale_per_mm``), so ``ctsplat render`` without options
+    draws the model as training and evaluation do, in the radiographs' units (1/mm x mm), not normalised ones."""
+    import tifffile
+
+    from ctsplat.cli import main
+    from ctsplat.formats.viewset import ViewSet
+    from ctsplat.splat.gaussians import Gaussians
+    from ctsplat.splat.render import render
+
+    run = tmp_path / "mip"
+    loop.train(_cfg(scene_dir, iterations=30, mip=True, densify={"interval": 10, "start": 10, "stop": 15}), run)
+    g = Gaussians.load(run / "model.pt")
+    assert g.meta["mu_scale_per_mm"] == MU and g.meta["mip"] is True and g.meta["compositor"] == "radiative"
+    assert Gaussians.load(run / "model_best.pt").meta["mu_scale_per_mm"] == MU
+    out = tmp_path / "render"
+    assert main(["render", str(run / "model.pt"), str(scene_dir / "rad" / "views.json"), str(out), "--split",
+                 "test"]) == 0
+    info = json.loads((out / "render.json").read_text())
+    assert info["mu_scale"] == MU and info["mip"] is True and info["compositor"] == "radiative"
+    vs = ViewSet.load(scene_dir / "rad" / "views.json")
+    rows = vs.indices("test")
+    rendered = tifffile.imread(out / "images.tif").reshape(len(rows), vs.camera.height, vs.camera.width)
+    v = vs.views[rows[0]]
+    ref = render(g, vs.camera, v.R, v.t, filter_3d_var=g.filter_3d_var, mip_2d=True).image.numpy() * MU
+    np.testing.assert_allclose(rendered[0], ref, rtol=1e-5, atol=1e-7)
+    targets = tifffile.imread(scene_dir / "rad" / "line_integrals.tif")[rows]
+    assert 0.5 < rendered.mean() / targets.mean() < 2.0  # the targets' units: normalised ones are 1 / MU = 50x
+
+
 def test_fbp_init_uses_training_projections_only(scene_dir: Path, tmp_path: Path) -> None:
     pytest.importorskip("ctsplat.baselines")
     cfg = config.resolve_config(_cfg(scene_dir, init="fbp"))

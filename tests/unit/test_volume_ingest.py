@@ -110,6 +110,28 @@ def test_denoise_reduces_noise_keeps_edges(method, weight):
     assert profile[10] < 0.15 and profile[13] > 0.35  # the step stays at the same place and stays sharp
 
 
+@pytest.mark.parametrize("method", ["tv", "bilateral"])
+def test_denoise_weight_smooths_alike_in_every_intensity_unit(tmp_path, method):
+    """denoise_weight is a fraction of the mapping's full scale: the same noisy scan ingested as normalised
+    attenuation, as mu (1/mm) and as HU comes out the same up to the unit conversion, instead of smoothing mu
+    (values ~ 0.02) flat and HU (values ~ 1000) not at all."""
+    rng = np.random.default_rng(2)
+    hu, _ = head_like(16)
+    hu = hu + rng.normal(0, 60, hu.shape).astype(np.float32)
+    src = nifti_input(tmp_path, np.clip(hu, -1000, None))
+    base = {"grid": 16, "denoise": method, "denoise_weight": 0.05}
+    att = ingest(src, tmp_path / "a" / "v.nii.gz", {**base, "intensity": "attenuation"}).data
+    mu = ingest(src, tmp_path / "m" / "v.nii.gz", {**base, "intensity": "mu"}).data
+    raw = ingest(src, tmp_path / "h" / "v.nii.gz", {**base, "intensity": "hu"}).data
+    plain = ingest(src, tmp_path / "p" / "v.nii.gz", {"grid": 16, "intensity": "attenuation"}).data
+    mu_top = 0.019 * 4.0  # mu at the default hu_max, 3000 HU
+    np.testing.assert_allclose(mu / mu_top, att, atol=1e-4)
+    # HU are not clipped at hu_max or air: compare where the attenuation mapping is linear
+    inside = (plain > 0.05) & (plain < 0.95)
+    np.testing.assert_allclose(((raw + 1000.0) / 4000.0)[inside], att[inside], atol=0.02)
+    assert np.abs(att - plain)[inside].mean() > 0.003  # it did smooth
+
+
 # ------------------------------------------------------------------------------------------ ingest output
 
 
@@ -138,6 +160,29 @@ def test_ingest_writes_nifti_and_provenance(tmp_path):
     src_centre = np.array([-10.0, 5.0, 30.0]) + (np.array(hu.shape) - 1) / 2 * [1.0, 1.0, 2.0]
     np.testing.assert_allclose(loaded.center_mm(), src_centre, atol=1e-4)
     assert sorted(p.name for p in out.parent.iterdir()) == ["volume.json", "volume.nii.gz"]
+
+
+def test_ingest_refuses_its_own_normalised_output_and_warns_on_values_that_are_not_hu(tmp_path, caplog):
+    """Ingest reads NIfTI values as HU: a volume it wrote in normalised units (its volume.json beside it) would map
+    onto water, one constant value, and is refused; one it wrote in HU is a scan again; another file whose values
+    hold no air is ingested with a warning naming the range."""
+    hu, _ = head_like()
+    first = tmp_path / "first" / "volume.nii.gz"
+    ingest(nifti_input(tmp_path, hu), first, {"grid": 12})
+    again = tmp_path / "again" / "volume.nii.gz"
+    with pytest.raises(CtsplatError, match="is a volume ingest already wrote .*intensity attenuation_normalised"):
+        ingest(first, again, {"grid": 12})
+    assert not again.parent.exists()
+    in_hu = tmp_path / "hu" / "volume.nii.gz"
+    ingest(nifti_input(tmp_path, hu), in_hu, {"grid": 12, "intensity": "hu"})
+    caplog.clear()
+    vol = ingest(in_hu, tmp_path / "from_hu" / "volume.nii.gz", {"grid": 12})
+    assert vol.data.max() > vol.data.min() and "Hounsfield" not in caplog.text
+    caplog.clear()
+    ingest(nifti_input(tmp_path, hu / 1000.0 + 1.0, name="mu_like.nii.gz"), tmp_path / "mu" / "volume.nii.gz",
+           {"grid": 12})
+    lo, hi = float((hu / 1000.0 + 1.0).min()), float((hu / 1000.0 + 1.0).max())
+    assert f"reads NIfTI values as Hounsfield units, but these ({lo:g} .. {hi:g}) hold no air" in caplog.text
 
 
 def test_ingest_is_deterministic(tmp_path):
@@ -300,6 +345,31 @@ def test_cli_config_file_and_native(tmp_path):
     np.testing.assert_allclose(sorted(vol.spacing_mm), [1.0, 1.0, 2.0])
     assert vol.meta["preprocessing"]["hu_max"] == 2000 and vol.mu_scale_per_mm == 1.0
     np.testing.assert_allclose(vol.data, np.clip(0.019 * (1 + hu / 1000), 0, 0.019 * 3), rtol=1e-5, atol=1e-7)
+
+
+def test_ingest_refuses_a_grid_larger_than_memory_before_allocating_it(tmp_path):
+    """A voxel size far below the scan's spacing asks for more memory than any machine has: one line naming the
+    grid, no output, instead of the kernel killing the process (and its neighbours) mid-way."""
+    hu, _ = head_like(12)
+    out = tmp_path / "o" / "v.nii.gz"
+    with pytest.raises(CtsplatError, match=r"output grid 12000 x 12000 x 12000 \(0.001 mm voxels\) needs about "
+                                           r"\d+ GiB, more than this machine's \d+ GiB"):
+        ingest(nifti_input(tmp_path, hu), out, {"voxel_size_mm": 0.001})
+    assert not out.parent.exists()
+
+
+def test_cli_grid_options_replace_the_config_files_grid_whichever_key_it_used(tmp_path):
+    """--grid on the command line wins over a file's voxel_size_mm, and --voxel-size over a file's grid."""
+    hu, _ = head_like(12)
+    src = nifti_input(tmp_path, hu)
+    by_size, by_grid = tmp_path / "size.yaml", tmp_path / "grid.yaml"
+    by_size.write_text("preprocessing:\n  voxel_size_mm: 4\n")
+    by_grid.write_text("preprocessing:\n  grid: 4\n")
+    assert main(["ingest", str(src), str(tmp_path / "a" / "v.nii.gz"), "--config", str(by_size), "--grid", "6"]) == 0
+    assert load_volume(tmp_path / "a" / "v.nii.gz").shape == (6, 6, 6)
+    assert main(["ingest", str(src), str(tmp_path / "b" / "v.nii.gz"), "--config", str(by_grid),
+                 "--voxel-size", "1.5"]) == 0
+    np.testing.assert_allclose(load_volume(tmp_path / "b" / "v.nii.gz").spacing_mm, 1.5)
 
 
 # ------------------------------------------------------------------------------------------ non-finite input
