@@ -257,6 +257,9 @@ def _raise_first_error(errors: Iterable[Any], prefix: Iterable[Any] = ()) -> Non
     if err.context:
         err = max(err.context, key=lambda e: (len(e.absolute_path), e.validator != "type"))
     where = _key_path([*prefix, *err.absolute_path])
+    if where.endswith("series_uid"):  # jsonschema's message quotes the value, and a UID identifies a scan
+        raise CtsplatError(f"invalid config at {where}: give the series id `ctsplat ingest SOURCE --list-series` "
+                           "prints, or its series number (the value given is not shown: it may be a UID)")
     msg = err.message
     if err.validator == "additionalProperties":
         allowed = sorted((err.schema.get("properties") or {}).keys())

@@ -98,7 +98,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--velocity-per-iters", type=int,
                    help="velocity unit: gain per N iterations " + _default("velocity_per_iters"))
     p.add_argument("--baselines", nargs="*", help="baselines.csv files from `ctsplat baseline` (gather: each run "
-                   "against the strongest classical method at its views; analyse: the baselines figure)")
+                   "against the strongest classical method of its volume, by the volume_id in baselines.json, at "
+                   "its views; analyse: the baselines figure)")
     p.add_argument("--milestone", action="append", metavar="METRIC=VALUE",
                    help="milestone threshold of psnr2d, ssim2d, psnr3d or ssim3d, repeatable; metrics not given "
                         "keep analysis.milestones of the config schema")
@@ -110,7 +111,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "summary CSV: axis values, metrics.json, final logged metrics, "
                                           "milestones, convergence velocity, the strongest baseline.")
     g.add_argument("runs", nargs="+", help="run folders, or folders to search for them (e.g. results/)")
-    g.add_argument("--out", default="results/summary.csv", help="output CSV (default: %(default)s)")
+    g.add_argument("--out", default="results/summary.csv",
+                   help="output .csv, outside the run folders (default: %(default)s)")
     _common(g)
     g.set_defaults(func=run_gather)
 

@@ -76,6 +76,7 @@ __all__ = [
     "salted_hash",
     "deid_key",
     "outputs_selector",
+    "selector_key",
     "find_dicom_series",
     "select_series",
     "read_dicom_series",
@@ -117,6 +118,10 @@ _GAPS_NAMED = 5
 
 #: A DICOM UID: digit groups separated by dots (used to keep UIDs a user typed out of messages).
 _UID_RE = re.compile(r"^\s*\d+(\.\d+)+\s*$")
+#: The selectors that may be shown and stored as typed: a listed series id (16 hex digits) or a series number.
+_PLAIN_SELECTOR_RE = re.compile(r"^([0-9a-fA-F]{16}|\d{1,12})$")
+#: What a UID copied from a DICOM dump or a spreadsheet may bring around it.
+_SELECTOR_WRAPPING = " \t[]()<>'\"`"
 
 _DECODER_PACKAGES = {
     "1.2.840.10008.1.2.4.90": "pylibjpeg and pylibjpeg-openjpeg",  # JPEG 2000 lossless
@@ -151,6 +156,7 @@ def lps_to_ras(v: np.ndarray) -> np.ndarray:
 
 
 DEID_KEY_ENV = "CTSPLAT_DEID_SALT"
+_DEID_KEY_MIN_BYTES = 16
 
 
 def deid_key() -> bytes:
@@ -173,6 +179,10 @@ def deid_key() -> bytes:
     """
     env = os.environ.get(DEID_KEY_ENV)
     if env:
+        if len(env.encode()) < _DEID_KEY_MIN_BYTES:  # a short value is found by trying them all
+            raise CtsplatError(f"{DEID_KEY_ENV} is too short ({len(env.encode())} bytes); set it to a private "
+                               f"random value of at least {_DEID_KEY_MIN_BYTES} characters (e.g. `openssl rand "
+                               f"-hex 16`), or unset it to use this user's own key")
         return env.encode()
     home = os.environ.get("XDG_CONFIG_HOME") or os.path.join(os.path.expanduser("~"), ".config")
     path = Path(home) / "ctsplat" / "deid_key"
@@ -193,7 +203,7 @@ def deid_key() -> bytes:
     except OSError as exc:
         raise CtsplatError(f"cannot read or create the de-identification key {path} ({exc.strerror or exc}); set "
                            f"{DEID_KEY_ENV} to a private value instead") from None
-    if len(key) < 16:
+    if len(key) < _DEID_KEY_MIN_BYTES:
         raise CtsplatError(f"the de-identification key {path} is too short ({len(key)} bytes); delete it to make "
                            f"a new one, or set {DEID_KEY_ENV}")
     return key
@@ -233,19 +243,41 @@ def outputs_selector(selector: str | None) -> str | None:
     Returns
     -------
     str or None
-        :func:`salted_hash` of a UID (digits with at least one dot); anything else unchanged.
+        A series id or number as given (:func:`selector_key`); anything else, a UID above all, as its
+        :func:`salted_hash`.
 
     Examples
     --------
     >>> outputs_selector("3"), outputs_selector(None)
     ('3', None)
-    >>> outputs_selector("1.2.840.113619.2.55.3") == salted_hash("1.2.840.113619.2.55.3")
+    >>> outputs_selector("[1.2.840.113619.2.55.3]") == salted_hash("1.2.840.113619.2.55.3")
     True
     """
     if selector is None:
         return None
-    key = str(selector).strip()
-    return salted_hash(key) if re.fullmatch(r"\d+(\.\d+)+", key) else str(selector)
+    key = selector_key(selector)
+    return key if _PLAIN_SELECTOR_RE.match(key) else salted_hash(key)
+
+
+def selector_key(selector: str) -> str:
+    """A series selector without what a copied UID may bring around it (spaces, brackets, quotes, a final dot).
+
+    Parameters
+    ----------
+    selector : str
+        A series id, SeriesInstanceUID or SeriesNumber, as typed.
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> selector_key(" [1.2.840.113619.2.55.3] "), selector_key("'1.2.3.'"), selector_key("0007")
+    ('1.2.840.113619.2.55.3', '1.2.3', '0007')
+    """
+    key = str(selector).strip(_SELECTOR_WRAPPING)
+    return key[:-1] if _UID_RE.match(key[:-1]) and key.endswith(".") else key
 
 
 class SliceGapWarning(LoggedWarning):
@@ -313,10 +345,13 @@ def _warn_gaps(nominal: float, gaps: list[dict[str, Any]], n_slices: int, what: 
 
 
 def _shown(value: str) -> str:
-    """A series selector as it may appear in a message: a DICOM UID (identifying) only as its salted hash."""
-    if _UID_RE.match(value):
-        return f"<SeriesInstanceUID with hash {salted_hash(value.strip())}>"
-    return repr(value)
+    """A series selector as it may appear in a message: a series id or number as typed, anything else (a DICOM
+    UID, identifying, in whatever wrapping) only as its salted hash."""
+    key = selector_key(value)
+    if _PLAIN_SELECTOR_RE.match(key):
+        return repr(key)
+    what = "SeriesInstanceUID" if _UID_RE.match(key) else "series selector"
+    return f"<{what} with hash {salted_hash(key)}>"
 
 
 def looks_like_hu(values: np.ndarray) -> bool:
@@ -436,8 +471,9 @@ class SeriesInfo:
         or messages (and kept out of ``repr``).
     files : list of Path
         The series' image files, in directory-walk order.
-    modality, number, description : str
-        Modality, SeriesNumber and SeriesDescription of the first file.
+    modality, number : str
+        Modality and SeriesNumber of the first file (not its SeriesDescription: free text that may name the
+        patient).
     id : str
         The series' identifier in listings, logs and messages, and the value to select it by: the
         salted hash of ``uid`` (:func:`salted_hash`, the provenance's ``series_uid_hash``), or for
@@ -448,7 +484,6 @@ class SeriesInfo:
     files: list[Path]
     modality: str
     number: str
-    description: str
     id: str = ""
 
     def __post_init__(self) -> None:
@@ -456,10 +491,10 @@ class SeriesInfo:
             self.id = salted_hash(self.uid) if self.uid else salted_hash("no-SeriesInstanceUID")
 
     def label(self) -> str:
-        """One-line description for listings and error messages (no UID: the series is named by its ``id``)."""
-        desc = f" '{self.description}'" if self.description else ""
+        """One-line description for listings and error messages: the series is named by its ``id``, never by its
+        UID."""
         no_uid = ", no SeriesInstanceUID" if not self.uid else ""
-        return f"{self.id} (#{self.number or '?'}{desc}, {self.modality or '?'}, {len(self.files)} files{no_uid})"
+        return f"{self.id} (#{self.number or '?'}, {self.modality or '?'}, {len(self.files)} files{no_uid})"
 
 
 @contextlib.contextmanager
@@ -536,14 +571,22 @@ _NO_UID_KEYS = ("StudyInstanceUID", "FrameOfReferenceUID", "SeriesNumber", "Moda
 
 
 def _why(exc: BaseException, *, with_type: bool = True, limit: int = 160) -> str:
-    """An exception's first line, shortened at a word boundary (pydicom's messages can run to paragraphs).
+    """An exception's first line, shortened at a word boundary (pydicom's messages can run to paragraphs), with
+    the raw values a reader's message may quote taken out: byte strings (a damaged element's value) and UIDs.
 
     Examples
     --------
     >>> _why(ValueError("fewer bytes than expected\\nsecond line"), limit=18)
     'ValueError: fewer bytes than ...'
+    >>> _why(ValueError("Expected total bytes to be an even multiple of bytes per value. Instead received "
+    ...                 "b'DOE^JANE' with length 8"), with_type=False)
+    'Expected total bytes to be an even multiple of bytes per value. Instead received <bytes> with length 8'
+    >>> _why(KeyError("1.3.12.2.1107.5.1.1.20707.20020604104421111.3"), with_type=False)
+    "'<UID>'"
     """
     text = str(exc).split("\n")[0]
+    text = re.sub(r"""b(['"]).*?(?<!\\)\1""", "<bytes>", text)
+    text = re.sub(r"\d+(?:\.\d+){3,}", "<UID>", text)
     if len(text) > limit:
         text = text[:limit].rsplit(" ", 1)[0] + " ..."
     return f"{type(exc).__name__}: {text}" if with_type else text
@@ -595,31 +638,25 @@ def find_dicom_series(
         for path in files:
             try:
                 ds = _dcmread(path, stop_before_pixels=True)
+                # pydicom decodes elements when first read: a damaged one fails here, not at parse time
+                facts = None if ds is None else _series_facts(ds)
             except Exception as exc:  # noqa: BLE001 - DICOM prefix present but the header does not parse
                 _handle_corrupt(path, label(path), _why(exc), skip_corrupt, skipped)
                 continue
-            if ds is None:
-                continue
-            if not _is_image_sop(ds) and "Rows" not in ds:
-                continue  # DICOMDIR, structured report, presentation state ...
-            if "Rows" not in ds or "Columns" not in ds:
+            if facts is None:
+                continue  # not DICOM, or DICOMDIR, structured report, presentation state ...
+            if not facts:
                 _handle_corrupt(path, label(path), "image header ends before Rows/Columns", skip_corrupt, skipped)
                 continue
-            uid = _text(ds, "SeriesInstanceUID").strip()
-            if uid:
-                key = ("uid", uid)
-            else:
-                # No SeriesInstanceUID: keep series apart by what else identifies them, so each stays choosable.
-                key = ("no-SeriesInstanceUID", *(_text(ds, k) for k in _NO_UID_KEYS), str(ds.get("Rows")),
-                       str(ds.get("Columns")))
+            key = facts["key"]
             info = groups.get(key)
             if info is None:
+                uid = facts["uid"]
                 info = groups[key] = SeriesInfo(
                     uid=uid,
                     files=[],
-                    modality=_text(ds, "Modality"),
-                    number=_text(ds, "SeriesNumber"),
-                    description=_text(ds, "SeriesDescription"),
+                    modality=facts["modality"],
+                    number=facts["number"],
                     id=salted_hash(uid) if uid else salted_hash("\x1f".join(key)),
                 )
             info.files.append(path)
@@ -629,6 +666,23 @@ def find_dicom_series(
             f"point ingest at the folder holding the .dcm slices"
         )
     return sorted(groups.values(), key=lambda s: (-len(s.files), s.id))
+
+
+def _series_facts(ds: Any) -> dict[str, Any] | None:
+    """What :func:`find_dicom_series` groups a file by: None for a file that is not an image, an empty dict for
+    an image header without Rows/Columns, else ``uid``, ``key``, ``modality`` and ``number``."""
+    if not _is_image_sop(ds) and "Rows" not in ds:
+        return None
+    if "Rows" not in ds or "Columns" not in ds:
+        return {}
+    uid = _text(ds, "SeriesInstanceUID").strip()
+    if uid:
+        key: tuple[str, ...] = ("uid", uid)
+    else:
+        # No SeriesInstanceUID: keep series apart by what else identifies them, so each stays choosable.
+        key = ("no-SeriesInstanceUID", *(_text(ds, k) for k in _NO_UID_KEYS), str(ds.get("Rows")),
+               str(ds.get("Columns")))
+    return {"uid": uid, "key": key, "modality": _text(ds, "Modality"), "number": _text(ds, "SeriesNumber")}
 
 
 def select_series(series: Sequence[SeriesInfo], selector: str) -> list[SeriesInfo]:
@@ -648,7 +702,7 @@ def select_series(series: Sequence[SeriesInfo], selector: str) -> list[SeriesInf
         The matches: by ``id`` or UID first (at most one), else every series with that number (compared as
         integers, as DICOM's IS type holds them: ``2`` and ``000002`` name the same series).
     """
-    key = selector.strip()
+    key = selector_key(selector)
     exact = [s for s in series if key.lower() == s.id.lower() or (s.uid and key == s.uid)]
     return exact or [s for s in series if s.number and _same_number(key, s.number)]
 
@@ -674,7 +728,7 @@ def _choose_series(
             )
         if len(chosen) > 1:
             raise CtsplatError(
-                f"series number {series_uid!r} is ambiguous in {folder}; give the series id instead: "
+                f"series number {_shown(str(series_uid))} is ambiguous in {folder}; give the series id instead: "
                 f"{'; '.join(s.label() for s in chosen)}"
             )
         pick = chosen[0]
@@ -709,7 +763,14 @@ def _choose_series(
 def _check_decoder(ds: Any, label: str) -> None:
     """Fail with the package to install when a compressed transfer syntax cannot be decoded."""
     ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
-    if ts is None or not ts.is_compressed:
+    if ts is None:
+        return
+    try:
+        compressed = ts.is_compressed
+    except ValueError:  # pydicom: "UID is not a transfer syntax"
+        raise CtsplatError(f"{label}: its TransferSyntaxUID is not a transfer syntax (a damaged file meta header); "
+                           "re-export the file or remove it") from None
+    if not compressed:
         return
     from pydicom.pixels.decoders.base import get_decoder
 

@@ -373,6 +373,11 @@ def test_scan_and_photo_sources_are_checked_for_their_kind_before_any_job(tmp_pa
     cfg = prepare_config({"volumes": {"v": {"source": "~/scan.nii.gz", "series_uid": 3}}}, base_dir="/")
     assert cfg["volumes"]["v"]["source"] == str(tmp_path / "scan.nii.gz")
     assert cfg["volumes"]["v"]["series_uid"] == "3"
+    # a UID written as a YAML list ([1.3...] unquoted, as a DICOM dump shows it) is refused without being echoed
+    uid = "1.3.12.2.1107.5.1.1.20707.20020604104421111.3"
+    with pytest.raises(CtsplatError, match=r"volumes\.v\.series_uid: give the series id") as err:
+        prepare_config({"volumes": {"v": {"source": "~/scan.nii.gz", "series_uid": [uid]}}}, base_dir="/")
+    assert "20707" not in str(err.value)
 
 
 def test_a_number_given_as_text_is_named_as_text():

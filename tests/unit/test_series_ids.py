@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[2]
 IDENTIFYING = (
     "SeriesInstanceUID", "StudyInstanceUID", "SOPInstanceUID", "FrameOfReferenceUID", "PatientName", "PatientID",
     "PatientBirthDate", "StudyDate", "SeriesDate", "AcquisitionDate", "ContentDate", "StudyTime", "SeriesTime",
-    "InstitutionName", "InstitutionAddress", "ReferringPhysicianName", "AccessionNumber",
+    "InstitutionName", "InstitutionAddress", "ReferringPhysicianName", "AccessionNumber", "SeriesDescription",
 )
 
 ID_LINE = re.compile(r"^([0-9a-f]{16}) \(#")
@@ -95,6 +95,7 @@ def write_two_series(folder: Path) -> dict[str, object]:
             ds.InstitutionAddress = "1 Example Road, Exampletown"
             ds.ReferringPhysicianName = "Who^Doctor"
             ds.AccessionNumber = "ACC-99887766"
+            ds.SeriesDescription = "Doe Jane head 1945-01-02"  # free text: a technologist may type anything
             if path in a:
                 ds.SeriesInstanceUID = uid_a
             else:
@@ -131,8 +132,10 @@ def test_list_series_names_every_series_by_a_choosable_hash(two_series, tmp_path
     assert_no_identifiers(proc.stdout + proc.stderr, secrets)
 
     # each listed id selects its series (B has no UID at all), and so does A's raw UID, the way it always could
-    for selector, hu, sid in ((id_b, 500.0, id_b), (id_a, 100.0, id_a), (info["uid_a"], 100.0, id_a)):
-        out = tmp_path / selector.replace(".", "_") / "volume.nii.gz"
+    # and A's UID as a DICOM dump shows it, in brackets, or quoted with a final dot
+    for selector, hu, sid in ((id_b, 500.0, id_b), (id_a, 100.0, id_a), (info["uid_a"], 100.0, id_a),
+                              (f"[{info['uid_a']}]", 100.0, id_a), (f"'{info['uid_a']}.'", 100.0, id_a)):
+        out = tmp_path / re.sub(r"\W", "_", selector) / "volume.nii.gz"
         proc = ctsplat("ingest", folder, out, "--series-uid", selector, "--grid", "8", "--intensity", "hu")
         assert proc.returncode == 0, proc.stderr
         value, meta = ingest_value(out)
@@ -149,6 +152,7 @@ def test_errors_about_series_name_them_by_hash_only(two_series, tmp_path):
         ((), "no unique largest one"),  # two series of equal size and no choice
         (("--series-uid", "1"), "series number '1' is ambiguous"),  # both are series #1
         (("--series-uid", "1.2.826.0.1.3680043.8.498.77"), "not found"),  # a UID of another scan: not echoed either
+        (("--series-uid", "[1.2.826.0.1.3680043.8.498.77]"), "not found"),  # nor in a DICOM dump's brackets
         (("--series-uid", "0123456789abcdef"), "not found"),
     ]
     for args, match in cases:
@@ -240,8 +244,8 @@ def test_a_series_number_selects_its_series_as_an_integer():
     series; a number no series has names none, and an id or UID wins over a number."""
     from ctsplat.formats.sources import SeriesInfo, select_series
 
-    series = [SeriesInfo(uid="1.2.3", files=[], modality="CT", number="000002", description="", id="00000000000000a2"),
-              SeriesInfo(uid="1.2.4", files=[], modality="CT", number="7", description="", id="00000000000000b7")]
+    series = [SeriesInfo(uid="1.2.3", files=[], modality="CT", number="000002", id="00000000000000a2"),
+              SeriesInfo(uid="1.2.4", files=[], modality="CT", number="7", id="00000000000000b7")]
     for selector in ("2", "02", "000002", " 2 "):
         assert [s.id for s in select_series(series, selector)] == ["00000000000000a2"]
     assert [s.id for s in select_series(series, "0007")] == ["00000000000000b7"]

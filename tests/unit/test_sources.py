@@ -345,6 +345,30 @@ def test_truncated_file_named_and_skippable(tmp_path, caplog, cut):
     assert vol.meta["source"]["missing_slice_gaps"][0]["between_slices"] == [1, 2]  # where the skipped slice was
 
 
+def test_damaged_file_meta_is_named_in_one_line(tmp_path):
+    """A file meta element with a byte-damaged VR (pydicom decodes it only when read, so it fails after parsing)
+    is a corrupt file, skippable; a TransferSyntaxUID that names no transfer syntax is one line too."""
+    files = make_series(tmp_path / "vr", shape=(8, 6, 6))
+    raw = files[2].read_bytes()
+    tag = b"\x02\x00\x02\x00UI"  # (0002,0002) MediaStorageSOPClassUID, explicit VR
+    assert raw.count(tag) == 1
+    files[2].write_bytes(raw.replace(tag, b"\x02\x00\x02\x00U\x03"))
+    msg = assert_fails_cleanly(tmp_path / "vr", tmp_path, "corrupt or truncated")
+    assert place(tmp_path / "vr", files[2]) in msg and "Unknown Value Representation" in msg
+    with pytest.warns(SliceGapWarning):
+        vol = ingest(tmp_path / "vr", tmp_path / "ok" / "volume.nii.gz", {"grid": 8}, skip_corrupt=True)
+    assert vol.meta["source"]["n_files_skipped"] == 1
+
+    files = make_series(tmp_path / "ts", shape=(8, 6, 6))
+    explicit_le = b"1.2.840.10008.1.2.1\x00"
+    for f in files:
+        raw = f.read_bytes()
+        assert raw.count(explicit_le) == 1
+        f.write_bytes(raw.replace(explicit_le, b"1.2.840.10008.9.9.9\x00"))  # same length, no transfer syntax
+    msg = assert_fails_cleanly(tmp_path / "ts", tmp_path, "its TransferSyntaxUID is not a transfer syntax")
+    assert "re-export the file or remove it" in msg
+
+
 def test_mixed_series_without_choice_lists_them(tmp_path):
     make_series(tmp_path / "mix" / "a", uid_seed="a")
     make_series(tmp_path / "mix" / "b", uid_seed="b", filename="b_{k:04d}.dcm")
@@ -744,6 +768,9 @@ def test_uid_hashes_need_the_private_key(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "b"))
     assert salted_hash(uid) != first  # another user's key, another id
     monkeypatch.setenv(DEID_KEY_ENV, "site secret")
+    with pytest.raises(CtsplatError, match="CTSPLAT_DEID_SALT is too short \\(11 bytes\\)"):
+        salted_hash(uid)  # eleven characters are found by trying them all
+    monkeypatch.setenv(DEID_KEY_ENV, "site secret 4f1c9a0e")
     shared = salted_hash(uid)
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "a"))
     assert salted_hash(uid) == shared  # one private value set on several machines: the same ids
@@ -759,3 +786,8 @@ def test_workflow_stores_a_series_uid_selector_as_its_id():
     uid = "1.2.840.113619.2.55.3.604688119.969.1268071029.320"
     assert outputs_selector(uid) == salted_hash(uid) and outputs_selector(f" {uid} ") == salted_hash(uid)
     assert outputs_selector("7") == "7" and outputs_selector("a1b2c3d4e5f60718") == "a1b2c3d4e5f60718"
+    # a UID copied with its wrapping (a DICOM dump's brackets, quotes, a final dot) is a UID all the same, and any
+    # other text is stored only as its hash
+    for wrapped in (f"[{uid}]", f"'{uid}'", f'"{uid}"', f"{uid}.", f" <{uid}> "):
+        assert outputs_selector(wrapped) == salted_hash(uid), wrapped
+    assert outputs_selector("Doe^Jane head") == salted_hash("Doe^Jane head")
