@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import logging
+import os
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -260,8 +261,6 @@ _GRID_COPIES, _INPLANE_COPIES = 6, 2
 
 def _check_grid_fits(counts: np.ndarray, n_slices: int, spacing_mm: np.ndarray) -> None:
     """Refuse an output grid whose arrays would not fit in this machine's memory, before allocating any."""
-    import os
-
     need = 4 * (_GRID_COPIES * float(np.prod(counts)) + _INPLANE_COPIES * float(counts[0] * counts[1] * n_slices))
     try:
         total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
@@ -409,6 +408,11 @@ def resample_stack(
 # --------------------------------------------------------------------------------------------------
 
 
+def _mu_at(hu: float, mu_water_per_mm: float) -> float:
+    """Linear attenuation (1/mm) at a CT number: ``μ = μ_water (1 + HU / 1000)``."""
+    return mu_water_per_mm * (1.0 + hu / 1000.0)
+
+
 def hu_to_attenuation(
     hu: np.ndarray, mu_water_per_mm: float = 0.019, hu_max: float = 3000.0
 ) -> tuple[np.ndarray, float]:
@@ -434,7 +438,7 @@ def hu_to_attenuation(
     mu_scale_per_mm : float
         ``μ_max`` (1/mm).
     """
-    mu_max = mu_water_per_mm * (1.0 + hu_max / 1000.0)
+    mu_max = _mu_at(hu_max, mu_water_per_mm)
     mu = mu_water_per_mm * (1.0 + np.asarray(hu, np.float32) / np.float32(1000.0))
     return (np.clip(mu, 0.0, mu_max) / np.float32(mu_max)).astype(np.float32), float(mu_max)
 
@@ -514,7 +518,7 @@ def intensity_full_scale(intensity: dict[str, Any], cfg: dict[str, Any]) -> floa
     """
     kind = intensity["kind"]
     if kind == "attenuation_per_mm":
-        return float(cfg["mu_water_per_mm"]) * (1.0 + float(cfg["hu_max"]) / 1000.0)
+        return _mu_at(float(cfg["hu_max"]), float(cfg["mu_water_per_mm"]))
     if kind == "hu":
         return float(PREPROCESSING_DEFAULTS["hu_max"]) + 1000.0
     return 1.0
@@ -609,7 +613,7 @@ def _map_intensity(values: np.ndarray, cfg: dict[str, Any], units: str) -> tuple
     if mode == "attenuation":
         lo, hi = float(values.min()), float(values.max())
         out = (values - lo) / (hi - lo) if hi > lo else np.zeros_like(values)
-        scale = mu_w * (1.0 + hu_max / 1000.0)
+        scale = _mu_at(hu_max, mu_w)
         return out.astype(np.float32), {
             "kind": "minmax_normalised",
             "formula": "(x - min) / (max - min); raw source units, mu_scale_per_mm assumes max = mu(hu_max)",
@@ -621,7 +625,7 @@ def _map_intensity(values: np.ndarray, cfg: dict[str, Any], units: str) -> tuple
             "kind": "window",
             "window": cfg["window"], "level_hu": level, "width_hu": width,
             "formula": "clip((HU - (level - width/2)) / width, 0, 1); mu_scale_per_mm = mu of the window top",
-            "mu_scale_per_mm": mu_w * (1.0 + (level + width / 2) / 1000.0), "physical": False,
+            "mu_scale_per_mm": _mu_at(level + width / 2, mu_w), "physical": False,
         }
     if mode == "mu":
         out, scale = hu_to_attenuation(values, mu_w, hu_max)
@@ -641,8 +645,10 @@ def _map_intensity(values: np.ndarray, cfg: dict[str, Any], units: str) -> tuple
 def _check_not_ingested(source: Path) -> None:
     """Refuse a NIfTI that ingest wrote (its provenance JSON beside it says so) unless it kept HU: ingest reads NIfTI
     values as HU, and a normalised volume read as HU maps onto water, one constant value."""
+    from ctsplat.formats.sources import source_kind
+
     sidecar = json_path_for(source)
-    if not source.name.endswith((".nii.gz", ".nii")) or not sidecar.is_file():
+    if not sidecar.is_file() or source_kind(source) != "nifti":
         return
     try:
         meta = read_json_object(sidecar, what="volume provenance", fix="")

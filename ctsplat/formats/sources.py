@@ -177,13 +177,13 @@ def deid_key() -> bytes:
     CtsplatError
         When the key file cannot be read or created (names the file and the variable to set instead).
     """
-    env = os.environ.get(DEID_KEY_ENV)
+    env = os.environ.get(DEID_KEY_ENV, "").encode()
     if env:
-        if len(env.encode()) < _DEID_KEY_MIN_BYTES:  # a short value is found by trying them all
-            raise CtsplatError(f"{DEID_KEY_ENV} is too short ({len(env.encode())} bytes); set it to a private "
-                               f"random value of at least {_DEID_KEY_MIN_BYTES} characters (e.g. `openssl rand "
-                               f"-hex 16`), or unset it to use this user's own key")
-        return env.encode()
+        if len(env) < _DEID_KEY_MIN_BYTES:  # a short value is found by trying them all
+            raise CtsplatError(f"{DEID_KEY_ENV} is too short ({len(env)} bytes); set it to a private random value of "
+                               f"at least {_DEID_KEY_MIN_BYTES} characters (e.g. `openssl rand -hex 16`), or unset "
+                               "it to use this user's own key")
+        return env
     home = os.environ.get("XDG_CONFIG_HOME") or os.path.join(os.path.expanduser("~"), ".config")
     path = Path(home) / "ctsplat" / "deid_key"
     try:
@@ -256,7 +256,12 @@ def outputs_selector(selector: str | None) -> str | None:
     if selector is None:
         return None
     key = selector_key(selector)
-    return key if _PLAIN_SELECTOR_RE.match(key) else salted_hash(key)
+    return key if _is_plain_selector(key) else salted_hash(key)
+
+
+def _is_plain_selector(key: str) -> bool:
+    """Whether an unwrapped selector may be shown and stored as typed: a listed series id or a series number."""
+    return bool(_PLAIN_SELECTOR_RE.match(key))
 
 
 def selector_key(selector: str) -> str:
@@ -348,7 +353,7 @@ def _shown(value: str) -> str:
     """A series selector as it may appear in a message: a series id or number as typed, anything else (a DICOM
     UID, identifying, in whatever wrapping) only as its salted hash."""
     key = selector_key(value)
-    if _PLAIN_SELECTOR_RE.match(key):
+    if _is_plain_selector(key):
         return repr(key)
     what = "SeriesInstanceUID" if _UID_RE.match(key) else "series selector"
     return f"<{what} with hash {salted_hash(key)}>"
