@@ -21,7 +21,7 @@ wildcard_constraints:
     init="volume|uniform|fbp|sfm",
     compositor="radiative|radiative_unrectified|alpha",
     mip="on|off",
-    poses="gt|perturbed|colmap|gt\+refine|perturbed\+refine|colmap\+refine",
+    poses=r"gt|perturbed|colmap|gt\+refine|perturbed\+refine|colmap\+refine",
     views="[0-9]+",
     seed="[0-9]+",
 

@@ -295,7 +295,7 @@ def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> Se
         pts = read_ply_points(Path(cfg["sfm_dir"]) / "points3d.ply")
         return seed_from_points(pts, lo, hi, n, rng, fill_fraction=cfg["sfm_fill_fraction"],
                                 density=cfg["init_density"])
-    recon, method = fbp_reconstruction(scene, cfg.get("fbp_filter", "ramp"))
+    recon, method = fbp_reconstruction(scene, cfg.get("fbp_filter", "ramp"), device=cfg["device"])
     strategy = "fbp" if method == "fbp" else f"fbp ({method})"
     refine_iterations = int(cfg["init_asd_pocs"]["iterations"])
     if refine_iterations > 0:
@@ -320,7 +320,7 @@ def _train_view_set(scene: Scene) -> ViewSet:
     return ViewSet(tr.camera, views, scene.volume.volume_id, scene.volume.center_mm(), {})
 
 
-def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> tuple[np.ndarray, str]:
+def fbp_reconstruction(scene: Scene, filter_name: str = "ramp", *, device: str = "cpu") -> tuple[np.ndarray, str]:
     """Reconstruction of the *training* projections only onto the reference grid (geometry only, no voxel values).
 
     Circular parallel-beam orbits at elevation 0 use slice-wise FBP (``ctsplat.baselines.fbp_volume``); planar
@@ -336,6 +336,9 @@ def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> tuple[np.ndar
         Its training views and reference grid (geometry only).
     filter_name : str
         FBP / FDK filter (``ctsplat.baselines.FBP_FILTERS``).
+    device : str
+        Where FDK and SIRT run (``cpu``, ``cuda``, ``auto``: the training's device); the slice-wise FBP runs on
+        the CPU (scikit-image).
 
     Returns
     -------
@@ -345,7 +348,9 @@ def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> tuple[np.ndar
     from ctsplat.baselines import fbp_volume, is_circular_parallel, sirt_volume
     from ctsplat.formats.volume import Volume
     from ctsplat.recon import fdk
+    from ctsplat.utils import resolve_device
 
+    dev = resolve_device(device)
     tr = scene.train
     vs = _train_view_set(scene)
     grid = Volume(np.zeros(scene.volume.shape, np.float32), np.asarray(scene.volume.affine, float), {})
@@ -354,8 +359,8 @@ def fbp_reconstruction(scene: Scene, filter_name: str = "ramp") -> tuple[np.ndar
                           np.float32), "fbp"
     if fdk.is_circular_cone(vs):
         # the grid carries no intensity scale (1.0): the targets are normalised line integrals already
-        return np.asarray(fdk.fdk_volume(tr.images, vs, grid, filter_name=filter_name), np.float32), "fdk"
-    recon = sirt_volume(tr.images, vs, grid, iterations=SIRT_SEED_ITERATIONS, mu_scale_per_mm=1.0)
+        return np.asarray(fdk.fdk_volume(tr.images, vs, grid, filter_name=filter_name, device=dev), np.float32), "fdk"
+    recon = sirt_volume(tr.images, vs, grid, iterations=SIRT_SEED_ITERATIONS, mu_scale_per_mm=1.0, device=str(dev))
     return np.asarray(recon, np.float32), "sirt"
 
 

@@ -445,23 +445,37 @@ def _cone_scene(scene_dir: Path, tmp_path: Path, **geometry) -> Any:
 
 
 def test_fbp_init_calls_fdk_on_a_circular_cone_beam(scene_dir: Path, tmp_path: Path, monkeypatch) -> None:
+    import ctsplat.baselines
     from ctsplat.recon import fdk
 
-    calls = []
+    calls, sirt_devices = [], []
+    sirt_volume = ctsplat.baselines.sirt_volume
 
-    def fdk_volume(line_integrals, view_set, reference, *, filter_name="ramp", clip=True):
-        calls.append((line_integrals.shape, len(view_set), reference.shape, filter_name))
+    def fdk_volume(line_integrals, view_set, reference, *, filter_name="ramp", clip=True, device=None):
+        calls.append((line_integrals.shape, len(view_set), reference.shape, filter_name, str(device)))
         return np.full(reference.shape, 0.5, np.float32)
 
+    def sirt_spy(*args, device=None, **kwargs):
+        sirt_devices.append(device)
+        return sirt_volume(*args, device=device, **kwargs)
+
     monkeypatch.setattr(fdk, "fdk_volume", fdk_volume)
+    monkeypatch.setattr(ctsplat.baselines, "sirt_volume", sirt_spy)
     cfg, scene = _cone_scene(scene_dir, tmp_path)
     recon, method = seeding.fbp_reconstruction(scene, "shepp-logan")
-    assert method == "fdk" and calls == [((16, 32, 32), 16, (N, N, N), "shepp-logan")]
-    assert seeding.make_seed(cfg, scene, np.random.default_rng(0)).strategy == "fbp (fdk)"
-    # a wobbling cone-beam orbit is not what FDK reconstructs: SIRT, FDK never called
+    assert method == "fdk" and calls == [((16, 32, 32), 16, (N, N, N), "shepp-logan", "cpu")]
+    # the seed reconstructs on the training's device (auto: CUDA where present)
+    calls.clear()
+    assert seeding.make_seed({**cfg, "device": "auto"}, scene, np.random.default_rng(0)).strategy == "fbp (fdk)"
+    assert [c[-1] for c in calls] == ["cuda" if torch.cuda.is_available() else "cpu"]
+    # a wobbling cone-beam orbit is not what FDK reconstructs: SIRT on the same device, FDK never called
     calls.clear()
     _, wobbly = _cone_scene(scene_dir, tmp_path / "w", wobble_deg=10.0)
-    assert seeding.fbp_reconstruction(wobbly)[1] == "sirt" and not calls
+    assert seeding.fbp_reconstruction(wobbly, device="auto")[1] == "sirt" and not calls
+    assert sirt_devices == ["cuda" if torch.cuda.is_available() else "cpu"]
+    if not torch.cuda.is_available():  # a CUDA seed without a GPU is refused, not silently run on the CPU
+        with pytest.raises(CtsplatError, match="no CUDA GPU"):
+            seeding.fbp_reconstruction(scene, device="cuda")
 
 
 def test_sfm_init_reads_points(scene_dir: Path, tmp_path: Path) -> None:

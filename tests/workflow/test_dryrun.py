@@ -90,6 +90,25 @@ def test_lint_passes():
     assert "Congratulations, your workflow is in a good condition" in proc.stdout + proc.stderr
 
 
+def test_workflow_strings_have_no_invalid_escapes():
+    # an invalid escape such as "\+" in a wildcard pattern is a SyntaxWarning at every parse on Python 3.12 (a
+    # DeprecationWarning before) and an error in a later Python; a raw string says the same without one
+    import tokenize
+    import warnings
+
+    for path in [SNAKEFILE, *sorted((ROOT / "workflow").rglob("*.smk"))]:
+        with open(path, "rb") as fh:
+            strings = [t for t in tokenize.tokenize(fh.readline) if t.type == tokenize.STRING]
+        assert strings, path
+        for tok in strings:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                try:
+                    compile(tok.string, str(path), "eval")
+                except (SyntaxError, SyntaxWarning, DeprecationWarning) as exc:
+                    pytest.fail(f"{path.name}:{tok.start[0]}: {tok.string}: {exc}")
+
+
 def test_snakefmt_formatted():
     exe = shutil.which("snakefmt") or str(ROOT / ".venv" / "bin" / "snakefmt")
     files = [str(SNAKEFILE), *map(str, sorted((ROOT / "workflow" / "rules").glob("*.smk")))]
