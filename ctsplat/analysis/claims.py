@@ -32,7 +32,8 @@ BASELINE_PRIORS: dict[str, str] = {
                 "phantom",
     "mbir": "MBIR's edge-preserving qGGMRF prior suits a piecewise-constant volume such as the phantom",
     "sart": "SART ran to its best iteration count on validation views",
-    "fbp": "FBP is exact for dense noise-free views",
+    "fbp": "FBP had its filter chosen on validation views (it inverts the transform exactly only as views get dense "
+           "and noise-free)",
 }
 _HONEST = "init does not read the reference volume"
 

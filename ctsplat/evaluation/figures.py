@@ -13,12 +13,12 @@ __all__ = ["save_gallery", "save_slices", "save_turntable"]
 
 
 def _imshow_row(axes: Any, images: list[np.ndarray], titles: list[str], cmaps: list[str],
-                limits: list[tuple[float, float]]) -> None:
+                limits: list[tuple[float, float]], unit: str) -> None:
     for ax, im, title, cmap, (lo, hi) in zip(axes, images, titles, cmaps, limits, strict=True):
         h = ax.imshow(im, cmap=cmap, vmin=lo, vmax=hi)
         ax.set_title(title, fontsize=8)
         ax.axis("off")
-        ax.figure.colorbar(h, ax=ax, fraction=0.046, pad=0.02)
+        ax.figure.colorbar(h, ax=ax, fraction=0.046, pad=0.02).set_label(unit, fontsize=7)
 
 
 def _save_fig(fig: Any, path: Path) -> None:
@@ -64,7 +64,7 @@ def save_gallery(path: str | Path, refs: np.ndarray, preds: np.ndarray, ids: lis
         e = float(np.abs(err).max()) or 1.0
         _imshow_row(axes[row], [ref, pred, err],
                     [f"view {ids[i]} reference", f"render ({psnrs[i]:.1f} dB)", "error (render - ref)"],
-                    ["gray", "gray", "RdBu_r"], [(lo, hi), (lo, hi), (-e, e)])
+                    ["gray", "gray", "RdBu_r"], [(lo, hi), (lo, hi), (-e, e)], "line integral (normalised μ × mm)")
     fig.tight_layout()
     _save_fig(fig, Path(path))
 
@@ -94,7 +94,7 @@ def save_slices(path: str | Path, model_vol: np.ndarray, reference: np.ndarray) 
         mod = np.take(model_vol, c, axis=axis).T[::-1]
         _imshow_row(axes[axis], [ref, mod, mod - ref],
                     [f"{names[axis]} reference", "model", "error (model - ref)"],
-                    ["gray", "gray", "RdBu_r"], [(0.0, 1.0), (0.0, 1.0), (-0.5, 0.5)])
+                    ["gray", "gray", "RdBu_r"], [(0.0, 1.0), (0.0, 1.0), (-0.5, 0.5)], "normalised μ")
     fig.tight_layout()
     _save_fig(fig, Path(path))
 

@@ -448,20 +448,23 @@ class Gaussians:
         g.validate()
         return g
 
-    def to_ply(self, path: str | Path) -> None:
+    def to_ply(self, path: str | Path, *, density: bool = True) -> None:
         """Export a binary little-endian PLY readable by standard 3DGS viewers.
 
         Properties: ``x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3 density`` with the 3DGS
         encodings (``f_dc = (colour - 0.5) / C0``, ``opacity`` = logit, ``scale`` = log, ``rot`` = wxyz) plus the
-        radiative ``density`` ρ (activated). Grey colours are replicated to RGB; a model without colours is
-        shown grey with brightness ``ρ / max ρ``; a model without opacity gets opacity ``1 - exp(-ρ·2 s̄)``
-        clamped to [0.01, 0.99] (viewer display only). Read back with
+        radiative ``density`` ρ (activated) unless ``density`` is False. Grey colours are replicated to RGB; a model
+        without colours is shown grey with brightness ``ρ / max ρ``; a model without opacity gets opacity
+        ``1 - exp(-ρ·2 s̄)`` clamped to [0.01, 0.99] (viewer display only). Read back with
         :func:`ctsplat.formats.ply.read_ply_vertices`.
 
         Parameters
         ----------
         path : str or Path
             Output ``.ply`` (atomic write).
+        density : bool
+            Write the radiative ``density`` column. A model trained with the alpha compositor renders opacity and
+            colour only, so its densities mean nothing to a reader: False leaves them out (the plain 3DGS layout).
         """
         n = len(self)
         with torch.no_grad():
@@ -497,8 +500,8 @@ class Gaussians:
                 ("opacity", op_raw),
                 *[(f"scale_{i}", self.log_scales[:, i]) for i in range(3)],
                 *[(f"rot_{i}", q[:, i]) for i in range(4)],
-                ("density", dens),
+                *([("density", dens)] if density else []),
             ]
             cols = [(name, "float", v.detach().cpu().numpy()) for name, v in cols]
-        write_ply_vertices(path, cols, fmt="binary_little_endian",
-                           comments=["ctsplat Gaussians (3DGS layout + radiative density)"])
+        layout = "3DGS layout + radiative density" if density else "3DGS layout"
+        write_ply_vertices(path, cols, fmt="binary_little_endian", comments=[f"ctsplat Gaussians ({layout})"])

@@ -386,7 +386,7 @@ def resolve_config(config: dict[str, Any] | None) -> dict[str, Any]:
         raise CtsplatError("train.radiographs is empty: give the folder written by `ctsplat project`")
     if (cfg["poses"].startswith("colmap") or cfg["init"] == "sfm") and not cfg["sfm_dir"]:
         raise CtsplatError(f"train.sfm_dir is empty but poses={cfg['poses']}, init={cfg['init']} needs the sfm "
-                           "step's folder")
+                           "step's folder (ctsplat train: --sfm-dir)")
     return cfg
 
 

@@ -219,6 +219,8 @@ def test_cone_source_inside_the_object(scene, tmp_path, capsys):
         (["sfm", "{rad}", "{tmp}/sfm", "--volume", "{vol}"], "--volume is only read with naive_slices"),
         (["sfm", "{rad}", "{tmp}/sfm", "--set", "geometry=carm"], "drop geometry"),
         (["render", "{tmp}/m.pt", "{rad}/views.json", "{tmp}/r", "--mu-scale", "0"], "--mu-scale must be a finite"),
+        (["train", "--volume", "{vol}", "--radiographs", "{rad}", "--out", "{tmp}/t", "--init", "sfm"],
+         "needs the sfm step's folder (ctsplat train: --sfm-dir)"),
         (["ingest", "{vol}", "{tmp}/v.nii.gz", "--voxel-size", "nan"], "voxel_size_mm: not a finite number"),
         (["ingest", "{vol}", "{vol}", "--grid", "8"], "is, or lies inside, the source"),
         (["ingest", "{vol}", "--list-series"], "is a file, not a DICOM folder"),

@@ -93,10 +93,19 @@ def test_scaled_camera_keeps_field_of_view() -> None:
     assert bc.pitch_mm == pytest.approx(64 / 1080) and bc.dso_mm == 500.0
 
 
-def test_turntable_gif_and_figures(tmp_path) -> None:
+def test_turntable_gif_and_figures(tmp_path, monkeypatch) -> None:
     import imageio.v3 as iio
 
     from ctsplat.evaluation import figures
+
+    units = {}
+    save_fig = figures._save_fig
+
+    def record_units(fig, path):  # the colour bars' labels, read from the figure before it is written
+        units[path.name] = {ax.get_ylabel() for ax in fig.axes if ax.get_label() == "<colorbar>"}
+        save_fig(fig, path)
+
+    monkeypatch.setattr(figures, "_save_fig", record_units)
 
     frames = np.stack([np.full((10, 12), v, np.float32) for v in (0.0, 1.0, 3.0)])
     frames[:, 0, 0] = 2.0
@@ -112,6 +121,8 @@ def test_turntable_gif_and_figures(tmp_path) -> None:
     g = iio.imread(tmp_path / "g.png")
     s = iio.imread(tmp_path / "s.png")
     assert g.shape[0] > g.shape[1] / 2 and s.ndim == 3
+    # every colour bar says its unit: line integrals in the gallery, the normalised volume in the slices
+    assert units == {"g.png": {"line integral (normalised μ × mm)"}, "s.png": {"normalised μ"}}
     assert not list(tmp_path.glob(".*tmp*"))  # atomic writes left no temp files
 
 

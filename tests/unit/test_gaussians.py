@@ -137,6 +137,15 @@ def test_ply_has_3dgs_layout_and_values(tmp_path):
     # f_rest is channel-major: f_rest_{c*15 + k} = sh_rest[:, k, c]
     np.testing.assert_allclose(col["f_rest_16"], g.sh_rest[:, 1, 0].numpy(), rtol=1e-6)
     assert read_ply_vertices(path)["density"].shape == (7,)
+    assert "comment ctsplat Gaussians (3DGS layout + radiative density)" in header
+    # an alpha-compositing model renders no density: the plain 3DGS layout, every other column the same
+    g.to_ply(tmp_path / "alpha.ply", density=False)
+    alpha_header = (tmp_path / "alpha.ply").read_bytes().split(b"end_header\n")[0].decode()
+    assert [ln.split()[-1] for ln in alpha_header.splitlines() if ln.startswith("property")] == STANDARD_3DGS
+    assert "radiative" not in alpha_header
+    alpha = read_ply_vertices(tmp_path / "alpha.ply")
+    for name in STANDARD_3DGS:
+        np.testing.assert_array_equal(alpha[name], col[name])
 
 
 def test_ply_of_a_density_only_model(tmp_path):

@@ -149,6 +149,9 @@ def test_workflow_runs_a_photo_volume_beside_the_ct_grid(skull_subset: Path, tmp
     assert metrics["attribution"] == "alansartlog, CC BY 4.0"
     for f in ("figures/gallery.png", "figures/turntable.gif", "train_log.csv", "model.ply"):
         assert (tmp_path / "results/skull/photos/run" / f).is_file()
+    from ctsplat.formats.ply import read_ply_vertices
+
+    assert "density" not in read_ply_vertices(tmp_path / "results/skull/photos/run/model.ply")  # alpha: plain 3DGS
     assert not (tmp_path / "results/phantom").exists()  # only the photo target was asked for
 
 

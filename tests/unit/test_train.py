@@ -332,6 +332,10 @@ def test_variants_run_and_learn(scene_dir: Path, tmp_path: Path, kw: dict) -> No
     assert float(rows[-1]["loss"]) < float(rows[0]["loss"]) * 1.5
     if kw.get("lambda_tv"):
         assert float(rows[-1]["tv"]) > 0
+    # the PLY carries the radiative density only where the compositor renders it
+    from ctsplat.formats.ply import read_ply_vertices
+
+    assert ("density" in read_ply_vertices(tmp_path / "v" / "model.ply")) == (kw.get("compositor") != "alpha")
 
 
 def test_a_mip_model_is_saved_and_scored_with_the_filter_it_was_trained_with(scene_dir: Path, tmp_path: Path,
