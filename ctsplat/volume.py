@@ -500,16 +500,15 @@ def body_mask(values: np.ndarray, method: str = "otsu") -> np.ndarray:
     return fg
 
 
-def intensity_full_scale(intensity: dict[str, Any], cfg: dict[str, Any]) -> float:
+def intensity_full_scale(intensity: dict[str, Any]) -> float:
     """The value span that an intensity mapping's [0, 1] stands for: 1 for the normalised mappings, μ at ``hu_max``
     (1/mm) for ``mu``, and for ``hu`` (where ``hu_max`` has no say) air to the default ``hu_max``, 4000 HU.
 
     Parameters
     ----------
     intensity : dict
-        The mapping's record (``kind``), as ingest writes it into ``volume.json``.
-    cfg : dict
-        Preprocessing settings (``mu_water_per_mm``, ``hu_max``).
+        The mapping's record as ingest writes it into ``volume.json``: ``kind``, and for ``mu`` its
+        ``mu_water_per_mm`` and ``hu_max``.
 
     Returns
     -------
@@ -518,7 +517,7 @@ def intensity_full_scale(intensity: dict[str, Any], cfg: dict[str, Any]) -> floa
     """
     kind = intensity["kind"]
     if kind == "attenuation_per_mm":
-        return _mu_at(float(cfg["hu_max"]), float(cfg["mu_water_per_mm"]))
+        return _mu_at(float(intensity["hu_max"]), float(intensity["mu_water_per_mm"]))
     if kind == "hu":
         return float(PREPROCESSING_DEFAULTS["hu_max"]) + 1000.0
     return 1.0
@@ -782,7 +781,7 @@ def ingest(
     mapped, intensity = _map_intensity(values, cfg, stack.units)
     steps.append({"step": "intensity", **{k: v for k, v in intensity.items() if k != "formula"}})
     if cfg["denoise"]:
-        weight = float(cfg["denoise_weight"]) * intensity_full_scale(intensity, cfg)
+        weight = float(cfg["denoise_weight"]) * intensity_full_scale(intensity)
         mapped = denoise(mapped, cfg["denoise"], weight)
         steps.append({"step": "denoise", "method": cfg["denoise"], "weight": float(cfg["denoise_weight"]),
                       "weight_in_value_units": weight})

@@ -483,7 +483,7 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
         model, report = train_scene(scene, s, tmp / "train_log.csv", device)
         model.meta.update({"compositor": "alpha", "source": "photos", "sfm_dir": str(sfm_dir)})
         model.save(tmp / "model.pt")
-        model.to_ply(tmp / "model.ply", density=False)
+        model.to_ply(tmp / "model.ply")
         w, h = scene.views[0].camera.width, scene.views[0].camera.height
         report.update({"resolution": [w, h], "downscale": int(s["downscale"]), "extent": scene.extent,
                        "device": str(device), "platform": compute_platform(device)})

@@ -448,12 +448,12 @@ class Gaussians:
         g.validate()
         return g
 
-    def to_ply(self, path: str | Path, *, density: bool = True) -> None:
+    def to_ply(self, path: str | Path, *, density: bool | None = None) -> None:
         """Export a binary little-endian PLY readable by standard 3DGS viewers.
 
         Properties: ``x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3 density`` with the 3DGS
         encodings (``f_dc = (colour - 0.5) / C0``, ``opacity`` = logit, ``scale`` = log, ``rot`` = wxyz) plus the
-        radiative ``density`` ρ (activated) unless ``density`` is False. Grey colours are replicated to RGB; a model
+        radiative ``density`` ρ (activated) where it renders. Grey colours are replicated to RGB; a model
         without colours is shown grey with brightness ``ρ / max ρ``; a model without opacity gets opacity
         ``1 - exp(-ρ·2 s̄)`` clamped to [0.01, 0.99] (viewer display only). Read back with
         :func:`ctsplat.formats.ply.read_ply_vertices`.
@@ -462,10 +462,13 @@ class Gaussians:
         ----------
         path : str or Path
             Output ``.ply`` (atomic write).
-        density : bool
+        density : bool or None
             Write the radiative ``density`` column. A model trained with the alpha compositor renders opacity and
             colour only, so its densities mean nothing to a reader: False leaves them out (the plain 3DGS layout).
+            Default: unless ``meta["compositor"]`` is ``"alpha"``.
         """
+        if density is None:
+            density = self.meta.get("compositor") != "alpha"
         n = len(self)
         with torch.no_grad():
             dens = self.densities.detach().cpu().double()

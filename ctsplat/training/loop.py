@@ -578,7 +578,7 @@ def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: 
     """The final model (``model.pt``, ``model.ply``) and the training summary (``training.json``); the best
     validation model (``model_best.pt``) was written at the periodic evaluations."""
     g = _save_model(state, cfg, out_dir / "model.pt", chash, scene.mu_scale)
-    g.to_ply(out_dir / "model.ply", density=cfg["compositor"] != "alpha")
+    g.to_ply(out_dir / "model.ply")
     summary = {
         "wall_time_s": round(train_time, 3),
         "iterations": state.iteration,
