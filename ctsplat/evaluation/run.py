@@ -471,7 +471,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         raw = volume_metrics(vol_raw, scene.volume.data, r2=True, data_range=scene.volume.metric_range)
         sharpening.update({f"{k}_unsharpened": v for k, v in raw.items()})
     m3 = volume_metrics(vol_model, scene.volume.data, r2=True, data_range=scene.volume.metric_range)
-    m3.update(_gauge_aligned_metrics(run_dir, g, scene, rk))
+    m3.update(_gauge_aligned_metrics(run_dir, g, scene, rk, sharpening))
     log_path = run_dir / "train_log.csv"
     targets = dict(milestones) if milestones else schema_defaults("analysis")["milestones"]
     times = milestone_times(read_train_log(log_path), targets) if log_path.exists() else {}
@@ -546,7 +546,9 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         if cfg["figures"]:
             figures.save_gallery(run_dir / "gallery.png", views.images, preds, [int(i) for i in views.ids],
                                  vm["psnr2d"])
-            figures.save_slices(run_dir / "slices.png", vol_model, scene.volume.data)
+            # the figure's fixed grey range is the normalised one: scale as the 3D metrics do (mu volumes are in 1/mm)
+            scale = scene.volume.metric_range
+            figures.save_slices(run_dir / "slices.png", vol_model / scale, scene.volume.data / scale)
             Rs, ts = orbit_poses(views.Rs[0], views.ts[0], scene.volume.center_mm(), int(cfg["turntable_frames"]))
             figures.save_turntable(run_dir / "turntable.gif", render_views(g, views.camera, Rs, ts, rk))
         else:  # figures of an earlier evaluation would sit beside metrics they do not show
@@ -628,11 +630,15 @@ def check_validation_choices(scene: Any, cfg: dict[str, Any], model: str | None 
                            "with a validation split (n_val or split.val) or set model_selection: last")
 
 
-def _gauge_aligned_metrics(run_dir: Path, g: Any, scene: Any, rk: dict[str, Any]) -> dict[str, Any]:
+def _gauge_aligned_metrics(run_dir: Path, g: Any, scene: Any, rk: dict[str, Any],
+                           sharpening: dict[str, Any]) -> dict[str, Any]:
     """3D metrics of a model trained at poses other than the true ones, after the rigid motion its training images
     cannot observe (:func:`ctsplat.training.poses.gauge_motion` of its final training poses against the true ones)
     is undone: ``psnr3d_gauge_aligned``, ``ssim3d_gauge_aligned``, and that motion (``gauge_rotation_deg``,
-    ``gauge_shift_mm``). Empty for runs at the true poses."""
+    ``gauge_shift_mm``). Empty for runs at the true poses. The moved read-out gets the sharpening chosen for the
+    run's own (``sharpening``, empty when off), so the pair differs from ``psnr3d`` / ``ssim3d`` by the motion
+    alone."""
+    from ctsplat.evaluation.readout import sharpen
     from ctsplat.training.poses import gauge_motion, rotation_angles_deg
 
     tr = scene.train
@@ -648,6 +654,9 @@ def _gauge_aligned_metrics(run_dir: Path, g: Any, scene: Any, rk: dict[str, Any]
     G, b = gauge_motion(Rs, ts, Rs_true, ts_true, tr.camera.model)
     moved = gauge_aligned_model(g, G, b)
     vol = voxelize_model(moved, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
+    if sharpening and float(sharpening["sharpen_amount"]) != 0:  # amount 0 is the read-out as given
+        vol = sharpen(vol, amount=float(sharpening["sharpen_amount"]),
+                      radius_voxels=float(sharpening["sharpen_radius_voxels"]))
     m = volume_metrics(vol, scene.volume.data, data_range=scene.volume.metric_range)
     return {"psnr3d_gauge_aligned": m["psnr3d"], "ssim3d_gauge_aligned": m["ssim3d"],
             "gauge_rotation_deg": float(rotation_angles_deg(G[None])[0]), "gauge_shift_mm": float(np.linalg.norm(b))}

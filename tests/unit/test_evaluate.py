@@ -3,6 +3,7 @@ figures and GIF, speed/memory, and bad run folders."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -256,3 +257,34 @@ def test_r2_metrics_edge_cases() -> None:
     tiny_ref = np.zeros((3, 3, 3))
     tiny_ref[1, 1, 1] = 1.0  # one non-empty slice per axis, smaller than the window: still defined
     assert metrics.ssim3d_r2(tiny_ref, tiny_ref) == pytest.approx(1.0)
+
+
+def test_slice_figure_of_a_volume_in_per_mm_is_drawn_normalised(tmp_path, monkeypatch) -> None:
+    """A volume ingested with ``intensity: mu`` holds 1/mm (here up to 0.06); the slice figure's fixed [0, 1] grey
+    range gets it divided by the volume's metric range, as the 3D metrics do, not the raw values (near black)."""
+    from train_helpers import tiny_phantom, tiny_train_cfg
+
+    from ctsplat.evaluation import figures
+    from ctsplat.formats.volume import Volume, save_volume
+    from ctsplat.projector import render_radiographs
+    from ctsplat.training import train
+
+    data, aff = tiny_phantom()
+    intensity = {"kind": "attenuation_per_mm", "mu_water_per_mm": 0.019, "hu_max": 3000.0, "mu_scale_per_mm": 1.0}
+    vol = Volume(data * 0.06, aff, {"volume_id": "tiny_mu", "intensity": intensity})
+    save_volume(vol, tmp_path / "volume.nii.gz")
+    render_radiographs(tmp_path / "volume.nii.gz", tmp_path / "rad",
+                       {"detector_width": 24, "detector_height": 24, "n_views": 12, "device": "cpu"})
+    train(tiny_train_cfg(tmp_path, iterations=10, eval_every=10, checkpoint_every=10), tmp_path / "run")
+    drawn = {}
+    monkeypatch.setattr(figures, "save_slices", lambda path, model, ref: drawn.update(model=model, ref=ref))
+    monkeypatch.setattr(figures, "save_gallery", lambda *a, **k: None)
+    monkeypatch.setattr(figures, "save_turntable", lambda *a, **k: None)
+    cfg = json.loads((tmp_path / "run" / "config.json").read_text())
+    cfg["config"]["figures"] = True
+    (tmp_path / "run" / "config.json").write_text(json.dumps(cfg))
+    ev.evaluate(tmp_path / "run", device="cpu")
+    scale = 0.019 * 4.0
+    np.testing.assert_allclose(drawn["ref"], data * 0.06 / scale, atol=1e-6)
+    assert 0.5 < float(drawn["ref"].max()) <= 1.0
+    assert float(np.max(drawn["model"])) > 0.2  # the model's read-out, on the same scale

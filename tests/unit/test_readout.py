@@ -161,3 +161,33 @@ def test_sharpening_without_validation_views_fails_before_training(tmp_path: Pat
                                            r"but the radiographs in .* have none"):
         train(tiny_train_cfg(tmp_path, sharpen={"amounts": [0.0, 0.5]}), tmp_path / "run")
     assert not (tmp_path / "run" / "model.pt").exists()
+
+
+def test_gauge_aligned_metrics_score_the_sharpened_read_out(monkeypatch) -> None:
+    """With the gauge motion the identity, the gauge-aligned pair equals the run's own ``psnr3d`` / ``ssim3d``: the
+    moved read-out gets the amount chosen for the run's read-out, so the pair differs by the motion alone."""
+    from types import SimpleNamespace
+
+    import ctsplat.training.poses as poses
+    from ctsplat.evaluation import run as ev
+
+    ref = _balls().data
+    read_out = gaussian_filter(ref, 1.2).astype(np.float32)
+    monkeypatch.setattr(ev, "voxelize_model", lambda g, shape, affine, f=None: read_out)
+    monkeypatch.setattr(ev, "gauge_aligned_model", lambda g, G, b: g)
+    monkeypatch.setattr(poses, "gauge_motion", lambda Rs, ts, Rt, tt, model: (np.eye(3), np.zeros(3)))
+    R = np.stack([np.eye(3)] * 4)
+    train_views = SimpleNamespace(truth=lambda: (R, np.zeros((4, 3))), Rs=R, ts=np.full((4, 3), 1e-3),
+                                  ids=np.arange(4), camera=SimpleNamespace(model="cone"))
+    scene = SimpleNamespace(train=train_views, volume=SimpleNamespace(data=ref, shape=ref.shape, affine=np.eye(4),
+                                                                      metric_range=1.0))
+    for amount in (0.6, 0.0):
+        info = {"sharpen_amount": amount, "sharpen_radius_voxels": 1.0}
+        own = ev.volume_metrics(read_out if amount == 0 else sharpen(read_out, amount=amount), ref, data_range=1.0)
+        got = ev._gauge_aligned_metrics(Path("no_run"), None, scene, {}, info)
+        assert got["psnr3d_gauge_aligned"] == pytest.approx(own["psnr3d"], abs=1e-9)
+        assert got["ssim3d_gauge_aligned"] == pytest.approx(own["ssim3d"], abs=1e-9)
+    unsharpened = ev._gauge_aligned_metrics(Path("no_run"), None, scene, {}, {})
+    assert unsharpened["psnr3d_gauge_aligned"] == pytest.approx(ev.volume_metrics(read_out, ref)["psnr3d"], abs=1e-9)
+    assert unsharpened["psnr3d_gauge_aligned"] != pytest.approx(
+        ev.volume_metrics(sharpen(read_out, amount=0.6), ref)["psnr3d"], abs=1e-3)
