@@ -35,6 +35,7 @@ __all__ = [
     "terminate_as_interrupt",
     "atomic_path",
     "atomic_dir",
+    "made_parents",
     "check_output_dir",
     "scratch_dir",
     "save_torch_atomic",
@@ -145,7 +146,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     Parameters
     ----------
     path : str or os.PathLike
-        The final output file. Its parent folder is created if missing.
+        The final output file. Its parent folder is created if missing (and removed again, if still empty, when
+        the write fails).
 
     Raises
     ------
@@ -175,24 +177,24 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     if path.is_dir():
         raise CtsplatError(f"{text} is a folder, but a file is to be written there; remove or rename the folder, "
                            "or give another file path")
-    path.parent.mkdir(parents=True, exist_ok=True)
     suffix = "".join(path.suffixes) if path.suffixes else ""
     stem = path.name[: len(path.name) - len(suffix)] if suffix else path.name
     tmp_path: Path | None = None
-    try:
-        with _interrupts_held():
-            fd, tmp = tempfile.mkstemp(prefix=f".{stem}.", suffix=f".tmp{suffix}", dir=path.parent)
-            tmp_path = Path(tmp)
-            os.close(fd)
-        yield tmp_path
-        if tmp_path.is_file():  # mkstemp creates 0600; give the output the permissions a plain open() would
-            os.chmod(tmp_path, 0o666 & ~_UMASK)
-        os.replace(tmp_path, path)
-    except BaseException:
-        if tmp_path is not None:
-            with contextlib.suppress(FileNotFoundError):
-                tmp_path.unlink()
-        raise
+    with made_parents(path):
+        try:
+            with _interrupts_held():
+                fd, tmp = tempfile.mkstemp(prefix=f".{stem}.", suffix=f".tmp{suffix}", dir=path.parent)
+                tmp_path = Path(tmp)
+                os.close(fd)
+            yield tmp_path
+            if tmp_path.is_file():  # mkstemp creates 0600; give the output the permissions a plain open() would
+                os.chmod(tmp_path, 0o666 & ~_UMASK)
+            os.replace(tmp_path, path)
+        except BaseException:
+            if tmp_path is not None:
+                with contextlib.suppress(FileNotFoundError):
+                    tmp_path.unlink()
+            raise
 
 
 def check_output_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str] | None = None,
@@ -252,7 +254,8 @@ def atomic_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str] | No
     Parameters
     ----------
     path : str or os.PathLike
-        The final output folder. Its parent folder is created if missing.
+        The final output folder. Its parent folder is created if missing (and removed again, if still empty, when
+        the block fails).
     marker, inputs
         As in :func:`check_output_dir`.
 
@@ -273,14 +276,55 @@ def atomic_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str] | No
     """
     path = Path(path)
     check_output_dir(path, marker=marker, inputs=inputs)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with scratch_dir(path.parent, prefix=f".{path.name}.") as tmp:
+    with made_parents(path), scratch_dir(path.parent, prefix=f".{path.name}.") as tmp:
         os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp creates 0700
         yield tmp
         check_output_dir(path, marker=marker, inputs=inputs)  # the folder may have changed while the block ran
         if path.exists():
             shutil.rmtree(path)
         os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def made_parents(path: str | os.PathLike[str]) -> Iterator[list[Path]]:
+    """Create the missing parent folders of ``path``; if the block fails, remove those of them left empty.
+
+    A failed write then leaves the file system as it found it, not a trail of empty folders.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A file or folder to be written; its parent folders are created.
+
+    Yields
+    ------
+    list of pathlib.Path
+        The folders created, innermost first (empty when the parent existed).
+
+    Examples
+    --------
+    >>> import pathlib, tempfile
+    >>> root = pathlib.Path(tempfile.mkdtemp())
+    >>> try:
+    ...     with made_parents(root / "a" / "b" / "out.csv"):
+    ...         raise ValueError("the write failed")
+    ... except ValueError:
+    ...     pass
+    >>> (root / "a").exists()
+    False
+    """
+    parent = Path(path).parent
+    created = [d for d in [parent, *parent.parents] if not d.exists()]  # innermost first
+    parent.mkdir(parents=True, exist_ok=True)
+    try:
+        yield created
+    except BaseException:
+        for d in created:
+            try:
+                d.rmdir()
+            except OSError:  # not empty (something else wrote there) or already gone: leave it and its parents
+                break
+        raise
 
 
 @contextlib.contextmanager

@@ -30,7 +30,6 @@ Schönberger, J. L., Frahm, J.-M. (2016). Structure-from-motion revisited. CVPR.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import os
@@ -69,6 +68,7 @@ from ctsplat.utils import (
     atomic_path,
     code_version,
     json_safe,
+    made_parents,
     merge_config,
     read_json_object,
     scratch_dir,
@@ -467,17 +467,15 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
                            "orbit: carm")
     cfg["_arc_deg"] = float(vs.meta.get("arc_deg") or 360.0)
     out_dir = Path(out_dir)
-    new_dirs = [d for d in [out_dir, *out_dir.parents] if not d.exists()]  # innermost first
-    out_dir.mkdir(parents=True, exist_ok=True)
-    try:
-        return _register_and_write(p, vs, out_dir, cfg, seed, naive_volume, radiographs_dir)
-    except BaseException:
-        if new_dirs:  # a failed first run leaves no folder behind, and no parent it made that is still empty
-            shutil.rmtree(out_dir, ignore_errors=True)
-            for d in new_dirs[1:]:
-                with contextlib.suppress(OSError):
-                    d.rmdir()
-        raise
+    is_new = not out_dir.exists()
+    with made_parents(out_dir):  # a failed first run leaves no folder behind, and no parent it made
+        out_dir.mkdir(exist_ok=True)
+        try:
+            return _register_and_write(p, vs, out_dir, cfg, seed, naive_volume, radiographs_dir)
+        except BaseException:
+            if is_new:
+                shutil.rmtree(out_dir, ignore_errors=True)
+            raise
 
 
 def _register_and_write(p: np.ndarray, vs: ViewSet, out_dir: Path, cfg: dict[str, Any], seed: int,

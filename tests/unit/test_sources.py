@@ -538,6 +538,25 @@ def test_atomic_dir_replaces_whole_folders_or_leaves_the_old_one(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["views"]
 
 
+def test_failed_atomic_writes_remove_the_parent_folders_they_made(tmp_path):
+    from ctsplat.utils import atomic_dir, atomic_path
+
+    (tmp_path / "kept").mkdir()
+    for writer in (atomic_dir, atomic_path):
+        with pytest.raises(RuntimeError), writer(tmp_path / "kept" / "new" / "deeper" / "out") as tmp:
+            (tmp / "part" if tmp.is_dir() else tmp).write_bytes(b"partial")
+            raise RuntimeError("writer failed")
+        assert sorted(p.name for p in tmp_path.rglob("*")) == ["kept"]  # the parent that existed stays
+    # a parent that something else wrote into meanwhile is left, with its own parents
+    with pytest.raises(RuntimeError), atomic_path(tmp_path / "a" / "b" / "out.csv"):
+        (tmp_path / "a" / "other.txt").write_text("not ours")
+        raise RuntimeError("writer failed")
+    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["a", "a/other.txt", "kept"]
+    with atomic_dir(tmp_path / "x" / "y" / "out") as tmp:  # success keeps them
+        (tmp / "f").write_text("done")
+    assert (tmp_path / "x" / "y" / "out" / "f").read_text() == "done"
+
+
 def test_atomic_dir_replaces_only_empty_folders_earlier_outputs_and_never_an_input(tmp_path):
     from ctsplat.utils import atomic_dir, check_output_dir
 
