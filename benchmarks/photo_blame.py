@@ -25,8 +25,8 @@ from _common import cli_main
 
 from ctsplat.geometry.cameras import camera_center
 from ctsplat.photos.blame import blame_view
+from ctsplat.photos.config import held_out_split
 from ctsplat.photos.evaluate import run_config, run_scene
-from ctsplat.photos.train import held_out_split
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.utils import CtsplatError, atomic_path, resolve_device
 

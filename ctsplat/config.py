@@ -758,11 +758,10 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
             f"invalid config at sfm.settings.percentile_low: {sfm_settings['percentile_low']:g} is not below "
             f"percentile_high ({sfm_settings['percentile_high']:g}), so every image would be blank; e.g. 0.5 and 99.5"
         )
-    photo_train = cfg["photos"]["train"]
-    offset, every = photo_train["validation_offset"], int(photo_train["test_every"])
-    if cfg["photo_volumes"] and offset is not None and every and not int(offset) < every:
-        raise CtsplatError(f"invalid config at photos.train.validation_offset: {offset} must be 1..{every - 1} "
-                           f"(below photos.train.test_every, {every})")
+    if cfg["photo_volumes"]:  # the photo jobs would refuse these only after SfM has run
+        from ctsplat.photos.config import check_train_settings
+
+        check_train_settings(cfg["photos"]["train"])
     runs = expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
     sfm_geometry = cfg["sfm"]["settings"]["geometry"]
     if needs_sfm(runs, enabled=cfg["sfm"]["enabled"]):

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from ctsplat.utils import merge_config
+from ctsplat.utils import CtsplatError, merge_config
 
-__all__ = ["PHOTOS_DEFAULTS", "SFM_SUMMARY_KEYS", "photo_settings"]
+__all__ = ["PHOTOS_DEFAULTS", "SFM_SUMMARY_KEYS", "photo_settings", "held_out_split", "validation_position",
+           "check_train_settings"]
 
 #: the keys of a photo SfM folder's ``summary.json`` that the CLI prints and ``metrics.json`` repeats
 SFM_SUMMARY_KEYS = ("n_images", "n_registered", "registration_rate", "unregistered", "models_found",
@@ -132,3 +133,67 @@ def photo_settings(user: dict[str, Any] | None = None) -> dict[str, Any]:
         ``{"sfm": {...}, "train": {...}, "evaluate": {...}}``, every key present.
     """
     return merge_config("photos", user, PHOTOS_DEFAULTS)
+
+
+def held_out_split(settings: dict[str, Any]) -> str:
+    """The split a run monitors and is evaluated on: ``val`` with ``holdout: validation``, else ``test``."""
+    return "val" if settings.get("holdout", "test") == "validation" else "test"
+
+
+def validation_position(test_every: int, validation_offset: int | None) -> int:
+    """The position of the first validation photo among each ``test_every`` (the validation fold).
+
+    Parameters
+    ----------
+    test_every : int
+        Hold-out period; 0 holds nothing out (the offset is then not used).
+    validation_offset : int, optional
+        1 .. ``test_every`` - 1; ``None`` takes ``test_every // 2`` (midway between two test photos).
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    CtsplatError
+        For an offset outside 1 .. ``test_every`` - 1.
+    """
+    k = int(test_every)
+    off = k // 2 if validation_offset is None else int(validation_offset)
+    if k and not 1 <= off < k:
+        raise CtsplatError(f"photos.train.validation_offset must be 1..{k - 1} (test_every {k}), got {off}")
+    return off
+
+
+def check_train_settings(s: dict[str, Any]) -> None:
+    """Refuse ``photos.train`` settings that no photo folder can train with, before any work is done.
+
+    Parameters
+    ----------
+    s : dict
+        The filled ``photos.train`` section.
+
+    Raises
+    ------
+    CtsplatError
+        One line naming the key: iterations below 1, a downscale other than 1, 2, 4 or 8, an SH degree outside
+        0..3, a hold-out period that leaves no held-out photo (0) or no training photo, or a validation offset
+        outside 1 .. ``test_every`` - 1.
+    """
+    every, validation = int(s["test_every"]), held_out_split(s) == "val"
+    if every == 0:
+        raise CtsplatError("photos.train.test_every 0 holds out no photo, and the run is evaluated on held-out "
+                           "photos; use 8 (every 8th photo, the usual split)")
+    if every == 1 or (validation and every == 2):
+        held = "with the validation photos between them, " if validation else ""
+        raise CtsplatError(f"photos.train.test_every {every} holds out every photo ({held}none is left for "
+                           "training); use 8 (every 8th photo, the usual split)")
+    if validation or s.get("validation_offset") is not None:
+        validation_position(every, s.get("validation_offset"))
+    if int(s["iterations"]) < 1:
+        raise CtsplatError(f"photos.train.iterations must be >= 1, got {s['iterations']}")
+    if int(s["downscale"]) not in (1, 2, 4, 8):
+        raise CtsplatError(f"photos.train.downscale must be 1, 2, 4 or 8, got {s['downscale']}")
+    if not 0 <= int(s["sh_degree"]) <= 3:
+        raise CtsplatError(f"photos.train.sh_degree must be 0..3, got {s['sh_degree']}")

@@ -17,6 +17,7 @@ import pycolmap
 import torch
 
 from ctsplat.geometry.cameras import camera_center
+from ctsplat.photos.config import validation_position
 from ctsplat.photos.images import load_rgb
 from ctsplat.utils import CtsplatError
 
@@ -81,7 +82,8 @@ class PhotoView:
 
 @dataclass
 class PhotoScene:
-    """Views, the SfM points (``xyz`` (P, 3), ``rgb`` (P, 3) in [0, 1]) and the scene extent (3DGS radius)."""
+    """Views, the SfM points (``xyz`` (P, 3), ``rgb`` (P, 3) in [0, 1]) and the scene extent (3DGS radius of the
+    training cameras)."""
 
     views: list[PhotoView]
     xyz: np.ndarray
@@ -121,9 +123,7 @@ def split_names(names: list[str], test_every: int, *, validation: bool = False,
     """
     out = {}
     k = int(test_every)
-    off = k // 2 if validation_offset is None else int(validation_offset)
-    if validation and k and not 1 <= off < k:
-        raise CtsplatError(f"photos.train.validation_offset must be 1..{k - 1} (test_every {k}), got {off}")
+    off = validation_position(k, validation_offset) if validation else 0
     for i, n in enumerate(sorted(names)):
         if k and i % k == 0:
             out[n] = "test"
@@ -218,7 +218,10 @@ def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, 
     pts = list(rec.points3D.values())
     xyz = np.array([p.xyz for p in pts], float).reshape(-1, 3)
     rgb = np.array([p.color for p in pts], float).reshape(-1, 3) / 255.0
-    extent = scene_extent([v.R for v in views], [v.t for v in views])
+    # 3DGS's radius of the training cameras alone: the held-out photos' positions must not shape training (the
+    # means' learning rate and the densification thresholds scale with it)
+    train = [v for v in views if v.split == "train"]
+    extent = scene_extent([v.R for v in train], [v.t for v in train])
     return PhotoScene(views, xyz, rgb, extent, {"sfm_dir": str(sfm_dir), "downscale": int(downscale),
                                                 "test_every": int(test_every),
                                                 "validation_offset": validation_offset})

@@ -32,9 +32,9 @@ import torch
 from ctsplat.evaluation.metrics import lpips_distance, lpips_status
 from ctsplat.formats.runlog import PER_VIEW_COLUMNS, CsvLog
 from ctsplat.geometry.cameras import camera_center, look_at
-from ctsplat.photos.config import SFM_SUMMARY_KEYS, photo_settings
+from ctsplat.photos.config import SFM_SUMMARY_KEYS, held_out_split, photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
-from ctsplat.photos.train import held_out_split, image_metrics, render_view
+from ctsplat.photos.train import image_metrics, render_view
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.utils import (
     CtsplatError,

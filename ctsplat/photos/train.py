@@ -54,7 +54,7 @@ from scipy.spatial import cKDTree
 
 from ctsplat.formats.runlog import LOG_COLUMNS, CsvLog
 from ctsplat.geometry.cameras import camera_center
-from ctsplat.photos.config import photo_settings
+from ctsplat.photos.config import check_train_settings, held_out_split, photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
 from ctsplat.photos.densify import AlphaDensify
 from ctsplat.photos.light import flash_falloff, nearest_point_distance, reference_distance
@@ -74,7 +74,7 @@ from ctsplat.utils import (
 )
 
 __all__ = ["PHOTO_LOG_EXTRAS", "train_photos", "train_scene", "init_params", "border_colour",
-           "held_out_split", "to_gaussians", "render_view", "image_metrics", "drop_gaussians"]
+           "to_gaussians", "render_view", "image_metrics", "drop_gaussians"]
 
 log = logging.getLogger(__name__)
 
@@ -149,11 +149,6 @@ def border_colour(views: list[PhotoView], *, width_px: int = 4) -> np.ndarray:
         rims += [img[:k].reshape(-1, 3), img[-k:].reshape(-1, 3), img[:, :k].reshape(-1, 3),
                  img[:, -k:].reshape(-1, 3)]
     return torch.cat(rims).median(dim=0).values.double().numpy()
-
-
-def held_out_split(settings: dict[str, Any]) -> str:
-    """The split a run monitors and is evaluated on: ``val`` with ``holdout: validation``, else ``test``."""
-    return "val" if settings.get("holdout", "test") == "validation" else "test"
 
 
 def to_gaussians(params: dict[str, torch.Tensor], degree: int) -> Gaussians:
@@ -438,15 +433,6 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
 RUN_MARKERS = ("config.json", "model.pt", "metrics.json")
 
 
-def _check(s: dict[str, Any]) -> None:
-    if int(s["iterations"]) < 1:
-        raise CtsplatError(f"photos.train.iterations must be >= 1, got {s['iterations']}")
-    if int(s["downscale"]) not in (1, 2, 4, 8):
-        raise CtsplatError(f"photos.train.downscale must be 1, 2, 4 or 8, got {s['downscale']}")
-    if not 0 <= int(s["sh_degree"]) <= 3:
-        raise CtsplatError(f"photos.train.sh_degree must be 0..3, got {s['sh_degree']}")
-
-
 def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, Any] | None = None
                  ) -> dict[str, Any]:
     """Train alpha 3DGS on an SfM folder and write the run folder (module docstring).
@@ -467,7 +453,7 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
         The contents of ``training.json``.
     """
     s = photo_settings({"train": dict(settings or {})})["train"]
-    _check(s)
+    check_train_settings(s)
     out_dir = Path(out_dir)
     check_output_dir(out_dir, marker=RUN_MARKERS, inputs=(sfm_dir,))  # before training, not after it
     sfm_dir = Path(sfm_dir).resolve()  # config.json and the model must find it from any working folder

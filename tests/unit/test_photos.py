@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -104,6 +105,42 @@ def test_cli_reports_one_line_and_exit_code_2(tmp_path: Path, capsys: pytest.Cap
     assert main(["photos-sfm", str(photos), str(tmp_path / "out"), "--set", "train.downscale=3"]) == 2
     assert "photos.train.downscale" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(("sets", "needle"), [
+    (["train.holdout=validation", "train.validation_offset=9"], "validation_offset must be 1..7 (test_every 8), got 9"),
+    (["train.test_every=1"], "test_every 1 holds out every photo (none is left for training)"),
+    (["train.test_every=2", "train.holdout=validation"], "test_every 2 holds out every photo (with the validation"),
+    (["train.test_every=0"], "test_every 0 holds out no photo"),
+    ([], "output folder {out}/run already holds files"),
+])
+def test_photos_run_refuses_what_training_would_before_sfm_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                capsys: pytest.CaptureFixture[str], sets: list[str],
+                                                                needle: str) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        _jpeg(photos / f"{i:02d}.jpg", seed=i)
+    out = tmp_path / "out"
+    if not sets:  # a run folder that holds someone else's files
+        (out / "run").mkdir(parents=True)
+        (out / "run" / "notes.txt").write_text("keep")
+    monkeypatch.setattr("ctsplat.photos.sfm.run_photo_sfm", lambda *a, **k: pytest.fail("SfM ran"))
+    assert main(["photos-run", str(photos), str(out), *[x for kv in sets for x in ("--set", kv)]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle.format(out=out) in err and "\n" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["photos"] if sets else ["out", "photos"])
+
+
+def test_workflow_refuses_photo_training_settings_at_parse_time(tmp_path: Path) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for name in ("a.jpg", "b.jpg", "c.jpg"):
+        (photos / name).write_bytes(b"")
+    volumes = {"p": {"source": "phantom"}, "skull": {"source": str(photos), "kind": "photos"}}
+    with pytest.raises(CtsplatError, match=r"photos\.train\.test_every 1 holds out every photo"):
+        prepare_config({"volumes": volumes, "photos": {"train": {"test_every": 1}}})
+    prepare_config({"volumes": {"p": {"source": "phantom"}}, "photos": {"train": {"test_every": 1}}})  # no photos
 
 
 def test_load_scene_refuses_a_folder_that_is_not_sfm_output(tmp_path: Path) -> None:
@@ -288,6 +325,17 @@ def test_photo_volumes_stay_out_of_the_ct_grid(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ benchmark
+def _benchmark(args: list[str], cwd: Path | None = None) -> Any:
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    return subprocess.run([sys.executable, str(root / "benchmarks" / "photos.py"), *args], capture_output=True,
+                          text=True, env=env, timeout=120, cwd=cwd)
+
+
 @pytest.mark.parametrize(("args", "needle"), [
     (["--downscale", "3"], "photos.train.downscale: 3 is not one of [1, 2, 4, 8]"),
     (["--iterations", "0"], "photos.train.iterations: 0 is less than the minimum of 1"),
@@ -295,19 +343,36 @@ def test_photo_volumes_stay_out_of_the_ct_grid(tmp_path: Path) -> None:
     (["--reuse-sfm"], "sfm/summary.json not found; run once without --reuse-sfm"),
 ])
 def test_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: list[str], needle: str) -> None:
-    import os
-    import subprocess
-    import sys
-
-    root = Path(__file__).resolve().parents[2]
-    env = {**os.environ, "PYTHONPATH": str(root)}
-    res = subprocess.run([sys.executable, str(root / "benchmarks" / "photos.py"), *args, "--out", str(tmp_path / "o")],
-                         capture_output=True, text=True, env=env, timeout=120)
+    res = _benchmark([*args, "--out", str(tmp_path / "o")])
     assert res.returncode == 2
     assert "Traceback" not in res.stderr
     line = res.stderr.strip().splitlines()[-1]
     assert line.startswith("benchmarks/photos.py: error:") and needle in line, line
     assert not (tmp_path / "o").exists()
+
+
+def test_benchmark_refuses_a_foreign_run_folder_before_sfm(tmp_path: Path) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        _jpeg(photos / f"{i:02d}.jpg", seed=i)
+    (tmp_path / "o" / "run").mkdir(parents=True)
+    (tmp_path / "o" / "run" / "notes.txt").write_text("keep")
+    res = _benchmark(["--images", str(photos), "--out", str(tmp_path / "o")])
+    assert res.returncode == 2 and "o/run already holds files" in res.stderr.strip().splitlines()[-1]
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["run"]  # no sfm/ from a step that did not run
+
+
+def test_benchmark_out_may_be_the_current_folder(tmp_path: Path) -> None:
+    """``--out .`` names the summary after the folder itself (``../bench.json``), not a crash after the run."""
+    bench = tmp_path / "bench"
+    (bench / "sfm").mkdir(parents=True)
+    sfm = {"n_images": 3, "n_registered": 3, "registration_rate": 1.0, "unregistered": [], "models_found": 1,
+           "mean_reprojection_error_px": 0.3, "n_points": 10}
+    (bench / "sfm" / "summary.json").write_text(json.dumps(sfm))
+    res = _benchmark(["--reuse-sfm", "--sfm-only", "--out", "."], cwd=bench)
+    assert res.returncode == 0, res.stderr
+    assert json.loads((tmp_path / "bench.json").read_text())["n_points"] == 10
 
 
 @pytest.mark.parametrize(("args", "needle"), [

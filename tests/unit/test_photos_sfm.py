@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from ctsplat.photos.dataset import load_scene
+from ctsplat.photos.dataset import load_scene, scene_extent
 from ctsplat.photos.sfm import run_photo_sfm
 from ctsplat.utils import CtsplatError
 
@@ -68,6 +68,10 @@ def test_ten_neighbouring_skull_photos_register_in_one_model(skull_subset: Path,
     fold = load_scene(out, downscale=8, test_every=4, validation=True, validation_offset=3)
     assert [v.name for v in fold.split("val")] == [v.name for v in fold.views[3::4]]
     assert [v.name for v in fold.split("test")] == [v.name for v in fold.views[::4]]
+    # the scene radius (learning rate, densification thresholds) is the training cameras' alone, as in 3DGS
+    for sc in (scene, fold):
+        assert sc.extent == scene_extent([v.R for v in sc.split("train")], [v.t for v in sc.split("train")])
+        assert abs(sc.extent - scene_extent([v.R for v in sc.views], [v.t for v in sc.views])) > 1e-3
     v = scene.views[0]
     assert tuple(v.image.shape) == (v.camera.height, v.camera.width, 3)
     assert 0.8 * 1068 / 4 < v.camera.width <= 1068 / 4 + 1
