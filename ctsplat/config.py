@@ -1067,7 +1067,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("photos", "train.drop_rate"): {"type": "number", "minimum": 0, "exclusiveMaximum": 1},
     ("photos", "train.init_opacity"): {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
     ("photos", "train.init_scale"): _POSITIVE,
-    ("photos", "train.max_points"): _COUNT,
+    ("photos", "train.max_points"): {"type": "integer", "minimum": 4},  # a seed scale needs 3 neighbours
     **{("photos", f"train.lr.{k}"): _NON_NEGATIVE for k in ("means", "means_final", "log_scales", "quats",
                                                              "opacity", "colors", "sh_rest", "background")},
     ("photos", "train.densify.strategy"): {"enum": ["default", "mcmc"]},

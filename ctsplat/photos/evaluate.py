@@ -20,8 +20,6 @@ image name as ``view_id``), ``figures/gallery.png`` and ``figures/turntable.gif`
 from __future__ import annotations
 
 import json
-import resource
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -34,7 +32,7 @@ from ctsplat.formats.runlog import PER_VIEW_COLUMNS, CsvLog
 from ctsplat.geometry.cameras import camera_center, look_at
 from ctsplat.photos.config import SFM_SUMMARY_KEYS, held_out_split, photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
-from ctsplat.photos.train import image_metrics, render_view
+from ctsplat.photos.train import image_metrics, peak_memory, render_view
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.utils import (
     CtsplatError,
@@ -206,13 +204,6 @@ def save_turntable_gif(path: str | Path, frames: list[np.ndarray], attribution: 
         out[0].save(tmp, format="GIF", save_all=True, append_images=out[1:], duration=int(1000 / fps), loop=0)
 
 
-def _peak_memory_mb(device: torch.device) -> dict[str, float | None]:
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    rss_mb = rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024  # bytes on macOS, KiB on Linux
-    gpu = torch.cuda.max_memory_allocated() / 2**20 if device.type == "cuda" else None
-    return {"peak_rss_mb": rss_mb, "peak_gpu_mb": gpu}
-
-
 def run_config(run_dir: str | Path) -> dict[str, Any]:
     """The ``config.json`` contents of a photo run folder (one that also holds ``model.pt``).
 
@@ -273,8 +264,9 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     -------
     dict
         The contents of ``metrics.json``: ``psnr``, ``ssim``, ``lpips`` (+ ``lpips_reason``), per-view lists,
-        ``fps``, ``render_ms``, ``peak_rss_mb``, ``n_gaussians``, ``resolution``, the SfM summary's registration
-        numbers and the training report.
+        ``fps``, ``render_ms``, ``peak_rss_mb`` / ``peak_gpu_mb`` (training's; ``None`` for a run trained before
+        they were recorded) and ``eval_peak_rss_mb`` / ``eval_peak_gpu_mb`` (this evaluation's), ``n_gaussians``,
+        ``resolution``, the SfM summary's registration numbers and the training report.
     """
     s = photo_settings({"evaluate": dict(settings or {})})["evaluate"]
     run_dir = Path(run_dir)
@@ -294,8 +286,10 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     with torch.no_grad():
         render_view(g, test[0], background=bg)  # warm-up: kernel build and caches stay out of the timing
         for v in test:
+            _synchronize(device)  # a GPU renders asynchronously: time the work, not its launch
             t0 = time.perf_counter()
             img = render_view(g, v, background=bg).image
+            _synchronize(device)
             times.append(time.perf_counter() - t0)
             p, ss = image_metrics(img, v.image)
             rows.append({"iteration": "final", "view_id": v.name, "split": held, "psnr2d": p, "ssim2d": ss})
@@ -342,7 +336,10 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
         "fps": 1000.0 / ms if ms > 0 else None,
         "threads": torch.get_num_threads(),
         "device": str(device),
-        **_peak_memory_mb(device),
+        # training's peak (training.json; the workflow evaluates in another process) and this evaluation's own
+        "peak_rss_mb": training.get("peak_rss_mb"),
+        "peak_gpu_mb": training.get("peak_gpu_mb"),
+        **{f"eval_{k}": v for k, v in peak_memory(device).items()},
         "sfm": {k2: sfm.get(k2) for k2 in SFM_SUMMARY_KEYS},
         "training": training,
         "attribution": s["attribution"],
@@ -355,3 +352,8 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     }
     write_json_atomic(run_dir / "metrics.json", json_safe(metrics))
     return metrics
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)

@@ -145,7 +145,7 @@ def run_photo_sfm(image_dir: str | Path, out_dir: str | Path, settings: dict[str
     matching_mode(s, len(names))
     with contextlib.suppress(Exception):
         pycolmap.set_random_seed(int(s["seed"]))
-        pycolmap.logging.minloglevel = 2  # glog: errors only
+        pycolmap.logging.minloglevel = 3  # glog: fatal only; a failed step ends in one line of ours, not two
     with atomic_dir(out_dir, marker="summary.json", inputs=(image_dir,)) as tmp:
         summary = _run(image_dir, names, tmp, s)
     return summary
@@ -182,9 +182,11 @@ def _run(image_dir: Path, names: list[str], tmp: Path, s: dict[str, Any]) -> dic
     unregistered = sorted(set(names) - set(registered))
     if unregistered:
         log.warning("%d of %d photos did not register: %s", len(unregistered), len(names), ", ".join(unregistered))
-    cam = next(iter(rec.cameras.values()))
+    # one photo's camera in both models (with photos.sfm.camera_mode: per_image each photo has its own)
+    first = min((img for img in rec.images.values() if img.has_pose), key=lambda img: img.name)
+    cam = rec.cameras[first.camera_id]
     fx, fy, cx, cy = (float(v) for v in cam.params[:4])
-    raw_cam = next(iter(best.cameras.values()))
+    raw_cam = best.cameras[next(img.camera_id for img in best.images.values() if img.name == first.name)]
     summary = {
         "image_dir": str(image_dir),
         "n_images": len(names),
@@ -201,6 +203,7 @@ def _run(image_dir: Path, names: list[str], tmp: Path, s: dict[str, Any]) -> dic
         "mapper": s["mapper"],
         "camera": {"model": "PINHOLE", "width": int(cam.width), "height": int(cam.height), "fx": fx, "fy": fy,
                    "cx": cx, "cy": cy},
+        "camera_of": first.name,  # the first registered photo's (every photo's with one shared camera)
         "estimated_camera": {"model": raw_cam.model.name, "params": np.asarray(raw_cam.params).tolist()},
         "seconds_features_matching": t1 - t0,
         "seconds_mapping": t2 - t1,

@@ -44,6 +44,8 @@ from __future__ import annotations
 
 import logging
 import math
+import resource
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -74,7 +76,7 @@ from ctsplat.utils import (
 )
 
 __all__ = ["PHOTO_LOG_EXTRAS", "train_photos", "train_scene", "init_params", "border_colour",
-           "to_gaussians", "render_view", "image_metrics", "drop_gaussians"]
+           "to_gaussians", "render_view", "peak_memory", "image_metrics", "drop_gaussians"]
 
 log = logging.getLogger(__name__)
 
@@ -428,6 +430,15 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
     return model, report
 
 
+def peak_memory(device: torch.device) -> dict[str, float | None]:
+    """The process's peak memory so far: ``peak_rss_mb`` (resident set, MiB) and ``peak_gpu_mb`` (CUDA max
+    allocated, MiB; ``None`` off the GPU)."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    rss_mb = rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024  # bytes on macOS, KiB on Linux
+    gpu = torch.cuda.max_memory_allocated() / 2**20 if device.type == "cuda" else None
+    return {"peak_rss_mb": rss_mb, "peak_gpu_mb": gpu}
+
+
 #: Files that mark a folder as an earlier photo run, which a new run may replace (the evaluation's metrics.json
 #: stays when the workflow reruns training, which removes the training's own files first).
 RUN_MARKERS = ("config.json", "model.pt", "metrics.json")
@@ -472,6 +483,6 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
         model.to_ply(tmp / "model.ply")
         w, h = scene.views[0].camera.width, scene.views[0].camera.height
         report.update({"resolution": [w, h], "downscale": int(s["downscale"]), "extent": scene.extent,
-                       "device": str(device), "platform": compute_platform(device)})
+                       "device": str(device), "platform": compute_platform(device), **peak_memory(device)})
         write_json_atomic(tmp / "training.json", report)
     return report

@@ -78,7 +78,8 @@ def test_mixed_sizes_need_a_camera_per_image(tmp_path: Path) -> None:
     assert sizes == {"a.jpg": (64, 48), "b.jpg": (64, 48), "c.jpg": (48, 64)}
 
 
-def test_too_few_registered_images_fail_with_the_count(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_too_few_registered_images_fail_with_the_count(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                       capfd: pytest.CaptureFixture[str]) -> None:
     photos = tmp_path / "photos"
     photos.mkdir()
     for i in range(3):  # unrelated noise: features, but no two-view geometry between them
@@ -87,6 +88,10 @@ def test_too_few_registered_images_fail_with_the_count(tmp_path: Path, monkeypat
     with pytest.raises(CtsplatError, match=r"registered only 0 of 3 photos .*need >= 3"):
         run_photo_sfm(photos, out, {"num_threads": 1})
     _nothing_written(tmp_path, out)
+    capfd.readouterr()
+    assert main(["photos-sfm", str(photos), str(out), "--set", "sfm.num_threads=1"]) == 2
+    err = [line for line in capfd.readouterr().err.splitlines() if line.strip()]  # COLMAP's own log included
+    assert len(err) == 1 and err[0].startswith("ctsplat photos-sfm: error: SfM registered only 0 of 3"), err
     (photos / "2.jpg").unlink()  # two photos cannot give three registered ones: said before COLMAP runs
     monkeypatch.setattr("ctsplat.photos.sfm._run", lambda *a: pytest.fail("COLMAP ran on too few photos"))
     with pytest.raises(CtsplatError, match=r"holds 2 photos; SfM needs at least 3 registered"):
@@ -104,6 +109,9 @@ def test_cli_reports_one_line_and_exit_code_2(tmp_path: Path, capsys: pytest.Cap
     assert "run `ctsplat photos-sfm IMAGES OUT` first" in capsys.readouterr().err
     assert main(["photos-sfm", str(photos), str(tmp_path / "out"), "--set", "train.downscale=3"]) == 2
     assert "photos.train.downscale" in capsys.readouterr().err
+    # each seed's scale comes from its three nearest neighbours: fewer than 4 points cannot seed a model
+    assert main(["photos-train", str(tmp_path / "missing"), str(tmp_path / "run"), "--set", "train.max_points=3"]) == 2
+    assert "photos.train.max_points: 3 is less than the minimum of 4" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
 
@@ -292,7 +300,8 @@ def test_evaluation_writes_metrics_gallery_and_turntable(tmp_path: Path) -> None
                                                                          "0.1.0+gtrain")
     assert m["code_version"] and m["platform"]["threads"] >= 1
     assert m["lpips"] is None and m["lpips_reason"]
-    assert m["fps"] > 0 and m["peak_rss_mb"] > 0 and m["n_test"] == 2
+    assert m["fps"] > 0 and m["eval_peak_rss_mb"] > 0 and m["n_test"] == 2
+    assert m["peak_rss_mb"] is None  # training's memory comes from training.json, which this run lacks
     assert json.loads((run / "metrics.json").read_text())["attribution"] == "by someone, CC BY 4.0"
     assert Image.open(run / "figures" / "gallery.png").size[0] > 100
     gif = Image.open(run / "figures" / "turntable.gif")

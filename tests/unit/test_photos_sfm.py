@@ -106,6 +106,22 @@ def test_ten_neighbouring_skull_photos_register_in_one_model(skull_subset: Path,
         load_scene(out, downscale=4)
 
 
+def test_a_camera_per_photo_summary_describes_one_photo(skull_subset: Path, tmp_path: Path) -> None:
+    """With ``camera_mode: per_image`` every photo has its own focal length; the summary's undistorted camera and
+    COLMAP's estimate are both the first registered photo's."""
+    import pycolmap
+
+    summary = run_photo_sfm(skull_subset, tmp_path / "sfm", {"num_threads": 2, "camera_mode": "per_image"})
+    rec = pycolmap.Reconstruction(str(tmp_path / "sfm" / "sparse" / "0"))
+    first = min((img for img in rec.images.values() if img.has_pose), key=lambda img: img.name)
+    assert summary["camera_of"] == first.name == summary["registered"][0]
+    assert summary["camera"]["fx"] == pytest.approx(float(rec.cameras[first.camera_id].params[0]), rel=1e-12)
+    focals = {round(float(c.params[0]), 3) for c in rec.cameras.values()}
+    assert len(focals) > 1  # the cameras differ, so picking another photo's would show
+    # the undistorter keeps the focal length: the estimate is of the same photo
+    assert summary["estimated_camera"]["params"][0] == pytest.approx(summary["camera"]["fx"], rel=1e-9)
+
+
 def test_the_same_photos_give_the_same_model(skull_subset: Path, tmp_path: Path) -> None:
     """Two runs on the same photos write identical models, and COLMAP's image ids follow the names (with parallel
     extraction they follow the threads' finishing order, and the model changes from run to run)."""
@@ -151,6 +167,9 @@ def test_workflow_runs_a_photo_volume_beside_the_ct_grid(skull_subset: Path, tmp
     metrics = json.loads((tmp_path / "results/skull/photos/run/metrics.json").read_text())
     assert metrics["sfm"]["n_registered"] >= 9 and metrics["n_test"] == 2 and metrics["psnr"] > 10
     assert metrics["attribution"] == "alansartlog, CC BY 4.0"
+    # the memory reported is the training job's (the evaluation ran in its own process, reported beside it)
+    training = json.loads((tmp_path / "results/skull/photos/run/training.json").read_text())
+    assert metrics["peak_rss_mb"] == training["peak_rss_mb"] > 0 and metrics["eval_peak_rss_mb"] > 0
     for f in ("figures/gallery.png", "figures/turntable.gif", "train_log.csv", "model.ply"):
         assert (tmp_path / "results/skull/photos/run" / f).is_file()
     from ctsplat.formats.ply import read_ply_vertices
