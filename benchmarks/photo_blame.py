@@ -15,6 +15,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -49,7 +50,11 @@ def run(argv: list[str] | None = None) -> int:
     train = scene.split("train")
     centres = camera_center(np.stack([v.R for v in train]), np.stack([v.t for v in train]))
     means = g.means.detach().cpu().numpy()
-    widest = torch.exp(g.log_scales).max(-1).values.cpu().numpy() / scene.extent
+    training = run_dir / "training.json"  # the radius the run was trained with (older runs: every camera's)
+    extent = scene.extent
+    if training.is_file():
+        extent = float(json.loads(training.read_text()).get("extent", extent))
+    widest = torch.exp(g.log_scales).max(-1).values.cpu().numpy() / extent
     opacity = torch.sigmoid(g.opacity_raw).detach().cpu().numpy()
     rows = []
     for view in scene.split(held_out_split(cfg["train"])):

@@ -761,7 +761,10 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
     if cfg["photo_volumes"]:  # the photo jobs would refuse these only after SfM has run
         from ctsplat.photos.config import check_train_settings
 
-        check_train_settings(cfg["photos"]["train"])
+        try:
+            check_train_settings(cfg["photos"]["train"])
+        except CtsplatError as exc:
+            raise CtsplatError(f"invalid config at {exc}") from None
     runs = expand_grid(cfg["grid"]["axes"], list(cfg["volumes"]), cfg["grid"]["exclude"])
     sfm_geometry = cfg["sfm"]["settings"]["geometry"]
     if needs_sfm(runs, enabled=cfg["sfm"]["enabled"]):

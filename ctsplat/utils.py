@@ -313,9 +313,14 @@ def made_parents(path: str | os.PathLike[str]) -> Iterator[list[Path]]:
     >>> (root / "a").exists()
     False
     """
-    parent = Path(path).parent
-    created = [d for d in [parent, *parent.parents] if not d.exists()]  # innermost first
-    parent.mkdir(parents=True, exist_ok=True)
+    parent = Path(os.path.abspath(path)).parent  # no ".." entries, which cannot be removed by name
+    created: list[Path] = []
+    for d in [*reversed(parent.parents), parent]:  # outermost first; only what this call made counts as its own
+        try:
+            d.mkdir()
+            created.insert(0, d)
+        except FileExistsError:
+            pass
     try:
         yield created
     except BaseException:

@@ -32,7 +32,7 @@ from ctsplat.formats.runlog import PER_VIEW_COLUMNS, CsvLog
 from ctsplat.geometry.cameras import camera_center, look_at
 from ctsplat.photos.config import SFM_SUMMARY_KEYS, held_out_split, photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, load_scene
-from ctsplat.photos.train import image_metrics, peak_memory, render_view
+from ctsplat.photos.train import image_metrics, peak_memory, render_view, reset_gpu_peak
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.utils import (
     CtsplatError,
@@ -265,7 +265,8 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     dict
         The contents of ``metrics.json``: ``psnr``, ``ssim``, ``lpips`` (+ ``lpips_reason``), per-view lists,
         ``fps``, ``render_ms``, ``peak_rss_mb`` / ``peak_gpu_mb`` (training's; ``None`` for a run trained before
-        they were recorded) and ``eval_peak_rss_mb`` / ``eval_peak_gpu_mb`` (this evaluation's), ``n_gaussians``,
+        they were recorded) and ``eval_peak_rss_mb`` / ``eval_peak_gpu_mb`` (the evaluating process's peak RSS, which
+        includes training when both ran in one process, and this evaluation's GPU peak), ``n_gaussians``,
         ``resolution``, the SfM summary's registration numbers and the training report.
     """
     s = photo_settings({"evaluate": dict(settings or {})})["evaluate"]
@@ -273,6 +274,7 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     cfg = run_config(run_dir)
     t = cfg["train"]
     device = resolve_device(t["device"])
+    reset_gpu_peak(device)
     held = held_out_split(t)
     if scene is None:
         scene = run_scene(cfg, device)

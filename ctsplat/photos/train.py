@@ -76,7 +76,7 @@ from ctsplat.utils import (
 )
 
 __all__ = ["PHOTO_LOG_EXTRAS", "train_photos", "train_scene", "init_params", "border_colour",
-           "to_gaussians", "render_view", "peak_memory", "image_metrics", "drop_gaussians"]
+           "to_gaussians", "render_view", "peak_memory", "reset_gpu_peak", "image_metrics", "drop_gaussians"]
 
 log = logging.getLogger(__name__)
 
@@ -431,12 +431,19 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
 
 
 def peak_memory(device: torch.device) -> dict[str, float | None]:
-    """The process's peak memory so far: ``peak_rss_mb`` (resident set, MiB) and ``peak_gpu_mb`` (CUDA max
-    allocated, MiB; ``None`` off the GPU)."""
+    """Peak memory: ``peak_rss_mb`` (the process's resident set so far, MiB: whatever ran before in the same
+    process counts too) and ``peak_gpu_mb`` (CUDA max allocated since the last ``reset_gpu_peak``, MiB; ``None``
+    off the GPU)."""
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     rss_mb = rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024  # bytes on macOS, KiB on Linux
     gpu = torch.cuda.max_memory_allocated() / 2**20 if device.type == "cuda" else None
     return {"peak_rss_mb": rss_mb, "peak_gpu_mb": gpu}
+
+
+def reset_gpu_peak(device: torch.device) -> None:
+    """Start :func:`peak_memory`'s GPU peak afresh (training and evaluation each report their own)."""
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
 
 
 #: Files that mark a folder as an earlier photo run, which a new run may replace (the evaluation's metrics.json
@@ -469,6 +476,7 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
     check_output_dir(out_dir, marker=RUN_MARKERS, inputs=(sfm_dir,))  # before training, not after it
     sfm_dir = Path(sfm_dir).resolve()  # config.json and the model must find it from any working folder
     device = resolve_device(s["device"])
+    reset_gpu_peak(device)
     torch.set_num_threads(int(s["num_threads"]))
     scene = load_scene(sfm_dir, downscale=int(s["downscale"]), test_every=int(s["test_every"]),
                        validation=held_out_split(s) == "val",

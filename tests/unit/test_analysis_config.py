@@ -442,8 +442,8 @@ def test_photo_validation_fold_must_lie_below_test_every(tmp_path):
         (photos / name).write_bytes(b"")
     config = {"volumes": {"p": {"source": "phantom"}, "skull": {"source": str(photos), "kind": "photos"}},
               "photos": {"train": {"holdout": "validation", "validation_offset": 50}}}
-    with pytest.raises(CtsplatError,
-                       match=r"photos\.train\.validation_offset must be 1\.\.7 \(test_every 8\), got 50"):
+    with pytest.raises(CtsplatError, match=r"invalid config at photos\.train\.validation_offset must be "
+                                           r"1\.\.7 \(test_every 8\), got 50"):
         prepare_config(config)
 
 

@@ -552,6 +552,9 @@ def test_failed_atomic_writes_remove_the_parent_folders_they_made(tmp_path):
         (tmp_path / "a" / "other.txt").write_text("not ours")
         raise RuntimeError("writer failed")
     assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["a", "a/other.txt", "kept"]
+    with pytest.raises(RuntimeError), atomic_path(tmp_path / "n" / ".." / "m" / "out.csv"):
+        raise RuntimeError("writer failed")  # a ".." in the path: every folder made is still removed
+    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["a", "a/other.txt", "kept"]
     with atomic_dir(tmp_path / "x" / "y" / "out") as tmp:  # success keeps them
         (tmp / "f").write_text("done")
     assert (tmp_path / "x" / "y" / "out" / "f").read_text() == "done"
