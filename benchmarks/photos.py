@@ -40,8 +40,8 @@ from ctsplat.config import check_section
 from ctsplat.photos.config import PHOTOS_DEFAULTS, check_train_settings, photo_settings
 from ctsplat.photos.evaluate import evaluate_photos
 from ctsplat.photos.sfm import run_photo_sfm
-from ctsplat.photos.train import RUN_MARKERS, train_photos
-from ctsplat.utils import CtsplatError, check_output_dir, code_version, write_json_atomic
+from ctsplat.photos.train import check_run, train_photos
+from ctsplat.utils import CtsplatError, code_version, write_json_atomic
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "out"
@@ -76,10 +76,12 @@ def run() -> None:
     train = {"iterations": args.iterations, "downscale": args.downscale, "holdout": args.holdout,
              "num_threads": args.threads, "device": args.device}
     check_section("photos", {"train": train})
-    check_train_settings(photo_settings({"train": train})["train"])
     out = Path(args.out).resolve()  # its name names the summary beside it, so "." must become a real name
-    if not args.sfm_only:  # what training would refuse, refused before the SfM step
-        check_output_dir(out / "run", marker=RUN_MARKERS)
+    train_s = photo_settings({"train": train})["train"]
+    if args.sfm_only:
+        check_train_settings(train_s)
+    else:  # what training would refuse, refused before the SfM step
+        check_run(out / "run", train_s)
     summary = out / "sfm" / "summary.json"
     if args.reuse_sfm and not summary.is_file():
         raise CtsplatError(f"--reuse-sfm: {summary} not found; run once without --reuse-sfm")

@@ -51,16 +51,13 @@ def _train(args: argparse.Namespace) -> None:
 
 
 def _run(args: argparse.Namespace) -> None:
-    from ctsplat.photos.config import SFM_SUMMARY_KEYS, check_train_settings
+    from ctsplat.photos.config import SFM_SUMMARY_KEYS
     from ctsplat.photos.sfm import run_photo_sfm
-    from ctsplat.photos.train import RUN_MARKERS
-    from ctsplat.utils import check_output_dir
+    from ctsplat.photos.train import check_run
 
     s = _settings(args)
     out = Path(args.out_dir)
-    # what training would refuse, refused before the SfM step instead of after it
-    check_train_settings(s["train"])
-    check_output_dir(out / "run", marker=RUN_MARKERS)
+    check_run(out / "run", s["train"])  # before the SfM step, not after it
     summary = run_photo_sfm(args.images, out / "sfm", s["sfm"])
     m = _train_and_evaluate(out / "sfm", out / "run", s)
     print(json.dumps({**{k: summary.get(k) for k in SFM_SUMMARY_KEYS}, **{k: m.get(k) for k in _METRIC_KEYS}}))

@@ -75,7 +75,7 @@ from ctsplat.utils import (
     write_json_atomic,
 )
 
-__all__ = ["PHOTO_LOG_EXTRAS", "train_photos", "train_scene", "init_params", "border_colour",
+__all__ = ["PHOTO_LOG_EXTRAS", "check_run", "train_photos", "train_scene", "init_params", "border_colour",
            "to_gaussians", "render_view", "peak_memory", "reset_gpu_peak", "image_metrics", "drop_gaussians"]
 
 log = logging.getLogger(__name__)
@@ -451,6 +451,31 @@ def reset_gpu_peak(device: torch.device) -> None:
 RUN_MARKERS = ("config.json", "model.pt", "metrics.json")
 
 
+def check_run(out_dir: str | Path, settings: dict[str, Any], *, inputs: tuple[str | Path, ...] = ()) -> None:
+    """Refuse, before any work, what :func:`train_photos` would refuse at its start.
+
+    Callers that run SfM first call this before it, so that bad settings or a run folder that must not be
+    replaced fail in a second instead of after the SfM step.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The run folder: it must be new, empty or an earlier photo run (:data:`RUN_MARKERS`).
+    settings : dict
+        The filled ``photos.train`` section.
+    inputs : tuple of str or Path, optional
+        Folders the run reads (the SfM folder), which the run folder must neither be nor hold.
+
+    Raises
+    ------
+    CtsplatError
+        One line, from :func:`ctsplat.photos.config.check_train_settings` or
+        :func:`ctsplat.utils.check_output_dir`.
+    """
+    check_train_settings(settings)
+    check_output_dir(Path(out_dir), marker=RUN_MARKERS, inputs=inputs)
+
+
 def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, Any] | None = None
                  ) -> dict[str, Any]:
     """Train alpha 3DGS on an SfM folder and write the run folder (module docstring).
@@ -471,9 +496,8 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
         The contents of ``training.json``.
     """
     s = photo_settings({"train": dict(settings or {})})["train"]
-    check_train_settings(s)
     out_dir = Path(out_dir)
-    check_output_dir(out_dir, marker=RUN_MARKERS, inputs=(sfm_dir,))  # before training, not after it
+    check_run(out_dir, s, inputs=(sfm_dir,))  # before training, not after it
     sfm_dir = Path(sfm_dir).resolve()  # config.json and the model must find it from any working folder
     device = resolve_device(s["device"])
     reset_gpu_peak(device)
