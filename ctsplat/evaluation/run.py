@@ -463,8 +463,10 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     stored = g.filter_3d_var if cfg["mip"] else None
     rk = render_kwargs(cfg, stored if stored is not None else mip_filter(cfg, g, tr.camera, tr.Rs, tr.ts))
     preds = render_views(g, views.camera, views.Rs, views.ts, rk)
+    _check_finite(preds, "pixel", model_path, g)
     vm = view_metrics(preds, views.images, with_lpips=True)
     vol_model = voxelize_model(g, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
+    _check_finite(vol_model, "voxel", model_path, g)
     vol_raw, sharpening = vol_model, readout_sharpening(cfg, vol_model, scene, dev)
     if sharpening:
         vol_model = sharpening.pop("volume")
@@ -556,6 +558,15 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
                 (run_dir / name).unlink(missing_ok=True)
     write_json_atomic(run_dir / ("metrics.json" if split == "test" else f"metrics_{split}.json"), json_safe(result))
     return result
+
+
+def _check_finite(values: np.ndarray, what: str, model_path: Path, g: Any) -> None:
+    """Refuse a render or read-out that is not finite: finite parameters whose sums overflow float32 where
+    Gaussians overlap (loading already refuses non-finite parameters)."""
+    if not np.isfinite(values).all():
+        raise CtsplatError(f"{model_path} renders {int((~np.isfinite(values)).sum())} non-finite {what}(s) of "
+                           f"{values.size} (largest density {float(g.densities.max()):.3g}: the sums overflow "
+                           "float32); retrain it, and report it if its training log shows no collapse")
 
 
 def readout_sharpening(cfg: dict[str, Any], volume: np.ndarray, scene: Any, device: Any) -> dict[str, Any]:

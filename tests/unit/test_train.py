@@ -740,3 +740,19 @@ def test_fbp_init_refined_by_asd_pocs_is_closer_to_the_object(scene_dir: Path, t
     assert seed.strategy == "fbp (fdk) + asd_pocs x5" and not seed.uses_reference_volume
     cfg["init_asd_pocs"] = {"iterations": 0, "alpha": 0.1}
     assert seeding.make_seed(cfg, scene, np.random.default_rng(0)).strategy == "fbp (fdk)"
+
+
+def test_evaluate_refuses_a_model_whose_read_out_overflows(full_run, tmp_path: Path) -> None:
+    """Finite parameters can still sum past float32 where Gaussians overlap: one line, no metrics written."""
+    from ctsplat.splat.gaussians import Gaussians
+
+    run = tmp_path / "run"
+    shutil.copytree(full_run[0], run)
+    (run / "metrics.json").unlink()
+    g = Gaussians.load(run / "model.pt")
+    with torch.no_grad():
+        g.density_raw.fill_(3.0e38)  # softplus(x) = x: every density just below float32's largest
+    g.save(run / "model.pt")
+    with pytest.raises(CtsplatError, match=r"model\.pt renders \d+ non-finite (pixel|voxel)\(s\) of \d+ .*; retrain"):
+        evaluate(run, device="cpu")
+    assert not (run / "metrics.json").exists()
