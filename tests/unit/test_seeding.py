@@ -105,3 +105,16 @@ def test_points_seed_drops_outside_and_fills() -> None:
     kept = seed2.means[:75].astype(float)
     d = np.abs(kept[:, None, :] - many[None]).max(-1).min(1)
     assert np.all(d < 1e-6)
+
+
+def test_points_seed_scale_is_the_mean_distance_to_three_other_points() -> None:
+    """Each kept point's scale against a brute-force mean over its 3 nearest *other* points (3DGS's rule)."""
+    pts = np.array([[0.0, 0, 0], [4, 0, 0], [0, 5, 0], [0, 0, 6], [7, 7, 0], [-5, 3, 4]])
+    lo, hi = -10 * np.ones(3), 10 * np.ones(3)
+    seed = seeding.seed_from_points(pts, lo, hi, len(pts), np.random.default_rng(0), fill_fraction=0.0)
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    want = np.sort(d, axis=1)[:, :3].mean(1)
+    d_fill = (20.0 ** 3 / len(pts)) ** (1 / 3)
+    assert np.all((want > 0.25 * d_fill) & (want < d_fill))  # the clip does not act on this set
+    np.testing.assert_allclose(seed.scales, np.repeat(want[:, None], 3, axis=1), rtol=1e-6)

@@ -574,3 +574,21 @@ def test_a_view_set_without_test_views_is_scored_on_its_validation_views_and_say
         m = evaluate(tmp_path / "run", device="cpu", write=False)
     assert m["split"] == "test" and m["views_from"] == "val"
     assert any("no test views" in r.getMessage() for r in caplog.records)
+
+
+def test_prune_mask_keeps_centres_within_two_voxels_of_the_grid_box():
+    """The box rule against the grid's edges worked out by hand: 2 mm voxels, 20 per axis, first centre at -20 mm,
+    so the voxel edges span [-21, 19] mm and the 2-voxel margin [-25, 23] mm."""
+    from ctsplat.formats.volume import Volume
+
+    aff = np.diag([2.0, 2.0, 2.0, 1.0])
+    aff[:3, 3] = -20.0
+    vol = Volume(np.zeros((20, 20, 20), np.float32), aff, {})
+    x = [-24.5, -25.5, 22.5, 23.5, 0.0]  # inside, outside, inside, outside the margin; the centre
+    means = torch.zeros(10, 3)
+    means[:5, 0] = torch.tensor(x)
+    means[5:, 2] = torch.tensor(x)  # the same along the third axis
+    log_scales = torch.full((10, 3), float(np.log(0.5)))
+    rule = GradientDensify(config.TRAIN_DEFAULTS["densify"], compositor="radiative", iterations=10)
+    pruned = rule.prune_mask(means, log_scales, torch.ones(10), vol)
+    assert pruned.tolist() == [False, True, False, True, False] * 2
