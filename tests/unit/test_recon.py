@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 import pytest
 import torch
@@ -282,3 +284,168 @@ def test_the_best_classical_method_is_never_a_nan_one():
     vol = np.zeros((2, 2, 2), np.float32)
     choices = [Choice("sart", {}, float("nan"), vol, 1.0), Choice("asd_pocs", {}, 40.0, vol, 1.0)]
     assert best_choice(choices).method == "asd_pocs"
+
+
+def _parker_reference(beta: float, gamma: float, d: float) -> float:
+    """Parker's (1982) short-scan weight w(β, γ) for half fan angle ``d`` (0 outside 0 <= β <= π + 2d)."""
+    if beta < 0.0 or beta > np.pi + 2 * d:
+        return 0.0
+    if beta < 2 * (d - gamma):
+        return float(np.sin(np.pi / 4 * beta / (d - gamma)) ** 2)
+    if beta > np.pi - 2 * gamma:
+        return float(np.sin(np.pi / 4 * (np.pi + 2 * d - beta) / (d + gamma)) ** 2)
+    return 1.0
+
+
+@pytest.mark.parametrize("extra_deg", [0.0, 12.0])
+def test_parker_weights_match_the_published_formula_and_sum_to_one_over_redundant_rays(extra_deg: float) -> None:
+    """Short-scan weights against Parker 1982 written out (δ' = (scan - π) / 2 for a longer scan, Wesarg 2002),
+    and w(β, γ) + w(β ± π + 2γ, -γ) = 1 for every ray, by brute force over a (β, γ) grid."""
+    from ctsplat.recon.fdk import _parker
+
+    delta = np.radians(10.0)
+    scan = np.pi + 2 * delta + np.radians(extra_deg)
+    d = (scan - np.pi) / 2  # = delta for the minimal short scan
+    beta = np.linspace(0.0, scan, 181)
+    gamma = np.linspace(-delta, delta, 13)[1:-1]  # inside the fan
+    w = _parker(beta, gamma, delta, scan)
+    ref = np.array([[_parker_reference(b, g, d) for g in gamma] for b in beta])
+    np.testing.assert_allclose(w, ref, atol=1e-12)
+    inner = (beta > 1e-9) & (beta < scan - 1e-9)
+    assert (w[inner] > 0).all()  # every view inside the arc contributes (no data thrown away)
+
+    def weight(b: np.ndarray, g: float) -> np.ndarray:  # the library's weights, 0 where no view exists
+        vals = _parker(b, np.array([g]), delta, scan)[:, 0]
+        return np.where((b >= 0) & (b <= scan), vals, 0.0)
+
+    for k, g in enumerate(gamma):
+        total = w[:, k] + weight(beta + np.pi + 2 * g, -g) + weight(beta - np.pi + 2 * g, -g)
+        np.testing.assert_allclose(total, 1.0, atol=1e-12)
+
+
+def test_a_short_scan_reports_the_length_of_its_arc() -> None:
+    """N views at start + arc k / N cover ``arc`` (each view half a gap either side): the reported range, the
+    shortfall message and the acceptance of an arc just over 180 deg + fan angle follow that true length."""
+    from ctsplat.recon.fdk import _angular_weights, _half_fan, orbit_angles, short_scan_shortfall
+
+    arc = 150.0
+    vs = cone_set(16, 2.0, 60, arc=arc, start=20.0)
+    dbeta, short, _, scan = _angular_weights(orbit_angles(vs))
+    assert short
+    assert scan == pytest.approx(np.radians(arc), abs=1e-9)
+    np.testing.assert_allclose(dbeta, np.radians(arc / 60), rtol=1e-9)
+    assert "covers 150 deg" in short_scan_shortfall(vs)
+    fan = 2 * np.degrees(_half_fan(vs.camera))
+    assert short_scan_shortfall(cone_set(16, 2.0, 40, arc=180 + fan + 0.3)) is None
+    assert "covers" in short_scan_shortfall(cone_set(16, 2.0, 40, arc=180 + fan - 0.3))
+
+
+def test_fdk_of_a_single_detector_impulse_matches_the_feldkamp_formula() -> None:
+    """One pixel of one view set to 1: a voxel on that pixel's ray gets ½ Δβ (DSO / U)² h[0] / τ · D / √(D² + u² +
+    v²) (Feldkamp et al. 1984 written out, u, v at the pixel centre, h[0] = ¼), for pixels off centre in u and v."""
+    W, H, pitch, dso, dsd = 24, 20, 1.5, 60.0, 100.0
+    cam = ConeCamera(W, H, pitch, dso, dsd)
+    vs = ViewSet(cam, circular_orbit(4, np.zeros(3), dso, split_fractions={"train": 1.0}))
+    R, t = vs.Rs()[0], vs.ts()[0]
+    tau = pitch * dso / dsd
+    for i, j, depth in [(1, W - 2, 0.8 * dso), (H - 1, 0, 1.1 * dso), (H // 2, W - 1, dso), (0, W // 2 - 1, dso)]:
+        p = np.zeros((4, H, W), np.float32)
+        p[0, i, j] = 1.0
+        u, v = (j + 0.5 - W / 2) * pitch, (i + 0.5 - H / 2) * pitch  # pixel-centre coordinates on the detector
+        cam_pt = np.array([u / dsd * depth, v / dsd * depth, depth])
+        affine = np.eye(4)
+        affine[:3, 3] = R.T @ (cam_pt - t)
+        ref = Volume(np.zeros((1, 1, 1), np.float32), affine,
+                     {"volume_id": "pt", "intensity": {"mu_scale_per_mm": 1.0}})
+        got = fdk_volume(p, vs, ref, clip=False)[0, 0, 0]
+        expected = 0.5 * (np.pi / 2) * (dso / depth) ** 2 * 0.25 / tau * dsd / np.sqrt(dsd**2 + u**2 + v**2)
+        assert got == pytest.approx(expected, rel=2e-5), (i, j)
+
+
+def _sirt_step(op: Operator, x: torch.Tensor, b: torch.Tensor, lam: float) -> torch.Tensor:
+    """One SIRT update written out: max(0, x + λ C Aᵀ R (b - A x)), R = 1 / (A 1), C = 1 / (Aᵀ 1) (0 where unhit)."""
+    row = op.forward(torch.ones(op.shape)).double()
+    col = op.adjoint(torch.ones(op.image_shape)).double()
+    rinv = torch.where(row > 1e-6, 1.0 / row.clamp_min(1e-6), torch.zeros(()))
+    cinv = torch.where(col > 1e-6, 1.0 / col.clamp_min(1e-6), torch.zeros(()))
+    resid = (b.double() - op.forward(x.float()).double()) * rinv
+    return (x.double() + lam * cinv * op.adjoint(resid.float()).double()).clamp_min(0.0)
+
+
+@pytest.mark.parametrize("relaxation", [0.5, 1.4])
+def test_one_sirt_sweep_is_the_relaxed_update_written_out(relaxation: float) -> None:
+    """One SART sweep with one subset (SIRT) and relaxation λ ≠ 1 from a non-zero start equals the Gilbert/Andersen-
+    Kak update max(0, x + λ C Aᵀ R (b - A x)) composed by hand from the projector and its adjoint."""
+    vol = two_balls(10)
+    vs = cone_set(10, 2.0, 6)
+    p = render(vol, vs)
+    op = Operator(vs, vol.affine, vol.shape, step_voxels=1.0)
+    b = torch.as_tensor(p / MU)
+    x0 = torch.as_tensor(np.random.default_rng(3).random(vol.shape) * 0.4, dtype=torch.float32)
+    _, x1 = next(sart_iterates(p, vs, vol, iterations=1, relaxation=relaxation, subsets=1, step_voxels=1.0, x0=x0))
+    expected = _sirt_step(op, x0, b, relaxation)
+    assert float((expected - x0.double()).abs().max()) > 0.05  # the step is not negligible
+    np.testing.assert_allclose(x1.double().numpy(), expected.numpy(), atol=2e-4 * float(expected.abs().max()))
+
+
+def test_asd_pocs_follows_the_sidky_pan_step_size_recursion() -> None:
+    """ASD-POCS iterates against Sidky & Pan (2008) written out: a SIRT sweep with λ shrinking by relaxation_red,
+    then tv_steps normalised TV-descent steps of length dtvg = min(dtvg, α dp), dtvg shrunk by alpha_red when the TV
+    steps moved the volume by more than r_max dp."""
+    vol = two_balls(10)
+    vs = cone_set(10, 2.0, 6)
+    p = render(vol, vs)
+    op = Operator(vs, vol.affine, vol.shape, step_voxels=1.0)
+    b = torch.as_tensor(p / MU)
+    x0 = torch.as_tensor(np.random.default_rng(3).random(vol.shape) * 0.4, dtype=torch.float32)
+    alpha, tv_steps, lam, lam_red, alpha_red, r_max = 1.0, 4, 1.0, 0.9, 0.5, 1.5
+    got = [x.double() for _, x in asd_pocs_iterates(
+        p, vs, vol, iterations=5, alpha=alpha, tv_steps=tv_steps, relaxation=lam, relaxation_red=lam_red,
+        alpha_red=alpha_red, r_max=r_max, subsets=1, step_voxels=1.0, x0=x0)]
+    x = x0.double()
+    dtvg: float | None = None
+    fired = []
+    for k in range(5):
+        x_data = _sirt_step(op, x, b, lam)
+        dp = float(torch.linalg.vector_norm(x_data - x))
+        dtvg = alpha * dp if dtvg is None else min(dtvg, alpha * dp)
+        x = x_data
+        for _ in range(tv_steps):
+            g = tv_gradient(x.float()).double()
+            x = x - dtvg / float(torch.linalg.vector_norm(g)) * g
+        dg = float(torch.linalg.vector_norm(x - x_data))
+        assert abs(dg / dp - r_max) > 0.05  # far from the threshold: float noise cannot flip the branch
+        fired.append(dg > r_max * dp)
+        if fired[-1]:
+            dtvg *= alpha_red
+        lam *= lam_red
+        assert float(torch.linalg.vector_norm(got[k] - x)) < 1e-3 * float(torch.linalg.vector_norm(x)), k
+    assert any(fired) and not all(fired), fired  # both branches of the adaptive rule are exercised
+
+
+def test_patience_stops_a_candidate_after_that_many_checks_without_improvement() -> None:
+    """choose_iterative(patience=P) runs an improving candidate to the end and stops a stalled one after exactly P
+    iterations without a better score (counted by hand for each sequence)."""
+    from ctsplat.recon.select import choose_iterative
+
+    class ByMean:
+        def score(self, vol: np.ndarray) -> float:
+            return float(np.mean(vol))
+
+    sequences = {"rising": [1, 2, 3, 4, 5, 6], "plateau": [1, 2, 2, 2, 2, 2, 7], "dip": [1, 0.5, 2, 1, 1.5, 1, 9]}
+
+    def iterates(name: str) -> Iterator[tuple[int, np.ndarray]]:
+        for it, s in enumerate(sequences[name], start=1):
+            yield it, np.full((2, 2, 2), s, np.float32)
+
+    def run(name: str, patience: int | None) -> list[int]:
+        res = choose_iterative("m", [{"name": name}], iterates, ByMean(), clip=False, patience=patience)
+        return [t["iterations"] for t in res.trials]
+
+    assert run("rising", 2) == [1, 2, 3, 4, 5, 6]
+    assert run("plateau", 2) == [1, 2, 3, 4]  # 2 is not better than 2: stalls at 3 and 4
+    assert run("dip", 2) == [1, 2, 3, 4, 5]  # stalls at 2, improves at 3, stalls at 4 and 5
+    assert run("dip", 3) == [1, 2, 3, 4, 5, 6]
+    assert run("plateau", None) == list(range(1, 8))
+    res = choose_iterative("m", [{"name": "dip"}], iterates, ByMean(), clip=False, patience=2)
+    assert res.params == {"name": "dip", "iterations": 3}
