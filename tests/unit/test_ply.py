@@ -3,15 +3,21 @@ generic vertex writer/reader behind the Gaussian PLY, and the errors for files i
 
 from __future__ import annotations
 
+import math
+import struct
+from pathlib import Path
+
 import numpy as np
 import pytest
+import torch
 
 from ctsplat.formats.ply import read_ply_points, read_ply_vertices, write_ply_vertices, write_points_ply
 from ctsplat.utils import CtsplatError
 
 
 @pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
-def test_read_ply_points(tmp_path, fmt: str) -> None:
+def test_read_ply_points(tmp_path: Path, fmt: str) -> None:
+    """x, y, z of a hand-written ASCII or little-endian PLY with colours read back; a missing file is named."""
     rng = np.random.default_rng(0)
     xyz = rng.normal(size=(7, 3))
     rgb = rng.integers(0, 255, size=(7, 3)).astype(np.uint8)
@@ -34,7 +40,8 @@ def test_read_ply_points(tmp_path, fmt: str) -> None:
         read_ply_points(tmp_path / "missing.ply")
 
 
-def test_write_points_ply_roundtrip(tmp_path) -> None:
+def test_write_points_ply_roundtrip(tmp_path: Path) -> None:
+    """write_points_ply writes one ASCII line per point holding its x, y, z."""
     xyz = np.array([[0.0, 1.5, -2.25], [10.0, 20.0, 30.0]])
     write_points_ply(tmp_path / "p.ply", xyz)
     lines = (tmp_path / "p.ply").read_text().splitlines()
@@ -43,7 +50,8 @@ def test_write_points_ply_roundtrip(tmp_path) -> None:
     np.testing.assert_allclose(body, xyz)
 
 
-def test_points_file_layout_with_colours(tmp_path) -> None:
+def test_points_file_layout_with_colours(tmp_path: Path) -> None:
+    """The exact ASCII text of a coloured point cloud, and an empty cloud reads back as shape (0, 3)."""
     # the exact text COLMAP-style readers get: six decimals, integer colours (truncated), one line per point
     write_points_ply(tmp_path / "c.ply", [[1.0, -2.5, 12345.678901], [0, 0, 1e-7]], rgb=[[255, 0, 7.9], [1, 2, 3]])
     assert (tmp_path / "c.ply").read_text() == (
@@ -57,7 +65,8 @@ def test_points_file_layout_with_colours(tmp_path) -> None:
 
 
 @pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian", "ascii"])
-def test_vertex_roundtrip_keeps_names_order_and_types(tmp_path, fmt: str) -> None:
+def test_vertex_roundtrip_keeps_names_order_and_types(tmp_path: Path, fmt: str) -> None:
+    """Writer then reader keep property names, order, comments, binary dtypes and values."""
     rng = np.random.default_rng(1)
     cols = [("x", "float", rng.normal(size=5)), ("w", "double", rng.normal(size=5)),
             ("k", "uchar", rng.integers(0, 255, 5)), ("s", "short", rng.integers(-300, 300, 5))]
@@ -77,7 +86,8 @@ def test_vertex_roundtrip_keeps_names_order_and_types(tmp_path, fmt: str) -> Non
     np.testing.assert_array_equal(got["s"], cols[3][2])
 
 
-def test_unreadable_files_say_why(tmp_path) -> None:
+def test_unreadable_files_say_why(tmp_path: Path) -> None:
+    """Malformed, truncated, list-property, vertex-not-first and missing files raise errors that say why."""
     bad = tmp_path / "bad.ply"
     bad.write_bytes(b"not a ply\n")
     with pytest.raises(CtsplatError, match="not a PLY file"):
@@ -100,3 +110,77 @@ def test_unreadable_files_say_why(tmp_path) -> None:
         read_ply_vertices(tmp_path / "missing.ply")
     with pytest.raises(CtsplatError, match="expected 2"):
         write_ply_vertices(tmp_path / "o.ply", [("x", "float", [1.0, 2.0]), ("y", "float", [1.0])])
+
+
+def test_big_endian_file_written_by_hand_reads_back(tmp_path: Path) -> None:
+    """A binary_big_endian body built with '>' numpy dtypes reads back as the same values (native order)."""
+    x = np.array([1.5, -2.25, 3.0e6], np.float64)
+    d = np.array([np.pi, -1e-300, 7.0])
+    s = np.array([-300, 2, 32767])
+    u = np.array([0, 70000, 4_000_000_000])
+    dt = np.dtype([("x", ">f4"), ("d", ">f8"), ("s", ">i2"), ("u", ">u4")])
+    arr = np.zeros(3, dt)
+    arr["x"], arr["d"], arr["s"], arr["u"] = x, d, s, u
+    head = (b"ply\nformat binary_big_endian 1.0\nelement vertex 3\nproperty float x\nproperty double d\n"
+            b"property short s\nproperty uint u\nend_header\n")
+    (tmp_path / "be.ply").write_bytes(head + arr.tobytes())
+    got = read_ply_vertices(tmp_path / "be.ply")
+    assert list(got) == ["x", "d", "s", "u"]
+    np.testing.assert_array_equal(got["x"], x.astype(np.float32))
+    np.testing.assert_array_equal(got["d"], d)
+    np.testing.assert_array_equal(got["s"], s)
+    np.testing.assert_array_equal(got["u"], u)
+    assert all(v.dtype.isnative for v in got.values())
+
+
+def test_big_endian_writer_bytes_parse_by_hand(tmp_path: Path) -> None:
+    """write_ply_vertices(fmt='binary_big_endian') lays the body out as big-endian '>f4' / '>i4' records."""
+    x = np.array([1.0, -0.5, 1234.5])
+    k = np.array([-7, 65536, 3])
+    write_ply_vertices(tmp_path / "w.ply", [("x", "float", x), ("k", "int", k)], fmt="binary_big_endian")
+    raw = (tmp_path / "w.ply").read_bytes()
+    head, body = raw.split(b"end_header\n")
+    assert b"format binary_big_endian 1.0\n" in head
+    assert body[:8] == struct.pack(">fi", 1.0, -7)
+    arr = np.frombuffer(body, dtype=np.dtype([("x", ">f4"), ("k", ">i4")]))
+    np.testing.assert_array_equal(arr["x"], x)
+    np.testing.assert_array_equal(arr["k"], k)
+
+
+@pytest.mark.parametrize("ply_type", ["char", "int8"])
+def test_signed_byte_property_reads_negative(tmp_path: Path, ply_type: str) -> None:
+    """A char / int8 property is signed: the bytes 0x80 and 0xff read back as -128 and -1."""
+    vals = np.array([-128, -1, 0, 1, 127])
+    body = struct.pack(">5b", *vals.tolist())  # one signed byte per vertex (byte order is moot for one byte)
+    assert body == bytes([0x80, 0xFF, 0x00, 0x01, 0x7F])
+    head = f"ply\nformat binary_little_endian 1.0\nelement vertex 5\nproperty {ply_type} c\nend_header\n".encode()
+    (tmp_path / "c.ply").write_bytes(head + body)
+    got = read_ply_vertices(tmp_path / "c.ply")["c"]
+    assert got.dtype == np.int8
+    assert got.tolist() == vals.tolist()
+    write_ply_vertices(tmp_path / "w.ply", [("c", ply_type, vals)])
+    assert (tmp_path / "w.ply").read_bytes().split(b"end_header\n")[1] == body
+    assert read_ply_vertices(tmp_path / "w.ply")["c"].tolist() == vals.tolist()
+
+
+def test_gaussian_ply_opacity_of_a_radiative_model(tmp_path: Path) -> None:
+    """Without an opacity, to_ply writes logit(clamp(1 - exp(-ρ·2·s̄), 0.01, 0.99)), s̄ the mean of the three scales."""
+    from ctsplat.splat.gaussians import Gaussians
+
+    scales = np.array([[1.0, 2.0, 6.0], [0.5, 0.5, 0.5], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]])
+    rho = np.array([0.1, 0.3, 20.0, 1e-4])
+    g = Gaussians.from_values(np.zeros((4, 3)), scales, rho, dtype=torch.float64)
+    g.to_ply(tmp_path / "g.ply")
+    raw = (tmp_path / "g.ply").read_bytes()
+    head, body = raw.split(b"end_header\n")
+    props = [ln.split()[-1] for ln in head.decode().splitlines() if ln.startswith("property")]
+    assert all(ln.split()[1] == "float" for ln in head.decode().splitlines() if ln.startswith("property"))
+    table = np.frombuffer(body, dtype="<f4").reshape(4, len(props)).astype(np.float64)
+    opacity = table[:, props.index("opacity")]
+    alpha = [1.0 - math.exp(-r * 2.0 * (s[0] + s[1] + s[2]) / 3.0) for r, s in zip(rho, scales, strict=True)]
+    alpha = [min(max(a, 0.01), 0.99) for a in alpha]
+    np.testing.assert_allclose(alpha[:2], [1 - math.exp(-0.1 * 2 * 3.0), 1 - math.exp(-0.3 * 2 * 0.5)])
+    assert alpha[2:] == [0.99, 0.01]
+    expected = [math.log(a / (1.0 - a)) for a in alpha]
+    np.testing.assert_allclose(opacity, expected, rtol=1e-5)
+    np.testing.assert_allclose(table[:, props.index("density")], rho, rtol=1e-6)
