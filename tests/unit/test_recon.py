@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -372,16 +373,22 @@ def _sirt_step(op: Operator, x: torch.Tensor, b: torch.Tensor, lam: float) -> to
     return (x.double() + lam * cinv * op.adjoint(resid.float()).double()).clamp_min(0.0)
 
 
-@pytest.mark.parametrize("relaxation", [0.5, 1.4])
-def test_one_sirt_sweep_is_the_relaxed_update_written_out(relaxation: float) -> None:
-    """One SART sweep with one subset (SIRT) and relaxation λ ≠ 1 from a non-zero start equals the Gilbert/Andersen-
-    Kak update max(0, x + λ C Aᵀ R (b - A x)) composed by hand from the projector and its adjoint."""
+def _small_problem() -> tuple[Any, Any, np.ndarray, Operator, torch.Tensor, torch.Tensor]:
+    """Two balls on a 10³ grid, 6 cone views, their radiographs, the operator, b = p / μ and a non-zero start."""
     vol = two_balls(10)
     vs = cone_set(10, 2.0, 6)
     p = render(vol, vs)
     op = Operator(vs, vol.affine, vol.shape, step_voxels=1.0)
     b = torch.as_tensor(p / MU)
     x0 = torch.as_tensor(np.random.default_rng(3).random(vol.shape) * 0.4, dtype=torch.float32)
+    return vol, vs, p, op, b, x0
+
+
+@pytest.mark.parametrize("relaxation", [0.5, 1.4])
+def test_one_sirt_sweep_is_the_relaxed_update_written_out(relaxation: float) -> None:
+    """One SART sweep with one subset (SIRT) and relaxation λ ≠ 1 from a non-zero start equals the Gilbert/Andersen-
+    Kak update max(0, x + λ C Aᵀ R (b - A x)) composed by hand from the projector and its adjoint."""
+    vol, vs, p, op, b, x0 = _small_problem()
     _, x1 = next(sart_iterates(p, vs, vol, iterations=1, relaxation=relaxation, subsets=1, step_voxels=1.0, x0=x0))
     expected = _sirt_step(op, x0, b, relaxation)
     assert float((expected - x0.double()).abs().max()) > 0.05  # the step is not negligible
@@ -392,12 +399,7 @@ def test_asd_pocs_follows_the_sidky_pan_step_size_recursion() -> None:
     """ASD-POCS iterates against Sidky & Pan (2008) written out: a SIRT sweep with λ shrinking by relaxation_red,
     then tv_steps normalised TV-descent steps of length dtvg = min(dtvg, α dp), dtvg shrunk by alpha_red when the TV
     steps moved the volume by more than r_max dp."""
-    vol = two_balls(10)
-    vs = cone_set(10, 2.0, 6)
-    p = render(vol, vs)
-    op = Operator(vs, vol.affine, vol.shape, step_voxels=1.0)
-    b = torch.as_tensor(p / MU)
-    x0 = torch.as_tensor(np.random.default_rng(3).random(vol.shape) * 0.4, dtype=torch.float32)
+    vol, vs, p, op, b, x0 = _small_problem()
     alpha, tv_steps, lam, lam_red, alpha_red, r_max = 1.0, 4, 1.0, 0.9, 0.5, 1.5
     got = [x.double() for _, x in asd_pocs_iterates(
         p, vs, vol, iterations=5, alpha=alpha, tv_steps=tv_steps, relaxation=lam, relaxation_red=lam_red,
