@@ -100,7 +100,9 @@ def _baseline_rows(summary: pd.DataFrame) -> list[dict[str, Any]]:
                 if "wall_time_s" in worst and pd.notna(worst["wall_time_s"]):
                     budget += f" in {float(worst['wall_time_s']):.0f} s"
                 budget += ", a short run; "
-            note = (f"{method} is {-worst['d']:.2f} dB higher at {int(worst['views'])} views ({worst['volume']}): "
+            gap = -float(worst["d"])
+            ahead = f"{gap:.2f} dB higher" if gap > 0 else "level"  # a tie, not "-0.00 dB higher"
+            note = (f"{method} is {ahead} at {int(worst['views'])} views ({worst['volume']}): "
                     f"{budget}{BASELINE_PRIORS.get(method, method + ' had its settings chosen on validation views')}")
         note = "; ".join(x for x in (_geometry_note(g), note) if x)
         rows.append({"comparison": f"rectified radiative (init={init}, mip {mip}, poses gt) vs the strongest classical "
