@@ -4,6 +4,7 @@ out of the CT grid."""
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 from pathlib import Path
@@ -791,3 +792,216 @@ def test_strip_metadata_keeps_pixels_and_colour_profile_and_drops_exif(tmp_path)
     with pytest.raises(CtsplatError, match="cannot remove the metadata of .*broken.jpg"):
         strip_metadata(tmp_path / "broken.jpg")
     assert (tmp_path / "broken.jpg").read_bytes() == b"\xff\xd8\xff\xe1\x00\x10Exif"  # left as it was
+
+
+# ----------------------------------------------------------- schedules, scale and evaluation rules
+@pytest.fixture(scope="module")
+def short_run_log(tmp_path_factory: pytest.TempPathFactory) -> tuple[PhotoScene, dict[str, Any], list[dict[str, str]]]:
+    """Eight iterations on the synthetic scene logged at every iteration (SH interval 3, no densification)."""
+    torch.set_num_threads(2)
+    scene, _ = _synthetic_scene()
+    s = photo_settings({"train": {"iterations": 8, "log_every": 1, "sh_interval": 3, "sh_degree": 3,
+                                  "densify": {"start": 100, "interval": 100, "opacity_reset_interval": 0}}})["train"]
+    path = tmp_path_factory.mktemp("short_run") / "train_log.csv"
+    train_scene(scene, s, path)
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    return scene, s, rows
+
+
+def test_logged_loss_is_the_3dgs_blend_of_l1_and_dssim(
+        short_run_log: tuple[PhotoScene, dict[str, Any], list[dict[str, str]]]) -> None:
+    """Each logged loss is (1 - λ) L1 + λ (1 - SSIM) of the logged L1 and D-SSIM (Kerbl et al. 2023, eq. 7)."""
+    _, s, rows = short_run_log
+    lam = s["lambda_dssim"]
+    assert lam == pytest.approx(0.2)
+    trained = [r for r in rows if int(r["iteration"]) > 0]
+    assert len(trained) == 8
+    for r in trained:
+        l1, dssim, loss = float(r["l1"]), float(r["dssim"]), float(r["loss"])
+        assert l1 > 0.01 and dssim > 0.05  # both terms matter, so a wrong weight shows
+        assert loss == pytest.approx((1 - lam) * l1 + lam * dssim, rel=1e-5)
+
+
+def test_sh_degree_rises_by_one_after_every_interval(
+        short_run_log: tuple[PhotoScene, dict[str, Any], list[dict[str, str]]]) -> None:
+    """Degree 0 for iterations 1..k, 1 for k+1..2k, 2 for 2k+1..3k (k = sh_interval = 3)."""
+    _, _, rows = short_run_log
+    got = {int(r["iteration"]): int(r["sh_degree"]) for r in rows}
+    assert got == {0: 0, 1: 0, 2: 0, 3: 0, 4: 1, 5: 1, 6: 1, 7: 2, 8: 2}
+
+
+def test_means_learning_rate_decays_log_linearly_from_lr0_to_lr_final(
+        short_run_log: tuple[PhotoScene, dict[str, Any], list[dict[str, str]]]) -> None:
+    """lr_means is lr0·extent at the first iteration, lr_final·extent at the last, log-linear between (3DGS's
+    exponential decay, get_expon_lr_func)."""
+    scene, s, rows = short_run_log
+    lr0, lr1 = s["lr"]["means"] * scene.extent, s["lr"]["means_final"] * scene.extent
+    got = {int(r["iteration"]): float(r["lr_means"]) for r in rows if int(r["iteration"]) > 0}
+    assert got[1] == pytest.approx(lr0, rel=1e-12) and got[8] == pytest.approx(lr1, rel=1e-12)
+    for it, lr in got.items():
+        t = (it - 1) / 7
+        assert lr == pytest.approx(math.exp((1 - t) * math.log(lr0) + t * math.log(lr1)), rel=1e-12)
+
+
+def test_seed_scale_is_the_rms_distance_to_the_three_nearest_other_points() -> None:
+    """init_scale × sqrt(mean of the 3 smallest squared distances to other points), as 3DGS's distCUDA2 (brute
+    force over all pairs, self excluded)."""
+    from ctsplat.photos.train import init_params
+
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(-1, 1, (9, 3))
+    s = {**photo_settings()["train"], "init_scale": 0.7}
+    params = init_params(xyz, np.full((9, 3), 0.5), s, rng)
+    d2 = ((xyz[:, None] - xyz[None]) ** 2).sum(-1)
+    np.fill_diagonal(d2, np.inf)
+    want = 0.7 * np.sqrt(np.sort(d2, axis=1)[:, :3].mean(1))
+    got = torch.exp(params["log_scales"]).detach().double().numpy()
+    np.testing.assert_allclose(got, np.repeat(want[:, None], 3, axis=1), rtol=1e-6)
+
+
+def test_scene_extent_is_1_1_times_the_camera_ring_radius() -> None:
+    """Cameras on a circle of radius r about their mean centre give 1.1·r (3DGS getNerfppNorm)."""
+    centre = np.array([2.0, -1.0, 0.5])
+    r = 3.0
+    Rs, ts = [], []
+    for k in range(7):
+        a = 2 * np.pi * k / 7
+        c = centre + r * np.array([np.cos(a), np.sin(a), 0.0])
+        R, t = look_at(c, centre + [0.0, 0.0, -1.0], (0, 0, 1))
+        Rs.append(R)
+        ts.append(t)
+    assert scene_extent(Rs, ts) == pytest.approx(1.1 * r, rel=1e-9)
+
+
+def test_downscaled_size_rounds_to_nearest_like_the_loaded_image(tmp_path: Path) -> None:
+    """1063x709 / 4 is 266x177 (round(265.75), round(177.25)) for the camera and for the loaded image alike."""
+    from PIL import Image
+
+    from ctsplat.photos.images import load_rgb
+
+    path = tmp_path / "odd.png"
+    Image.fromarray(np.zeros((709, 1063, 3), np.uint8)).save(path)
+    q = PinholeCamera(1063, 709, 900.0, 900.0, 531.5, 354.5).scaled(4)
+    assert (q.width, q.height) == (266, 177)
+    assert load_rgb(path, 4).shape == (q.height, q.width, 3)
+    assert q.fx == pytest.approx(900.0 * 266 / 1063) and q.fy == pytest.approx(900.0 * 177 / 709)
+
+
+def test_turntable_ring_sits_at_the_photographs_mean_height() -> None:
+    """The turntable cameras circle at the cameras' mean height above the point they look at (here 1.5)."""
+    cam = PinholeCamera(32, 24, 30.0, 30.0, 16.0, 12.0)
+    views = []
+    for k in range(8):
+        a = 2 * np.pi * k / 8
+        c = np.array([3 * np.cos(a), 3 * np.sin(a), 1.5 + (0.5 if k % 2 else -0.5)])  # heights 1 and 2
+        R, t = look_at(c, np.zeros(3), (0, 0, 1))
+        views.append(PhotoView(f"{k}.png", torch.zeros(24, 32, 3), cam, R, t, "train"))
+    poses = turntable_poses(views, 6)
+    centres = np.stack([-R.T @ t for R, t in poses])
+    np.testing.assert_allclose(centres[:, 2], 1.5, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(centres[:, :2], axis=1), 3.0, atol=1e-6)
+
+
+def _skimage_ssim(img: np.ndarray, ref: np.ndarray) -> float:
+    from skimage.metrics import structural_similarity
+
+    return float(structural_similarity(img, ref, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                       data_range=1.0, channel_axis=2))
+
+
+def test_evaluation_ssim_is_the_mean_of_per_view_ssim_and_the_gallery_spans_the_views(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """metrics ssim = mean of per_view_test.csv's SSIM (each skimage's Gaussian SSIM), psnr likewise; the gallery
+    shows held-out views evenly spaced over the test set (two of six: the first and the last)."""
+    import ctsplat.photos.evaluate as photo_eval
+
+    torch.set_num_threads(2)
+    scene, truth = _synthetic_scene()
+    for k, v in enumerate(scene.views):
+        v.split = "test" if k % 3 == 0 else "train"  # six held-out views: 00, 03, ..., 15
+    model = Gaussians.from_values(truth.means, 0.14, 1.0, opacities=0.7, colors=truth.colors * 0.8)  # not the truth
+    run = tmp_path / "run"
+    run.mkdir()
+    model.save(run / "model.pt")
+    (run / "config.json").write_text(json.dumps({"sfm_dir": str(tmp_path / "sfm"),
+                                                 "train": photo_settings()["train"]}))
+    shown: list[list[str]] = []
+    monkeypatch.setattr(photo_eval, "save_photo_gallery", lambda path, photos, renders, names, *a: shown.append(names))
+    m = evaluate_photos(run, {"turntable_frames": 0, "gallery_views": 2}, scene=scene)
+    assert shown == [["00.png", "15.png"]]
+    with (run / "per_view_test.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["view_id"] for r in rows] == [f"{k:02d}.png" for k in range(0, 16, 3)]
+    ssims = [float(r["ssim2d"]) for r in rows]
+    assert 0.3 < min(ssims) and max(ssims) < 0.99  # a model that is not the truth: SSIM well inside (0, 1)
+    assert m["ssim"] == pytest.approx(float(np.mean(ssims)), rel=1e-12) and m["ssim"] <= 1
+    assert m["psnr"] == pytest.approx(float(np.mean([float(r["psnr2d"]) for r in rows])), rel=1e-12)
+    v = scene.split("test")[1]
+    with torch.no_grad():
+        img = render_view(model, v, background=model.meta.get("background")).image.clamp(0, 1)
+    assert ssims[1] == pytest.approx(_skimage_ssim(img.double().numpy(), v.image.double().numpy()), abs=1e-6)
+
+
+def _densify_params(scales: list[float], opacity: float = 0.9) -> dict[str, torch.Tensor]:
+    """Opaque isotropic Gaussians on the x axis (one per scale), seeded like training seeds them."""
+    from ctsplat.photos.train import init_params
+
+    n = len(scales)
+    xyz = np.stack([np.arange(n, dtype=float), np.zeros(n), np.zeros(n)], 1)
+    params = init_params(xyz, np.full((n, 3), 0.5), photo_settings()["train"], np.random.default_rng(0))
+    with torch.no_grad():
+        params["log_scales"][:] = torch.log(torch.tensor(scales))[:, None]
+        params["opacity_raw"][:] = math.log(opacity / (1 - opacity))
+    return params
+
+
+def test_densify_budget_keeps_the_largest_gradients() -> None:
+    """With room for two more Gaussians, the two with the largest mean gradients are the ones cloned."""
+    from ctsplat.photos.densify import AlphaDensify
+    from ctsplat.photos.train import _optimizer
+
+    params = _densify_params([0.001] * 6)  # all small (clone) for an extent of 1
+    opt = _optimizer(params, photo_settings()["train"]["lr"], 1.0)
+    settings = {**photo_settings()["train"]["densify"], "start": 100, "max_gaussians": 8}
+    dens = AlphaDensify(settings, iterations=1000, extent=1.0, means=params["means"])
+    dens.grad_accum[:] = torch.tensor([5.0, 1.0, 4.0, 2.0, 3.0, 6.0]) * 1e-3  # all above grad_threshold
+    dens.grad_count[:] = 1.0
+    params, st = dens.step(params, opt, torch.Generator().manual_seed(0), iteration=100)
+    assert (st["cloned"], st["split"], st["pruned"], st["n"]) == (2, 0, 0, 8)
+    assert sorted(params["means"][6:, 0].tolist()) == [0.0, 5.0]  # copies of Gaussians 0 and 5
+
+
+@pytest.mark.parametrize(("extent", "cloned", "split"), [(10.0, 1, 1), (1.0, 0, 2)])
+def test_clone_split_boundary_is_percent_dense_times_the_extent(extent: float, cloned: int, split: int) -> None:
+    """A Gaussian of σ 0.05 is cloned when percent_dense × extent (0.01 × 10) exceeds it and split when not (× 1);
+    one of σ 0.5 is split either way."""
+    from ctsplat.photos.densify import AlphaDensify
+    from ctsplat.photos.train import _optimizer
+
+    params = _densify_params([0.05, 0.5, 0.001, 0.001])
+    opt = _optimizer(params, photo_settings()["train"]["lr"], extent)
+    settings = {**photo_settings()["train"]["densify"], "start": 100}
+    dens = AlphaDensify(settings, iterations=1000, extent=extent, means=params["means"])
+    dens.grad_accum[:] = torch.tensor([1e-2, 1e-2, 0.0, 0.0])
+    dens.grad_count[:] = 1.0
+    params, st = dens.step(params, opt, torch.Generator().manual_seed(0), iteration=100)
+    assert (st["cloned"], st["split"], st["pruned"]) == (cloned, split, 0)
+    assert st["n"] == 4 + cloned + split
+
+
+@pytest.mark.parametrize(("iteration", "wide_pruned"), [(200, False), (300, True)])
+def test_size_prune_starts_after_the_first_reset_not_at_it(iteration: int, wide_pruned: bool) -> None:
+    """3DGS prunes by size only when iteration > opacity_reset_interval: a step at the reset itself keeps wide
+    Gaussians, the next one prunes them."""
+    from ctsplat.photos.densify import AlphaDensify
+    from ctsplat.photos.train import _optimizer
+
+    params = _three_gaussians()  # wide (0.5 x the extent of 1), small, transparent
+    opt = _optimizer(params, photo_settings()["train"]["lr"], 1.0)
+    settings = {**photo_settings()["train"]["densify"], "start": 100, "opacity_reset_interval": 200}
+    dens = AlphaDensify(settings, iterations=1000, extent=1.0, means=params["means"])
+    params, st = dens.step(params, opt, torch.Generator().manual_seed(0), iteration=iteration)
+    widths = torch.exp(params["log_scales"]).max(-1).values
+    assert st["pruned"] == 1 + wide_pruned and st["cloned"] == st["split"] == 0
+    assert bool((widths > 0.1).any()) != wide_pruned

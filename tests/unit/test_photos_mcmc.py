@@ -3,6 +3,7 @@ relocation and growth steps, the position noise, and training with it."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -168,3 +169,49 @@ def test_training_with_mcmc_learns_the_scene_and_is_deterministic() -> None:
 def test_bad_mcmc_settings_fail_naming_the_key(key: str, value: object, needle: str) -> None:
     with pytest.raises(CtsplatError, match=needle.replace(".", r"\.")):
         check_section("photos", {"train": {key: value}})
+
+
+# ------------------------------------------------------------------------ growth and the dead rule
+def _mcmc_params(opacity: np.ndarray) -> dict[str, torch.Tensor]:
+    from ctsplat.photos.train import init_params
+
+    rng = np.random.default_rng(0)
+    n = len(opacity)
+    params = init_params(rng.normal(size=(n, 3)), rng.uniform(size=(n, 3)), photo_settings()["train"], rng)
+    with torch.no_grad():
+        params["opacity_raw"].copy_(torch.logit(torch.as_tensor(opacity, dtype=torch.float32)))
+    return params
+
+
+@pytest.mark.parametrize(("n", "growth", "want"), [(40, 1.5, 60), (50, 1.05, 52), (40, 2.0, 70)])
+def test_mcmc_growth_reaches_growth_times_n_or_the_cap(n: int, growth: float, want: int) -> None:
+    """After a step the count is min(cap_max, ⌊growth · n⌋) (cap 70): 60, 52 (⌊52.5⌋) and the cap."""
+    from ctsplat.photos.mcmc import MCMCDensify
+    from ctsplat.photos.train import _optimizer
+
+    params = _mcmc_params(np.full(n, 0.5))
+    opt = _optimizer(params, photo_settings()["train"]["lr"], 1.0)
+    d = photo_settings()["train"]
+    dens = MCMCDensify(d["densify"], {**d["mcmc"], "cap_max": 70, "growth": growth}, iterations=10)
+    params, st = dens.step(params, opt, torch.Generator().manual_seed(0), iteration=1)
+    assert st["n"] == params["means"].shape[0] == want == min(70, math.floor(growth * n))
+    assert st["cloned"] == want - n and st["pruned"] == 0
+
+
+def test_mcmc_gaussian_exactly_at_min_opacity_is_dead() -> None:
+    """The docstring's dead test is opacity ≤ prune_opacity: Gaussians at exactly 0.5 with prune_opacity 0.5 are
+    relocated onto the live ones."""
+    from ctsplat.photos.mcmc import MCMCDensify
+    from ctsplat.photos.train import _optimizer
+
+    opacity = np.array([0.5, 0.9, 0.5, 0.8, 0.95, 0.5])
+    params = _mcmc_params(opacity)
+    assert bool((torch.sigmoid(params["opacity_raw"][[0, 2, 5]]) == 0.5).all())
+    opt = _optimizer(params, photo_settings()["train"]["lr"], 1.0)
+    d = photo_settings()["train"]
+    dens = MCMCDensify({**d["densify"], "prune_opacity": 0.5}, {**d["mcmc"], "growth": 1.0}, iterations=10)
+    live_means = params["means"].detach()[[1, 3, 4]].clone()
+    params, st = dens.step(params, opt, torch.Generator().manual_seed(0), iteration=1)
+    assert st["pruned"] == 3 and st["cloned"] == 0 and st["n"] == 6
+    for i in (0, 2, 5):  # each former dead row now sits on a live Gaussian
+        assert bool((live_means == params["means"].detach()[i]).all(1).any())

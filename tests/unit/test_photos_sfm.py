@@ -8,15 +8,20 @@ from __future__ import annotations
 import json
 import os
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
+from ctsplat.photos.config import photo_settings
 from ctsplat.photos.dataset import load_scene, scene_extent
 from ctsplat.photos.sfm import run_photo_sfm
 from ctsplat.utils import CtsplatError
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_photos import _jpeg  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 SKULL = Path(os.environ.get("CTSPLAT_SHARED_DATA", ROOT.parent / "shared" / "data")) / "skull_photos"
@@ -251,3 +256,53 @@ def test_fold_benchmark_pairs_real_runs_and_reuses_them(skull_subset: Path, tmp_
     other = subprocess.run([*cmd, "--folds", "1"], capture_output=True, text=True, env=env, timeout=600)
     assert other.returncode == 2
     assert "was trained on a OTHER CPU" in other.stderr.strip().splitlines()[-1]
+
+
+# ---------------------------------------------------------------------- summary and matching rules
+@pytest.mark.parametrize(("n", "want"), [(120, "exhaustive"), (121, "sequential"), (3, "exhaustive")])
+def test_auto_matching_is_exhaustive_up_to_and_including_the_limit(n: int, want: str) -> None:
+    """matching auto: exhaustive for n ≤ exhaustive_max_images (120), sequential above."""
+    from ctsplat.photos.sfm import matching_mode
+
+    s = photo_settings()["sfm"]
+    assert s["exhaustive_max_images"] == 120
+    assert matching_mode(s, n) == want
+
+
+def test_sfm_summary_registration_rate_counts_the_unregistered_photos(tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """registration_rate = registered / photos (3 of 5 = 0.6) with the two others listed as unregistered; COLMAP
+    is replaced by a model that registers 3 of the 5 photos (the summary is what is tested)."""
+    import shutil
+    from types import SimpleNamespace
+
+    import ctsplat.photos.sfm as sfm
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    names = [f"{i:02d}.jpg" for i in range(5)]
+    for i, name in enumerate(names):
+        _jpeg(photos / name, seed=i)
+    registered = ["00.jpg", "02.jpg", "03.jpg"]
+    cam = SimpleNamespace(model=SimpleNamespace(name="PINHOLE"), params=np.array([60.0, 60.0, 32.0, 24.0]),
+                          width=64, height=48)
+    model = SimpleNamespace(
+        images={i: SimpleNamespace(name=n, has_pose=True, camera_id=1) for i, n in enumerate(registered)},
+        cameras={1: cam}, num_reg_images=lambda: len(registered), write_binary=lambda path: None,
+        compute_mean_reprojection_error=lambda: 0.5, compute_mean_track_length=lambda: 3.0,
+        num_points3D=lambda: 100)
+
+    def undistort(out: Path, sparse: Path, image_dir: Path, num_threads: int) -> None:
+        (out / "images").mkdir(parents=True)
+        for n in registered:
+            shutil.copy(image_dir / n, out / "images" / n)
+
+    monkeypatch.setattr(sfm, "_extract_and_match", lambda *a: "exhaustive")
+    monkeypatch.setattr(sfm, "_map", lambda *a: {0: model})
+    monkeypatch.setattr(sfm, "write_model", lambda *a: None)
+    monkeypatch.setattr(sfm, "pycolmap", SimpleNamespace(undistort_images=undistort, Reconstruction=lambda p: model))
+    summary = sfm.run_photo_sfm(photos, tmp_path / "sfm")
+    assert (summary["n_images"], summary["n_registered"]) == (5, 3)
+    assert summary["registered"] == registered and summary["unregistered"] == ["01.jpg", "04.jpg"]
+    assert summary["registration_rate"] == pytest.approx(3 / 5, rel=1e-12)
+    assert json.loads((tmp_path / "sfm" / "summary.json").read_text())["registration_rate"] == pytest.approx(0.6)
