@@ -1,4 +1,4 @@
-"""Rules of ingest, config checks and the 3D filter that the other tests left unpinned (found by mutation testing).
+"""Rules of ingest, config checks and the 3D filter that a one-line slip would break unnoticed by the other tests.
 
 Each test checks the library against an independent reference, never against itself:
 
