@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 __all__ = [
     "gaussian_window",
+    "band_matrix",
     "ssim",
     "l1",
     "tv3d",
@@ -53,11 +54,46 @@ def gaussian_window(sigma: float = 1.5, truncate: float = 3.5, *, dtype=torch.fl
     return (w / w.sum()).to(dtype=dtype, device=device)
 
 
-def _blur(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Separable 'valid' Gaussian blur of ``x`` (B, 1, H, W) -> (B, 1, H - 2r, W - 2r)."""
+# Longest image side (pixels) blurred as a product with banded matrices; longer sides use conv2d, whose cost grows
+# with the taps instead of the side. The dense band is (n - 2r) x n, 16 MiB in float32 at this limit.
+BAND_MAX_PX = 2048
+
+
+def band_matrix(n: int, w: torch.Tensor) -> torch.Tensor:
+    """The 'valid' correlation with taps ``w`` along an axis of length ``n``, as a matrix.
+
+    Parameters
+    ----------
+    n : int
+        Length of the axis (at least ``w.numel()``).
+    w : Tensor, shape (k,)
+        Taps.
+
+    Returns
+    -------
+    Tensor, shape (n - k + 1, n)
+        Row ``i`` holds ``w`` at columns ``i .. i + k - 1``, so ``band_matrix(n, w) @ x`` is
+        ``[Σ_j w[j] x[i + j]]_i``.
+    """
     k = w.numel()
-    x = F.conv2d(x, w.view(1, 1, k, 1))
-    return F.conv2d(x, w.view(1, 1, 1, k))
+    m = w.new_zeros(n - k + 1, n)
+    for j in range(k):
+        m.diagonal(j).fill_(w[j])
+    return m
+
+
+def _blur(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Separable 'valid' Gaussian blur of ``x`` (B, H, W) -> (B, H - 2r, W - 2r).
+
+    Two products with banded matrices: on a CPU several times faster than ``conv2d`` with one-channel 11-tap
+    kernels, forward and backward, for images up to :data:`BAND_MAX_PX` a side.
+    """
+    h, wd = x.shape[-2:]
+    if max(h, wd) <= BAND_MAX_PX:
+        return band_matrix(h, w) @ x @ band_matrix(wd, w).T
+    k = w.numel()
+    y = F.conv2d(x.unsqueeze(1), w.view(1, 1, k, 1))
+    return F.conv2d(y, w.view(1, 1, 1, k)).squeeze(1)
 
 
 def ssim(
@@ -100,17 +136,19 @@ def ssim(
     """
     if img.shape != ref.shape:
         raise ValueError(f"shape mismatch: {tuple(img.shape)} vs {tuple(ref.shape)}")
-    x = img.reshape(-1, 1, *img.shape[-2:])
-    y = ref.reshape(-1, 1, *ref.shape[-2:]).to(x.dtype)
+    x = img.reshape(-1, *img.shape[-2:])
+    y = ref.reshape(-1, *ref.shape[-2:]).to(x.dtype)
     w = gaussian_window(sigma, dtype=x.dtype, device=x.device)
     if min(x.shape[-2:]) < w.numel():
         raise ValueError(f"images of size {tuple(x.shape[-2:])} are smaller than the {w.numel()}-pixel SSIM window")
     c1 = (k1 * data_range) ** 2
     c2 = (k2 * data_range) ** 2
-    mx, my = _blur(x, w), _blur(y, w)
-    sxx = _blur(x * x, w) - mx * mx
-    syy = _blur(y * y, w) - my * my
-    sxy = _blur(x * y, w) - mx * my
+    # the local moments blurred in two batches: those of the reference alone need no gradient
+    mx, xx, xy = _blur(torch.cat([x, x * x, x * y]), w).chunk(3)
+    my, yy = _blur(torch.cat([y, y * y]), w).chunk(2)
+    sxx = xx - mx * mx
+    syy = yy - my * my
+    sxy = xy - mx * my
     s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
     return s.mean()
 

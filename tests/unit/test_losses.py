@@ -10,8 +10,25 @@ from skimage.metrics import structural_similarity
 from ctsplat.training import losses
 
 
+@pytest.fixture(params=["band", "conv"])
+def blur_path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Both ways the SSIM blurs: products with banded matrices, and conv2d (images longer than BAND_MAX_PX)."""
+    if request.param == "conv":
+        monkeypatch.setattr(losses, "BAND_MAX_PX", 0)
+    return request.param
+
+
+def test_band_matrix_is_numpy_valid_correlation() -> None:
+    rng = np.random.default_rng(5)
+    w = torch.from_numpy(rng.random(5))
+    x = rng.random(13)
+    got = (losses.band_matrix(13, w) @ torch.from_numpy(x)).numpy()
+    np.testing.assert_allclose(got, np.correlate(x, w.numpy(), mode="valid"), rtol=1e-14)
+    assert losses.band_matrix(13, w).shape == (9, 13)
+
+
 @pytest.mark.parametrize("data_range", [1.0, 7.5])
-def test_ssim_matches_skimage_gaussian(data_range: float) -> None:
+def test_ssim_matches_skimage_gaussian(data_range: float, blur_path: str) -> None:
     rng = np.random.default_rng(0)
     a = rng.random((24, 31)) * data_range
     b = np.clip(a + rng.normal(0, 0.1 * data_range, a.shape), 0, None)
@@ -22,7 +39,7 @@ def test_ssim_matches_skimage_gaussian(data_range: float) -> None:
     assert float(got) == pytest.approx(ref, abs=1e-10)
 
 
-def test_ssim_batch_is_mean_of_images_and_identity_is_one() -> None:
+def test_ssim_batch_is_mean_of_images_and_identity_is_one(blur_path: str) -> None:
     rng = np.random.default_rng(1)
     a = torch.from_numpy(rng.random((3, 16, 16)))
     b = torch.from_numpy(rng.random((3, 16, 16)))
@@ -36,7 +53,7 @@ def test_ssim_too_small_image_fails() -> None:
         losses.ssim(torch.zeros(8, 8), torch.zeros(8, 8))
 
 
-def test_ssim_gradcheck() -> None:
+def test_ssim_gradcheck(blur_path: str) -> None:
     rng = np.random.default_rng(2)
     a = torch.from_numpy(rng.random((12, 13)))
     b = torch.from_numpy(rng.random((12, 13))).requires_grad_(True)
