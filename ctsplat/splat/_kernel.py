@@ -104,8 +104,8 @@ _PER_DTYPE: dict[str, tuple[tuple[type, ...], type | None]] = {
 }
 #: every C function the Python side calls: name -> (argtypes, restype)
 SIGNATURES: dict[str, tuple[tuple[type, ...], type | None]] = {
-    # n, depth order, bbox, H, W, offsets (H W + 1), ids
-    "alpha_lists_c": ((_I64, _P, _P, _I64, _I64, _P, _P), None),
+    # n, depth order, bbox, H, W, offsets (H W + 1), ids, threads
+    "alpha_lists_c": ((_I64, _P, _P, _I64, _I64, _P, _P, _INT), None),
     **{f"{name}_{suf}": sig for name, sig in _PER_DTYPE.items() for suf in ("f32", "f64")},
 }
 
@@ -357,7 +357,8 @@ class AlphaComposite(torch.autograd.Function):
             raise ValueError("alpha kernel: more than 2^31 (Gaussian, pixel) pairs; render at a lower resolution")
         offsets = torch.empty(height * width + 1, dtype=torch.int64)
         ids = torch.empty(total, dtype=torch.int32)
-        _fn("alpha_lists_c")(m.shape[0], _ptr(order), _ptr(b), height, width, _ptr(offsets), _ptr(ids))
+        _fn("alpha_lists_c")(m.shape[0], _ptr(order), _ptr(b), height, width, _ptr(offsets), _ptr(ids),
+                             torch.get_num_threads())
         out = torch.empty(height, width, col.shape[1], dtype=dt)
         alphas = torch.empty(total, dtype=dt)
         fwd(

@@ -3,21 +3,54 @@
 
 #include "common.h"
 
-// per-pixel lists of Gaussians in depth order: counting sort by pixel, filled in depth order
+// Per-pixel lists of Gaussians in depth order (a counting sort by pixel, filled in depth order). The counts come from
+// a 2D difference array of the boxes (O(n + H W), not one increment per list entry); the fill runs on nt threads
+// over bands of rows holding about the same number of entries, each band walking every Gaussian in depth order, so
+// each pixel's list is the same whatever the thread count.
 static void alpha_lists(int64_t n, const int64_t* order, const int64_t* bb, int64_t H, int64_t W,
-                        int64_t* offsets, int32_t* ids) {
-    const int64_t npx = H * W;
-    for (int64_t p = 0; p <= npx; ++p) offsets[p] = 0;
-    for (int64_t i = 0; i < n; ++i)
-        for (int64_t v = bb[4 * i + 2]; v < bb[4 * i + 3]; ++v)
-            for (int64_t u = bb[4 * i]; u < bb[4 * i + 1]; ++u) offsets[v * W + u + 1] += 1;
-    for (int64_t p = 0; p < npx; ++p) offsets[p + 1] += offsets[p];
-    std::vector<int64_t> fill(offsets, offsets + npx);
-    for (int64_t k = 0; k < n; ++k) {
-        const int64_t i = order[k];
-        for (int64_t v = bb[4 * i + 2]; v < bb[4 * i + 3]; ++v)
-            for (int64_t u = bb[4 * i]; u < bb[4 * i + 1]; ++u) ids[fill[v * W + u]++] = (int32_t)i;
+                        int64_t* offsets, int32_t* ids, int nt) {
+    const int64_t npx = H * W, W1 = W + 1;
+    std::vector<int64_t> diff((size_t)((H + 1) * W1), 0);
+    for (int64_t i = 0; i < n; ++i) {
+        const int64_t u0 = bb[4 * i], u1 = bb[4 * i + 1], v0 = bb[4 * i + 2], v1 = bb[4 * i + 3];
+        if (u1 <= u0 || v1 <= v0) continue;
+        diff[v0 * W1 + u0] += 1; diff[v0 * W1 + u1] -= 1;
+        diff[v1 * W1 + u0] -= 1; diff[v1 * W1 + u1] += 1;
     }
+    std::vector<int64_t> col((size_t)W, 0);  // running sums down each column
+    offsets[0] = 0;
+    for (int64_t v = 0; v < H; ++v) {
+        int64_t row = 0;  // running sum along the row
+        for (int64_t u = 0; u < W; ++u) {
+            row += diff[v * W1 + u];
+            col[u] += row;
+            offsets[v * W + u + 1] = offsets[v * W + u] + col[u];
+        }
+    }
+    const int64_t total = offsets[npx];
+    if (total == 0) return;
+    // bands of about 2^17 entries (512 KiB of ids): each band's writes stay in cache
+    int64_t bands = std::max<int64_t>(nt < 1 ? 1 : nt, total >> 17);
+    if (total < 65536) bands = 1;
+    bands = std::min<int64_t>(bands, H);
+    std::vector<int64_t> first(bands + 1, H);  // band b: rows first[b] .. first[b + 1] - 1
+    first[0] = 0;
+    for (int64_t b = 1, v = 0; b < bands; ++b) {
+        while (v < H && offsets[v * W] < total * b / bands) ++v;
+        first[b] = v;
+    }
+    std::vector<int64_t> fill(offsets, offsets + npx);
+    parallel_tasks(bands, nt, [&](int64_t b) {
+        const int64_t r0 = first[b], r1 = first[b + 1];
+        if (r1 <= r0) return;
+        for (int64_t k = 0; k < n; ++k) {
+            const int64_t i = order[k];
+            const int64_t v0 = std::max(bb[4 * i + 2], r0), v1 = std::min(bb[4 * i + 3], r1);
+            const int64_t u0 = bb[4 * i], u1 = bb[4 * i + 1];
+            for (int64_t v = v0; v < v1; ++v)
+                for (int64_t u = u0; u < u1; ++u) ids[fill[v * W + u]++] = (int32_t)i;
+        }
+    });
 }
 
 template <typename T>
@@ -35,15 +68,18 @@ static void alpha_fwd(int64_t H, int64_t W, int C, const int64_t* offsets, const
         for (int64_t p = p0; p < p1; ++p) {
             const T px = (T)(p % W) + (T)0.5, py = (T)(p / W) + (T)0.5;
             T Tr = 1;
-            for (int c = 0; c < C; ++c) out[p * C + c] = 0;
-            for (int64_t k = offsets[p]; k < offsets[p + 1]; ++k) {
+            T sum[32];  // the pixel's colour, in registers rather than through out (which may alias the inputs)
+            for (int c = 0; c < C; ++c) sum[c] = 0;
+            for (int64_t k = offsets[p], k1 = offsets[p + 1]; k < k1; ++k) {
                 const int32_t i = ids[k];
                 T e, dx, dy;
                 const T a = alpha_of(mean, con, op, i, px, py, e, dx, dy);
                 alphas[k] = a;  // kept for the backward (no exp there)
-                for (int c = 0; c < C; ++c) out[p * C + c] += Tr * a * col[i * C + c];
+                const T w = Tr * a;
+                for (int c = 0; c < C; ++c) sum[c] += w * col[i * C + c];
                 Tr *= 1 - a;
             }
+            for (int c = 0; c < C; ++c) out[p * C + c] = sum[c];
         }
     });
 }

@@ -9,9 +9,9 @@
 #include "voxelize.h"
 
 extern "C" void alpha_lists_c(int64_t n, const int64_t* order, const int64_t* bb, int64_t H, int64_t W,
-                              int64_t* offsets, int32_t* ids) {
+                              int64_t* offsets, int32_t* ids, int nt) {
     FlushDenormals ftz;
-    alpha_lists(n, order, bb, H, W, offsets, ids);
+    alpha_lists(n, order, bb, H, W, offsets, ids, nt);
 }
 
 #define EXPORT(T, SUF)                                                                                          \
