@@ -74,6 +74,13 @@ def band_matrix(n: int, w: torch.Tensor) -> torch.Tensor:
     Tensor, shape (n - k + 1, n)
         Row ``i`` holds ``w`` at columns ``i .. i + k - 1``, so ``band_matrix(n, w) @ x`` is
         ``[Σ_j w[j] x[i + j]]_i``.
+
+    Examples
+    --------
+    >>> band_matrix(4, torch.tensor([1.0, 2.0]))
+    tensor([[1., 2., 0., 0.],
+            [0., 1., 2., 0.],
+            [0., 0., 1., 2.]])
     """
     k = w.numel()
     m = w.new_zeros(n - k + 1, n)
