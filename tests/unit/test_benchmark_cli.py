@@ -98,6 +98,8 @@ def test_baselines_arc_takes_effect_and_bad_options_are_refused(tmp_path, phanto
         ("ingest.py", ["--repeats", "0"], "--repeats must be >= 1"),
         ("gpu.py", ["--train-sizes", "4"], "--train-sizes must be >= 8"),
         ("host_reads.py", ["--set", "nviews=3"], "unknown config key train.nviews"),
+        ("photo_step.py", ["sfm", "model.pt", "--iterations", "0"], "--iterations and --threads must be at least 1"),
+        ("photo_step.py", ["sfm", "model.pt"], "sfm is not a photo SfM folder"),
     ],
 )
 def test_benchmark_options_are_checked(tmp_path, script, args, needle):
