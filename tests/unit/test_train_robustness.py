@@ -411,3 +411,25 @@ def test_lock_removes_a_folder_it_created_when_the_step_fails_before_writing(tmp
                 pass
         finally:
             new.chmod(0o700)
+
+
+def test_all_finite_finds_every_kind_of_non_finite_element() -> None:
+    """NaN, +Inf, -Inf and an Inf beside a -Inf (whose sum is NaN) in any tensor of the list; finite tensors whose
+    sum would overflow are finite."""
+    from ctsplat.training.state import all_finite
+
+    gen = torch.Generator().manual_seed(0)
+    base = [torch.randn(50, 3, generator=gen), None, torch.randn(7, generator=gen), torch.tensor(2.5)]
+    assert all_finite(base)
+    assert all_finite([]) and all_finite([None])
+    for bad in (float("nan"), float("inf"), float("-inf")):
+        for k in (0, 2, 3):
+            tensors = [t.clone() if t is not None else None for t in base]
+            tensors[k].view(-1)[-1] = bad
+            assert not all_finite(tensors), (bad, k)
+    both = torch.zeros(4)
+    both[0], both[3] = float("inf"), float("-inf")
+    assert not all_finite([both])
+    huge = torch.full((4,), 1.7e308, dtype=torch.float64)
+    assert not bool(torch.isfinite(huge.sum())) and all_finite([huge])
+    assert all_finite([torch.full((10_000,), 3.4e38)])  # float32 maxima: the float64 sum stays finite
