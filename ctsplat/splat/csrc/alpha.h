@@ -4,9 +4,10 @@
 #include "common.h"
 
 // Per-pixel lists of Gaussians in depth order (a counting sort by pixel, filled in depth order). The counts come from
-// a 2D difference array of the boxes (O(n + H W), not one increment per list entry); the fill runs on nt threads
-// over bands of rows holding about the same number of entries, each band walking every Gaussian in depth order, so
-// each pixel's list is the same whatever the thread count.
+// a 2D difference array of the boxes (O(n + H W), not one increment per list entry). The fill runs on nt threads
+// over bands of rows holding about 2^17 entries each (512 KiB of ids, so a band's writes stay in cache); every band
+// first gets the Gaussians whose boxes reach it, in depth order, so a band walks only those, and each pixel's list
+// is the same whatever the thread count.
 static void alpha_lists(int64_t n, const int64_t* order, const int64_t* bb, int64_t H, int64_t W,
                         int64_t* offsets, int32_t* ids, int nt) {
     const int64_t npx = H * W, W1 = W + 1;
@@ -29,24 +30,45 @@ static void alpha_lists(int64_t n, const int64_t* order, const int64_t* bb, int6
     }
     const int64_t total = offsets[npx];
     if (total == 0) return;
-    // bands of about 2^17 entries (512 KiB of ids): each band's writes stay in cache
     int64_t bands = std::max<int64_t>(nt < 1 ? 1 : nt, total >> 17);
     if (total < 65536) bands = 1;
     bands = std::min<int64_t>(bands, H);
-    std::vector<int64_t> first(bands + 1, H);  // band b: rows first[b] .. first[b + 1] - 1
+    std::vector<int64_t> first((size_t)bands + 1, H);  // band b: rows first[b] .. first[b + 1] - 1
     first[0] = 0;
     for (int64_t b = 1, v = 0; b < bands; ++b) {
         while (v < H && offsets[v * W] < total * b / bands) ++v;
         first[b] = v;
     }
+    std::vector<int64_t> band_of((size_t)H);  // the band of each row
+    for (int64_t b = 0; b < bands; ++b)
+        for (int64_t v = first[b]; v < first[b + 1]; ++v) band_of[v] = b;
+    // the Gaussians of each band in depth order (a counting sort by band)
+    std::vector<int64_t> start((size_t)bands + 1, 0);
+    auto reach = [&](int64_t i, int64_t& b0, int64_t& b1) {
+        if (bb[4 * i + 1] <= bb[4 * i] || bb[4 * i + 3] <= bb[4 * i + 2]) return false;
+        b0 = band_of[bb[4 * i + 2]];
+        b1 = band_of[bb[4 * i + 3] - 1];
+        return true;
+    };
+    for (int64_t k = 0; k < n; ++k) {
+        int64_t b0, b1;
+        if (reach(order[k], b0, b1))
+            for (int64_t b = b0; b <= b1; ++b) ++start[b + 1];
+    }
+    for (int64_t b = 0; b < bands; ++b) start[b + 1] += start[b];
+    std::vector<int32_t> members((size_t)start[bands]);
+    std::vector<int64_t> next(start.begin(), start.end() - 1);
+    for (int64_t k = 0; k < n; ++k) {
+        int64_t b0, b1;
+        if (reach(order[k], b0, b1))
+            for (int64_t b = b0; b <= b1; ++b) members[next[b]++] = (int32_t)order[k];
+    }
     std::vector<int64_t> fill(offsets, offsets + npx);
     parallel_tasks(bands, nt, [&](int64_t b) {
-        const int64_t r0 = first[b], r1 = first[b + 1];
-        if (r1 <= r0) return;
-        for (int64_t k = 0; k < n; ++k) {
-            const int64_t i = order[k];
-            const int64_t v0 = std::max(bb[4 * i + 2], r0), v1 = std::min(bb[4 * i + 3], r1);
+        for (int64_t m = start[b]; m < start[b + 1]; ++m) {
+            const int64_t i = members[m];
             const int64_t u0 = bb[4 * i], u1 = bb[4 * i + 1];
+            const int64_t v0 = std::max(bb[4 * i + 2], first[b]), v1 = std::min(bb[4 * i + 3], first[b + 1]);
             for (int64_t v = v0; v < v1; ++v)
                 for (int64_t u = u0; u < u1; ++u) ids[fill[v * W + u]++] = (int32_t)i;
         }
