@@ -54,8 +54,9 @@ def gaussian_window(sigma: float = 1.5, truncate: float = 3.5, *, dtype=torch.fl
     return (w / w.sum()).to(dtype=dtype, device=device)
 
 
-# Longest image side (pixels) blurred as a product with banded matrices; longer sides use conv2d, whose cost grows
-# with the taps instead of the side. The dense band is (n - 2r) x n, 16 MiB in float32 at this limit.
+# Longest image side (pixels) that a CPU blurs as a product with banded matrices; longer sides use conv2d, whose
+# cost grows with the taps instead of the side (the two meet near 2048 px on a 2-core CPU). The dense band is
+# (n - 2r) x n, 16 MiB in float32 at this limit. GPUs always use conv2d (cuDNN).
 BAND_MAX_PX = 2048
 
 
@@ -92,11 +93,11 @@ def band_matrix(n: int, w: torch.Tensor) -> torch.Tensor:
 def _blur(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """Separable 'valid' Gaussian blur of ``x`` (B, H, W) -> (B, H - 2r, W - 2r).
 
-    Two products with banded matrices: on a CPU several times faster than ``conv2d`` with one-channel 11-tap
-    kernels, forward and backward, for images up to :data:`BAND_MAX_PX` a side.
+    On a CPU, two products with banded matrices: several times faster than ``conv2d`` with one-channel 11-tap
+    kernels, forward and backward, for images up to :data:`BAND_MAX_PX` a side; otherwise two ``conv2d`` passes.
     """
     h, wd = x.shape[-2:]
-    if max(h, wd) <= BAND_MAX_PX:
+    if x.device.type == "cpu" and max(h, wd) <= BAND_MAX_PX:
         return band_matrix(h, w) @ x @ band_matrix(wd, w).T
     k = w.numel()
     y = F.conv2d(x.unsqueeze(1), w.view(1, 1, k, 1))
