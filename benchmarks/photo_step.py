@@ -52,7 +52,7 @@ def run(argv: list[str] | None = None) -> int:
 
     from ctsplat.photos.config import photo_settings
     from ctsplat.photos.dataset import load_scene
-    from ctsplat.photos.train import render_view
+    from ctsplat.photos.train import render_view, to_gaussians
     from ctsplat.splat.gaussians import Gaussians
     from ctsplat.training.losses import ssim
     from ctsplat.utils import CtsplatError, code_version
@@ -64,16 +64,13 @@ def run(argv: list[str] | None = None) -> int:
     scene = load_scene(args.sfm_dir, downscale=args.downscale)
     train = scene.split("train")
     g0 = Gaussians.load(args.model)
-    params = {k: getattr(g0, k).detach().clone().requires_grad_(True) for k in _PARAMS}
+    params = {k: t.detach().clone().requires_grad_(True) for k in _PARAMS if (t := getattr(g0, k)) is not None}
     order = np.random.default_rng(args.seed).permutation(len(train))
     times = []
     for k in range(args.warmup + args.iterations):
         view = train[order[k % len(train)]]
         t0 = time.perf_counter()
-        g = Gaussians(means=params["means"], log_scales=params["log_scales"], quats=params["quats"],
-                      density_raw=torch.zeros(params["means"].shape[0]), opacity_raw=params["opacity_raw"],
-                      colors=params["colors"], sh_rest=params["sh_rest"])
-        img = render_view(g, view, background=torch.zeros(3)).image
+        img = render_view(to_gaussians(params, g0.sh_degree), view, background=torch.zeros(3)).image
         l1 = torch.mean(torch.abs(img - view.image))
         dssim = 1.0 - ssim(img.permute(2, 0, 1), view.image.permute(2, 0, 1), 1.0)
         ((1 - lam) * l1 + lam * dssim).backward()
