@@ -2,11 +2,19 @@
 
 Checked before any output is written, so a bad folder fails with one line naming the file (or count) and leaves
 nothing behind.
+
+"Decodes whole" includes JPEG files whose compressed data is damaged inside the file: libjpeg (under Pillow, and
+under COLMAP) recovers from those with a warning that Pillow does not pass on, filling the rest of the image with
+grey, so Pillow alone reads such a photo as valid. :func:`jpeg_damage` decodes JPEG files a second time with
+simplejpeg's strict mode, which turns libjpeg's warnings into errors.
 """
 
 from __future__ import annotations
 
+import io
 from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +22,8 @@ from PIL import Image
 
 from ctsplat.utils import CtsplatError, atomic_path
 
-__all__ = ["IMAGE_SUFFIXES", "list_photos", "check_photo_count", "check_photos", "load_rgb", "strip_metadata"]
+__all__ = ["IMAGE_SUFFIXES", "list_photos", "check_photo_count", "check_photos", "jpeg_damage", "load_rgb",
+           "strip_metadata"]
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
@@ -87,16 +96,16 @@ def check_photos(folder: str | Path, names: list[str], *, single_camera: bool) -
     Raises
     ------
     CtsplatError
-        For the first image that does not decode whole (truncated or corrupt), or, with ``single_camera``, for
-        images of more than one size (the message counts each size and names an example).
+        For the first image that does not decode whole (truncated, corrupt, or a JPEG whose data libjpeg decodes
+        only by recovering from damage: :func:`jpeg_damage`), or, with ``single_camera``, for images of more than
+        one size (the message counts each size and names an example).
     """
     folder = Path(folder)
     sizes: dict[str, tuple[int, int]] = {}
     for name in names:
         path = folder / name
         try:
-            with Image.open(path) as im:
-                im.load()  # decodes every byte: a truncated JPEG fails here, not at SIFT time
+            with _open_whole(path) as im:
                 sizes[name] = (int(im.width), int(im.height))
         except Image.DecompressionBombError as exc:
             raise CtsplatError(f"image {path} is too large to decode safely ({str(exc).splitlines()[0]}); "
@@ -115,6 +124,58 @@ def check_photos(folder: str | Path, names: list[str], *, single_camera: bool) -
     return sizes
 
 
+def jpeg_damage(data: bytes) -> str | None:
+    """libjpeg's warning when JPEG data decodes only by recovering from damage inside it, else None.
+
+    Parameters
+    ----------
+    data : bytes
+        A whole image file. Anything that does not start with a JPEG start-of-image marker gives None.
+
+    Returns
+    -------
+    str or None
+        The first line of libjpeg's warning (e.g. "Corrupt JPEG data: premature end of data segment") when the
+        strict decode fails and the ordinary one succeeds; None for a clean JPEG, for data after the end-of-image
+        marker (camera trailers, MPO), and for JPEG kinds simplejpeg does not decode at all (Pillow has then
+        decoded them).
+
+    Examples
+    --------
+    >>> import io
+    >>> from PIL import Image
+    >>> buf = io.BytesIO()
+    >>> Image.new("RGB", (64, 48), (200, 30, 30)).save(buf, "JPEG")
+    >>> jpeg_damage(buf.getvalue()) is None
+    True
+    """
+    if data[:2] != b"\xff\xd8":
+        return None
+    import simplejpeg  # imported here: only photo folders need it
+
+    try:
+        simplejpeg.decode_jpeg(data, strict=True)
+    except ValueError as exc:
+        try:
+            simplejpeg.decode_jpeg(data, strict=False)
+        except ValueError:
+            return None  # a kind simplejpeg cannot decode at all, not damage
+        return str(exc).splitlines()[0]
+    return None
+
+
+@contextmanager
+def _open_whole(path: str | Path) -> Iterator[Image.Image]:
+    """A PIL image decoded in full; ValueError for a JPEG that decodes only by recovering from damage."""
+    data = Path(path).read_bytes()
+    with Image.open(io.BytesIO(data)) as im:
+        im.load()  # decodes every byte: a truncated file fails here, not at SIFT time
+        damage = jpeg_damage(data) if im.format == "JPEG" else None
+        if damage is not None:
+            raise ValueError(damage)
+        yield im
+
+
 def load_rgb(path: str | Path, downscale: int = 1) -> np.ndarray:
     """An image as float32 RGB in [0, 1], optionally downscaled by an integer factor (area averaging).
 
@@ -127,8 +188,14 @@ def load_rgb(path: str | Path, downscale: int = 1) -> np.ndarray:
     Returns
     -------
     ndarray, shape (H', W', 3), float32
+
+    Raises
+    ------
+    OSError, SyntaxError, ValueError
+        Pillow's errors for a file it cannot decode whole; ValueError with libjpeg's warning for a JPEG that decodes
+        only by recovering from damage (:func:`jpeg_damage`).
     """
-    with Image.open(path) as im:
+    with _open_whole(path) as im:
         im = im.convert("RGB")
         if downscale > 1:
             size = (max(1, round(im.width / downscale)), max(1, round(im.height / downscale)))

@@ -21,7 +21,7 @@ from ctsplat.geometry.cameras import camera_center, look_at
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, PinholeCamera, load_scene, scene_extent, split_names
 from ctsplat.photos.evaluate import evaluate_photos, turntable_poses
-from ctsplat.photos.images import check_photos, list_photos
+from ctsplat.photos.images import check_photos, jpeg_damage, list_photos, load_rgb
 from ctsplat.photos.sfm import run_photo_sfm
 from ctsplat.photos.train import image_metrics, render_view, to_gaussians, train_photos, train_scene
 from ctsplat.splat.gaussians import Gaussians
@@ -63,6 +63,68 @@ def test_truncated_jpeg_fails_naming_the_file(tmp_path: Path) -> None:
     with pytest.raises(CtsplatError, match=r"corrupt or truncated image .*01\.jpg"):
         run_photo_sfm(photos, out)
     _nothing_written(tmp_path, out)
+
+
+def _damaged(data: bytes, how: str) -> bytes:
+    """JPEG ``data`` damaged inside its compressed scan (the middle of a 64 x 48 noise JPEG lies in it)."""
+    b, mid = bytearray(data), len(data) // 2
+    if how == "end marker":  # an end-of-image marker where scan data should be: libjpeg stops and fills grey
+        b[mid:mid + 40] = b"\xff\xd9" * 20
+    elif how == "zeros":  # a block of the file lost (e.g. a bad sector)
+        b[mid:mid + 200] = bytes(200)
+    else:  # "bytes": scattered bit rot
+        rng = np.random.default_rng(1)
+        for i in rng.integers(mid - 300, mid + 300, 30):
+            b[i] ^= 0x5A
+    return bytes(b)
+
+
+@pytest.mark.parametrize("how", ["end marker", "zeros", "bytes"])
+def test_jpeg_damaged_inside_fails_naming_the_file(tmp_path: Path, how: str) -> None:
+    """Data damaged inside a JPEG, which libjpeg decodes by filling the rest grey and which Pillow therefore
+    reads without an error, is refused before SfM with libjpeg's own warning."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        _jpeg(photos / f"{i:02d}.jpg", seed=i)
+    bad = photos / "01.jpg"
+    clean = np.asarray(Image.open(bad).convert("RGB"), dtype=float)
+    bad.write_bytes(_damaged(bad.read_bytes(), how))
+    with Image.open(bad) as im:  # what makes the check needed: Pillow decodes it, differently
+        im.load()
+        assert np.abs(np.asarray(im.convert("RGB"), dtype=float) - clean).mean() > 1.0
+    out = tmp_path / "sfm"
+    with pytest.raises(CtsplatError, match=r"corrupt or truncated image .*01\.jpg: Corrupt JPEG data") as exc:
+        run_photo_sfm(photos, out)
+    assert "\n" not in str(exc.value)
+    _nothing_written(tmp_path, out)
+    with pytest.raises(ValueError, match="Corrupt JPEG data"):
+        load_rgb(bad)
+
+
+def test_jpeg_damage_passes_clean_jpegs_of_every_kind(tmp_path: Path) -> None:
+    """Greyscale, CMYK, progressive and EXIF-bearing JPEGs, data after the end-of-image marker (camera trailers)
+    and other formats are not damage."""
+    import io
+
+    rng = np.random.default_rng(0)
+    rgb = Image.fromarray(rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+    kinds = {"rgb": (rgb, {}), "grey": (rgb.convert("L"), {}), "cmyk": (rgb.convert("CMYK"), {}),
+             "progressive": (rgb, {"progressive": True}), "exif": (rgb, {"exif": Image.Exif()})}
+    for name, (im, options) in kinds.items():
+        buf = io.BytesIO()
+        im.save(buf, "JPEG", quality=90, **options)
+        data = buf.getvalue()
+        assert jpeg_damage(data) is None, name
+        assert jpeg_damage(data + b"\x00" * 512 + b"MPF trailer") is None, name
+        assert jpeg_damage(_damaged(data, "zeros")).startswith("Corrupt JPEG data"), name
+        (tmp_path / f"{name}.jpg").write_bytes(data)
+    buf = io.BytesIO()
+    rgb.save(buf, "PNG")
+    assert jpeg_damage(buf.getvalue()) is None
+    (tmp_path / "png.png").write_bytes(buf.getvalue())
+    sizes = check_photos(tmp_path, list_photos(tmp_path), single_camera=True)
+    assert set(sizes.values()) == {(64, 48)} and len(sizes) == 6
 
 
 def test_mixed_sizes_need_a_camera_per_image(tmp_path: Path) -> None:

@@ -105,9 +105,14 @@ def test_ten_neighbouring_skull_photos_register_in_one_model(skull_subset: Path,
             errors.append(np.linalg.norm(uv - xy, axis=1))
         err = np.concatenate(errors)
         assert np.median(err) < 0.5 / factor and np.percentile(err, 90) < 1.5 / factor, (factor, np.median(err))
-    broken = sorted((out / "images").iterdir())[0]  # a truncated copy is named with what to do
-    broken.write_bytes(broken.read_bytes()[:2000])
+    broken = sorted((out / "images").iterdir())[0]  # a truncated or damaged copy is named with what to do
+    data = broken.read_bytes()
+    broken.write_bytes(data[:2000])
     with pytest.raises(CtsplatError, match=rf"corrupt or truncated SfM image .*{broken.name}: .*photos-sfm` again"):
+        load_scene(out, downscale=4)
+    mid = len(data) // 2
+    broken.write_bytes(data[:mid] + b"\xff\xd9" * 100 + data[mid + 200:])
+    with pytest.raises(CtsplatError, match=rf"SfM image .*{broken.name}: Corrupt JPEG data.*photos-sfm` again"):
         load_scene(out, downscale=4)
 
 
@@ -306,3 +311,14 @@ def test_sfm_summary_registration_rate_counts_the_unregistered_photos(tmp_path: 
     assert summary["registered"] == registered and summary["unregistered"] == ["01.jpg", "04.jpg"]
     assert summary["registration_rate"] == pytest.approx(3 / 5, rel=1e-12)
     assert json.loads((tmp_path / "sfm" / "summary.json").read_text())["registration_rate"] == pytest.approx(0.6)
+
+
+def test_the_skull_photos_are_not_damaged() -> None:
+    """Every photo of the real set passes the strict JPEG decode: the damage check refuses no real camera file."""
+    from ctsplat.photos.images import jpeg_damage, list_photos
+
+    if not SKULL.is_dir():
+        pytest.skip(f"skull photos not found at {SKULL} (expected ../shared/data/skull_photos)")
+    names = list_photos(SKULL)
+    assert len(names) == 66
+    assert [n for n in names if jpeg_damage((SKULL / n).read_bytes()) is not None] == []
