@@ -11,7 +11,6 @@ simplejpeg's strict mode, which turns libjpeg's warnings into errors.
 
 from __future__ import annotations
 
-import io
 from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -167,10 +166,9 @@ def jpeg_damage(data: bytes) -> str | None:
 @contextmanager
 def _open_whole(path: str | Path) -> Iterator[Image.Image]:
     """A PIL image decoded in full; ValueError for a JPEG that decodes only by recovering from damage."""
-    data = Path(path).read_bytes()
-    with Image.open(io.BytesIO(data)) as im:
+    with Image.open(path) as im:  # from the path, so that Pillow's messages name the file
         im.load()  # decodes every byte: a truncated file fails here, not at SIFT time
-        damage = jpeg_damage(data) if im.format == "JPEG" else None
+        damage = jpeg_damage(Path(path).read_bytes()) if im.format == "JPEG" else None
         if damage is not None:
             raise ValueError(damage)
         yield im
