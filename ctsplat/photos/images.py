@@ -168,7 +168,7 @@ def _open_whole(path: str | Path) -> Iterator[Image.Image]:
     """A PIL image decoded in full; ValueError for a JPEG that decodes only by recovering from damage."""
     with Image.open(path) as im:  # from the path, so that Pillow's messages name the file
         im.load()  # decodes every byte: a truncated file fails here, not at SIFT time
-        damage = jpeg_damage(Path(path).read_bytes()) if im.format == "JPEG" else None
+        damage = jpeg_damage(Path(path).read_bytes()) if im.format in ("JPEG", "MPO") else None
         if damage is not None:
             raise ValueError(damage)
         yield im

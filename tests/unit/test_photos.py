@@ -123,8 +123,15 @@ def test_jpeg_damage_passes_clean_jpegs_of_every_kind(tmp_path: Path) -> None:
     rgb.save(buf, "PNG")
     assert jpeg_damage(buf.getvalue()) is None
     (tmp_path / "png.png").write_bytes(buf.getvalue())
+    rgb.save(tmp_path / "mpo.jpg", "MPO", save_all=True, append_images=[rgb.convert("L").convert("RGB")])
+    with Image.open(tmp_path / "mpo.jpg") as im:  # two pictures in one file, which Pillow opens as MPO
+        assert im.format == "MPO"
     sizes = check_photos(tmp_path, list_photos(tmp_path), single_camera=True)
-    assert set(sizes.values()) == {(64, 48)} and len(sizes) == 6
+    assert set(sizes.values()) == {(64, 48)} and len(sizes) == 7
+    mpo = (tmp_path / "mpo.jpg").read_bytes()
+    (tmp_path / "mpo.jpg").write_bytes(_damaged(mpo[: len(mpo) // 2], "zeros") + mpo[len(mpo) // 2:])
+    with pytest.raises(CtsplatError, match=r"mpo\.jpg: Corrupt JPEG data"):
+        check_photos(tmp_path, list_photos(tmp_path), single_camera=True)
 
 
 def test_mixed_sizes_need_a_camera_per_image(tmp_path: Path) -> None:
