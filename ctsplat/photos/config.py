@@ -87,6 +87,8 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
             "start": 500,
             "stop_fraction": 0.17,  # densification stops at this fraction of the iterations (6000: after 1020)
             "grad_threshold": 2e-4,  # mean view-space positional gradient (3DGS NDC units)
+            # "pixel": Pixel-GS's average, weighted by the pixels covered and scaled down near the camera
+            "gradient": "mean",
             "percent_dense": 0.01,  # clone below / split above this fraction of the scene extent
             "prune_opacity": 0.005,
             # prune Gaussians wider than this fraction of the scene extent, after the first opacity reset (3DGS)

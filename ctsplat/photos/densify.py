@@ -15,12 +15,18 @@ camera centre are pruned at every densification step and in prune-only steps to 
 Gaussian fills more than a photo's field of view of that camera, so it is no surface that camera saw, yet a
 held-out camera near it looks through it. The gradient
 statistics are accumulated exactly as the radiative strategy does (:meth:`GradientDensify.accumulate`, 3DGS's NDC
-units).
+units). With ``gradient: pixel`` they follow Pixel-GS instead: each view's gradient norm is weighted by the pixels
+the Gaussian covers in it (:func:`ctsplat.splat.render.alpha_footprints`), so that a large Gaussian in a region
+the SfM points do not seed, seen whole in some views and at an edge in others, is not averaged below the threshold,
+and scaled by ``min(1, (z / (0.37 R))²)`` (``z`` its depth in the view, ``R`` the scene extent), so that
+Gaussians close to a camera, which cover many of its pixels, do not densify into floaters.
 
 References
 ----------
 Kerbl, B., Kopanas, G., Leimkühler, T., Drettakis, G. (2023). 3D Gaussian Splatting for real-time radiance field
 rendering. ACM TOG 42(4).
+Zhang, Z., Hu, W., Lao, Y., He, T., Zhao, H. (2024). Pixel-GS: Density control with pixel-aware gradient for 3D
+Gaussian splatting. ECCV.
 """
 
 from __future__ import annotations
@@ -36,6 +42,8 @@ from ctsplat.training.state import replace_params
 __all__ = ["AlphaDensify"]
 
 _RESET_OPACITY = 0.01
+#: Pixel-GS's depth at which a view's gradient is no longer scaled down, as a fraction of the scene extent.
+PIXEL_GS_DEPTH_FRACTION = 0.37
 
 
 class AlphaDensify:
@@ -67,7 +75,8 @@ class AlphaDensify:
         self.grad_accum = torch.zeros(means.shape[0], device=means.device)
         self.grad_count = torch.zeros(means.shape[0], device=means.device)
 
-    def accumulate(self, means2d_grad: torch.Tensor | None, visible: torch.Tensor, ndc_half: torch.Tensor) -> None:
+    def accumulate(self, means2d_grad: torch.Tensor | None, visible: torch.Tensor, ndc_half: torch.Tensor, *,
+                   footprints: torch.Tensor | None = None, depths: torch.Tensor | None = None) -> None:
         """Add one view's positional-gradient norms to the visible Gaussians' statistics.
 
         Parameters
@@ -77,8 +86,29 @@ class AlphaDensify:
         visible : Tensor (N,) bool
         ndc_half : Tensor (2,)
             ``(W/2, H/2)``.
+        footprints, depths : Tensor (N,), optional
+            Pixels covered and depth in the view (``RenderOutput.footprints``, ``.depths``); needed with
+            ``gradient: pixel``.
         """
-        GradientDensify.accumulate(self, means2d_grad, visible, ndc_half)
+        if self.settings["gradient"] != "pixel":
+            GradientDensify.accumulate(self, means2d_grad, visible, ndc_half)
+            return
+        if means2d_grad is None:
+            return
+        if footprints is None or depths is None:
+            raise ValueError("densify.gradient: pixel needs each view's footprints and depths")
+        near = PIXEL_GS_DEPTH_FRACTION * self.extent
+        scale = torch.clamp((depths / near) ** 2, max=1.0)
+        norm = (means2d_grad * ndc_half).norm(dim=-1) * scale
+        weight = torch.where(visible, footprints.to(norm.dtype), 0.0)
+        self.grad_accum += norm * weight
+        self.grad_count += weight
+
+    def mean_gradients(self) -> torch.Tensor:
+        """Each Gaussian's accumulated gradient statistic (0 where it was never visible), Tensor (N,)."""
+        if self.settings["gradient"] != "pixel":
+            return self.grad_accum / self.grad_count.clamp_min(1)
+        return torch.where(self.grad_count > 0, self.grad_accum / self.grad_count.clamp_min(1e-30), 0.0)
 
     def due(self, iteration: int) -> bool:
         """Whether a densification step (after the stop, with ``size_prune: always``, a prune-only step) runs after
@@ -120,7 +150,7 @@ class AlphaDensify:
         n = params["means"].shape[0]
         dev = params["means"].device
         with torch.no_grad():
-            avg = self.grad_accum / self.grad_count.clamp_min(1)
+            avg = self.mean_gradients()
             scales = torch.exp(params["log_scales"])
             smax = scales.max(-1).values
             cand = (avg >= float(d["grad_threshold"])) & (iteration <= self.stop)

@@ -114,7 +114,8 @@ class MCMCDensify:
         self.stop = int(float(mcmc["stop_fraction"]) * self.iterations)
         self.min_opacity = float(settings["prune_opacity"])
 
-    def accumulate(self, means2d_grad: torch.Tensor | None, visible: torch.Tensor, ndc_half: torch.Tensor) -> None:
+    def accumulate(self, means2d_grad: torch.Tensor | None, visible: torch.Tensor, ndc_half: torch.Tensor, *,
+                   footprints: torch.Tensor | None = None, depths: torch.Tensor | None = None) -> None:
         """Nothing to accumulate: the moves are driven by opacity, not by gradients."""
 
     def due(self, iteration: int) -> bool:

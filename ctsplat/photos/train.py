@@ -385,7 +385,7 @@ def train_scene(scene: PhotoScene, settings: dict[str, Any], log_path: Path | No
             raise CtsplatError(f"training diverged at iteration {it} (loss {float(loss)}); lower photos.train.lr")
         with torch.no_grad():
             ndc = torch.tensor([view.camera.width / 2, view.camera.height / 2], device=img.device)
-            dens.accumulate(out.means2d.grad, out.visible, ndc)
+            dens.accumulate(out.means2d.grad, out.visible, ndc, footprints=out.footprints, depths=out.depths)
         opt.step()
         opt.zero_grad(set_to_none=True)
         if isinstance(dens, MCMCDensify):

@@ -115,6 +115,8 @@ __all__ = [
     "BACKENDS",
     "RenderOutput",
     "Projection",
+    "ALPHA_MIN",
+    "alpha_footprints",
     "camera_intrinsics",
     "project",
     "render",
@@ -150,6 +152,8 @@ class RenderOutput:
         Gaussian touched at least one pixel.
     depths : Tensor (N,)
         ``z_cam`` in mm (sorting key for alpha).
+    footprints : Tensor (N,) or None
+        Alpha only: :func:`alpha_footprints`, the pixels where each Gaussian's α reaches 1/255 (no gradient).
     """
 
     image: torch.Tensor
@@ -157,6 +161,7 @@ class RenderOutput:
     radii: torch.Tensor
     visible: torch.Tensor
     depths: torch.Tensor
+    footprints: torch.Tensor | None = None
 
 
 @dataclass
@@ -423,6 +428,48 @@ _log = logging.getLogger(__name__)
 _triton_fallback_logged = False
 
 
+#: The α below which 3DGS's rasteriser skips a (Gaussian, pixel) pair: the edge of a Gaussian's footprint.
+ALPHA_MIN = 1.0 / 255.0
+
+
+def alpha_footprints(proj: Projection, height: int, width: int) -> torch.Tensor:
+    """Pixels covered by each Gaussian where its α reaches 1/255, the count Pixel-GS weights gradients by.
+
+    The region ``o exp(-½ dᵀ C d) ≥ 1/255`` is an ellipse of area ``2π ln(255 o) / sqrt(det C)`` (``C`` the conic,
+    ``o`` the opacity). For an ellipse cut by the image's edges the area is scaled by the fractions of its width
+    and of its height that lie in the image (exact for a cut through the centre, within ~10 % otherwise), and
+    capped by the Gaussian's pixel box clipped to the image.
+
+    Parameters
+    ----------
+    proj : Projection
+        Of the alpha compositor (``amps`` are opacities in (0, 1)).
+    height, width : int
+        The image, px.
+
+    Returns
+    -------
+    Tensor (N,)
+        px; 0 for culled Gaussians and those with opacity at most 1/255. No gradient.
+
+    References
+    ----------
+    Zhang, Z., Hu, W., Lao, Y., He, T., Zhao, H. (2024). Pixel-GS: Density control with pixel-aware gradient for
+    3D Gaussian splatting. ECCV.
+    """
+    with torch.no_grad():
+        con, o, bb, m = proj.conics, proj.amps, proj.bbox, proj.means2d.detach()
+        det = (con[:, 0] * con[:, 2] - con[:, 1] ** 2).clamp_min(1e-30)
+        r2 = 2.0 * torch.log((o / ALPHA_MIN).clamp_min(1.0))  # 0 where the opacity never reaches 1/255
+        area = math.pi * r2 / det.sqrt()
+        for axis, size, var in ((0, width, con[:, 2] / det), (1, height, con[:, 0] / det)):  # the inverse's diagonal
+            half = (r2 * var).sqrt().clamp_min(1e-30)
+            lo, hi = (m[:, axis] - half).clamp_min(0.0), (m[:, axis] + half).clamp_max(float(size))
+            area = area * ((hi - lo).clamp_min(0.0) / (2.0 * half)).clamp_max(1.0)
+        box = ((bb[:, 1] - bb[:, 0]).clamp_min(0) * (bb[:, 3] - bb[:, 2]).clamp_min(0)).to(o.dtype)
+        return torch.where(proj.valid, torch.minimum(area, box), 0.0)
+
+
 def _check_backend(backend: str, what: str) -> None:
     if backend not in BACKENDS:
         raise CtsplatError(f"unknown {what} backend {backend!r}; expected auto, reference, kernel or triton")
@@ -665,7 +712,9 @@ def render(
             img = img * mu_scale
         if transmission:
             img = torch.exp(-img)
-    return RenderOutput(image=img, means2d=proj.means2d, radii=radii, visible=visible, depths=proj.depths)
+    footprints = alpha_footprints(proj, H, W) if compositor == "alpha" else None
+    return RenderOutput(image=img, means2d=proj.means2d, radii=radii, visible=visible, depths=proj.depths,
+                        footprints=footprints)
 
 
 def _project_kernel(

@@ -484,6 +484,46 @@ def test_densify_statistics_are_kept_beside_the_gaussians() -> None:
     assert dens.grad_accum.shape == dens.grad_count.shape == (5,)
 
 
+def test_pixel_gradient_is_the_pixel_weighted_depth_scaled_average() -> None:
+    """``gradient: pixel`` (Pixel-GS): Σ_v n_v s_v ‖g_v‖ / Σ_v n_v over the views where a Gaussian is visible, with
+    n_v its pixels and s_v = min(1, (z_v / (0.37 R))²), against the sums written out; ``mean`` keeps 3DGS's
+    Σ_v ‖g_v‖ / (views visible)."""
+    from ctsplat.photos.densify import AlphaDensify
+
+    rng = np.random.default_rng(0)
+    n, views, extent = 6, 4, 2.0
+    grads = rng.normal(size=(views, n, 2))
+    feet = rng.uniform(0.5, 400.0, size=(views, n))
+    depths = rng.uniform(0.2, 3.0, size=(views, n))  # 0.37 x 2 = 0.74: some scaled down, some not
+    visible = rng.random((views, n)) > 0.3
+    visible[:, 5] = False  # never seen: statistic 0
+    ndc = np.array([40.0, 30.0])
+    stats = {}
+    for mode in ("mean", "pixel"):
+        settings = {**photo_settings()["train"]["densify"], "gradient": mode}
+        dens = AlphaDensify(settings, iterations=100, extent=extent, means=torch.zeros(n, 3, dtype=torch.float64))
+        dens.grad_accum = dens.grad_accum.double()
+        dens.grad_count = dens.grad_count.double()
+        for v in range(views):
+            dens.accumulate(torch.tensor(grads[v]), torch.tensor(visible[v]), torch.tensor(ndc),
+                            footprints=torch.tensor(feet[v]), depths=torch.tensor(depths[v]))
+        stats[mode] = dens.mean_gradients().numpy()
+    norm = np.linalg.norm(grads * ndc, axis=-1)
+    scale = np.minimum(1.0, (depths / (0.37 * extent)) ** 2)
+    assert (scale < 1).any() and (scale == 1).any()
+    w = feet * visible
+    with np.errstate(invalid="ignore"):
+        pixel = np.where(w.sum(0) > 0, (w * scale * norm).sum(0) / w.sum(0), 0.0)
+    mean = (visible * norm).sum(0) / np.maximum(visible.sum(0), 1)
+    np.testing.assert_allclose(stats["pixel"], pixel, rtol=1e-12)
+    np.testing.assert_allclose(stats["mean"], mean, rtol=1e-12)
+    assert stats["pixel"][5] == stats["mean"][5] == 0.0
+    settings = {**photo_settings()["train"]["densify"], "gradient": "pixel"}
+    dens = AlphaDensify(settings, iterations=100, extent=extent, means=torch.zeros(n, 3))
+    with pytest.raises(ValueError, match="footprints and depths"):
+        dens.accumulate(torch.zeros(n, 2), torch.ones(n, dtype=torch.bool), torch.tensor(ndc))
+
+
 def _three_gaussians() -> dict[str, torch.Tensor]:
     """A wide opaque Gaussian (0.5 x the extent of 1), a small opaque one and a small transparent one."""
     from ctsplat.photos.train import init_params

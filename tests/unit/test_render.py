@@ -17,6 +17,41 @@ from ctsplat.splat.render import EPS_2D, compute_3d_filter, project, render, vox
 from ctsplat.utils import CtsplatError
 
 D64 = torch.float64
+@pytest.mark.parametrize("backend", ["reference", "kernel"])
+def test_alpha_footprints_count_the_pixels_where_alpha_reaches_1_255(backend):
+    """Pixel-GS's weight: the ellipse area where ``o e^q ≥ 1/255`` against a per-pixel count with the EWA
+    covariance rebuilt in numpy, for Gaussians inside the image and cut by its edge."""
+    if backend == "kernel" and not _kernel_available():
+        pytest.skip("fused C++ kernel unavailable")
+    g = _mixture(8, seed=3, spread=8.0, smin=1.0, smax=2.5)
+    cam = ParallelCamera(96, 80, 0.25)
+    R, t = _pose(30.0, 10.0, dist=100.0)
+    out = render(g, cam, R, t, compositor="alpha", sigma_cutoff=4.0, backend=backend)
+    m, cov, op = g.means.detach().numpy(), g.covariances.detach().numpy(), g.opacities.detach().numpy()
+    xc = m @ R.numpy().T + t.numpy()
+    u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+    J = np.hstack([np.eye(2) / cam.spacing_mm, np.zeros((2, 1))])
+    inside = cut = 0
+    for i in range(len(m)):
+        c2 = J @ R.numpy() @ cov[i] @ R.numpy().T @ J.T + (0.3 + EPS_2D) * np.eye(2)
+        P = np.linalg.inv(c2)
+        mu = np.array([xc[i, 0] / cam.spacing_mm + cam.cx, xc[i, 1] / cam.spacing_mm + cam.cy])
+        du, dv = u - mu[0], v - mu[1]
+        q = -0.5 * (P[0, 0] * du**2 + 2 * P[0, 1] * du * dv + P[1, 1] * dv**2)
+        count = int((op[i] * np.exp(q) >= 1 / 255).sum())
+        r2 = 2 * math.log(255 * op[i])
+        half = np.sqrt(r2 * np.diag(c2))  # the ellipse's half width and half height, px
+        fp = float(out.footprints[i])
+        if np.all(mu - half >= 0) and np.all(mu + half <= [cam.width, cam.height]):
+            inside += 1
+            assert fp == pytest.approx(count, rel=0.02), i
+        else:  # cut by the image's edge
+            cut += 1
+            assert fp == pytest.approx(count, rel=0.1), i
+    assert inside >= 3 and cut >= 2 and out.footprints.min() >= 0
+    assert render(g, cam, R, t, compositor="radiative", backend=backend).footprints is None
+
+
 DIRECTIONS = [(0.0, 0.0), (37.0, 20.0), (100.0, -45.0), (210.0, 70.0)]
 
 
