@@ -16,10 +16,12 @@ Gaussian fills more than a photo's field of view of that camera, so it is no sur
 held-out camera near it looks through it. The gradient
 statistics are accumulated exactly as the radiative strategy does (:meth:`GradientDensify.accumulate`, 3DGS's NDC
 units). With ``gradient: pixel`` they follow Pixel-GS instead: each view's gradient norm is weighted by the pixels
-the Gaussian covers in it (:func:`ctsplat.splat.render.alpha_footprints`), so that a large Gaussian in a region
-the SfM points do not seed, seen whole in some views and at an edge in others, is not averaged below the threshold,
-and scaled by ``min(1, (z / (0.37 R))²)`` (``z`` its depth in the view, ``R`` the scene extent), so that
-Gaussians close to a camera, which cover many of its pixels, do not densify into floaters.
+the Gaussian covers in it, so that a large Gaussian in a region the SfM points do not seed, seen whole in some
+views and at an edge in others, is not averaged below the threshold, and scaled by ``min(1, (z / (0.37 R))²)``
+(``z`` its depth in the view, ``R`` the scene extent), so that Gaussians close to a camera, which cover many of
+its pixels, do not densify into floaters. The pixels are :func:`ctsplat.splat.render.alpha_footprints`, which
+counts those where the Gaussian is hidden too; Pixel-GS counts only those it is blended into before the pixel's
+transmittance falls below 1e-4 (a compositor output this renderer does not have).
 
 References
 ----------

@@ -3,14 +3,17 @@
 Checked before any output is written, so a bad folder fails with one line naming the file (or count) and leaves
 nothing behind.
 
-"Decodes whole" includes JPEG files whose compressed data is damaged inside the file: libjpeg (under Pillow, and
-under COLMAP) recovers from those with a warning that Pillow does not pass on, filling the rest of the image with
-grey, so Pillow alone reads such a photo as valid. :func:`jpeg_damage` decodes JPEG files a second time with
-simplejpeg's strict mode, which turns libjpeg's warnings into errors.
+"Decodes whole" includes JPEG files whose compressed data libjpeg finds damaged inside the file: libjpeg (under
+Pillow, and under COLMAP) recovers from those with a warning that Pillow does not pass on, filling the rest of the
+image with grey, so Pillow alone reads such a photo as valid. :func:`jpeg_damage` decodes JPEG files a second time
+with simplejpeg's strict mode, which turns libjpeg's warnings into errors, and keeps those that say the data is
+corrupt. Damage that keeps the decoder in step (a flipped bit that still reads as valid codes) leaves no trace a
+decoder can see, and passes.
 """
 
 from __future__ import annotations
 
+import re
 from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -123,6 +126,18 @@ def check_photos(folder: str | Path, names: list[str], *, single_camera: bool) -
     return sizes
 
 
+#: How libjpeg's warnings that the compressed data is damaged begin (jerror.h: JWRN_HIT_MARKER, JWRN_HUFF_BAD_CODE,
+#: JWRN_ARITH_BAD_CODE, JWRN_MUST_RESYNC, JWRN_EXTRANEOUS_DATA, JWRN_JPEG_EOF). Its other warnings (a JFIF revision,
+#: scan parameters a baseline file should not carry) are about headers: the pixels decode as written.
+_DAMAGE_WARNINGS = ("Corrupt JPEG data:", "Premature end of JPEG file")
+#: A malformed ICC profile segment: a "corrupt data" warning that is not about the pixels.
+_BENIGN_WARNINGS = ("bad ICC marker",)
+#: Bytes between the last scan and the end-of-image marker: up to this many are padding (webcams and some cameras
+#: write a few in intact files); more are data that a damaged scan left unread.
+_PADDING_BYTES = 16
+_PADDING = re.compile(r"(\d+) extraneous bytes before marker 0xd9")
+
+
 def jpeg_damage(data: bytes) -> str | None:
     """libjpeg's warning when JPEG data decodes only by recovering from damage inside it, else None.
 
@@ -134,10 +149,12 @@ def jpeg_damage(data: bytes) -> str | None:
     Returns
     -------
     str or None
-        The first line of libjpeg's warning (e.g. "Corrupt JPEG data: premature end of data segment") when the
-        strict decode fails and the ordinary one succeeds; None for a clean JPEG, for data after the end-of-image
-        marker (camera trailers, MPO), and for JPEG kinds simplejpeg does not decode at all (Pillow has then
+        The first line of libjpeg's first warning (e.g. "Corrupt JPEG data: premature end of data segment") when
+        it says the compressed data is corrupt; None for a clean JPEG, for data after the end-of-image marker
+        (camera trailers, MPO), for up to 16 bytes before that marker after the last scan (padding, which webcams
+        write), for warnings about headers, and for JPEG kinds simplejpeg does not decode (Pillow has then
         decoded them).
+        The strict decode stops at the first warning, so damage after a header warning is not seen.
 
     Examples
     --------
@@ -155,11 +172,12 @@ def jpeg_damage(data: bytes) -> str | None:
     try:
         simplejpeg.decode_jpeg(data, strict=True)
     except ValueError as exc:
-        try:
-            simplejpeg.decode_jpeg(data, strict=False)
-        except ValueError:
-            return None  # a kind simplejpeg cannot decode at all, not damage
-        return str(exc).splitlines()[0]
+        message = str(exc).splitlines()[0] if str(exc) else ""
+        padding = _PADDING.search(message)
+        if padding is not None and int(padding.group(1)) <= _PADDING_BYTES:
+            return None
+        if message.startswith(_DAMAGE_WARNINGS) and not any(w in message for w in _BENIGN_WARNINGS):
+            return message
     return None
 
 

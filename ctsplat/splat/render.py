@@ -433,12 +433,14 @@ ALPHA_MIN = 1.0 / 255.0
 
 
 def alpha_footprints(proj: Projection, height: int, width: int) -> torch.Tensor:
-    """Pixels covered by each Gaussian where its α reaches 1/255, the count Pixel-GS weights gradients by.
+    """Pixels covered by each Gaussian where its α reaches 1/255, whoever lies in front of it.
 
     The region ``o exp(-½ dᵀ C d) ≥ 1/255`` is an ellipse of area ``2π ln(255 o) / sqrt(det C)`` (``C`` the conic,
     ``o`` the opacity). For an ellipse cut by the image's edges the area is scaled by the fractions of its width
-    and of its height that lie in the image (exact for a cut through the centre, within ~10 % otherwise), and
-    capped by the Gaussian's pixel box clipped to the image.
+    and of its height that lie in the image, and capped by the Gaussian's pixel box clipped to the image: exact
+    for an ellipse wholly in the image, an estimate otherwise (an ellipse elongated along a diagonal and cut at
+    a corner can be off by a factor of 2-3). Pixel-GS's weight is the count of pixels its rasteriser blends the
+    Gaussian into before their transmittance falls below 1e-4; this one counts occluded pixels too.
 
     Parameters
     ----------
@@ -635,7 +637,7 @@ def render(
     -------
     RenderOutput
         ``image (H, W)`` (alpha with C>1 colour channels: (H, W, C)), ``means2d (N, 2)``, ``radii (N,)``,
-        ``visible (N,)``, ``depths (N,)``.
+        ``visible (N,)``, ``depths (N,)``, ``footprints (N,)`` (alpha; else None).
     """
     if compositor not in COMPOSITORS:
         raise CtsplatError(f"unknown compositor {compositor!r}; expected one of {', '.join(COMPOSITORS)}")

@@ -103,8 +103,8 @@ def test_jpeg_damaged_inside_fails_naming_the_file(tmp_path: Path, how: str) -> 
 
 
 def test_jpeg_damage_passes_clean_jpegs_of_every_kind(tmp_path: Path) -> None:
-    """Greyscale, CMYK, progressive and EXIF-bearing JPEGs, data after the end-of-image marker (camera trailers)
-    and other formats are not damage."""
+    """Greyscale, CMYK, progressive and EXIF-bearing JPEGs, data after the end-of-image marker (camera trailers),
+    bytes before it (webcams), a header warning and other formats are not damage."""
     import io
 
     rng = np.random.default_rng(0)
@@ -117,8 +117,16 @@ def test_jpeg_damage_passes_clean_jpegs_of_every_kind(tmp_path: Path) -> None:
         data = buf.getvalue()
         assert jpeg_damage(data) is None, name
         assert jpeg_damage(data + b"\x00" * 512 + b"MPF trailer") is None, name
+        assert jpeg_damage(data[:-2] + b"\x00" * 2 + data[-2:]) is None, name  # padding before the end marker
         assert jpeg_damage(_damaged(data, "zeros")).startswith("Corrupt JPEG data"), name
         (tmp_path / f"{name}.jpg").write_bytes(data)
+    data = (tmp_path / "rgb.jpg").read_bytes()
+    sos = data.index(b"\xff\xda") + 4 + 1 + 2 * data[data.index(b"\xff\xda") + 4]  # Ss, Se, AhAl follow
+    assert data[sos:sos + 3] == b"\x00\x3f\x00"
+    odd = data[:sos + 1] + b"\x00" + data[sos + 2:]  # Se 0 in a baseline scan: a header warning, same pixels
+    with Image.open(io.BytesIO(odd)) as a, Image.open(io.BytesIO(data)) as b:
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+    assert jpeg_damage(odd) is None
     buf = io.BytesIO()
     rgb.save(buf, "PNG")
     assert jpeg_damage(buf.getvalue()) is None
@@ -190,6 +198,7 @@ def test_cli_reports_one_line_and_exit_code_2(tmp_path: Path, capsys: pytest.Cap
     (["train.test_every=1"], "test_every 1 holds out every photo (none is left for training)"),
     (["train.test_every=2", "train.holdout=validation"], "test_every 2 holds out every photo (with the validation"),
     (["train.test_every=0"], "test_every 0 holds out no photo"),
+    (["train.densify.strategy=mcmc", "train.densify.gradient=pixel"], "densify.gradient pixel needs the default"),
     ([], "output folder {out}/run already holds files"),
 ])
 def test_photos_run_refuses_what_training_would_before_sfm_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
@@ -522,6 +531,37 @@ def test_pixel_gradient_is_the_pixel_weighted_depth_scaled_average() -> None:
     dens = AlphaDensify(settings, iterations=100, extent=extent, means=torch.zeros(n, 3))
     with pytest.raises(ValueError, match="footprints and depths"):
         dens.accumulate(torch.zeros(n, 2), torch.ones(n, dtype=torch.bool), torch.tensor(ndc))
+
+
+def test_pixel_gradient_training_accumulates_each_views_footprints_and_depths(monkeypatch: pytest.MonkeyPatch
+                                                                              ) -> None:
+    """``gradient: pixel`` in training: each view's statistic gets that view's render's footprints and depths."""
+    import ctsplat.photos.train as train_module
+    from ctsplat.photos.densify import AlphaDensify
+
+    scene, _ = _synthetic_scene()
+    renders, seen = [], []
+    render = train_module.render_view
+    accumulate = AlphaDensify.accumulate
+
+    def spy_render(*a: Any, **k: Any) -> Any:
+        out = render(*a, **k)
+        renders.append(out)
+        return out
+
+    def spy_accumulate(self: AlphaDensify, *a: Any, **k: Any) -> None:
+        last = renders[-1]  # the training view's render: evaluation renders are not accumulated
+        assert k["footprints"] is last.footprints and k["depths"] is last.depths
+        assert torch.equal(a[1], last.visible) and float(last.footprints[last.visible].min()) > 0
+        seen.append(float(k["footprints"].sum()))
+        accumulate(self, *a, **k)
+
+    monkeypatch.setattr(train_module, "render_view", spy_render)
+    monkeypatch.setattr(AlphaDensify, "accumulate", spy_accumulate)
+    densify = {"gradient": "pixel", "start": 3, "interval": 3, "stop_fraction": 1.0, "grad_threshold": 1e-9}
+    s = photo_settings({"train": {"iterations": 6, "log_every": 100, "densify": densify}})["train"]
+    _, report = train_scene(scene, s)
+    assert len(seen) == 6 and min(seen) > 0 and report["n_gaussians"] != len(scene.xyz)
 
 
 def _three_gaussians() -> dict[str, torch.Tensor]:

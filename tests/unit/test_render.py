@@ -52,6 +52,28 @@ def test_alpha_footprints_count_the_pixels_where_alpha_reaches_1_255(backend):
     assert render(g, cam, R, t, compositor="radiative", backend=backend).footprints is None
 
 
+@pytest.mark.parametrize("backend", ["reference", "kernel"])
+def test_alpha_footprints_are_capped_by_the_drawn_box_and_zero_when_culled(backend):
+    """With a 1σ box the ellipse where α ≥ 1/255 covers the whole box, so the footprint is the box (clipped to the
+    image); a Gaussian behind a pinhole camera's centre is culled and covers nothing (float32, cone camera)."""
+    if backend == "kernel" and not _kernel_available():
+        pytest.skip("fused C++ kernel unavailable")
+    g = _mixture(6, seed=5, spread=4.0, smin=1.0, smax=2.0, dtype=torch.float32)
+    cam = ConeCamera(64, 48, 1.0, 150.0, 300.0)
+    R, t = _pose(20.0, 5.0, dist=150.0)
+    with torch.no_grad():  # the last one 10 mm behind the source
+        g.means[-1] = torch.as_tensor(-R.T @ t, dtype=torch.float32) - 10.0 * torch.as_tensor(R[2], dtype=torch.float32)
+    out = render(g, cam, R, t, compositor="alpha", sigma_cutoff=1.0, backend=backend)
+    proj = project(g, cam, R, t, compositor="alpha", sigma_cutoff=1.0)
+    bb = proj.bbox
+    box = ((bb[:, 1] - bb[:, 0]) * (bb[:, 3] - bb[:, 2])).double()
+    assert not bool(proj.valid[-1]) and float(out.footprints[-1]) == 0.0
+    assert out.footprints.dtype == torch.float32
+    inside = proj.valid & (box > 0)
+    assert int(inside.sum()) >= 4
+    np.testing.assert_allclose(out.footprints[inside].double().numpy(), box[inside].numpy(), rtol=1e-5)
+
+
 DIRECTIONS = [(0.0, 0.0), (37.0, 20.0), (100.0, -45.0), (210.0, 70.0)]
 
 
