@@ -87,8 +87,9 @@ PHOTOS_DEFAULTS: dict[str, Any] = {
             "start": 500,
             "stop_fraction": 0.17,  # densification stops at this fraction of the iterations (6000: after 1020)
             "grad_threshold": 2e-4,  # mean view-space positional gradient (3DGS NDC units)
-            # "pixel": Pixel-GS's average, weighted by the pixels covered and scaled down near the camera
-            "gradient": "mean",
+            # Pixel-GS's average, weighted by the pixels covered and scaled down near the camera (chosen on the
+            # validation folds); "mean": 3DGS's. MCMC relocates by opacity and uses neither
+            "gradient": "pixel",
             "percent_dense": 0.01,  # clone below / split above this fraction of the scene extent
             "prune_opacity": 0.005,
             # prune Gaussians wider than this fraction of the scene extent, after the first opacity reset (3DGS)
@@ -180,8 +181,8 @@ def check_train_settings(s: dict[str, Any]) -> None:
     ------
     CtsplatError
         One line naming the key: iterations below 1, a downscale other than 1, 2, 4 or 8, an SH degree outside
-        0..3, a hold-out period that leaves no held-out photo (0) or no training photo, a validation offset
-        outside 1 .. ``test_every`` - 1, or a densification statistic MCMC does not use.
+        0..3, a hold-out period that leaves no held-out photo (0) or no training photo, or a validation offset
+        outside 1 .. ``test_every`` - 1.
     """
     every, validation = int(s["test_every"]), held_out_split(s) == "val"
     if every == 0:
@@ -199,6 +200,3 @@ def check_train_settings(s: dict[str, Any]) -> None:
         raise CtsplatError(f"photos.train.downscale must be 1, 2, 4 or 8, got {s['downscale']}")
     if not 0 <= int(s["sh_degree"]) <= 3:
         raise CtsplatError(f"photos.train.sh_degree must be 0..3, got {s['sh_degree']}")
-    if s["densify"]["strategy"] == "mcmc" and s["densify"]["gradient"] != "mean":
-        raise CtsplatError(f"photos.train.densify.gradient {s['densify']['gradient']} needs the default density "
-                           "control (MCMC relocates by opacity, not by gradients); drop it or strategy: mcmc")

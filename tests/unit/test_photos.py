@@ -198,7 +198,6 @@ def test_cli_reports_one_line_and_exit_code_2(tmp_path: Path, capsys: pytest.Cap
     (["train.test_every=1"], "test_every 1 holds out every photo (none is left for training)"),
     (["train.test_every=2", "train.holdout=validation"], "test_every 2 holds out every photo (with the validation"),
     (["train.test_every=0"], "test_every 0 holds out no photo"),
-    (["train.densify.strategy=mcmc", "train.densify.gradient=pixel"], "densify.gradient pixel needs the default"),
     ([], "output folder {out}/run already holds files"),
 ])
 def test_photos_run_refuses_what_training_would_before_sfm_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
