@@ -1083,6 +1083,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("photos", "train.densify.prune_scale_fraction"): _POSITIVE,
     ("photos", "train.densify.size_prune"): {"enum": ["after_reset", "always"]},
     ("photos", "train.densify.near_prune"): {"type": "number", "minimum": 0},
+    ("photos", "train.densify.gradient"): {"enum": ["mean", "pixel"]},
     ("photos", "train.densify.opacity_reset_interval"): {"type": "integer", "minimum": 0},
     ("photos", "train.densify.max_gaussians"): _COUNT,
     ("photos", "train.mcmc.cap_max"): _COUNT,
