@@ -107,10 +107,12 @@ class AlphaDensify:
         self.grad_count += weight
 
     def mean_gradients(self) -> torch.Tensor:
-        """Each Gaussian's accumulated gradient statistic (0 where it was never visible), Tensor (N,)."""
-        if self.settings["gradient"] != "pixel":
-            return self.grad_accum / self.grad_count.clamp_min(1)
-        return torch.where(self.grad_count > 0, self.grad_accum / self.grad_count.clamp_min(1e-30), 0.0)
+        """Each Gaussian's accumulated gradient statistic (0 where it was never visible), Tensor (N,).
+
+        The count is views (``mean``, at least 1 where visible) or pixels (``pixel``, possibly below 1): the floor
+        only keeps 0 / 0 finite, and where the count is 0 the sum is 0 too.
+        """
+        return self.grad_accum / self.grad_count.clamp_min(1e-30)
 
     def due(self, iteration: int) -> bool:
         """Whether a densification step (after the stop, with ``size_prune: always``, a prune-only step) runs after
