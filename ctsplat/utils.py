@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import hashlib
 import json
 import logging
@@ -198,7 +199,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
 
 def check_output_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str] | None = None,
-                     inputs: Sequence[str | os.PathLike[str]] = ()) -> None:
+                     contents: Sequence[str] = (), inputs: Sequence[str | os.PathLike[str]] = ()) -> None:
     """Refuse an output folder whose replacement would destroy something that is not an earlier output.
 
     Parameters
@@ -209,6 +210,11 @@ def check_output_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str
         Glob patterns, one of which an earlier output of the same step matches inside the folder
         (``"summary.json"``, ``"*.png"``); a non-empty folder without a match is refused. None: only a new or empty
         folder is accepted.
+    contents : sequence of str
+        Patterns of the other files an earlier output holds, as paths relative to the folder (``fnmatch``: ``*``
+        also matches ``/``; ``"figures/*"``). A folder holding a file that matches neither these nor ``marker``
+        is refused, whatever else it holds: replacing it would delete that file. Snakemake's
+        ``.snakemake_timestamp`` in the folders it made is always allowed.
     inputs : sequence of paths
         The step's inputs: the output may be neither one of them nor a folder that holds one.
 
@@ -232,31 +238,40 @@ def check_output_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str
         return
     if not path.is_dir():
         raise CtsplatError(f"output {path} exists and is not a folder; choose a new or empty folder")
-    holds_files = any(p.is_file() or p.is_symlink() for p in path.rglob("*"))  # empty sub-folders do not count
+    files = sorted(p.relative_to(path).as_posix() for p in path.rglob("*") if p.is_file() or p.is_symlink())
+    if not files:  # empty sub-folders (as Snakemake makes them) do not count
+        return
     markers = [marker] if isinstance(marker, str) else list(marker or ())
-    if holds_files and not any(any(path.glob(m)) for m in markers):
+    if not any(any(path.glob(m)) for m in markers):
         what = f" (no {' or '.join(markers)} in it)" if markers else ""
         raise CtsplatError(f"output folder {path} already holds files that are not an earlier output of this "
                            f"step{what}; choose a new or empty folder, or remove it first")
+    allowed = [*markers, *contents]
+    foreign = [f for f in files if Path(f).name != ".snakemake_timestamp"
+               and not any(fnmatch.fnmatchcase(f, pattern) for pattern in allowed)]
+    if foreign:
+        more = f" and {len(foreign) - 1} more" if len(foreign) > 1 else ""
+        raise CtsplatError(f"output folder {path} holds {foreign[0]}{more}, which this step does not write, and "
+                           "replacing the folder would delete it; choose a new or empty folder, or move it away")
 
 
 @contextlib.contextmanager
 def atomic_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str] | None = None,
-               inputs: Sequence[str | os.PathLike[str]] = ()) -> Iterator[Path]:
+               contents: Sequence[str] = (), inputs: Sequence[str | os.PathLike[str]] = ()) -> Iterator[Path]:
     """Yield an empty temporary folder next to ``path``; it replaces ``path`` only if the block succeeds.
 
     The folder-level twin of :func:`atomic_path`: an existing ``path`` is removed and the temporary folder renamed
     onto it (one file system, so readers see the old folder or the whole new one); on any error the temporary
     folder is removed and the exception propagates, leaving ``path`` as it was. Only an empty folder or an earlier
-    output (``marker``) is ever removed, and never an input (:func:`check_output_dir`, called before the block
-    and again before the removal).
+    output (``marker``, ``contents``) is ever removed, and never an input (:func:`check_output_dir`, called before
+    the block and again before the removal).
 
     Parameters
     ----------
     path : str or os.PathLike
         The final output folder. Its parent folder is created if missing (and removed again, if still empty, when
         the block fails).
-    marker, inputs
+    marker, contents, inputs
         As in :func:`check_output_dir`.
 
     Yields
@@ -275,11 +290,12 @@ def atomic_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str] | No
     ...     _ = (tmp / "views.json").write_text("{}")
     """
     path = Path(path)
-    check_output_dir(path, marker=marker, inputs=inputs)
+    check_output_dir(path, marker=marker, contents=contents, inputs=inputs)
     with made_parents(path), scratch_dir(path.parent, prefix=f".{path.name}.") as tmp:
         os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp creates 0700
         yield tmp
-        check_output_dir(path, marker=marker, inputs=inputs)  # the folder may have changed while the block ran
+        # the folder may have changed while the block ran
+        check_output_dir(path, marker=marker, contents=contents, inputs=inputs)
         if path.exists():
             shutil.rmtree(path)
         os.replace(tmp, path)

@@ -17,7 +17,7 @@ __all__ = ["PHOTOS_DEFAULTS", "SFM_SUMMARY_KEYS", "photo_settings", "held_out_sp
            "check_train_settings"]
 
 #: the keys of a photo SfM folder's ``summary.json`` that the CLI prints and ``metrics.json`` repeats
-SFM_SUMMARY_KEYS = ("n_images", "n_registered", "registration_rate", "unregistered", "models_found",
+SFM_SUMMARY_KEYS = ("n_images", "n_registered", "registration_rate", "unregistered", "not_read", "models_found",
                     "mean_reprojection_error_px", "n_points")
 
 #: Defaults of the ``photos`` config section (JSON-serialisable).

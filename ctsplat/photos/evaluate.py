@@ -19,7 +19,7 @@ image name as ``view_id``), ``figures/gallery.png`` and ``figures/turntable.gif`
 
 from __future__ import annotations
 
-import json
+import logging
 import time
 from pathlib import Path
 from typing import Any
@@ -46,6 +46,8 @@ from ctsplat.utils import (
 )
 
 __all__ = ["evaluate_photos", "run_config", "run_scene", "turntable_poses", "save_photo_gallery", "save_turntable_gif"]
+
+log = logging.getLogger(__name__)
 
 
 def turntable_poses(views: list[PhotoView], n: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -92,7 +94,9 @@ def turntable_poses(views: list[PhotoView], n: int) -> list[tuple[np.ndarray, np
 
 
 def _footer(attribution: str) -> str:
-    return f"Photographs: {attribution}" if attribution else "Photographs: (no attribution given)"
+    """The credit line under every figure; it says how the photographs were changed (CC BY asks for that)."""
+    credit = attribution or "(no attribution given)"
+    return f"Photographs: {credit} (undistorted and downscaled here; the renders are of a model trained on them)"
 
 
 def save_photo_gallery(path: str | Path, photos: list[np.ndarray], renders: list[np.ndarray], names: list[str],
@@ -273,6 +277,13 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     run_dir = Path(run_dir)
     cfg = run_config(run_dir)
     t = cfg["train"]
+    # every input is read before the first output is written: a bad one leaves the earlier outputs as they were
+    training, sfm = ({} if not path.is_file() else read_json_object(path, what=what, fix=fix) for path, what, fix in (
+        (run_dir / "training.json", "photo training record", "run `ctsplat photos-train` again"),
+        (Path(cfg["sfm_dir"]) / "summary.json", "SfM summary", "run `ctsplat photos-sfm` again")))
+    if not s["attribution"]:
+        log.warning("photos.evaluate.attribution is empty: the gallery and turntable show the photographs without "
+                    "their credit line; give it (--attribution) where their licence asks for one")
     device = resolve_device(t["device"])
     reset_gpu_peak(device)
     held = held_out_split(t)
@@ -315,9 +326,6 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
             frames = [render_view(g, None, cam, R, tt, background=bg).image.clamp(0, 1).cpu().numpy()
                       for R, tt in turntable_poses(scene.views, n_frames)]
         save_turntable_gif(run_dir / "figures" / "turntable.gif", frames, s["attribution"])
-    training = json.loads((run_dir / "training.json").read_text()) if (run_dir / "training.json").is_file() else {}
-    sfm_summary = Path(cfg["sfm_dir"]) / "summary.json"
-    sfm = json.loads(sfm_summary.read_text()) if sfm_summary.is_file() else {}
     ms = float(np.mean(times)) * 1000
     metrics = {
         "psnr": float(np.mean([r["psnr2d"] for r in rows])),

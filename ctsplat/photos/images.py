@@ -13,6 +13,7 @@ decoder can see, and passes.
 
 from __future__ import annotations
 
+import logging
 import re
 from collections import Counter
 from collections.abc import Iterator
@@ -24,10 +25,18 @@ from PIL import Image
 
 from ctsplat.utils import CtsplatError, atomic_path
 
-__all__ = ["IMAGE_SUFFIXES", "list_photos", "check_photo_count", "check_photos", "jpeg_damage", "load_rgb",
-           "strip_metadata"]
+__all__ = ["IMAGE_SUFFIXES", "OTHER_IMAGE_SUFFIXES", "list_photos", "unread_entries", "check_photo_count",
+           "check_photos", "jpeg_damage", "load_rgb", "strip_metadata"]
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+
+#: Suffixes of pictures that are not read (Pillow's formats, phones' HEIF/AVIF, cameras' raw files): a photo folder
+#: entry with one of them is reported, not passed over in silence.
+OTHER_IMAGE_SUFFIXES = frozenset(
+    {*Image.registered_extensions(), ".heic", ".heif", ".avif", ".jxl", ".dng", ".cr2", ".cr3", ".nef", ".arw",
+     ".orf", ".rw2", ".raf"} - set(IMAGE_SUFFIXES))
+
+log = logging.getLogger(__name__)
 
 
 def list_photos(folder: str | Path) -> list[str]:
@@ -40,7 +49,8 @@ def list_photos(folder: str | Path) -> list[str]:
     Returns
     -------
     list of str
-        File names with a suffix of :data:`IMAGE_SUFFIXES` (any case).
+        File names with a suffix of :data:`IMAGE_SUFFIXES` (any case), hidden files (``.name``, such as macOS's
+        ``._name.jpg``) left out. Pictures that are not read (:func:`unread_entries`) are named in a warning.
 
     Raises
     ------
@@ -50,11 +60,40 @@ def list_photos(folder: str | Path) -> list[str]:
     folder = Path(folder)
     if not folder.is_dir():
         raise CtsplatError(f"photo folder {folder} does not exist or is not a folder")
-    names = sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    names = sorted(p.name for p in folder.iterdir()
+                   if not p.name.startswith(".") and p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    unread = unread_entries(folder)
+    if unread:
+        log.warning("%s: %d entries look like photos but are not read (only %s files are; links must reach a "
+                    "file): %s", folder, len(unread), ", ".join(IMAGE_SUFFIXES), ", ".join(unread))
     if not names:
         raise CtsplatError(f"photo folder {folder} holds no images ({', '.join(IMAGE_SUFFIXES)}); "
                            "point it at the folder with the photographs")
     return names
+
+
+def unread_entries(folder: str | Path) -> list[str]:
+    """The entries of a photo folder that look like pictures but are not read: other picture formats
+    (:data:`OTHER_IMAGE_SUFFIXES`) and links to nothing; hidden names left out.
+
+    Parameters
+    ----------
+    folder : str or Path
+        An existing folder.
+
+    Returns
+    -------
+    list of str
+        Sorted names.
+    """
+    out = []
+    for p in Path(folder).iterdir():
+        suffix = p.suffix.lower()
+        if p.name.startswith(".") or suffix not in {*IMAGE_SUFFIXES, *OTHER_IMAGE_SUFFIXES}:
+            continue
+        if suffix in OTHER_IMAGE_SUFFIXES or (p.is_symlink() and not p.exists()):
+            out.append(p.name)
+    return sorted(out)
 
 
 def check_photo_count(folder: str | Path, n_photos: int, min_registered: int) -> None:
@@ -273,6 +312,8 @@ def strip_metadata(path: str | Path) -> None:
                 with Image.open(path) as im:
                     im.load()
                     icc = im.info.get("icc_profile")
-                    im.save(tmp, **({"icc_profile": icc} if icc else {}))
+                    # a copy holds the pixels only: saving the opened TIFF itself would copy its XMP, IPTC and
+                    # Photoshop blocks into the new file
+                    im.copy().save(tmp, format=im.format, **({"icc_profile": icc} if icc else {}))
     except (OSError, ValueError) as exc:
         raise CtsplatError(f"cannot remove the metadata of {path}: {str(exc).splitlines()[0]}") from exc

@@ -30,13 +30,24 @@ import numpy as np
 import pycolmap
 
 from ctsplat.photos.config import photo_settings
-from ctsplat.photos.images import check_photo_count, check_photos, list_photos, strip_metadata
-from ctsplat.sfm.colmap import MAPPING_THREADS, extraction_options, match_pairs, matching_options, write_model
+from ctsplat.photos.images import check_photo_count, check_photos, list_photos, strip_metadata, unread_entries
+from ctsplat.sfm.colmap import (
+    MAPPING_THREADS,
+    MODEL_FILES,
+    extraction_options,
+    match_pairs,
+    matching_options,
+    write_model,
+)
 from ctsplat.utils import CtsplatError, atomic_dir, code_version, write_json_atomic
 
 __all__ = ["run_photo_sfm", "matching_mode"]
 
 log = logging.getLogger(__name__)
+
+#: The files of an SfM folder beside its ``summary.json``: the undistorted photos and the model. A folder holding
+#: anything else is not replaced.
+SFM_FILES = ("images/*", *(f"sparse/0/{f}" for f in MODEL_FILES))
 
 
 def matching_mode(settings: dict[str, Any], n_images: int) -> str:
@@ -123,7 +134,8 @@ def run_photo_sfm(image_dir: str | Path, out_dir: str | Path, settings: dict[str
     -------
     dict
         The summary also written to ``summary.json``: ``n_images``, ``n_registered``, ``registered`` and
-        ``unregistered`` (names), ``registration_rate``, ``models_found``, ``model_sizes``,
+        ``unregistered`` (names), ``not_read`` (pictures in the folder that are not read:
+        :func:`ctsplat.photos.images.unread_entries`), ``registration_rate``, ``models_found``, ``model_sizes``,
         ``mean_reprojection_error_px``, ``n_points``, ``mean_track_length``, ``matching``, ``camera`` (PINHOLE
         intrinsics of the first camera) and ``seconds_*``.
 
@@ -146,7 +158,7 @@ def run_photo_sfm(image_dir: str | Path, out_dir: str | Path, settings: dict[str
     with contextlib.suppress(Exception):
         pycolmap.set_random_seed(int(s["seed"]))
         pycolmap.logging.minloglevel = 3  # glog: fatal only; a failed step ends in one line of ours, not two
-    with atomic_dir(out_dir, marker="summary.json", inputs=(image_dir,)) as tmp:
+    with atomic_dir(out_dir, marker="summary.json", contents=SFM_FILES, inputs=(image_dir,)) as tmp:
         summary = _run(image_dir, names, tmp, s)
     return summary
 
@@ -194,6 +206,7 @@ def _run(image_dir: Path, names: list[str], tmp: Path, s: dict[str, Any]) -> dic
         "registration_rate": len(registered) / len(names),
         "registered": registered,
         "unregistered": unregistered,
+        "not_read": unread_entries(image_dir),  # other picture formats and broken links, warned about
         "models_found": len(models),
         "model_sizes": sizes,
         "mean_reprojection_error_px": float(best.compute_mean_reprojection_error()),

@@ -450,6 +450,11 @@ def reset_gpu_peak(device: torch.device) -> None:
 #: stays when the workflow reruns training, which removes the training's own files first).
 RUN_MARKERS = ("config.json", "model.pt", "metrics.json")
 
+#: The other files of a photo run folder: training's and the evaluation's (:mod:`ctsplat.photos.evaluate`). A
+#: folder holding anything else is not replaced.
+RUN_FILES = ("model.ply", "training.json", "train_log.csv", "per_view_test.csv", "figures/gallery.png",
+             "figures/turntable.gif")
+
 
 def check_run(out_dir: str | Path, settings: dict[str, Any], *, inputs: tuple[str | Path, ...] = ()) -> None:
     """Refuse, before any work, what :func:`train_photos` would refuse at its start.
@@ -460,7 +465,8 @@ def check_run(out_dir: str | Path, settings: dict[str, Any], *, inputs: tuple[st
     Parameters
     ----------
     out_dir : str or Path
-        The run folder: it must be new, empty or an earlier photo run (:data:`RUN_MARKERS`).
+        The run folder: it must be new, empty or an earlier photo run (:data:`RUN_MARKERS`, nothing but
+        :data:`RUN_MARKERS` and :data:`RUN_FILES` in it).
     settings : dict
         The filled ``photos.train`` section.
     inputs : tuple of str or Path, optional
@@ -473,7 +479,7 @@ def check_run(out_dir: str | Path, settings: dict[str, Any], *, inputs: tuple[st
         :func:`ctsplat.utils.check_output_dir`.
     """
     check_train_settings(settings)
-    check_output_dir(Path(out_dir), marker=RUN_MARKERS, inputs=inputs)
+    check_output_dir(Path(out_dir), marker=RUN_MARKERS, contents=RUN_FILES, inputs=inputs)
 
 
 def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, Any] | None = None
@@ -505,7 +511,7 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
     scene = load_scene(sfm_dir, downscale=int(s["downscale"]), test_every=int(s["test_every"]),
                        validation=held_out_split(s) == "val",
                        validation_offset=s.get("validation_offset"), device=device)
-    with atomic_dir(out_dir, marker=RUN_MARKERS, inputs=(sfm_dir,)) as tmp:
+    with atomic_dir(out_dir, marker=RUN_MARKERS, contents=RUN_FILES, inputs=(sfm_dir,)) as tmp:
         config = {"sfm_dir": str(sfm_dir), "train": s}
         write_json_atomic(tmp / "config.json", {**config, "config_hash": config_hash(config),
                                                 "code_version": code_version()})

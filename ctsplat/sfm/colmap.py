@@ -34,12 +34,16 @@ from ctsplat.utils import CtsplatError, atomic_dir
 __all__ = ["MAPPING_THREADS", "MATCHING_THREADS", "REFINE_MODES", "colmap_reconstruct", "extraction_options",
            "matching_options", "match_pairs",
            "match_features", "colmap_map", "reverse_depth", "fix_reversal", "merge_models", "model_poses",
-           "set_poses_and_triangulate", "isocentric_adjust", "per_image_reproj", "write_model"]
+           "set_poses_and_triangulate", "isocentric_adjust", "per_image_reproj", "write_model", "MODEL_FILES"]
 
 log = logging.getLogger(__name__)
 
 #: ``pose_prior`` modes that triangulate from the designed poses and refine them (:func:`colmap_map`).
 REFINE_MODES = ("refine", "refine_prior", "isocentric")
+
+#: The files of a model folder :func:`write_model` writes (binary, and text under ``text/``; pycolmap 3.12 and later
+#: add rigs and frames).
+MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin", "rigs.bin", "frames.bin", "text/*.txt")
 
 MAPPING_THREADS = 1
 """Threads for COLMAP's mapping and every bundle adjustment. Ceres and the parallel triangulation add their parts
@@ -810,7 +814,7 @@ def write_model(rec: Any, out_dir: Path) -> None:
     out_dir : Path
         Target folder (e.g. ``sparse/0``).
     """
-    with atomic_dir(out_dir, marker="cameras.bin") as tmp:
+    with atomic_dir(out_dir, marker="cameras.bin", contents=MODEL_FILES) as tmp:
         rec.write_binary(str(tmp))
         (tmp / "text").mkdir()
         rec.write_text(str(tmp / "text"))

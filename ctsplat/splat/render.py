@@ -961,6 +961,10 @@ def voxelize(
 
 
 # ---------------------------------------------------------------------------------------------- batch rendering
+#: The files of a :func:`render_to_folder` output beside its ``render.json``.
+RENDER_FILES = ("images.tif", "png/view_*.png")
+
+
 def render_to_folder(
     model_path: Any,
     views_path: Any,
@@ -1014,7 +1018,8 @@ def render_to_folder(
     from ctsplat.formats.viewset import ViewSet
     from ctsplat.utils import atomic_dir, check_output_dir, code_version, resolve_device, write_json_atomic
 
-    check_output_dir(out_dir, marker="render.json", inputs=(model_path, views_path))  # before the slow part
+    # before the slow part
+    check_output_dir(out_dir, marker="render.json", contents=RENDER_FILES, inputs=(model_path, views_path))
     dev = resolve_device(device)
     g = Gaussians.load(model_path, device=dev)
     vs = ViewSet.load(views_path)
@@ -1044,7 +1049,7 @@ def render_to_folder(
             "mip": mip, "mu_scale": scale, "n_views": len(vs), "n_gaussians": len(g), "seconds": seconds,
             "code_version": code_version()}
     # the whole folder or nothing: it replaces an earlier render only once every file is written
-    with atomic_dir(out_dir, marker="render.json", inputs=(model_path, views_path)) as tmp:
+    with atomic_dir(out_dir, marker="render.json", contents=RENDER_FILES, inputs=(model_path, views_path)) as tmp:
         tifffile.imwrite(tmp / "images.tif", stack, photometric="minisblack", metadata={"axes": "QYX"})
         (tmp / "png").mkdir()
         for view, img in zip(vs.views, stack, strict=True):

@@ -23,7 +23,7 @@ from ctsplat.photos.dataset import PhotoScene, PhotoView, PinholeCamera, load_sc
 from ctsplat.photos.evaluate import evaluate_photos, turntable_poses
 from ctsplat.photos.images import check_photos, jpeg_damage, list_photos, load_rgb
 from ctsplat.photos.sfm import run_photo_sfm
-from ctsplat.photos.train import image_metrics, render_view, to_gaussians, train_photos, train_scene
+from ctsplat.photos.train import check_run, image_metrics, render_view, to_gaussians, train_photos, train_scene
 from ctsplat.splat.gaussians import Gaussians
 from ctsplat.utils import CtsplatError
 
@@ -140,6 +140,26 @@ def test_jpeg_damage_passes_clean_jpegs_of_every_kind(tmp_path: Path) -> None:
     (tmp_path / "mpo.jpg").write_bytes(_damaged(mpo[: len(mpo) // 2], "zeros") + mpo[len(mpo) // 2:])
     with pytest.raises(CtsplatError, match=r"mpo\.jpg: Corrupt JPEG data"):
         check_photos(tmp_path, list_photos(tmp_path), single_camera=True)
+
+
+def test_photo_listing_skips_hidden_files_and_names_the_pictures_it_does_not_read(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    from ctsplat.photos.images import unread_entries
+
+    for name in ("01.jpg", "02.JPG", "03.png"):
+        _jpeg(tmp_path / name, seed=len(name))
+    (tmp_path / "._01.jpg").write_bytes(b"\x00\x05\x16\x07AppleDouble")  # macOS's resource fork beside a copy
+    (tmp_path / ".DS_Store").write_bytes(b"\x00")
+    Image.new("RGB", (8, 8)).save(tmp_path / "04.webp")
+    (tmp_path / "05.heic").write_bytes(b"\x00")
+    (tmp_path / "06.jpg").symlink_to(tmp_path / "gone.jpg")
+    (tmp_path / "notes.txt").write_text("not a picture")
+    (tmp_path / "sub.jpg").mkdir()
+    with caplog.at_level("WARNING", logger="ctsplat.photos.images"):
+        assert list_photos(tmp_path) == ["01.jpg", "02.JPG", "03.png"]
+    assert unread_entries(tmp_path) == ["04.webp", "05.heic", "06.jpg"]
+    assert "3 entries look like photos but are not read" in caplog.text and "04.webp, 05.heic, 06.jpg" in caplog.text
+    check_photos(tmp_path, list_photos(tmp_path), single_camera=False)  # the hidden file is not opened
 
 
 def test_mixed_sizes_need_a_camera_per_image(tmp_path: Path) -> None:
@@ -385,6 +405,33 @@ def test_evaluation_writes_metrics_gallery_and_turntable(tmp_path: Path) -> None
     gif = Image.open(run / "figures" / "turntable.gif")
     assert gif.n_frames == 4
     assert (run / "per_view_test.csv").read_text().startswith("iteration,view_id,")
+
+
+def test_evaluation_reads_every_input_before_writing_and_credits_the_photos(tmp_path: Path,
+                                                                             caplog: pytest.LogCaptureFixture) -> None:
+    from ctsplat.photos.evaluate import _footer
+
+    scene, truth = _synthetic_scene()
+    run = tmp_path / "run"
+    run.mkdir()
+    truth.save(run / "model.pt")
+    (run / "config.json").write_text(json.dumps({"sfm_dir": str(tmp_path / "sfm"), "train": photo_settings()["train"]}))
+    evaluate_photos(run, {"turntable_frames": 2, "gallery_views": 1, "attribution": "by someone, CC BY 4.0"},
+                    scene=scene)
+    before = {p.relative_to(run).as_posix(): p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    for bad in (run / "training.json", tmp_path / "sfm" / "summary.json"):  # a truncated record of either step
+        bad.parent.mkdir(exist_ok=True)
+        bad.write_text('{"final_test_psnr": 2')
+        with pytest.raises(CtsplatError, match=rf"{bad.name} is not valid JSON.*run `ctsplat photos-"):
+            evaluate_photos(run, {"turntable_frames": 2, "gallery_views": 1}, scene=scene)
+        bad.unlink()
+        assert {p.relative_to(run).as_posix(): p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+    # CC BY asks for the credit and for a note of the changes; an empty credit line is reported
+    footer = _footer("by someone, CC BY 4.0")
+    assert footer.startswith("Photographs: by someone, CC BY 4.0") and "undistorted and downscaled" in footer
+    with caplog.at_level("WARNING", logger="ctsplat.photos.evaluate"):
+        evaluate_photos(run, {"turntable_frames": 0, "gallery_views": 0}, scene=scene)
+    assert "photos.evaluate.attribution is empty" in caplog.text
 
 
 # ------------------------------------------------------------------------------------------------ workflow config
@@ -739,6 +786,15 @@ def test_sfm_and_training_never_replace_their_input(tmp_path: Path) -> None:
     with pytest.raises(CtsplatError, match=r"notes already holds files that are not an earlier output"):
         run_photo_sfm(photos, other)
     assert (other / "keep.txt").read_text() == "mine"
+    # a folder with the step's marker and files of someone else's (a project root with a config.json, a CT SfM
+    # folder with its summary.json, a photo run trained inside an SfM folder): refused before any work
+    (other / "summary.json").write_text("{}")
+    (other / "config.json").write_text("{}")
+    with pytest.raises(CtsplatError, match=r"notes holds config\.json and 1 more, which this step does not write"):
+        run_photo_sfm(photos, other)
+    with pytest.raises(CtsplatError, match=r"notes holds keep\.txt and 1 more, which this step does not write"):
+        check_run(other, photo_settings({})["train"])
+    assert sorted(p.name for p in other.iterdir()) == ["config.json", "keep.txt", "summary.json"]
     sfm = tmp_path / "sfm"
     (sfm / "sparse" / "0").mkdir(parents=True)
     (sfm / "summary.json").write_text("{}")
@@ -924,7 +980,11 @@ def test_strip_metadata_keeps_pixels_and_colour_profile_and_drops_exif(tmp_path)
     exif[0xA431] = "SERIAL-123456"  # BodySerialNumber
     exif.get_ifd(0x8825)[2] = (48.0, 51.0, 29.0)  # GPSLatitude
     icc = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
-    for name, kw in (("a.jpg", {"quality": 90, "comment": b"taken at home"}), ("b.png", {}), ("c.tif", {})):
+    # a TIFF's XMP (700), IPTC (33723) and Photoshop (34377) blocks, which Pillow copies when it saves a TIFF again
+    xmp = b'<x:xmpmeta><rdf:Description exif:GPSLatitude="48,51.5N" dc:creator="Jane Photographer"/></x:xmpmeta>'
+    tiff_tags = {"tiffinfo": {700: xmp, 33723: b"\x1c\x02\x50\x00\x11Jane Photographer",
+                              34377: b"8BIM\x04\x04\x00\x00\x00\x00\x00\x0ctaken at home"}}
+    for name, kw in (("a.jpg", {"quality": 90, "comment": b"taken at home"}), ("b.png", {}), ("c.tif", tiff_tags)):
         path = tmp_path / name
         Image.fromarray(pixels).save(path, exif=exif, icc_profile=icc, **kw)
         before = np.asarray(Image.open(path))
@@ -932,6 +992,7 @@ def test_strip_metadata_keeps_pixels_and_colour_profile_and_drops_exif(tmp_path)
         strip_metadata(path)
         data = path.read_bytes()
         assert b"Jane Photographer" not in data and b"SERIAL-123456" not in data and b"taken at home" not in data
+        assert b"GPSLatitude" not in data
         with Image.open(path) as im:
             left = im.getexif()  # a TIFF keeps its structural tags (size, layout), nothing about its owner
             assert not {0x013B, 0x8825, 0x8769} & set(left) and im.info.get("icc_profile") == icc

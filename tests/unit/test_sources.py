@@ -592,6 +592,38 @@ def test_atomic_dir_replaces_only_empty_folders_earlier_outputs_and_never_an_inp
     assert (out / "someone_elses.txt").is_file() and not (out / "config.json").exists()
 
 
+def test_a_folder_with_the_marker_and_other_files_is_not_replaced(tmp_path):
+    from ctsplat.utils import atomic_dir, check_output_dir
+
+    run = tmp_path / "project"  # a user's folder that happens to hold a file named like the step's marker
+    (run / "sub").mkdir(parents=True)
+    (run / "config.json").write_text("{}")
+    (run / "notes.txt").write_text("keep")
+    (run / "sub" / "data.csv").write_text("a,b")
+    files = ("model.pt", "figures/*.png")
+    with pytest.raises(CtsplatError, match=r"project holds notes\.txt and 1 more, which this step does not write"):
+        with atomic_dir(run, marker="config.json", contents=files) as tmp:
+            (tmp / "config.json").write_text("{}")
+    assert sorted(p.relative_to(run).as_posix() for p in run.rglob("*")) == [
+        "config.json", "notes.txt", "sub", "sub/data.csv"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["project"]  # no temporary folder left
+    # an earlier output (the marker, the listed files, Snakemake's timestamps) is replaced whole
+    earlier = tmp_path / "run"
+    (earlier / "figures").mkdir(parents=True)
+    for name in ("config.json", "model.pt", "figures/gallery.png", "figures/.snakemake_timestamp"):
+        (earlier / name).write_text("old")
+    with atomic_dir(earlier, marker="config.json", contents=files) as tmp:
+        (tmp / "config.json").write_text("new")
+    assert [p.name for p in earlier.iterdir()] == ["config.json"]
+    assert (earlier / "config.json").read_text() == "new"
+    # a file that only looks like a listed one at another depth is foreign too
+    (earlier / "model.pt").write_text("x")
+    (earlier / "figures").mkdir()
+    (earlier / "figures" / "model.pt").write_text("x")
+    with pytest.raises(CtsplatError, match=r"holds figures/model\.pt, which"):
+        check_output_dir(earlier, marker="config.json", contents=files)
+
+
 @pytest.mark.parametrize("kind", ["file", "folder"])
 def test_ctrl_c_while_the_temporary_is_created_leaves_nothing(tmp_path, monkeypatch, kind):
     # Ctrl-C lands just after the temporary exists on disk and before the writer has its name: the moment a
