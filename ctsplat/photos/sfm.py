@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import shutil
 import time
 from importlib.metadata import version
@@ -158,9 +159,26 @@ def run_photo_sfm(image_dir: str | Path, out_dir: str | Path, settings: dict[str
     with contextlib.suppress(Exception):
         pycolmap.set_random_seed(int(s["seed"]))
         pycolmap.logging.minloglevel = 3  # glog: fatal only; a failed step ends in one line of ours, not two
+    _check_free_space(image_dir, names, out_dir)
     with atomic_dir(out_dir, marker="summary.json", contents=SFM_FILES, inputs=(image_dir,)) as tmp:
-        summary = _run(image_dir, names, tmp, s)
+        try:
+            summary = _run(image_dir, names, tmp, s)
+        except RuntimeError as exc:  # COLMAP's C++ errors (a database it cannot write, a failed step)
+            first = (str(exc).strip().splitlines() or ["no message"])[0]
+            raise CtsplatError(f"COLMAP failed on {image_dir}: {first}; check the photos and the free space beside "
+                               f"{out_dir}") from exc
     return summary
+
+
+def _check_free_space(image_dir: Path, names: list[str], out_dir: Path) -> None:
+    """Refuse to start when the output's file system cannot hold the SfM folder: about three times the photos
+    (the undistorted copies, COLMAP's database of features and matches, the model)."""
+    need = 3 * sum((image_dir / n).stat().st_size for n in names)
+    where = next(p for p in (Path(os.path.abspath(out_dir)), *Path(os.path.abspath(out_dir)).parents) if p.exists())
+    free = shutil.disk_usage(where).free
+    if free < need:
+        raise CtsplatError(f"{where} has {free / 2**20:.1f} MiB free and SfM on {len(names)} photos needs at least "
+                           f"{need / 2**20:.1f} MiB; free some space or choose another output folder")
 
 
 def _run(image_dir: Path, names: list[str], tmp: Path, s: dict[str, Any]) -> dict[str, Any]:

@@ -162,6 +162,36 @@ def test_photo_listing_skips_hidden_files_and_names_the_pictures_it_does_not_rea
     check_photos(tmp_path, list_photos(tmp_path), single_camera=False)  # the hidden file is not opened
 
 
+def test_sfm_refuses_a_full_disk_and_reports_colmap_failures_in_one_line(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    import shutil
+    from collections import namedtuple
+
+    import ctsplat.photos.sfm as sfm
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        _jpeg(photos / f"{i:02d}.jpg", seed=i)
+    need = 3 * sum(p.stat().st_size for p in photos.iterdir())
+    out = tmp_path / "new" / "sfm"
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(need, 0, need - 1))
+    monkeypatch.setattr(sfm, "_run", lambda *a: pytest.fail("SfM ran"))
+    with pytest.raises(CtsplatError, match=rf"{tmp_path} has 0\.0 MiB free and SfM on 3 photos needs at least"):
+        run_photo_sfm(photos, out)
+    _nothing_written(tmp_path, tmp_path / "new")
+
+    def fails(*args: object) -> None:
+        raise RuntimeError("SQLite error [database.cc:1]: database or disk is full\nstack")
+
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(need, 0, need))
+    monkeypatch.setattr(sfm, "_run", fails)
+    with pytest.raises(CtsplatError, match=r"COLMAP failed on .*photos: SQLite error .*disk is full; check the photos"):
+        run_photo_sfm(photos, out)
+    _nothing_written(tmp_path, tmp_path / "new")
+
+
 def test_mixed_sizes_need_a_camera_per_image(tmp_path: Path) -> None:
     photos = tmp_path / "photos"
     photos.mkdir()
