@@ -50,7 +50,8 @@ import numpy as np
 from ctsplat.formats.viewset import ViewSet
 from ctsplat.utils import (
     CtsplatError,
-    atomic_path,
+    atomic_dir,
+    check_output_dir,
     code_version,
     json_safe,
     merge_config,
@@ -481,6 +482,13 @@ def select_views(view_set: ViewSet, split: str, n: int) -> np.ndarray:
 BASELINE_COLUMNS = ["method", "filter", "iterations", "n_views", "psnr3d", "ssim3d", "seconds", "val_psnr", "params",
                     "psnr2d", "ssim2d", "selection_seconds", "best_on_val"]
 
+#: The files of a baselines folder beside ``baselines.csv`` and ``baselines.json``: every trial, and each reconstruction
+#: (``{method}_n{views:03d}.nii.gz`` with its sidecar, when ``save_volumes``). A folder holding anything else is
+#: not replaced.
+BASELINE_FILES = ("trials.csv", "*_n[0-9][0-9][0-9]*.nii.gz", "*_n[0-9][0-9][0-9]*.json")
+#: Either marks a folder as an earlier baselines output (the workflow removes the table before it reruns the step).
+BASELINE_MARKERS = ("baselines.csv", "baselines.json")
+
 
 def _counts(value: Any) -> list[int]:
     counts = [0] if value in (None, 0) else ([int(value)] if isinstance(value, int | float) else list(value))
@@ -538,6 +546,7 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
     cfg = merge_config("baselines", config, BASELINE_DEFAULTS)
     counts = _counts(cfg["n_views"])
     out_dir = Path(out_dir)
+    check_output_dir(out_dir, marker=BASELINE_MARKERS, contents=BASELINE_FILES, inputs=(volume_path, radiographs_dir))
     volume = load_volume(volume_path)
     p_all, vs_all = load_radiographs(radiographs_dir)
     if vs_all.volume_id != volume.volume_id:
@@ -587,20 +596,20 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
                      c.val_psnr, row["psnr3d"])
 
     df = pd.DataFrame(rows, columns=BASELINE_COLUMNS)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    if cfg["save_volumes"]:
-        for name, rec in volumes.items():
-            meta = {"volume_id": f"{volume.volume_id}-{name}", "reference_volume_id": volume.volume_id,
-                    "intensity": {"mu_scale_per_mm": volume.mu_scale_per_mm, "normalised": True},
-                    "baseline": name, "code_version": code_version()}
-            save_volume(Volume(rec, volume.affine, meta), out_dir / f"{name}.nii.gz")
-    with atomic_path(out_dir / "trials.csv") as tmp:
-        pd.DataFrame(trials).to_csv(tmp, index=False, lineterminator="\n")
-    write_json_atomic(out_dir / "baselines.json", json_safe({
-        "config": cfg, "code_version": code_version(), "volume_path": str(volume_path),
-        "volume_id": volume.volume_id, "radiographs_dir": str(radiographs_dir), "results": rows,
-        "selection": "parameters chosen by re-projection PSNR on the validation views; test metrics after",
-    }))
-    with atomic_path(out_dir / "baselines.csv") as tmp:
-        df.to_csv(tmp, index=False, lineterminator="\n")
+    # the folder is replaced whole: no volume of an earlier run's view counts stays beside this run's tables
+    with atomic_dir(out_dir, marker=BASELINE_MARKERS, contents=BASELINE_FILES,
+                    inputs=(volume_path, radiographs_dir)) as tmp:
+        if cfg["save_volumes"]:
+            for name, rec in volumes.items():
+                meta = {"volume_id": f"{volume.volume_id}-{name}", "reference_volume_id": volume.volume_id,
+                        "intensity": {"mu_scale_per_mm": volume.mu_scale_per_mm, "normalised": True},
+                        "baseline": name, "code_version": code_version()}
+                save_volume(Volume(rec, volume.affine, meta), tmp / f"{name}.nii.gz")
+        pd.DataFrame(trials).to_csv(tmp / "trials.csv", index=False, lineterminator="\n")
+        write_json_atomic(tmp / "baselines.json", json_safe({
+            "config": cfg, "code_version": code_version(), "volume_path": str(volume_path),
+            "volume_id": volume.volume_id, "radiographs_dir": str(radiographs_dir), "results": rows,
+            "selection": "parameters chosen by re-projection PSNR on the validation views; test metrics after",
+        }))
+        df.to_csv(tmp / "baselines.csv", index=False, lineterminator="\n")
     return df

@@ -65,7 +65,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ctsplat.formats.viewset import ViewSet, write_radiographs
+from ctsplat.formats.viewset import ViewSet, check_radiograph_targets, write_radiographs
 from ctsplat.geometry import (
     Camera,
     ConeCamera,
@@ -732,6 +732,7 @@ def render_radiographs(volume_path: str | Path, out_dir: str | Path, config: dic
     cfg = merge_config("radiographs", config, RADIOGRAPHS_DEFAULTS)
     check_noise(cfg["noise"])
     out_dir = Path(out_dir)
+    check_radiograph_targets(out_dir)  # before the projection, not after it
     volume = load_volume(volume_path)
     bad = int(np.size(volume.data) - np.count_nonzero(np.isfinite(volume.data)))
     if bad:

@@ -214,7 +214,8 @@ def check_output_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str
         Patterns of the other files an earlier output holds, as paths relative to the folder (``fnmatch``: ``*``
         also matches ``/``; ``"figures/*"``). A folder holding a file that matches neither these nor ``marker``
         is refused, whatever else it holds: replacing it would delete that file. Snakemake's
-        ``.snakemake_timestamp`` in the folders it made is always allowed.
+        ``.snakemake_timestamp`` in the folders it made and the ``.NAME.*`` temporaries a killed atomic write of
+        an allowed file leaves (:func:`atomic_path`) are always allowed.
     inputs : sequence of paths
         The step's inputs: the output may be neither one of them nor a folder that holds one.
 
@@ -243,10 +244,12 @@ def check_output_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str
         return
     markers = [marker] if isinstance(marker, str) else list(marker or ())
     if not any(any(path.glob(m)) for m in markers):
-        what = f" (no {' or '.join(markers)} in it)" if markers else ""
+        what = f" (no {' or '.join(markers)} in it)" if 0 < len(markers) <= 3 else ""
         raise CtsplatError(f"output folder {path} already holds files that are not an earlier output of this "
                            f"step{what}; choose a new or empty folder, or remove it first")
     allowed = [*markers, *contents]
+    # what a killed atomic write of an allowed file leaves: ``.NAME.<random>...`` beside it
+    allowed += [f"{head}{'/' if head else ''}.{tail}.*" for head, _, tail in (p.rpartition("/") for p in allowed)]
     foreign = [f for f in files if Path(f).name != ".snakemake_timestamp"
                and not any(fnmatch.fnmatchcase(f, pattern) for pattern in allowed)]
     if foreign:

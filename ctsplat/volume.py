@@ -24,7 +24,7 @@ import numpy as np
 import scipy.sparse as sparse
 from threadpoolctl import threadpool_limits
 
-from ctsplat.formats.volume import Volume, compute_volume_id, json_path_for, save_volume
+from ctsplat.formats.volume import Volume, check_sidecar_target, compute_volume_id, json_path_for, save_volume
 from ctsplat.utils import CtsplatError, code_version, merge_config, read_json_object
 
 __all__ = [
@@ -743,6 +743,7 @@ def ingest(
     out_path = Path(out_path)
     if not out_path.name.endswith((".nii.gz", ".nii")):
         raise CtsplatError(f"output {out_path} must end in .nii.gz or .nii")
+    check_sidecar_target(out_path)  # before the slow part
     if not isinstance(source, SliceStack):
         _check_not_the_source(Path(source), out_path)
         _check_not_ingested(Path(source))

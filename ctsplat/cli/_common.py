@@ -3,11 +3,23 @@ checking the result against the section's types and ranges before anything runs.
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 from typing import Any
 
 from ctsplat.utils import CtsplatError
+
+
+def seed_value(text: str) -> int:
+    """argparse type of ``--seed``: an integer 0 .. 2³² − 1, what every random generator of the steps accepts."""
+    try:
+        seed = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if not 0 <= seed <= 2**32 - 1:
+        raise argparse.ArgumentTypeError(f"{seed} is outside 0 .. 4294967295")
+    return seed
 
 
 def load_section(path: str | None, section: str) -> dict[str, Any]:

@@ -6,7 +6,7 @@ import argparse
 import math
 import sys
 
-from ctsplat.cli._common import load_section
+from ctsplat.cli._common import load_section, seed_value
 from ctsplat.utils import CtsplatError
 
 
@@ -147,7 +147,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--n-beads", type=int, help=f"number of beads (default {BEAD_DEFAULTS['n_beads']})")
     p.add_argument("--bead-radius-mm", type=float,
                    help=f"bead radius in mm (default {BEAD_DEFAULTS['bead_radius_mm']:g})")
-    p.add_argument("--seed", type=int, default=0, help="seed of the bead positions (default 0)")
+    p.add_argument("--seed", type=seed_value, default=0, help="seed of the bead positions (default 0)")
     p.add_argument("--variant", choices=["kak_slaney", "high_contrast"], default="kak_slaney",
                    help="ellipsoid values: physical Kak-Slaney (default) or high-contrast")
     p.add_argument("--force", action="store_true",

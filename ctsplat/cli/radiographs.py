@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ctsplat.cli._common import section_config
+from ctsplat.cli._common import section_config, seed_value
 
 
 def run_project(args: argparse.Namespace) -> None:
@@ -36,7 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--config", help="YAML/JSON file with one geometry's settings (or a workflow config with one)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override one setting, e.g. --set camera=cone --set n_views=50 --set noise.enabled=true")
-    p.add_argument("--seed", type=int, default=0, help="orbit/split/noise seed (default 0)")
+    p.add_argument("--seed", type=seed_value, default=0, help="orbit/split/noise seed (default 0)")
     p.set_defaults(func=run_project)
 
     b = subparsers.add_parser(

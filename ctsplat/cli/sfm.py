@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ctsplat.cli._common import section_config
+from ctsplat.cli._common import section_config, seed_value
 from ctsplat.utils import CtsplatError
 
 
@@ -56,6 +56,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--config", help="YAML/JSON file with the sfm settings (or a workflow config: its sfm.settings)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override one sfm key, e.g. --set matching=sequential --set pose_prior=isocentric")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_value, default=0, help="COLMAP and alignment seed, 0 .. 2^32 - 1 (default 0)")
     p.add_argument("--volume", help="the volume (.nii.gz), only needed for naive_slices")
     p.set_defaults(func=run)

@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ctsplat.cli._common import section_config
+from ctsplat.cli._common import section_config, seed_value
 
 
 def load_train_config(path: str | None, overrides: list[str]) -> dict[str, Any]:
@@ -93,7 +93,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--compositor", help="radiative | radiative_unrectified | alpha")
     p.add_argument("--poses", help="gt | perturbed | colmap, each optionally +refine (e.g. colmap+refine)")
     p.add_argument("--device", help="auto | cpu | cuda")
-    p.add_argument("--seed", type=int)
+    p.add_argument("--seed", type=seed_value)
     p.add_argument("--iterations", type=int)
     p.add_argument("--views", type=int, help="number of training views (0 = all)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

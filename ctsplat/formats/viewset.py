@@ -16,7 +16,9 @@ Poses follow ``docs/conventions.md``: world mm, world-to-camera ``x_cam = R x_wo
 
 from __future__ import annotations
 
+import json
 import os
+import re
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +35,8 @@ __all__ = [
     "SPLITS",
     "View",
     "ViewSet",
+    "RADIOGRAPH_FILES",
+    "check_radiograph_targets",
     "write_radiographs",
     "load_radiographs",
     "write_png_stack",
@@ -248,6 +252,61 @@ def write_png_stack(images: np.ndarray, out_dir: str | Path, names: list[str]) -
             iio.imwrite(tmp / name, img)
 
 
+#: The entries of a radiograph folder :func:`write_radiographs` writes, in the order they are moved into place:
+#: radiographs.json first, so a folder left half-moved is still known as an earlier output, views.json last, so
+#: it is refused by :func:`load_radiographs` until complete. Other files in the folder are left alone.
+RADIOGRAPH_FILES = ("radiographs.json", "line_integrals.tif", "png", "views.json")
+
+
+def check_radiograph_targets(out_dir: str | Path) -> None:
+    """Refuse a folder where writing radiographs would replace something that is not an earlier radiograph output.
+
+    An earlier output is known by its ``radiographs.json`` (with the line-integral statistics this module writes);
+    without one, none of :data:`RADIOGRAPH_FILES` may exist. ``png/`` may hold only the views' PNGs.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The radiograph folder (need not exist).
+
+    Raises
+    ------
+    CtsplatError
+        One line naming what is in the way.
+    """
+    out_dir = Path(out_dir)
+    if not out_dir.exists():
+        return
+    if not out_dir.is_dir():
+        raise CtsplatError(f"output {out_dir} exists and is not a folder; choose another output folder")
+    present = [n for n in RADIOGRAPH_FILES if (out_dir / n).exists() or (out_dir / n).is_symlink()]
+    for name in present:  # every target checked before the first move, so the moves cannot fail halfway
+        target = out_dir / name
+        if target.is_dir() != (name == "png"):
+            raise CtsplatError(f"cannot write {target}: a {'folder' if target.is_dir() else 'file'} of that name is "
+                               "in the way; remove it or choose another output folder")
+    if not present:
+        return
+    try:
+        ours = "line_integral_stats" in json.loads((out_dir / "radiographs.json").read_text())
+    except (OSError, ValueError, TypeError):
+        ours = False
+    if not ours:
+        raise CtsplatError(f"{out_dir} holds {present[0]} but no radiographs.json of an earlier projection, and "
+                           "writing radiographs would replace it; choose another output folder")
+    png = out_dir / "png"
+
+    def ours_png(f: Path) -> bool:
+        view_png = f.parent == png and re.fullmatch(r"view_\d+\.png", f.name) is not None
+        return view_png or f.name == ".snakemake_timestamp"
+
+    foreign = sorted(f.relative_to(png).as_posix() for f in png.rglob("*")
+                     if (f.is_file() or f.is_symlink()) and not ours_png(f)) if png.is_dir() else []
+    if foreign:
+        raise CtsplatError(f"{png} holds {foreign[0]}, which a projection does not write, and writing radiographs "
+                           "would delete it; choose another output folder or move it away")
+
+
 def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, provenance: dict[str, Any]) -> None:
     """Write a radiograph folder (see the module docstring): all of its files, or none of them.
 
@@ -273,6 +332,7 @@ def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, pro
         raise CtsplatError(f"images of shape {p.shape} do not match the view set "
                            f"({len(view_set)}, {cam.height}, {cam.width})")
     out_dir = Path(out_dir)
+    check_radiograph_targets(out_dir)  # before the slow part
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     with scratch_dir(out_dir.parent, prefix=f".{out_dir.name}.") as stage:
         tifffile.imwrite(stage / "line_integrals.tif", p, photometric="minisblack", metadata={"axes": "QYX"})
@@ -286,14 +346,9 @@ def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, pro
             "units": "line integrals of mu in 1/mm (dimensionless); png = 16-bit transmission exp(-p)",
         })
         out_dir.mkdir(exist_ok=True)
-        names = ("line_integrals.tif", "png", "radiographs.json", "views.json")  # views.json last
-        for name in names:  # check every target before the first move, so the moves cannot fail halfway
-            target = out_dir / name
-            if target.exists() and target.is_dir() != (name == "png"):
-                raise CtsplatError(f"cannot write {target}: a {'folder' if target.is_dir() else 'file'} of that "
-                                   "name is in the way; remove it or choose another output folder")
+        check_radiograph_targets(out_dir)  # again: the folder may have changed meanwhile
         (out_dir / "views.json").unlink(missing_ok=True)
-        for name in names:
+        for name in RADIOGRAPH_FILES:
             if name == "png" and (out_dir / name).exists():
                 shutil.rmtree(out_dir / name)
             os.replace(stage / name, out_dir / name)

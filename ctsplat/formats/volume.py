@@ -24,6 +24,7 @@ References
 from __future__ import annotations
 
 import hashlib
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,8 @@ import numpy as np
 
 from ctsplat.utils import CtsplatError, atomic_path, read_json_object, write_json_atomic
 
-__all__ = ["Volume", "load_volume", "save_volume", "json_path_for", "compute_volume_id", "check_attenuation"]
+__all__ = ["Volume", "load_volume", "save_volume", "json_path_for", "check_sidecar_target", "compute_volume_id",
+           "check_attenuation"]
 
 
 #: Labels of the intensity kinds that :func:`ctsplat.volume.ingest` writes.
@@ -155,8 +157,40 @@ def json_path_for(nii_path: str | Path) -> Path:
     return p.with_suffix(".json")
 
 
+def check_sidecar_target(path: str | Path) -> None:
+    """Refuse to write a volume whose sidecar name (:func:`json_path_for`) holds a JSON file that is not one.
+
+    A volume's JSON is written beside it under a name the user never gave (``ct.nii.gz`` -> ``ct.json``), so a
+    BIDS sidecar, a config or any other JSON of that name would be replaced without a word; a sidecar that
+    :func:`save_volume` wrote (``shape``, ``spacing_mm`` and ``affine`` in it) is replaced as the volume is.
+
+    Parameters
+    ----------
+    path : str or Path
+        The volume file to be written.
+
+    Raises
+    ------
+    CtsplatError
+        One line naming the JSON file.
+    """
+    json_path = json_path_for(path)
+    if not (json_path.exists() or json_path.is_symlink()):
+        return
+    try:
+        meta = json.loads(json_path.read_text())
+        ours = isinstance(meta, dict) and {"shape", "spacing_mm", "affine"} <= set(meta)
+    except (OSError, UnicodeDecodeError, ValueError):
+        ours = False
+    if not ours:
+        raise CtsplatError(f"{json_path} is not the sidecar of a volume, and writing {Path(path).name} would replace "
+                           "it (a volume's JSON goes beside it under its name); choose another output name")
+
+
 def save_volume(volume: Volume, path: str | Path) -> None:
     """Write ``volume`` as NIfTI-1 plus its sibling JSON (:func:`json_path_for`), both atomically.
+
+    A JSON of that name that is not a volume's sidecar is refused (:func:`check_sidecar_target`).
 
     Parameters
     ----------
@@ -179,6 +213,7 @@ def save_volume(volume: Volume, path: str | Path) -> None:
     # Both files go to temp names first; the JSON is renamed into place just before the NIfTI, so a
     # crash leaves either nothing new or a JSON without its volume - never a volume without its JSON.
     # When the NIfTI cannot be put in place (an error or an interrupt), the JSON is put back as it was.
+    check_sidecar_target(path)
     json_path = json_path_for(path)
     previous = json_path.read_bytes() if json_path.is_file() else None
     json_written = False

@@ -105,6 +105,7 @@ from ctsplat.training.state import (
 from ctsplat.utils import (
     CtsplatError,
     atomic_path,
+    check_output_dir,
     code_version,
     compute_platform,
     config_hash,
@@ -123,6 +124,13 @@ log = logging.getLogger(__name__)
 #: would otherwise sit beside the new model.
 RUN_OUTPUTS = ("training.json", "metrics.json", "model.pt", "model_best.pt", "model.ply", "model_volume.nii.gz",
                "per_view_test.csv", "refined_views.json")
+
+#: Every file a run folder holds: training's, the evaluation's (any split, the figures, the unsharpened read-out),
+#: the lock, and the workflow's per-run logs. :func:`train` refuses a folder holding anything else, since a new run
+#: replaces the checkpoints and outputs in it.
+RUN_FILES = (*RUN_OUTPUTS, "config.json", "train_log.csv", "per_view.csv", "checkpoints/ckpt_*.pt*", "metrics_*.json",
+             "per_view_*.csv", "model_volume_*.nii.gz", "gallery.png", "slices.png", "turntable.gif",
+             ".ctsplat.lock", "logs/*")
 
 
 def _evaluate_periodic(state: TrainState, cfg: dict[str, Any], scene: Scene, val: ViewData
@@ -297,13 +305,15 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool | Literal
     Raises
     ------
     CtsplatError
-        Bad config or inputs, another process writing ``out_dir``, divergence (non-finite steps) or a collapsed
-        model.
+        Bad config or inputs, an ``out_dir`` holding files that are not a run's (:data:`RUN_FILES`), another
+        process writing ``out_dir``, divergence (non-finite steps) or a collapsed model.
     """
     if resume not in (True, False, "auto"):
         raise CtsplatError(f"resume must be True, False or 'auto', got {resume!r}")
     cfg = resolve_config(config)
     out_dir = Path(out_dir)
+    inputs = [cfg[k] for k in ("volume", "radiographs", "sfm_dir", "sfm_radiographs") if cfg.get(k)]
+    check_output_dir(out_dir, marker=RUN_FILES, inputs=inputs)
     # the lock checks that the folder is writable, and removes it again if this run created it and fails on its
     # inputs before writing anything
     with run_lock(out_dir, "output folder"):

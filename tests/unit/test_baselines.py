@@ -173,6 +173,14 @@ def test_run_baselines_writes_csv_volumes_and_metrics(tmp_path):
     assert prov["volume_id"] == "ph24" and len(prov["results"]) == 12
     assert not list(tmp_path.glob("**/svmbir-*"))  # svmbir's cache is removed
     json.dumps(BASELINE_DEFAULTS)
+    # a second run replaces the folder whole: no reconstruction of the first run's view counts stays behind
+    run_baselines(vol_path, rad, out, {**QUICK, "n_views": [12], "methods": ["fbp"]})
+    assert sorted(p.name for p in out.iterdir()) == ["baselines.csv", "baselines.json", "fbp_n012.json",
+                                                     "fbp_n012.nii.gz", "trials.csv"]
+    (out / "notes.txt").write_text("mine")  # a file it did not write: refused before any work
+    with pytest.raises(CtsplatError, match=r"baselines holds notes\.txt, which this step does not write"):
+        run_baselines(vol_path, rad, out, {**QUICK, "n_views": [12], "methods": ["fbp"]})
+    assert (out / "notes.txt").read_text() == "mine"
 
 
 def test_run_baselines_on_a_cone_beam_geometry(tmp_path):

@@ -416,3 +416,20 @@ def test_a_warning_the_library_logs_is_said_once(tmp_path):
     done = ctsplat("ingest", tmp_path / "dicom", tmp_path / "v.nii.gz", "--grid", "8")
     assert done.returncode == 0, done.stderr
     assert done.stderr.count("gap(s) larger than") == 1, done.stderr
+
+
+@pytest.mark.parametrize(("command", "seed", "needle"), [
+    ("project", "-5", "-5 is outside 0 .. 4294967295"),
+    ("sfm", "4294967296", "4294967296 is outside 0 .. 4294967295"),
+    ("phantom", "1.5", "'1.5' is not an integer"),
+    ("train", "-1", "-1 is outside 0 .. 4294967295"),
+])
+def test_a_seed_outside_what_the_generators_accept_is_refused_by_the_parser(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str, seed: str, needle: str) -> None:
+    args = {"project": ["--volume", "v.nii.gz", "--out", "o"], "sfm": ["rad", "o"], "phantom": ["o"],
+            "train": ["--out", "o"]}[command]
+    with pytest.raises(SystemExit) as exc:
+        main([command, *[str(tmp_path / a) if a in ("v.nii.gz", "o", "rad") else a for a in args], "--seed", seed])
+    assert exc.value.code == 2
+    assert_one_line_error(capsys.readouterr().err, command, f"argument --seed: {needle}")
+    assert list(tmp_path.iterdir()) == []

@@ -511,6 +511,24 @@ def test_a_view_set_file_that_is_not_a_json_object_is_named(tmp_path, text, need
         ViewSet.load(path)
 
 
+def test_a_volume_is_not_written_over_a_json_that_is_not_its_sidecar(tmp_path) -> None:
+    # ct.nii.gz's JSON goes to ct.json, a name the user never gave: a BIDS sidecar or a config there is refused
+    from ctsplat.volume import ingest
+
+    vol = Volume(np.ones((8, 8, 8), np.float32), np.eye(4), {"volume_id": "a"})
+    for content in ('{"Modality": "CT", "SeriesDescription": "bids"}', "not json", "[1, 2]"):
+        (tmp_path / "ct.json").write_text(content)
+        with pytest.raises(CtsplatError, match=r"ct\.json is not the sidecar of a volume, and writing ct\.nii\.gz"):
+            save_volume(vol, tmp_path / "ct.nii.gz")
+        with pytest.raises(CtsplatError, match=r"ct\.json is not the sidecar of a volume"):
+            ingest(tmp_path / "no_such_source", tmp_path / "ct.nii.gz")  # refused before the source is read
+        assert (tmp_path / "ct.json").read_text() == content and not (tmp_path / "ct.nii.gz").exists()
+    (tmp_path / "ct.json").unlink()
+    save_volume(vol, tmp_path / "ct.nii.gz")
+    save_volume(Volume(np.zeros((4, 4, 4), np.float32), np.eye(4), {"volume_id": "b"}), tmp_path / "ct.nii.gz")
+    assert load_volume(tmp_path / "ct.nii.gz").data.shape == (4, 4, 4)  # an earlier volume's sidecar is replaced
+
+
 def test_a_volume_sidecar_that_does_not_belong_to_the_volume_is_refused(tmp_path) -> None:
     save_volume(Volume(np.ones((8, 8, 8), np.float32), np.eye(4), {"volume_id": "a"}), tmp_path / "a.nii.gz")
     save_volume(Volume(np.ones((6, 6, 6), np.float32), np.eye(4), {"volume_id": "b"}), tmp_path / "b.nii.gz")
@@ -547,6 +565,39 @@ def test_radiograph_folder_is_written_whole_or_not_at_all(tmp_path) -> None:
     assert np.all(p == 1.0) and len(back) == 4
 
 
+def test_radiographs_never_replace_files_of_someone_elses(tmp_path) -> None:
+    """Writing radiographs into a folder replaces only an earlier projection's files: a folder holding a png/ of
+    other pictures, a views.json or a same-named volume sidecar without an earlier radiographs.json is refused
+    before any work, and nothing in it changes."""
+    from ctsplat.formats.viewset import write_radiographs
+    from ctsplat.geometry import circular_orbit
+
+    vs = ViewSet(ParallelCamera(8, 8, 1.0), circular_orbit(4, np.zeros(3), 20.0, split_fractions={"train": 1.0}),
+                 "v1", np.zeros(3), {})
+    p = np.ones((4, 8, 8), np.float32)
+    mine = tmp_path / "mine"
+    (mine / "png").mkdir(parents=True)
+    (mine / "png" / "holiday.png").write_bytes(b"mine")
+    with pytest.raises(CtsplatError, match=r"mine holds png but no radiographs\.json of an earlier projection"):
+        write_radiographs(mine, p, vs, {})
+    save_volume(Volume(np.ones((8, 8, 8), np.float32), np.eye(4), {"volume_id": "r"}), tmp_path / "radiographs.nii.gz")
+    sidecar = (tmp_path / "radiographs.json").read_bytes()
+    with pytest.raises(CtsplatError, match=r"holds radiographs\.json but no radiographs\.json of an earlier"):
+        write_radiographs(tmp_path, p, vs, {})  # the volume's own folder: its sidecar has the same name
+    assert (tmp_path / "radiographs.json").read_bytes() == sidecar
+    # an earlier projection is replaced, but not pictures someone put into its png/
+    out = tmp_path / "rad"
+    write_radiographs(out, p, vs, {})
+    (out / "png" / "notes.png").write_bytes(b"mine")
+    with pytest.raises(CtsplatError, match=r"png holds notes\.png, which a projection does not write"):
+        write_radiographs(out, 2 * p, vs, {})
+    (out / "png" / "notes.png").unlink()
+    (out / "notes.txt").write_text("kept")  # other files beside the radiographs stay
+    write_radiographs(out, 2 * p, vs, {})
+    assert np.all(load_radiographs(out)[0] == 2.0) and (out / "notes.txt").read_text() == "kept"
+    assert (mine / "png" / "holiday.png").read_bytes() == b"mine" and not list(tmp_path.glob(".*"))
+
+
 def test_radiograph_folder_never_pairs_new_images_with_the_old_view_set(tmp_path, monkeypatch) -> None:
     """A crash between two of the final moves (simulated: the second rename fails) leaves a folder that
     load_radiographs refuses, not new line integrals beside the old views.json of the same shape."""
@@ -572,7 +623,7 @@ def test_radiograph_folder_never_pairs_new_images_with_the_old_view_set(tmp_path
                                                               split_fractions={"train": 1.0}), "v2", np.zeros(3), {})
     with pytest.raises(OSError, match="simulated crash"):
         viewset_mod.write_radiographs(out, np.full((4, 8, 8), 2.0, np.float32), other, {})
-    assert [Path(m).name for m in moved] == ["line_integrals.tif"]
+    assert [Path(m).name for m in moved] == ["radiographs.json"]
     with pytest.raises(CtsplatError, match=r"views\.json does not exist"):
         load_radiographs(out)
     with pytest.raises(CtsplatError, match=r"line_integrals\.tif is a file; give the radiographs folder that holds"):

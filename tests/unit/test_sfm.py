@@ -321,3 +321,21 @@ def test_feature_masks_keep_the_support_shrunk_by_the_margin() -> None:
     # the image border counts as background: a support touching it is eroded from there too
     edge = feature_masks(np.ones((10, 10)), 0.02, 2.0)[0] == 255
     assert edge[2:8, 2:8].all() and not edge[:2].any() and not edge[:, -2:].any()
+
+
+def test_sfm_refuses_an_output_folder_with_files_it_does_not_write(tmp_path) -> None:
+    # the step replaces images/, the model and its tables in place: a folder of someone else's that happens to
+    # hold a summary.json is refused before anything is read or removed
+    from ctsplat.sfm.step import run_sfm
+
+    out = tmp_path / "project"
+    (out / "images").mkdir(parents=True)
+    (out / "images" / "IMG_001.jpg").write_bytes(b"mine")
+    (out / "summary.json").write_text('{"mine": 1}')
+    with pytest.raises(CtsplatError, match=r"project holds images/IMG_001\.jpg, which this step does not write"):
+        run_sfm(tmp_path / "radiographs", out)
+    with pytest.raises(CtsplatError, match=r"is, or holds, the input"):
+        run_sfm(out, out)
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == [
+        "images", "images/IMG_001.jpg", "summary.json"]
+    assert (out / "summary.json").read_text() == '{"mine": 1}'

@@ -607,10 +607,11 @@ def test_a_folder_with_the_marker_and_other_files_is_not_replaced(tmp_path):
     assert sorted(p.relative_to(run).as_posix() for p in run.rglob("*")) == [
         "config.json", "notes.txt", "sub", "sub/data.csv"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["project"]  # no temporary folder left
-    # an earlier output (the marker, the listed files, Snakemake's timestamps) is replaced whole
+    # an earlier output (the marker, the listed files, Snakemake's timestamps, temporaries) is replaced whole
     earlier = tmp_path / "run"
     (earlier / "figures").mkdir(parents=True)
-    for name in ("config.json", "model.pt", "figures/gallery.png", "figures/.snakemake_timestamp"):
+    for name in ("config.json", "model.pt", "figures/gallery.png", "figures/.snakemake_timestamp",
+                 ".model.pt.k3j9x.tmp.pt", "figures/.gallery.png.a81z.tmp.png"):  # killed atomic writes' leftovers
         (earlier / name).write_text("old")
     with atomic_dir(earlier, marker="config.json", contents=files) as tmp:
         (tmp / "config.json").write_text("new")

@@ -433,3 +433,24 @@ def test_all_finite_finds_every_kind_of_non_finite_element() -> None:
     huge = torch.full((4,), 1.7e308, dtype=torch.float64)
     assert not bool(torch.isfinite(huge.sum())) and all_finite([huge])
     assert all_finite([torch.full((10_000,), 3.4e38)])  # float32 maxima: the float64 sum stays finite
+
+
+def test_train_refuses_a_folder_holding_files_that_are_not_a_runs(scene_dir: Path,  # noqa: F811
+                                                                   tmp_path: Path) -> None:
+    # a new run replaces the checkpoints and outputs in its folder: someone else's checkpoints/ or metrics.json
+    # beside their own files are refused before the lock file or anything else is written
+    out = tmp_path / "mlproj"
+    (out / "checkpoints").mkdir(parents=True)
+    (out / "checkpoints" / "epoch_10.pt").write_bytes(b"mine")
+    (out / "metrics.json").write_text('{"mine": 1}')
+    cfg = _cfg(scene_dir, iterations=2)
+    with pytest.raises(CtsplatError, match=r"mlproj holds checkpoints/epoch_10\.pt, which this step does not write"):
+        loop.train(cfg, out)
+    (out / "checkpoints" / "epoch_10.pt").unlink()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(CtsplatError, match=r"mlproj holds notes\.txt, which this step does not write"):
+        loop.train(cfg, out)
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == ["checkpoints", "metrics.json",
+                                                                            "notes.txt"]
+    with pytest.raises(CtsplatError, match=r"is, or holds, the input"):
+        loop.train(cfg, Path(cfg["radiographs"]).parent)
