@@ -170,7 +170,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     q.add_argument("--native", action="store_true", help="keep the scan's spacing (median slice gap)")
     q.add_argument("--intensity", choices=["attenuation", "window", "mu", "hu"],
                    help="value mapping (default attenuation: mu/mu_max in [0, 1])")
-    q.add_argument("--window", type=_window, help="window preset (brain, soft_tissue, bone, lung) or LEVEL,WIDTH")
+    q.add_argument("--window", type=_window, help="window preset (brain, soft_tissue, bone, lung) or LEVEL,WIDTH "
+                   "(a negative level with '=': --window=-600,1500)")
     q.add_argument("--hu-max", dest="hu_max", type=float,
                    help="HU mapped to 1.0 by attenuation, and where mu clips (default 3000)")
     q.add_argument("--mu-water", dest="mu_water_per_mm", type=float,

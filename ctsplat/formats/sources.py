@@ -810,6 +810,59 @@ def _vec(ds: Any, key: str, n: int, label: str) -> np.ndarray:
     return out
 
 
+def _padding_mask(ds: Any, pixels: np.ndarray) -> tuple[np.ndarray, tuple[int, int]] | None:
+    """The slice's padding pixels (PixelPaddingValue, up to PixelPaddingRangeLimit) as stored, or None.
+
+    Returns
+    -------
+    (mask, (value, limit)) or None
+        ``mask`` (Rows, Columns) bool; ``value`` and ``limit`` in stored units (``limit == value`` without a
+        range). None when the slice has no PixelPaddingValue or no pixel equals it.
+    """
+    if ds.get("PixelPaddingValue") in (None, ""):
+        return None
+    bits = int(ds.get("BitsAllocated", 16) or 16)
+
+    def stored(v: Any) -> int:
+        # the tag's VR is US or SS by PixelRepresentation; a signed value read as unsigned wraps around
+        v = int(v)
+        return v - (1 << bits) if int(ds.get("PixelRepresentation", 0) or 0) == 1 and v >= 1 << (bits - 1) else v
+
+    value = stored(ds.PixelPaddingValue)
+    limit = stored(ds.PixelPaddingRangeLimit) if ds.get("PixelPaddingRangeLimit") not in (None, "") else value
+    lo, hi = min(value, limit), max(value, limit)
+    mask = (pixels >= lo) & (pixels <= hi)
+    return (mask, (value, limit)) if mask.any() else None
+
+
+def _fill_padding(slices: list[tuple[Path, Any, np.ndarray]], padding: dict[int, np.ndarray],
+                  values: set[tuple[int, int]]) -> dict[str, Any] | None:
+    """Give the padding pixels (outside the reconstructed field of view) the series' smallest other value.
+
+    Padding marks pixels that hold no measurement (DICOM PS3.3 C.7.5.1.1.2); kept as values (often -2000
+    stored, -3024 HU) they would be blurred into the edge voxels by the resampling and enlarge a body mask.
+    The smallest value the scanner did measure (air) takes their place, in place in ``slices``.
+
+    Returns
+    -------
+    dict or None
+        ``value`` / ``range_limit`` (stored units), ``n_pixels`` and ``filled_with`` (the volume's units); None
+        without padding.
+    """
+    if not padding:
+        return None
+    measured = [float(np.min(v[~padding[i]])) for i, (_, _, v) in enumerate(slices)
+                if i not in padding or not padding[i].all()]
+    if not measured:
+        raise CtsplatError("every pixel of the series is PixelPaddingValue padding; there is no image to ingest")
+    fill = min(measured)
+    for i, mask in padding.items():
+        slices[i][2][mask] = fill
+    (value, limit), *more = sorted(values)
+    return {"value": value, "range_limit": limit, "n_pixels": int(sum(int(m.sum()) for m in padding.values())),
+            "filled_with": fill, **({"other_values": [list(v) for v in more]} if more else {})}
+
+
 def _rescale(ds: Any, label: str) -> tuple[float, float] | None:
     """The slice's ``(RescaleSlope, RescaleIntercept)``, None when either tag is absent or empty."""
     if ds.get("RescaleSlope") in (None, "") or ds.get("RescaleIntercept") in (None, ""):
@@ -851,7 +904,11 @@ def read_dicom_series(
     :func:`looks_like_hu` says so (with a warning); otherwise that is an error, because raw stored
     values (e.g. 0 .. 4095 for HU + 1024) read as HU give a wrong volume without any other sign.
     Values of other modalities are raw anyway and are kept as stored. ``source["rescale"]`` records
-    what was applied (``from``: ``header``, ``option``, ``assumed_hu`` or ``stored_values``).
+    what was applied (``from``: ``header``, ``option``, ``assumed_hu`` or ``stored_values``; a ``rescale``
+    that no slice needed is warned about and kept as ``option_unused``).
+
+    Pixels marked as padding (PixelPaddingValue, up to PixelPaddingRangeLimit: outside the reconstructed
+    field of view) take the smallest value measured in the series, recorded in ``source["pixel_padding"]``.
 
     Oblique orientations and gantry tilt are supported: the full per-slice geometry is kept and
     resampled exactly by :func:`ctsplat.volume.resample_stack`. Multi-frame (enhanced) objects and
@@ -912,6 +969,8 @@ def _read_dicom_series(
     slices: list[tuple[Path, Any, np.ndarray]] = []
     without_rescale: list[int] = []  # indices into ``slices`` whose values are still stored values
     header_rescales: set[tuple[float, float]] = set()
+    padding: dict[int, np.ndarray] = {}  # index into ``slices`` -> its padding pixels (``values.T``'s layout)
+    padding_values: set[tuple[int, int]] = set()
     ref: dict[str, Any] = {}
     for path in pick.files:
         try:
@@ -969,6 +1028,10 @@ def _read_dicom_series(
             _handle_corrupt(path, label(path), f"pixel array shape {pixels.shape} != {(rows, cols)}", skip_corrupt,
                             skipped)
             continue
+        pad = _padding_mask(ds, pixels)
+        if pad is not None:
+            padding[len(slices)] = pad[0].T
+            padding_values.add(pad[1])
         values = pixels.astype(np.float32)
         rescale_tags = _rescale(ds, label(path))
         if rescale_tags is not None:
@@ -1015,6 +1078,7 @@ def _read_dicom_series(
     modality = str(first.get("Modality", "") or "")
     units = "hu" if modality.upper() == "CT" else "raw"
     rescale_info = _apply_missing_rescale(slices, without_rescale, header_rescales, user_rescale, units, pick, folder)
+    padding_info = _fill_padding(slices, padding, padding_values)
     data = np.stack([slices[o][2] for o in order], axis=2).astype(np.float32, copy=False)
     stack = SliceStack(
         data=data,
@@ -1052,6 +1116,7 @@ def _read_dicom_series(
         "image_orientation_patient": [float(v) for v in iop],
         "gantry_tilt_deg": round(stack.tilt_deg, 4),
         "rescale": rescale_info,
+        "pixel_padding": padding_info,
         "value_range": _finite_range(data),
         "units": units,
     }
@@ -1081,6 +1146,10 @@ def _apply_missing_rescale(
         info.update(slope=one_or_all({s for s, _ in header}), intercept=one_or_all({i for _, i in header}))
     info["n_slices_without_tags"] = len(without)
     if not without:
+        if user is not None:  # nothing to apply it to: say so rather than let the option look effective
+            log.warning("rescale %s was given, but every slice of series %s carries its own RescaleSlope and "
+                        "RescaleIntercept, which are used; the option does nothing here", list(user), pick.label())
+            info["option_unused"] = list(user)
         return info
     if user is not None:
         slope, intercept = user

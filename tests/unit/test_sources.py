@@ -846,3 +846,42 @@ def test_workflow_stores_a_series_uid_selector_as_its_id():
     for wrapped in (f"[{uid}]", f"'{uid}'", f'"{uid}"', f"{uid}.", f" <{uid}> "):
         assert outputs_selector(wrapped) == salted_hash(uid), wrapped
     assert outputs_selector("Doe^Jane head") == salted_hash("Doe^Jane head")
+
+
+@pytest.mark.parametrize("with_range", [False, True])
+def test_pixel_padding_takes_the_series_smallest_measured_value(tmp_path, with_range):
+    # the padding outside the field of view holds no measurement: as a value (-3024 HU and the like) it would be
+    # blurred into the edge voxels and enlarge a body mask
+    files = make_series(tmp_path / "s", shape=(8, 6, 5))
+    measured = []
+    for f in files:
+        ds = pydicom.dcmread(f)
+        px = ds.pixel_array.copy()
+        signed = int(ds.PixelRepresentation) == 1
+        measured.append(px[1:].astype(float) * float(ds.RescaleSlope) + float(ds.RescaleIntercept))
+        pad = int(px.min()) - 40 if signed else 0
+        px[0, :] = pad  # the first row of every slice is padding
+        if with_range:
+            px[0, 0] = pad + 3  # within PixelPaddingValue .. PixelPaddingRangeLimit
+            ds.add_new(0x00280121, "SS" if signed else "US", pad + 5)
+        ds.add_new(0x00280120, "SS" if signed else "US", pad)
+        ds.PixelData = px.astype(px.dtype).tobytes()
+        ds.save_as(f)
+    stack = read_dicom_series(tmp_path / "s")
+    info = stack.source["pixel_padding"]
+    fill = min(float(m.min()) for m in measured)
+    assert info["n_pixels"] == 5 * 8 and info["filled_with"] == pytest.approx(fill)
+    assert (info["range_limit"] - info["value"]) == (5 if with_range else 0)
+    np.testing.assert_allclose(stack.data[:, 0, :], fill)  # values.T: the first row is j == 0
+    for k, m in enumerate(measured):
+        np.testing.assert_allclose(stack.data[:, 1:, k], m.T)
+    assert read_dicom_series(tmp_path / "s").source["pixel_padding"] == info  # deterministic
+
+
+def test_a_rescale_no_slice_needs_is_reported_not_silently_dropped(tmp_path, caplog):
+    make_series(tmp_path / "s")
+    with caplog.at_level("WARNING", logger="ctsplat.formats.sources"):
+        stack = read_dicom_series(tmp_path / "s", rescale=[2.0, -1000.0])
+    assert stack.source["rescale"]["from"] == "header" and stack.source["rescale"]["option_unused"] == [2.0, -1000.0]
+    assert "rescale [2.0, -1000.0] was given, but every slice" in caplog.text
+    np.testing.assert_array_equal(stack.data, read_dicom_series(tmp_path / "s").data)
