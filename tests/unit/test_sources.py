@@ -723,11 +723,14 @@ def test_header_rescale_slope_other_than_one(tmp_path):
     assert stack.source["rescale"]["from"] == "header"
 
 
-def test_rescale_option_does_not_override_header_tags(tmp_path):
+def test_rescale_option_does_not_override_header_tags(tmp_path, caplog):
     make_series(tmp_path / "s")
-    stack = read_dicom_series(tmp_path / "s", rescale=(2.0, 5.0))
+    with caplog.at_level("WARNING", logger="ctsplat.formats.sources"):
+        stack = read_dicom_series(tmp_path / "s", rescale=(2.0, 5.0))
     assert stack.source["rescale"] == {"from": "header", "slope": 1.0, "intercept": -1024.0,
-                                       "n_slices_without_tags": 0}
+                                       "n_slices_without_tags": 0, "option_unused": [2.0, 5.0]}
+    assert "rescale [2.0, 5.0] was given, but every slice" in caplog.text  # reported, not silently dropped
+    np.testing.assert_array_equal(stack.data, read_dicom_series(tmp_path / "s").data)
 
 
 def test_missing_rescale_on_values_that_already_are_hu_is_accepted_and_recorded(tmp_path, caplog):
@@ -877,11 +880,3 @@ def test_pixel_padding_takes_the_series_smallest_measured_value(tmp_path, with_r
         np.testing.assert_allclose(stack.data[:, 1:, k], m.T)
     assert read_dicom_series(tmp_path / "s").source["pixel_padding"] == info  # deterministic
 
-
-def test_a_rescale_no_slice_needs_is_reported_not_silently_dropped(tmp_path, caplog):
-    make_series(tmp_path / "s")
-    with caplog.at_level("WARNING", logger="ctsplat.formats.sources"):
-        stack = read_dicom_series(tmp_path / "s", rescale=[2.0, -1000.0])
-    assert stack.source["rescale"]["from"] == "header" and stack.source["rescale"]["option_unused"] == [2.0, -1000.0]
-    assert "rescale [2.0, -1000.0] was given, but every slice" in caplog.text
-    np.testing.assert_array_equal(stack.data, read_dicom_series(tmp_path / "s").data)
