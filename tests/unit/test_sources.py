@@ -879,4 +879,3 @@ def test_pixel_padding_takes_the_series_smallest_measured_value(tmp_path, with_r
     for k, m in enumerate(measured):
         np.testing.assert_allclose(stack.data[:, 1:, k], m.T)
     assert read_dicom_series(tmp_path / "s").source["pixel_padding"] == info  # deterministic
-
