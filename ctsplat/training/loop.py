@@ -125,12 +125,13 @@ log = logging.getLogger(__name__)
 RUN_OUTPUTS = ("training.json", "metrics.json", "model.pt", "model_best.pt", "model.ply", "model_volume.nii.gz",
                "per_view_test.csv", "refined_views.json")
 
-#: Every file a run folder holds: training's, the evaluation's (any split, the figures, the unsharpened read-out),
-#: the lock, and the workflow's per-run logs. :func:`train` refuses a folder holding anything else, since a new run
-#: replaces the checkpoints and outputs in it.
+#: Every file a run folder holds: training's, the evaluation's (any split, the figures, the read-outs and their
+#: sidecars), the per-run figures (:data:`ctsplat.analysis.RUN_FIGURES`, in ``figures/``), the lock, and the
+#: workflow's per-run logs. :func:`train` refuses a folder holding anything else, since a new run replaces the
+#: checkpoints and outputs in it.
 RUN_FILES = (*RUN_OUTPUTS, "config.json", "train_log.csv", "per_view.csv", "checkpoints/ckpt_*.pt*", "metrics_*.json",
-             "per_view_*.csv", "model_volume_*.nii.gz", "gallery.png", "slices.png", "turntable.gif",
-             ".ctsplat.lock", "logs/*")
+             "per_view_*.csv", "model_volume_*.nii.gz", "model_volume*.json", "gallery.png", "slices.png",
+             "turntable.gif", "figures/*.png", ".ctsplat.lock", "logs/*")
 
 
 def _evaluate_periodic(state: TrainState, cfg: dict[str, Any], scene: Scene, val: ViewData

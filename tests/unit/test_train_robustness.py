@@ -454,3 +454,22 @@ def test_train_refuses_a_folder_holding_files_that_are_not_a_runs(scene_dir: Pat
                                                                             "notes.txt"]
     with pytest.raises(CtsplatError, match=r"is, or holds, the input"):
         loop.train(cfg, Path(cfg["radiographs"]).parent)
+
+
+def test_an_evaluated_run_with_its_figures_trains_again(scene_dir: Path, tmp_path: Path) -> None:  # noqa: F811
+    # everything the workflow writes into a run folder (evaluation, read-out sidecars, figures, logs) belongs to the
+    # run: training it again, as a changed config or --restart does, must not be refused
+    from ctsplat.analysis import RUN_FIGURES
+    from ctsplat.analysis.plots import run_figures
+    from ctsplat.evaluation import evaluate
+
+    out = tmp_path / "run"
+    cfg = _cfg(scene_dir, iterations=20, figures=True, turntable_frames=2)
+    loop.train(cfg, out)
+    evaluate(out)
+    run_figures(out, {name: out / "figures" / f"{name}.png" for name in RUN_FIGURES})
+    (out / "logs").mkdir()
+    (out / "logs" / "train.log").write_text("log")
+    assert (out / "model_volume.json").is_file() and (out / "figures" / "acf.png").is_file()
+    loop.train({**cfg, "iterations": 10}, out)
+    assert json.loads((out / "training.json").read_text())["iterations"] == 10
