@@ -116,6 +116,10 @@ def _not_run_reason(run_dir: Path, row: Mapping[str, Any]) -> str | None:
     return None if failure is None else f"SfM failed ({path}): {failure}"
 
 
+#: The columns of ``baselines.csv`` the summary and the figures read (the method, then numbers).
+BASELINE_REQUIRED = ("method", "n_views", "psnr3d", "ssim3d")
+
+
 def read_baselines(paths: Sequence[str | os.PathLike[str]]) -> pd.DataFrame:
     """``baselines.csv`` files in one table, with the volume and the geometry taken from
     ``.../{volume}/baselines/{geometry}/baselines.csv`` when a file has no ``volume`` / ``geometry`` column.
@@ -131,10 +135,30 @@ def read_baselines(paths: Sequence[str | os.PathLike[str]]) -> pd.DataFrame:
         Their rows (:data:`ctsplat.baselines.BASELINE_COLUMNS` + ``volume``, ``geometry``, ``volume_id`` from the
         ``baselines.json`` beside the file (None without one) and ``baselines_csv``, the file); empty when no path
         is given.
+
+    Raises
+    ------
+    CtsplatError
+        One line naming a file that cannot be read as CSV or lacks the columns the summary and figures use
+        (:data:`BASELINE_REQUIRED`).
     """
     frames = []
     for p in paths:
-        b = pd.read_csv(p)
+        fix = "give the baselines.csv that `ctsplat baseline` wrote"
+        try:
+            b = pd.read_csv(p)
+        except pd.errors.EmptyDataError:
+            raise CtsplatError(f"baselines table {p} is empty; {fix}") from None
+        except (OSError, pd.errors.ParserError, UnicodeDecodeError) as exc:
+            raise CtsplatError(f"cannot read baselines table {p} ({type(exc).__name__}: "
+                               f"{str(exc).splitlines()[0] if str(exc) else 'unreadable'}); {fix}") from None
+        missing = [c for c in BASELINE_REQUIRED if c not in b]
+        if missing:
+            raise CtsplatError(f"{p} is not a baselines table (no {', '.join(missing)} column); {fix}")
+        bad = b[list(BASELINE_REQUIRED[1:])].apply(pd.to_numeric, errors="coerce").isna().any(axis=1)
+        if bad.any():
+            raise CtsplatError(f"{p} row {int(bad.to_numpy().argmax()) + 2} has no number in "
+                               f"{'/'.join(BASELINE_REQUIRED[1:])}; {fix}")
         parts = Path(p).parts
         at = parts.index("baselines") if "baselines" in parts[:-1] else None
         if "volume" not in b:
@@ -237,7 +261,8 @@ def gather(
     ------
     CtsplatError
         When no run folder is given, a folder is not a run folder, or a run has neither file (unless it is a cell
-        of a failed SfM run).
+        of a failed SfM run); when ``out_csv`` is an input, lies in a run folder or is a file other than an
+        earlier summary; when a baselines table cannot be read (:func:`read_baselines`).
     """
     if thresholds is None:
         from ctsplat.config import schema_defaults
@@ -245,6 +270,8 @@ def gather(
         thresholds = schema_defaults("analysis")["milestones"]
     if not run_dirs:
         raise CtsplatError("gather: no run folders given")
+    _check_summary_path(out_csv, run_dirs, baselines_csvs)  # before any run is read
+    baselines = read_baselines(baselines_csvs)
     rows = []
     for rd in run_dirs:
         rd = Path(rd)
@@ -285,8 +312,8 @@ def gather(
         sfm = pd.DataFrame([_sfm_columns(Path(r)) if c else dict.fromkeys(SFM_COLUMNS)
                             for r, c in zip(df["run_dir"], colmap, strict=True)], index=df.index)
         df = df.drop(columns=[c for c in SFM_COLUMNS if c in df]).join(sfm)
-    df = df.join(_baseline_columns(df, read_baselines(baselines_csvs)))
-    _check_summary_path(out_csv, run_dirs, baselines_csvs)
+    df = df.join(_baseline_columns(df, baselines))
+    _check_summary_path(out_csv, run_dirs, baselines_csvs)  # again: the file may have appeared meanwhile
     with atomic_path(out_csv) as tmp:
         df.to_csv(tmp, index=False, lineterminator="\n")
     return df
@@ -305,6 +332,14 @@ def _check_summary_path(out_csv: str | os.PathLike[str], run_dirs: Sequence[str 
     target = out.resolve()
     if any(target == Path(b).resolve() for b in baselines_csvs):
         raise CtsplatError(f"gather: the summary {out} is one of the baselines files it reads; write it elsewhere")
+    if out.is_file():  # an earlier summary is replaced; any other table is not gather's to replace
+        try:
+            header = pd.read_csv(out, nrows=0).columns
+        except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError):
+            header = pd.Index([])
+        if not {"run_dir", "volume"} <= set(header):
+            raise CtsplatError(f"gather: {out} exists and is not a summary of `ctsplat gather` (no run_dir and "
+                               "volume columns), and writing the summary would replace it; write it elsewhere")
     for rd in map(Path, run_dirs):
         if rd.resolve() in target.parents:
             raise CtsplatError(f"gather: the summary {out} lies inside the run folder {rd}; write it elsewhere "

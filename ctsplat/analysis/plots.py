@@ -842,6 +842,7 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
     if unknown:
         raise CtsplatError(f"unknown analysis output {unknown[0]!r}; known: {', '.join(ANALYSIS_OUTPUTS)}")
     summary = read_summary(summary_csv)
+    baselines = read_baselines(baselines_csvs)  # every input is read before the first output is written
     logs = load_runs(summary, max_gap_iters=cfg["max_gap_iters"])
     for a in GRID_AXES:
         key = f"convergence_by_{a}"
@@ -874,7 +875,7 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
 
         _write_csv(claims_table(summary), outputs["claims"])
     if "baselines" in outputs:
-        plot_baselines(summary, read_baselines(baselines_csvs), outputs["baselines"])
+        plot_baselines(summary, baselines, outputs["baselines"])
     if "provenance" in outputs:
         write_json_atomic(outputs["provenance"], analysis_provenance(summary_csv, summary, cfg, baselines_csvs))
 

@@ -45,6 +45,7 @@ def _run_dirs(paths: list[str]) -> list[Path]:
     """Run folders from the arguments: a run folder itself, or any folder searched for grid runs (``KEY~VALUE``
     folders with ``train_log.csv`` or ``metrics.json``; a photo run, ``{volume}/photos/run``, is not one)."""
     out: list[Path] = []
+    seen: set[Path] = set()
     for p in map(Path, paths):
         if not p.exists():
             raise CtsplatError(f"{p} does not exist")
@@ -56,7 +57,12 @@ def _run_dirs(paths: list[str]) -> list[Path]:
             if not found:
                 raise CtsplatError(f"no run folders (with train_log.csv or metrics.json) under {p}")
             out += found
-    return out
+    unique = []
+    for d in out:  # a folder named twice, or found under two of the arguments, is one run
+        if d.resolve() not in seen:
+            seen.add(d.resolve())
+            unique.append(d)
+    return unique
 
 
 def run_gather(args: argparse.Namespace) -> None:
@@ -76,6 +82,11 @@ def run_analyse(args: argparse.Namespace) -> None:
 
     out_dir = Path(args.out_dir)
     outputs = {name: out_dir / fname for name, (fname, _) in ANALYSIS_OUTPUTS.items()}
+    provenance = outputs["provenance"]
+    taken = [p.name for p in outputs.values() if p.exists() or p.is_symlink()]
+    if taken and not provenance.is_file():  # an earlier analyse leaves its analysis.json beside its outputs
+        raise CtsplatError(f"{out_dir} holds {taken[0]}, which analyse would replace but did not write (no "
+                           f"{provenance.name} there); choose another --out-dir")
     cfg = _analysis_config(args)
     if not Path(args.summary).exists():
         raise CtsplatError(f"summary {args.summary} does not exist; run `ctsplat gather` first")

@@ -58,3 +58,39 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert main(["gather", str(tmp_path), "--out", str(tmp_path / "s.csv"), "--milestone", "psnr2d"]) == 2
     assert "must look like metric=value" in capsys.readouterr().err
     assert not (tmp_path / "s.csv").exists()
+
+
+def test_gather_and_analyse_replace_only_their_own_files_and_read_every_input_first(tmp_path, capsys):
+    rd = _run(tmp_path, 0)
+    out = tmp_path / "summary.csv"
+    # a run named twice (itself and under its results folder) is one row
+    assert main(["gather", str(rd), str(tmp_path / "results"), "--out", str(out)]) == 0
+    assert len(pd.read_csv(out)) == 1
+    # bad baselines tables: one line naming the file, before anything is written
+    bad = {"empty.csv": "", "trials.csv": "method,n_views,val_psnr\nfbp,8,20\n",
+           "nan.csv": "method,n_views,psnr3d,ssim3d\nfbp,8,,0.5\n", "latin1.csv": "method,n_views\n\xe9,1\n"}
+    for name, text in bad.items():
+        path = tmp_path / name
+        path.write_bytes(text.encode("latin-1"))
+        before = out.read_bytes()
+        assert main(["gather", str(rd), "--out", str(out), "--baselines", str(path)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert name in err and "\n" not in err and "Traceback" not in err, err
+        assert out.read_bytes() == before
+        figs = tmp_path / "figs"
+        assert main(["analyse", str(out), "--out-dir", str(figs), "--baselines", str(path)]) == 2
+        assert name in capsys.readouterr().err and not figs.exists()
+    # --out naming another step's table, and --out-dir holding figures analyse did not write, are refused
+    table = tmp_path / "baselines.csv"
+    table.write_text("method,n_views,psnr3d,ssim3d\nfbp,8,20,0.5\n")
+    assert main(["gather", str(rd), "--out", str(table)]) == 2
+    assert "exists and is not a summary of `ctsplat gather`" in capsys.readouterr().err
+    assert table.read_text() == "method,n_views,psnr3d,ssim3d\nfbp,8,20,0.5\n"
+    (rd / "figures").mkdir()
+    (rd / "figures" / "acf.png").write_bytes(b"run figure")
+    assert main(["analyse", str(out), "--out-dir", str(rd / "figures")]) == 2
+    assert "holds acf.png, which analyse would replace but did not write" in capsys.readouterr().err
+    assert (rd / "figures" / "acf.png").read_bytes() == b"run figure"
+    figs = tmp_path / "figs"
+    assert main(["analyse", str(out), "--out-dir", str(figs), "--baselines", str(table)]) == 0
+    assert main(["analyse", str(out), "--out-dir", str(figs)]) == 0  # its own earlier output is replaced
