@@ -41,9 +41,13 @@ __all__ = [
     "section_schema",
     "prepare_config",
     "sync_library_defaults",
+    "RESULTS_DIR",
 ]
 
 SCHEMA_RESOURCE = "schemas/config.schema.yaml"  # inside the ctsplat package
+
+#: The workflow's output folder, relative to its working directory: ``RESULTS_DIR/{volume}/...``.
+RESULTS_DIR = "results"
 
 # Library section of the workflow config -> (module, attribute holding the section's defaults).
 LIBRARY_SECTIONS: dict[str, tuple[str, str]] = {
@@ -501,6 +505,40 @@ def _library_section_values(config: Mapping[str, Any]) -> list[tuple[str, str, d
     return out
 
 
+def _check_not_own_output(name: str, source: str, base_dir: str | os.PathLike[str]) -> None:
+    """Refuse a source inside the volume's own results folder: the workflow writes there, and removes a step's
+    outputs before it runs the step again (the source would be its own ingest output)."""
+    if source == "phantom":
+        return
+    path = Path(source).expanduser()
+    own = (Path(base_dir) / RESULTS_DIR / name).resolve()
+    resolved = (path if path.is_absolute() else Path(base_dir) / path).resolve()
+    if resolved == own or own in resolved.parents:
+        raise CtsplatError(f"invalid config at volumes.{name}.source: {source!r} lies in {RESULTS_DIR}/{name}/, the "
+                           "folder the workflow writes this volume's outputs to; move or copy it elsewhere")
+
+
+def _check_source_keys(name: str, vol: Mapping[str, Any], given: Mapping[str, Any],
+                       base_dir: str | os.PathLike[str]) -> None:
+    """Refuse a CT volume's settings that its kind of source would ignore or refuse late, in its ingest job
+    (:data:`ctsplat.formats.sources.SOURCE_KIND_KEYS`, ``phantom`` on a file source, a TIFF without a voxel size)."""
+    from ctsplat.formats.sources import SOURCE_KIND_KEYS, source_kind
+
+    source = str(vol["source"])
+    path = Path(source).expanduser()
+    kind = "dicom" if source == "phantom" else source_kind(path if path.is_absolute() else Path(base_dir) / path)
+    for key, wants in SOURCE_KIND_KEYS.items():
+        if given.get(key) not in (None, False) and kind != wants:
+            raise CtsplatError(f"invalid config at volumes.{name}.{key}: it applies to {wants.upper()} sources only, "
+                               f"and {source!r} is {str(kind).upper()}; remove it")
+    if given.get("phantom") and source != "phantom":
+        raise CtsplatError(f"invalid config at volumes.{name}.phantom: it sets up the built-in phantom (source: "
+                           f"phantom), not {source!r}; remove it")
+    if kind == "tiff" and vol.get("tiff_voxel_size_mm") is None:
+        raise CtsplatError(f"invalid config at volumes.{name}.tiff_voxel_size_mm: a TIFF stack has no voxel size; "
+                           "give it in mm (one number, or three for x, y, z)")
+
+
 def check_volume_sources(volumes: Mapping[str, Mapping[str, Any]], base_dir: str | os.PathLike[str] = ".", *,
                          min_photos: int = 1) -> None:
     """Check that every volume source is ``phantom`` or an existing path of the kind its volume reads.
@@ -693,7 +731,9 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
     for name, vol in cfg["volumes"].items():
         if isinstance(vol["source"], str) and vol["source"].startswith("~"):
             vol["source"] = str(Path(vol["source"]).expanduser())
+        _check_not_own_output(name, str(vol["source"]), base_dir)
         if vol["kind"] != "photos":
+            _check_source_keys(name, vol, (config.get("volumes") or {}).get(name) or {}, base_dir)
             _check_volume_preprocessing(name, vol.get("preprocessing") or {}, cfg["preprocessing"])
             if vol.get("series_uid") is not None:
                 vol["series_uid"] = str(vol["series_uid"])  # a series number, as `ingest --series-uid` takes it

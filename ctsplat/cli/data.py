@@ -81,17 +81,17 @@ def _check_ingest_options(args: argparse.Namespace, cfg: dict) -> None:
         if getattr(args, key) is not None and intensity not in used_by:
             raise CtsplatError(f"{option} only applies to intensity {' / '.join(used_by)}, not {intensity}; add "
                                f"--intensity {used_by[0]} or drop {option}")
-    from ctsplat.formats.sources import source_kind
+    from ctsplat.formats.sources import SOURCE_KIND_KEYS, source_kind
 
     kind = source_kind(args.source)
-    dicom_only = {"--series-uid": args.series_uid, "--allow-modality": args.allow_modality,
-                  "--skip-corrupt": args.skip_corrupt or None, "--rescale": args.rescale}
-    for option, value in dicom_only.items():
-        if value is not None and kind in ("nifti", "tiff"):
-            raise CtsplatError(f"{option} applies to DICOM input only, not the {kind.upper()} input {args.source}; "
-                               "drop it")
-    if args.tiff_voxel_size is not None and kind != "tiff":
-        raise CtsplatError(f"--tiff-voxel-size applies to TIFF input only, not {args.source}; drop it")
+    options = {"series_uid": ("--series-uid", args.series_uid), "rescale": ("--rescale", args.rescale),
+               "allow_modalities": ("--allow-modality", args.allow_modality),
+               "skip_corrupt": ("--skip-corrupt", args.skip_corrupt or None),
+               "tiff_voxel_size_mm": ("--tiff-voxel-size", args.tiff_voxel_size)}
+    for key, wants in SOURCE_KIND_KEYS.items():
+        option, value = options[key]
+        if value is not None and kind != wants:
+            raise CtsplatError(f"{option} applies to {wants.upper()} input only, not {args.source}; drop it")
 
 
 def run_ingest(args: argparse.Namespace) -> None:

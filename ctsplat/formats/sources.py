@@ -1393,6 +1393,12 @@ def read_source(
     )
 
 
+#: Volume settings that apply to one kind of source (:func:`source_kind`; the built-in phantom is a DICOM series):
+#: another kind would ignore or refuse them, so the config and ``ctsplat ingest`` refuse them up front.
+SOURCE_KIND_KEYS: dict[str, str] = {"series_uid": "dicom", "allow_modalities": "dicom", "skip_corrupt": "dicom",
+                                    "rescale": "dicom", "tiff_voxel_size_mm": "tiff"}
+
+
 def source_kind(source: str | os.PathLike[str]) -> str | None:
     """How :func:`read_source` reads ``source``: ``"nifti"`` or ``"tiff"`` (a stack file, or a folder of TIFF slices
     only), ``"dicom"`` (any other folder, or a path that does not exist), None for a file of another kind."""

@@ -369,14 +369,15 @@ def test_scan_and_photo_sources_are_checked_for_their_kind_before_any_job(tmp_pa
         prepare_config({"volumes": {**ct, "s": {"source": "photos", "kind": "photos", "series_uid": "x",
                                                 "preprocessing": {"grid": 16}}}}, base_dir=tmp_path)
     monkeypatch.setenv("HOME", str(tmp_path))
-    (tmp_path / "scan.nii.gz").write_bytes(b"")
-    cfg = prepare_config({"volumes": {"v": {"source": "~/scan.nii.gz", "series_uid": 3}}}, base_dir="/")
-    assert cfg["volumes"]["v"]["source"] == str(tmp_path / "scan.nii.gz")
+    (tmp_path / "scan").mkdir()
+    (tmp_path / "scan" / "slice_0000.dcm").write_bytes(b"")
+    cfg = prepare_config({"volumes": {"v": {"source": "~/scan", "series_uid": 3}}}, base_dir="/")
+    assert cfg["volumes"]["v"]["source"] == str(tmp_path / "scan")
     assert cfg["volumes"]["v"]["series_uid"] == "3"
     # a UID written as a YAML list ([1.3...] unquoted, as a DICOM dump shows it) is refused without being echoed
     uid = "1.3.12.2.1107.5.1.1.20707.20020604104421111.3"
     with pytest.raises(CtsplatError, match=r"volumes\.v\.series_uid: give the series id") as err:
-        prepare_config({"volumes": {"v": {"source": "~/scan.nii.gz", "series_uid": [uid]}}}, base_dir="/")
+        prepare_config({"volumes": {"v": {"source": "~/scan", "series_uid": [uid]}}}, base_dir="/")
     assert "20707" not in str(err.value)
 
 
@@ -665,3 +666,36 @@ def test_an_sfm_run_marked_ok_must_be_one_training_accepts():
                                            r"train.min_registration_rate \(0.5\)"):
         prepare_config(cfg)
     prepare_config({**cfg, "train": {"min_registration_rate": 0.3}})
+
+
+def test_volume_settings_must_fit_their_kind_of_source(tmp_path):
+    from ctsplat.formats.volume import Volume, save_volume
+
+    save_volume(Volume(np.ones((4, 4, 4), np.float32), np.eye(4), {"volume_id": "v"}), tmp_path / "v.nii.gz")
+    (tmp_path / "v.tif").write_bytes(b"II*\x00")
+    (tmp_path / "ct").mkdir()
+    (tmp_path / "ct" / "slice_0000.dcm").write_bytes(b"")
+    cases = [
+        ({"source": "v.nii.gz", "rescale": [1, -1024]}, r"volumes\.a\.rescale: it applies to DICOM sources only, "
+                                                        r"and 'v\.nii\.gz' is NIFTI"),
+        ({"source": "v.nii.gz", "series_uid": "3"}, r"volumes\.a\.series_uid: it applies to DICOM"),
+        ({"source": "v.nii.gz", "skip_corrupt": True}, r"volumes\.a\.skip_corrupt: it applies to DICOM"),
+        ({"source": "ct", "tiff_voxel_size_mm": 1.0}, r"volumes\.a\.tiff_voxel_size_mm: it applies to TIFF sources "
+                                                      r"only, and 'ct' is DICOM"),
+        ({"source": "v.tif"}, r"volumes\.a\.tiff_voxel_size_mm: a TIFF stack has no voxel size"),
+        ({"source": "ct", "phantom": {"size": 32}}, r"volumes\.a\.phantom: it sets up the built-in phantom"),
+        ({"source": "results/a/volume.nii.gz"}, r"volumes\.a\.source: 'results/a/volume\.nii\.gz' lies in "
+                                                r"results/a/, the folder the workflow writes"),
+    ]
+    (tmp_path / "results" / "a").mkdir(parents=True)
+    (tmp_path / "results" / "a" / "volume.nii.gz").write_bytes((tmp_path / "v.nii.gz").read_bytes())
+    for vol, match in cases:
+        with pytest.raises(CtsplatError, match=match):
+            prepare_config({"volumes": {"a": vol}}, base_dir=tmp_path)
+    for vol in ({"source": "v.tif", "tiff_voxel_size_mm": 0.5}, {"source": "ct", "rescale": [1, -1024]},
+                {"source": "phantom", "phantom": {"size": 32}, "skip_corrupt": False},
+                {"source": "results/b/volume.nii.gz"}):  # another volume's output is an ordinary input
+        if "results/b" in vol["source"]:
+            (tmp_path / "results" / "b").mkdir()
+            (tmp_path / "results" / "b" / "volume.nii.gz").write_bytes((tmp_path / "v.nii.gz").read_bytes())
+        prepare_config({"volumes": {"a": vol}}, base_dir=tmp_path)

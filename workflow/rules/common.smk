@@ -8,6 +8,7 @@ from snakemake.utils import Paramspace
 
 from ctsplat.analysis import ANALYSIS_OUTPUTS, RUN_FIGURE_KEYS
 from ctsplat.config import (
+    RESULTS_DIR,
     canonical,
     check_config_files,
     on_workflow_device,
@@ -37,7 +38,7 @@ try:
 except CtsplatError as exc:
     raise WorkflowError(f"ctsplat config error: {exc}") from None
 
-RESULTS = "results"
+RESULTS = RESULTS_DIR
 GEOMETRY = CFG["grid"]["geometry"]
 SFM_GEOMETRY = CFG["sfm"]["settings"]["geometry"]
 BASELINE_GEOMETRY = CFG["baselines"]["geometry"]

@@ -37,9 +37,9 @@ rule overview_radiographs:
             labels={"volume": "{volume}", "view set": "{geometry}"},
         ),
     log:
-        f"{RESULTS}/logs/overview_radiographs/{{volume}}_{{geometry}}.log",
+        f"{RESULTS}/logs/overview_radiographs/{{volume}}/{{geometry}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/overview_radiographs/{{volume}}_{{geometry}}.tsv"
+        f"{RESULTS}/benchmarks/overview_radiographs/{{volume}}/{{geometry}}.tsv"
     conda:
         "../../envs/ctsplat.yaml"
     threads: rule_resources("overview_radiographs")["threads"]
