@@ -365,6 +365,12 @@ def orbit_poses(R0: np.ndarray, t0: np.ndarray, center_mm: np.ndarray, n: int) -
     return np.stack(Rs), np.stack(ts)
 
 
+#: The run config's settings (``config.json``'s ``config``) and the training record's entries the evaluation reads.
+_RUN_CONFIG_KEYS = ("volume", "radiographs", "init", "compositor", "mip", "poses", "supervision", "seed", "figures",
+                    "turntable_frames", "fps_width", "fps_height")
+_TRAINING_KEYS = ("wall_time_s", "iterations", "iters_per_s", "nan_events")
+
+
 def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
              milestones: Mapping[str, float] | None = None, write: bool = True,
              model: str | None = None, settings: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -449,6 +455,11 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         raise CtsplatError(f"{run_dir} has no {model_path.name} (model: {model}); evaluate model: last, or retrain "
                            "with a version that writes it")
     trained = read_json_object(run_dir / "training.json", what="training record", fix=fix)
+    for path, record, keys in ((run_dir / "config.json", cfg, _RUN_CONFIG_KEYS),
+                               (run_dir / "training.json", trained, _TRAINING_KEYS)):
+        missing = [k for k in keys if k not in record]
+        if missing:  # a record of another version, or an edited one: named here, not as a KeyError later
+            raise CtsplatError(f"{path} has no {missing[0]!r} entry (written by another version, or edited); {fix}")
     dev = resolve_device(device)
     scene = load_scene(cfg)
     check_validation_choices(scene, cfg, model)

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from ctsplat.cli import main
+from ctsplat.evaluation.run import _RUN_CONFIG_KEYS
 from ctsplat.formats.volume import Volume, load_volume, save_volume
 from ctsplat.utils import LOCK_NAME
 
@@ -354,6 +355,7 @@ def test_a_failed_train_or_evaluate_leaves_no_folder_or_lock_behind(tmp_path, ca
     assert "is not a finished training run" in capsys.readouterr().err and list(mine.iterdir()) == []
     for name, text, needle in (("config.json", "{", "run config"), ("config.json", "[1]", "holds a JSON array"),
                                ("config.json", '{"config_hash": "x"}', "has no 'config' object"),
+                               ("config.json", '{"config": {"volume": "v.nii.gz"}}', "has no 'radiographs' entry"),
                                ("training.json", "{", "training record")):
         run = tmp_path / f"broken_{name}_{len(text)}"
         run.mkdir()
@@ -365,6 +367,15 @@ def test_a_failed_train_or_evaluate_leaves_no_folder_or_lock_behind(tmp_path, ca
         assert f"{run / name}" in err and needle in err and "train the run again" in err and "\n" not in err
         written = sorted(p.name for p in run.iterdir() if p.name != LOCK_NAME)  # the lock file stays, unlocked
         assert written == ["config.json", "model.pt", "training.json"]
+    # a complete run config beside a training record of another version: named, not a KeyError
+    run = tmp_path / "old_record"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"config": dict.fromkeys(_RUN_CONFIG_KEYS, 1)}))
+    (run / "training.json").write_text('{"iterations": 10}')
+    (run / "model.pt").write_bytes(b"")
+    assert main(["evaluate", str(run)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"{run / 'training.json'} has no 'wall_time_s' entry" in err and "\n" not in err
 
 
 def test_train_reads_a_run_folders_config_json(tmp_path):
