@@ -270,7 +270,9 @@ def gather(
         thresholds = schema_defaults("analysis")["milestones"]
     if not run_dirs:
         raise CtsplatError("gather: no run folders given")
-    _check_summary_path(out_csv, run_dirs, baselines_csvs)  # before any run is read
+    for rd in run_dirs:  # every folder is a run folder, and the summary goes elsewhere, before any run is read
+        parse_run_dir(Path(rd))
+    _check_summary_path(out_csv, run_dirs, baselines_csvs)
     baselines = read_baselines(baselines_csvs)
     rows = []
     for rd in run_dirs:

@@ -81,12 +81,11 @@ __all__ = ["SFM_DEFAULTS", "run_sfm", "run_sfm_on_images", "naive_slices_sfm", "
 
 log = logging.getLogger(__name__)
 
-#: Files that mark a folder as an earlier SfM output, any one of them (a run stopped halfway may lack the summary,
-#: which goes first), and every file such a folder holds (the figure is the workflow's ``sfm_figure`` rule's):
+#: Every file of an SfM output folder (the figure is the workflow's ``sfm_figure`` rule's). Any one of them marks
+#: an earlier output (a run stopped halfway, or one whose outputs the workflow removed, holds only some);
 #: :func:`run_sfm` refuses a folder holding anything else, whose files it would replace or delete.
-SFM_MARKERS = ("summary.json", "poses.csv", "aligned_views.json", "sparse/0/cameras.bin")
-SFM_FILES = ("points3d.ply", "pose_errors.png", "images/view_*.png", *(f"sparse/0/{f}" for f in MODEL_FILES),
-             "colmap/*")
+SFM_FILES = ("summary.json", "poses.csv", "aligned_views.json", "points3d.ply", "pose_errors.png",
+             "images/view_*.png", *(f"sparse/0/{f}" for f in MODEL_FILES), "colmap/*")
 
 #: Defaults of the ``sfm`` config section (JSON-serialisable).
 SFM_DEFAULTS: dict[str, Any] = {
@@ -461,7 +460,7 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
         raise CtsplatError("sfm.pose_prior 'position' needs sfm.mapper 'incremental' (global mapping ignores priors)")
     if cfg["naive_slices"] and volume_path is None:
         raise CtsplatError("sfm.naive_slices needs the volume: pass volume_path (CLI: --volume)")
-    check_output_dir(out_dir, marker=SFM_MARKERS, contents=SFM_FILES,
+    check_output_dir(out_dir, marker=SFM_FILES,
                      inputs=(radiographs_dir, *([volume_path] if volume_path is not None else [])))
     naive_volume = None
     if cfg["naive_slices"]:  # read before any output is replaced: a bad volume fails the step with nothing written
