@@ -214,8 +214,8 @@ def check_output_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str
         Patterns of the other files an earlier output holds, as paths relative to the folder (``fnmatch``: ``*``
         also matches ``/``; ``"figures/*"``). A folder holding a file that matches neither these nor ``marker``
         is refused, whatever else it holds: replacing it would delete that file. Snakemake's
-        ``.snakemake_timestamp`` in the folders it made and the ``.NAME.*`` temporaries a killed atomic write of
-        an allowed file leaves (:func:`atomic_path`) are always allowed.
+        ``.snakemake_timestamp`` in the folders it made and the temporaries a killed atomic write of an allowed
+        file or folder leaves (:func:`atomic_path`, :func:`atomic_dir`) are always allowed.
     inputs : sequence of paths
         The step's inputs: the output may be neither one of them nor a folder that holds one.
 
@@ -248,14 +248,26 @@ def check_output_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str
         raise CtsplatError(f"output folder {path} already holds files that are not an earlier output of this "
                            f"step{what}; choose a new or empty folder, or remove it first")
     allowed = [*markers, *contents]
-    # what a killed atomic write of an allowed file leaves: ``.NAME.<random>...`` beside it
-    allowed += [f"{head}{'/' if head else ''}.{tail}.*" for head, _, tail in (p.rpartition("/") for p in allowed)]
+    allowed += [leftover for pattern in allowed for leftover in _leftover_patterns(pattern)]
     foreign = [f for f in files if Path(f).name != ".snakemake_timestamp"
                and not any(fnmatch.fnmatchcase(f, pattern) for pattern in allowed)]
     if foreign:
         more = f" and {len(foreign) - 1} more" if len(foreign) > 1 else ""
         raise CtsplatError(f"output folder {path} holds {foreign[0]}{more}, which this step does not write, and "
                            "replacing the folder would delete it; choose a new or empty folder, or move it away")
+
+
+def _leftover_patterns(pattern: str) -> list[str]:
+    """What a killed atomic write of a file matching ``pattern`` leaves behind (fnmatch patterns, relative paths):
+    :func:`atomic_path`'s ``.STEM.<random>.tmpSUFFIXES`` beside it, and :func:`atomic_dir`'s ``.NAME.<random>``
+    folder beside each folder on its path."""
+    parts = pattern.split("/")
+    tail = parts[-1]
+    suffix = "".join(Path(tail).suffixes) if not tail.startswith(".") else ""
+    stem = tail[: len(tail) - len(suffix)] if suffix else tail
+    out = ["/".join([*parts[:-1], f".{stem}.*.tmp{suffix}"])]
+    out += ["/".join([*parts[:k], f".{parts[k]}.*"]) for k in range(len(parts) - 1)]
+    return out
 
 
 @contextlib.contextmanager
@@ -299,9 +311,16 @@ def atomic_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str] | No
         yield tmp
         # the folder may have changed while the block ran
         check_output_dir(path, marker=marker, contents=contents, inputs=inputs)
-        if path.exists():
-            shutil.rmtree(path)
-        os.replace(tmp, path)
+        if not path.exists():
+            os.replace(tmp, path)
+            return
+        # the old folder goes aside before the new one moves in: an interrupt leaves one whole folder at ``path``,
+        # never a half-deleted one (which would no longer look like an earlier output)
+        with _interrupts_held():
+            aside = Path(tempfile.mkdtemp(prefix=f".{path.name}.old.", dir=path.parent))
+            os.replace(path, aside)
+            os.replace(tmp, path)
+        shutil.rmtree(aside)
 
 
 @contextlib.contextmanager

@@ -844,6 +844,8 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
     summary = read_summary(summary_csv)
     baselines = read_baselines(baselines_csvs)  # every input is read before the first output is written
     logs = load_runs(summary, max_gap_iters=cfg["max_gap_iters"])
+    if "provenance" in outputs:  # first: what the outputs are made from, and it marks the folder as analyse's
+        write_json_atomic(outputs["provenance"], analysis_provenance(summary_csv, summary, cfg, baselines_csvs))
     for a in GRID_AXES:
         key = f"convergence_by_{a}"
         if key in outputs:
@@ -876,8 +878,6 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
         _write_csv(claims_table(summary), outputs["claims"])
     if "baselines" in outputs:
         plot_baselines(summary, baselines, outputs["baselines"])
-    if "provenance" in outputs:
-        write_json_atomic(outputs["provenance"], analysis_provenance(summary_csv, summary, cfg, baselines_csvs))
 
 
 def analysis_provenance(summary_csv: str | os.PathLike[str], summary: pd.DataFrame, analysis: Mapping[str, Any],

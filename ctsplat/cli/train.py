@@ -26,6 +26,7 @@ def _train(args: argparse.Namespace) -> None:
     from ctsplat.training import train
     from ctsplat.training.checkpoint import list_checkpoints
     from ctsplat.training.config import resolve_config
+    from ctsplat.training.loop import check_run_folder
     from ctsplat.utils import CtsplatError, run_lock
 
     cfg = load_train_config(args.config, args.set or [])
@@ -41,6 +42,7 @@ def _train(args: argparse.Namespace) -> None:
         cfg["progress"] = False
     resolve_config(cfg)  # bad settings fail before the run folder is created and locked
     out = Path(args.out)
+    check_run_folder(cfg, out)  # before the lock file goes into someone else's folder
     # one lock over training and evaluation, so no other process writes the folder in between
     with run_lock(out):
         earlier = [p.relative_to(out).as_posix() for p in list_checkpoints(out)[-1:]]

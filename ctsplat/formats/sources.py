@@ -851,7 +851,7 @@ def _fill_padding(slices: list[tuple[Path, Any, np.ndarray]], padding: dict[int,
     """
     if not padding:
         return None
-    measured = [float(np.min(v[~padding[i]])) for i, (_, _, v) in enumerate(slices)
+    measured = [float(np.min(v if i not in padding else v[~padding[i]])) for i, (_, _, v) in enumerate(slices)
                 if i not in padding or not padding[i].all()]
     if not measured:
         raise CtsplatError("every pixel of the series is PixelPaddingValue padding; there is no image to ingest")

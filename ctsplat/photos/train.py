@@ -453,7 +453,7 @@ RUN_MARKERS = ("config.json", "model.pt", "metrics.json")
 #: The other files of a photo run folder: training's and the evaluation's (:mod:`ctsplat.photos.evaluate`). A
 #: folder holding anything else is not replaced.
 RUN_FILES = ("model.ply", "training.json", "train_log.csv", "per_view_test.csv", "figures/gallery.png",
-             "figures/turntable.gif")
+             "figures/turntable.gif", "blame.csv")  # blame.csv: benchmarks/photo_blame.py's table of this model
 
 
 def check_run(out_dir: str | Path, settings: dict[str, Any], *, inputs: tuple[str | Path, ...] = ()) -> None:

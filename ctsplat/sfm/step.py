@@ -85,7 +85,8 @@ log = logging.getLogger(__name__)
 #: an earlier output (a run stopped halfway, or one whose outputs the workflow removed, holds only some);
 #: :func:`run_sfm` refuses a folder holding anything else, whose files it would replace or delete.
 SFM_FILES = ("summary.json", "poses.csv", "aligned_views.json", "points3d.ply", "pose_errors.png",
-             "images/view_*.png", *(f"sparse/0/{f}" for f in MODEL_FILES), "colmap/*")
+             "images/view_*.png", *(f"sparse/0/{f}" for f in MODEL_FILES), "colmap/*",
+             ".sfm_work.*", ".naive_work.*")  # the step's scratch folders, left by a killed run
 
 #: Defaults of the ``sfm`` config section (JSON-serialisable).
 SFM_DEFAULTS: dict[str, Any] = {

@@ -116,7 +116,7 @@ from ctsplat.utils import (
     write_json_atomic,
 )
 
-__all__ = ["train", "RUN_OUTPUTS", "ALPHA_OPACITIES", "fit_alpha_seeds"]
+__all__ = ["train", "check_run_folder", "RUN_OUTPUTS", "RUN_FILES", "ALPHA_OPACITIES", "fit_alpha_seeds"]
 
 log = logging.getLogger(__name__)
 
@@ -313,12 +313,31 @@ def train(config: dict[str, Any], out_dir: str | Path, *, resume: bool | Literal
         raise CtsplatError(f"resume must be True, False or 'auto', got {resume!r}")
     cfg = resolve_config(config)
     out_dir = Path(out_dir)
-    inputs = [cfg[k] for k in ("volume", "radiographs", "sfm_dir", "sfm_radiographs") if cfg.get(k)]
-    check_output_dir(out_dir, marker=RUN_FILES, inputs=inputs)
+    check_run_folder(cfg, out_dir)
     # the lock checks that the folder is writable, and removes it again if this run created it and fails on its
     # inputs before writing anything
     with run_lock(out_dir, "output folder"):
         return _train(cfg, out_dir, resume, callback)
+
+
+def check_run_folder(cfg: dict[str, Any], out_dir: str | Path) -> None:
+    """Refuse a run folder that holds files that are not a run's (:data:`RUN_FILES`), or that is or holds one of
+    the run's inputs: a new run replaces the checkpoints and outputs in it.
+
+    Parameters
+    ----------
+    cfg : dict
+        The train config (``volume``, ``radiographs``, ``sfm_dir``, ``sfm_radiographs`` are its inputs).
+    out_dir : str or Path
+        The run folder (need not exist).
+
+    Raises
+    ------
+    CtsplatError
+        One line naming the file in the way.
+    """
+    inputs = [cfg[k] for k in ("volume", "radiographs", "sfm_dir", "sfm_radiographs") if cfg.get(k)]
+    check_output_dir(out_dir, marker=RUN_FILES, inputs=inputs)
 
 
 def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,

@@ -94,3 +94,23 @@ def test_gather_and_analyse_replace_only_their_own_files_and_read_every_input_fi
     figs = tmp_path / "figs"
     assert main(["analyse", str(out), "--out-dir", str(figs), "--baselines", str(table)]) == 0
     assert main(["analyse", str(out), "--out-dir", str(figs)]) == 0  # its own earlier output is replaced
+
+
+def test_analyse_runs_again_after_it_was_interrupted(tmp_path, capsys, monkeypatch):
+    import ctsplat.analysis.plots as plots
+
+    _run(tmp_path, 0)
+    out = tmp_path / "summary.csv"
+    assert main(["gather", str(tmp_path / "results"), "--out", str(out)]) == 0
+    figs = tmp_path / "figs"
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plots, "plot_ablation", interrupted)  # after some outputs, before the others
+    assert main(["analyse", str(out), "--out-dir", str(figs)]) == 130
+    assert (figs / "analysis.json").is_file() and (figs / "velocity.png").is_file()  # written before the stop
+    assert not (figs / "ablation.png").exists()
+    monkeypatch.undo()
+    assert main(["analyse", str(out), "--out-dir", str(figs)]) == 0  # its own half-written folder is replaced
+    assert all((figs / fname).exists() for fname, _ in ANALYSIS_OUTPUTS.values())

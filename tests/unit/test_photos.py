@@ -825,6 +825,12 @@ def test_sfm_and_training_never_replace_their_input(tmp_path: Path) -> None:
     with pytest.raises(CtsplatError, match=r"notes holds keep\.txt and 1 more, which this step does not write"):
         check_run(other, photo_settings({})["train"])
     assert sorted(p.name for p in other.iterdir()) == ["config.json", "keep.txt", "summary.json"]
+    run = tmp_path / "earlier_run"  # a photo run with benchmarks/photo_blame.py's table of its model is one
+    (run / "figures").mkdir(parents=True)
+    for name in ("config.json", "model.pt", "metrics.json", "blame.csv", "figures/gallery.png",
+                 ".training.x1y2z3.tmp.json"):  # the last: a killed write's leftover
+        (run / name).write_text("x")
+    check_run(run, photo_settings({})["train"])
     sfm = tmp_path / "sfm"
     (sfm / "sparse" / "0").mkdir(parents=True)
     (sfm / "summary.json").write_text("{}")

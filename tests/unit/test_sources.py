@@ -610,13 +610,16 @@ def test_a_folder_with_the_marker_and_other_files_is_not_replaced(tmp_path):
     # an earlier output (the marker, the listed files, Snakemake's timestamps, temporaries) is replaced whole
     earlier = tmp_path / "run"
     (earlier / "figures").mkdir(parents=True)
+    (earlier / ".figures.u7e2kq").mkdir()
     for name in ("config.json", "model.pt", "figures/gallery.png", "figures/.snakemake_timestamp",
-                 ".model.pt.k3j9x.tmp.pt", "figures/.gallery.png.a81z.tmp.png"):  # killed atomic writes' leftovers
+                 ".model.k3j9x_q.tmp.pt", "figures/.gallery.a81z0w.tmp.png",  # killed atomic_path writes' leftovers
+                 ".figures.u7e2kq/acf.png"):  # and a killed atomic_dir's
         (earlier / name).write_text("old")
     with atomic_dir(earlier, marker="config.json", contents=files) as tmp:
         (tmp / "config.json").write_text("new")
     assert [p.name for p in earlier.iterdir()] == ["config.json"]
     assert (earlier / "config.json").read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["project", "run"]  # the old folder, moved aside, is gone
     # a file that only looks like a listed one at another depth is foreign too
     (earlier / "model.pt").write_text("x")
     (earlier / "figures").mkdir()
@@ -879,3 +882,11 @@ def test_pixel_padding_takes_the_series_smallest_measured_value(tmp_path, with_r
     for k, m in enumerate(measured):
         np.testing.assert_allclose(stack.data[:, 1:, k], m.T)
     assert read_dicom_series(tmp_path / "s").source["pixel_padding"] == info  # deterministic
+    # padding pixels in some slices only (every slice carries the tag): the others are measured throughout
+    for f in files[1::2]:
+        ds = pydicom.dcmread(f)
+        px = ds.pixel_array.copy()
+        px[0, :] = px[1, :]
+        ds.PixelData = px.tobytes()
+        ds.save_as(f)
+    assert read_dicom_series(tmp_path / "s").source["pixel_padding"]["n_pixels"] == 3 * 8

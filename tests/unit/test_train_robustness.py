@@ -452,6 +452,10 @@ def test_train_refuses_a_folder_holding_files_that_are_not_a_runs(scene_dir: Pat
         loop.train(cfg, out)
     assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == ["checkpoints", "metrics.json",
                                                                             "notes.txt"]
+    from ctsplat.cli import main  # the command refuses it before its lock file goes in
+
+    assert main(["train", "--out", str(out), "--volume", cfg["volume"], "--radiographs", cfg["radiographs"]]) == 2
+    assert not (out / ".ctsplat.lock").exists()
     with pytest.raises(CtsplatError, match=r"is, or holds, the input"):
         loop.train(cfg, Path(cfg["radiographs"]).parent)
 
@@ -470,6 +474,8 @@ def test_an_evaluated_run_with_its_figures_trains_again(scene_dir: Path, tmp_pat
     run_figures(out, {name: out / "figures" / f"{name}.png" for name in RUN_FIGURES})
     (out / "logs").mkdir()
     (out / "logs" / "train.log").write_text("log")
+    for leftover in ("checkpoints/.ckpt_00000005.q1w2e3r4.tmp.pt", ".model_volume.k2j3h4.tmp.nii.gz"):
+        (out / leftover).write_bytes(b"")  # what a killed (SIGKILL) write leaves
     assert (out / "model_volume.json").is_file() and (out / "figures" / "acf.png").is_file()
     loop.train({**cfg, "iterations": 10}, out)
     assert json.loads((out / "training.json").read_text())["iterations"] == 10
