@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from ctsplat.grid import expand_grid, needs_sfm, uses_colmap
-from ctsplat.utils import CtsplatError, first_nonfinite, merge_config
+from ctsplat.utils import SEED_MAX, CtsplatError, first_nonfinite, merge_config
 
 __all__ = [
     "LIBRARY_SECTIONS",
@@ -946,8 +946,7 @@ _FRACTION = {"type": "number", "minimum": 0, "maximum": 1}
 _ANGLE_DEG = {"type": "number", "minimum": 0, "maximum": 180}
 _COUNT = {"type": "integer", "minimum": 1}
 _COUNT0 = {"type": "integer", "minimum": 0}
-#: A random seed: what NumPy's legacy generators and every RNG the steps use accept (0 .. 2³² − 1).
-_SEED = {"type": "integer", "minimum": 0, "maximum": 2**32 - 1}
+_SEED = {"type": "integer", "minimum": 0, "maximum": SEED_MAX}
 REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("preprocessing", "voxel_size_mm"): {"type": ["number", "null"], "exclusiveMinimum": 0},
     ("preprocessing", "grid"): {"type": ["integer", "array", "null"], "minimum": 2,

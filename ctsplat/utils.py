@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     import torch
 
 __all__ = [
+    "SEED_MAX",
     "CtsplatError",
     "LoggedWarning",
     "log_warnings_once",
@@ -682,6 +683,10 @@ def resolve_device(device: str = "auto") -> torch.device:
     if device not in ("cpu",) and not device.startswith("cuda"):
         raise CtsplatError(f"unknown device {device!r}; allowed: auto, cpu, cuda")
     return torch.device(device)
+
+
+#: The largest random seed: what NumPy's legacy generators and every RNG the steps use accept (0 .. 2³² − 1).
+SEED_MAX = 2**32 - 1
 
 
 def seed_everything(seed: int) -> np.random.Generator:

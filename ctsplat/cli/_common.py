@@ -8,17 +8,17 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ctsplat.utils import CtsplatError
+from ctsplat.utils import SEED_MAX, CtsplatError
 
 
 def seed_value(text: str) -> int:
-    """argparse type of ``--seed``: an integer 0 .. 2³² − 1, what every random generator of the steps accepts."""
+    """argparse type of ``--seed``: an integer 0 .. :data:`ctsplat.utils.SEED_MAX`."""
     try:
         seed = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if not 0 <= seed <= 2**32 - 1:
-        raise argparse.ArgumentTypeError(f"{seed} is outside 0 .. 4294967295")
+    if not 0 <= seed <= SEED_MAX:
+        raise argparse.ArgumentTypeError(f"{seed} is outside 0 .. {SEED_MAX}")
     return seed
 
 

@@ -45,7 +45,6 @@ def _run_dirs(paths: list[str]) -> list[Path]:
     """Run folders from the arguments: a run folder itself, or any folder searched for grid runs (``KEY~VALUE``
     folders with ``train_log.csv`` or ``metrics.json``; a photo run, ``{volume}/photos/run``, is not one)."""
     out: list[Path] = []
-    seen: set[Path] = set()
     for p in map(Path, paths):
         if not p.exists():
             raise CtsplatError(f"{p} does not exist")
@@ -57,12 +56,10 @@ def _run_dirs(paths: list[str]) -> list[Path]:
             if not found:
                 raise CtsplatError(f"no run folders (with train_log.csv or metrics.json) under {p}")
             out += found
-    unique = []
+    unique: dict[Path, Path] = {}
     for d in out:  # a folder named twice, or found under two of the arguments, is one run
-        if d.resolve() not in seen:
-            seen.add(d.resolve())
-            unique.append(d)
-    return unique
+        unique.setdefault(d.resolve(), d)
+    return list(unique.values())
 
 
 def run_gather(args: argparse.Namespace) -> None:

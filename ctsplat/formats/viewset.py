@@ -247,7 +247,7 @@ def write_png_stack(images: np.ndarray, out_dir: str | Path, names: list[str]) -
     if len(names) != len(images):
         raise CtsplatError(f"{len(images)} images but {len(names)} names")
     out_dir = Path(out_dir)
-    with atomic_dir(out_dir, marker="*.png", contents=("*.png",)) as tmp:
+    with atomic_dir(out_dir, marker="*.png") as tmp:
         for name, img in zip(names, images, strict=True):
             iio.imwrite(tmp / name, img)
 

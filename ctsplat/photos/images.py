@@ -86,14 +86,12 @@ def unread_entries(folder: str | Path) -> list[str]:
     list of str
         Sorted names.
     """
-    out = []
-    for p in Path(folder).iterdir():
+    def unread(p: Path) -> bool:
         suffix = p.suffix.lower()
-        if p.name.startswith(".") or suffix not in {*IMAGE_SUFFIXES, *OTHER_IMAGE_SUFFIXES}:
-            continue
-        if suffix in OTHER_IMAGE_SUFFIXES or (p.is_symlink() and not p.exists()):
-            out.append(p.name)
-    return sorted(out)
+        broken_link = suffix in IMAGE_SUFFIXES and p.is_symlink() and not p.exists()
+        return not p.name.startswith(".") and (suffix in OTHER_IMAGE_SUFFIXES or broken_link)
+
+    return sorted(p.name for p in Path(folder).iterdir() if unread(p))
 
 
 def check_photo_count(folder: str | Path, n_photos: int, min_registered: int) -> None:
