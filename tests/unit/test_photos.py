@@ -515,6 +515,14 @@ def test_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: list[
     assert not (tmp_path / "o").exists()
 
 
+def test_benchmark_refuses_a_bad_seed_with_one_line(tmp_path: Path) -> None:
+    res = _benchmark(["--seed", "-1", "--out", str(tmp_path / "o")])
+    assert res.returncode == 2
+    assert "Traceback" not in res.stderr
+    assert "argument --seed: -1 is outside 0 .. 4294967295" in res.stderr.strip().splitlines()[-1], res.stderr
+    assert not (tmp_path / "o").exists()
+
+
 def test_benchmark_refuses_a_foreign_run_folder_before_sfm(tmp_path: Path) -> None:
     photos = tmp_path / "photos"
     photos.mkdir()
