@@ -200,7 +200,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
 
 def check_output_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str] | None = None,
-                     contents: Sequence[str] = (), inputs: Sequence[str | os.PathLike[str]] = ()) -> None:
+                     contents: Sequence[str] = (), inputs: Sequence[str | os.PathLike[str]] = (),
+                     in_place: bool = False) -> None:
     """Refuse an output folder whose replacement would destroy something that is not an earlier output.
 
     Parameters
@@ -219,6 +220,9 @@ def check_output_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str
         file or folder leaves (:func:`atomic_path`, :func:`atomic_dir`) are always allowed.
     inputs : sequence of paths
         The step's inputs: the output may be neither one of them nor a folder that holds one.
+    in_place : bool
+        The step writes into the folder and replaces only its own files (a training run, CT SfM) instead of
+        replacing the folder; only the refusal's reason differs.
 
     Raises
     ------
@@ -254,8 +258,9 @@ def check_output_dir(path: str | os.PathLike[str], *, marker: str | Sequence[str
                and not any(fnmatch.fnmatchcase(f, pattern) for pattern in allowed)]
     if foreign:
         more = f" and {len(foreign) - 1} more" if len(foreign) > 1 else ""
+        why = "its outputs would be mixed with it" if in_place else "replacing the folder would delete it"
         raise CtsplatError(f"output folder {path} holds {foreign[0]}{more}, which this step does not write, and "
-                           "replacing the folder would delete it; choose a new or empty folder, or move it away")
+                           f"{why}; choose a new or empty folder, or move it away")
 
 
 def _leftover_patterns(pattern: str) -> list[str]:

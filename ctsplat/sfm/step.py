@@ -461,7 +461,7 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
         raise CtsplatError("sfm.pose_prior 'position' needs sfm.mapper 'incremental' (global mapping ignores priors)")
     if cfg["naive_slices"] and volume_path is None:
         raise CtsplatError("sfm.naive_slices needs the volume: pass volume_path (CLI: --volume)")
-    check_output_dir(out_dir, marker=SFM_FILES,
+    check_output_dir(out_dir, marker=SFM_FILES, in_place=True,
                      inputs=(radiographs_dir, *([volume_path] if volume_path is not None else [])))
     naive_volume = None
     if cfg["naive_slices"]:  # read before any output is replaced: a bad volume fails the step with nothing written

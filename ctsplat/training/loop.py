@@ -337,7 +337,7 @@ def check_run_folder(cfg: dict[str, Any], out_dir: str | Path) -> None:
         One line naming the file in the way.
     """
     inputs = [cfg[k] for k in ("volume", "radiographs", "sfm_dir", "sfm_radiographs") if cfg.get(k)]
-    check_output_dir(out_dir, marker=RUN_FILES, inputs=inputs)
+    check_output_dir(out_dir, marker=RUN_FILES, inputs=inputs, in_place=True)
 
 
 def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,

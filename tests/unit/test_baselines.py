@@ -178,7 +178,8 @@ def test_run_baselines_writes_csv_volumes_and_metrics(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["baselines.csv", "baselines.json", "fbp_n012.json",
                                                      "fbp_n012.nii.gz", "trials.csv"]
     (out / "notes.txt").write_text("mine")  # a file it did not write: refused before any work
-    with pytest.raises(CtsplatError, match=r"baselines holds notes\.txt, which this step does not write"):
+    with pytest.raises(CtsplatError, match=r"baselines holds notes\.txt, which this step does not write, and replacing "
+                       r"the folder would delete it"):
         run_baselines(vol_path, rad, out, {**QUICK, "n_views": [12], "methods": ["fbp"]})
     assert (out / "notes.txt").read_text() == "mine"
 

@@ -332,7 +332,8 @@ def test_sfm_refuses_an_output_folder_with_files_it_does_not_write(tmp_path) -> 
     (out / "images").mkdir(parents=True)
     (out / "images" / "IMG_001.jpg").write_bytes(b"mine")
     (out / "summary.json").write_text('{"mine": 1}')
-    with pytest.raises(CtsplatError, match=r"project holds images/IMG_001\.jpg, which this step does not write"):
+    with pytest.raises(CtsplatError, match=r"project holds images/IMG_001\.jpg, which this step does not write, "
+                       r"and its outputs would be mixed with it"):
         run_sfm(tmp_path / "radiographs", out)
     with pytest.raises(CtsplatError, match=r"is, or holds, the input"):
         run_sfm(out, out)

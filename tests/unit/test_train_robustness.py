@@ -444,7 +444,8 @@ def test_train_refuses_a_folder_holding_files_that_are_not_a_runs(scene_dir: Pat
     (out / "checkpoints" / "epoch_10.pt").write_bytes(b"mine")
     (out / "metrics.json").write_text('{"mine": 1}')
     cfg = _cfg(scene_dir, iterations=2)
-    with pytest.raises(CtsplatError, match=r"mlproj holds checkpoints/epoch_10\.pt, which this step does not write"):
+    with pytest.raises(CtsplatError, match=r"mlproj holds checkpoints/epoch_10\.pt, which this step does not "
+                       r"write, and its outputs would be mixed with it"):
         loop.train(cfg, out)
     (out / "checkpoints" / "epoch_10.pt").unlink()
     (out / "notes.txt").write_text("mine")
