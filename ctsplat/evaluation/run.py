@@ -539,6 +539,9 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     }
     if not write:
         return result
+    metrics_path = run_dir / ("metrics.json" if split == "test" else f"metrics_{split}.json")
+    # the metrics go last: an evaluation that fails part-way leaves no metrics beside outputs they do not describe
+    metrics_path.unlink(missing_ok=True)
     per_view = CsvLog(run_dir / f"per_view_{split}.csv", PER_VIEW_COLUMNS)
     per_view.reset()
     per_view.append(per_view_rows(result["model_iteration"] if result["model_iteration"] is not None
@@ -567,7 +570,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         else:  # figures of an earlier evaluation would sit beside metrics they do not show
             for name in ("gallery.png", "slices.png", "turntable.gif"):
                 (run_dir / name).unlink(missing_ok=True)
-    write_json_atomic(run_dir / ("metrics.json" if split == "test" else f"metrics_{split}.json"), json_safe(result))
+    write_json_atomic(metrics_path, json_safe(result))
     return result
 
 

@@ -310,6 +310,8 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     lpips_reason = lpips_status()
     lpips_values = ([] if lpips_reason else
                     [lpips_distance(r, v.image.cpu().numpy())[0] for r, v in zip(renders, test, strict=True)])
+    # the metrics go last: an evaluation that fails part-way leaves no metrics beside outputs they do not describe
+    (run_dir / "metrics.json").unlink(missing_ok=True)
     log_csv = CsvLog(run_dir / "per_view_test.csv", PER_VIEW_COLUMNS)
     log_csv.reset()
     log_csv.append(rows)

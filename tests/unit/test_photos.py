@@ -456,6 +456,13 @@ def test_evaluation_reads_every_input_before_writing_and_credits_the_photos(tmp_
             evaluate_photos(run, {"turntable_frames": 2, "gallery_views": 1}, scene=scene)
         bad.unlink()
         assert {p.relative_to(run).as_posix(): p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+    # an output that fails after the first is written leaves no metrics beside the new files
+    (run / "figures" / "turntable.gif").unlink()
+    (run / "figures" / "turntable.gif").mkdir()
+    with pytest.raises(CtsplatError, match=r"turntable\.gif is a folder, but a file is to be written there"):
+        evaluate_photos(run, {"turntable_frames": 2, "gallery_views": 1, "attribution": "x"}, scene=scene)
+    assert not (run / "metrics.json").exists()
+    (run / "figures" / "turntable.gif").rmdir()
     # CC BY asks for the credit and for a note of the changes; an empty credit line is reported
     footer = _footer("by someone, CC BY 4.0")
     assert footer.startswith("Photographs: by someone, CC BY 4.0") and "undistorted and downscaled" in footer

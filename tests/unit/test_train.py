@@ -668,6 +668,16 @@ def test_unwritable_output_folder(scene_dir: Path, tmp_path: Path) -> None:
             ro.chmod(0o700)
 
 
+def test_evaluation_failing_part_way_leaves_no_metrics(full_run, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    shutil.copytree(full_run[0], run)
+    (run / "turntable.gif").unlink()
+    (run / "turntable.gif").mkdir()  # the last figure cannot be written
+    with pytest.raises(CtsplatError, match=r"turntable\.gif is a folder, but a file is to be written there"):
+        evaluate(run, device="cpu")
+    assert not (run / "metrics.json").exists()  # the new gallery and volume are not described by the old metrics
+
+
 def test_cli_train_and_evaluate(scene_dir: Path, tmp_path: Path, capsys) -> None:
     import yaml
 
