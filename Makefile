@@ -15,8 +15,9 @@ $(STAMP): pyproject.toml constraints.txt
 	@$(PYTHON) -c "import sys; assert sys.version_info >= (3, 11)" 2>/dev/null || { echo "error: need Python >= 3.11 (found '$(PYTHON)'); run make PYTHON=/path/to/python3.11"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	# torch first, pinned: on CPU machines this resolves to the local CPU wheel, never the CUDA stack.
-	$(PY) -m pip install --quiet torch==2.13.0
+	# torch first, pinned, so the project's install never picks another build. Whether a plain install is the CPU
+	# wheel depends on the index: this machine's serves it; PyPI on Linux serves the CUDA build, hence TORCH_INDEX.
+	$(PY) -m pip install --quiet torch==2.13.0 $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 	$(PY) -m pip install --quiet -c constraints.txt -e ".[j2k,dev]"
 	touch $(STAMP)
 
