@@ -303,10 +303,60 @@ def fbp_volume(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *,
     affine, shape, scale = _reference_grid(reference)
     scale = scale if mu_scale_per_mm is None else float(mu_scale_per_mm)
     sino, theta, grid = circular_sinograms(line_integrals, view_set, affine, shape, scale)
+    weights = parallel_view_weights(theta)
+    if np.ptp(weights) > 1e-6:  # iradon weights every view alike; evenly spaced sets need no correction
+        sino = sino * weights
     stack = np.stack([iradon(s, theta=theta, output_size=grid.n, filter_name=filter_name, circle=True)
                       for s in sino])
     vol = _to_reference(stack, grid)
     return np.clip(vol, 0.0, 1.0) if clip else vol
+
+
+def parallel_view_weights(theta_deg: np.ndarray) -> np.ndarray:
+    """Relative quadrature weights of parallel-beam views for filtered back-projection, mean 1.
+
+    A parallel view and the one opposite it see the same line integrals, so the directions live on a circle of
+    π: each view gets half the gaps to its neighbours there, views of one direction sharing it
+    (:func:`ctsplat.recon.fdk.angular_weights` on the doubled angles). ``skimage.transform.iradon`` weights every
+    view by ``π / 2V``, right only for views spread evenly over 180° or 360°; scaling each view's sinogram
+    column by these weights makes it right for any arc (on 270°, the directions seen twice would otherwise count
+    twice) and for uneven subsets. A limited arc (below 180°) keeps even weights: its missing wedge is not
+    spread over the end views.
+
+    Parameters
+    ----------
+    theta_deg : ndarray, shape (V,)
+        Projection angles, degrees.
+
+    Returns
+    -------
+    ndarray, shape (V,)
+        Weights, mean 1; all 1 for views spread evenly over 180° or 360°.
+
+    References
+    ----------
+    Kak, A. C., Slaney, M. (1988). Principles of Computerized Tomographic Imaging, IEEE Press, ch. 3.3
+    (the back-projection integral over [0, π)).
+
+    Examples
+    --------
+    >>> parallel_view_weights(np.array([0.0, 60.0, 120.0, 180.0, 240.0])).round(3)  # 0/180 and 60/240 coincide
+    array([0.833, 0.833, 1.667, 0.833, 0.833])
+    """
+    from ctsplat.recon.fdk import angular_weights
+
+    theta = np.asarray(theta_deg, float)
+    if theta.size < 2:
+        return np.ones(theta.size)
+    # directions to 1e-9 degrees: the opposite view of an even orbit lands on its partner up to rounding
+    phi = np.round(np.mod(theta, 180.0), 9)
+    phi[phi >= 180.0] = 0.0
+    directions, which, count = np.unique(phi, return_inverse=True, return_counts=True)
+    if directions.size < 2:
+        return np.ones(theta.size)
+    cell = angular_weights(np.deg2rad(2.0 * directions))[0]
+    weights = cell[which] / count[which]
+    return weights / weights.mean()
 
 
 def sart_volumes(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *, iterations: int = 5,

@@ -127,19 +127,26 @@ def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
         parts = line.split()
         if not parts:
             continue
-        if parts[0] == "format":
-            fmt = parts[1]
-        elif parts[0] == "element":
-            element = parts[1]
-            elements.append(element)
-            if element == "vertex":
-                count = int(parts[2])
-        elif parts[0] == "property" and element == "vertex":
-            if parts[1] == "list":
-                raise CtsplatError(f"{path}: list properties on vertices are not supported")
-            if parts[1] not in PLY_TYPES:
-                raise CtsplatError(f"{path}: unknown PLY property type {parts[1]!r}")
-            props.append((parts[2], PLY_TYPES[parts[1]]))
+        try:
+            if parts[0] == "format":
+                fmt = parts[1]
+            elif parts[0] == "element":
+                element = parts[1]
+                elements.append(element)
+                if element == "vertex":
+                    count = int(parts[2])
+                    if count < 0:
+                        raise ValueError("negative count")
+            elif parts[0] == "property" and element == "vertex":
+                if parts[1] == "list":
+                    raise CtsplatError(f"{path}: list properties on vertices are not supported")
+                if parts[1] not in PLY_TYPES:
+                    raise CtsplatError(f"{path}: unknown PLY property type {parts[1]!r}")
+                props.append((parts[2], PLY_TYPES[parts[1]]))
+        except CtsplatError:
+            raise
+        except (ValueError, IndexError):
+            raise CtsplatError(f"{path}: malformed PLY header line {line.strip()!r}") from None
     if fmt not in _FORMATS:
         raise CtsplatError(f"{path}: unknown PLY format {fmt!r}; expected one of {', '.join(_FORMATS)}")
     if "vertex" not in elements:
@@ -150,10 +157,19 @@ def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
     if count == 0:
         return {nm: np.zeros(0, dtype=np.float64 if fmt == "ascii" else t) for nm, t in props}
     if fmt == "ascii":
-        rows = body.decode("ascii").split("\n")[:count]
-        table = np.array([[float(v) for v in r.split()[: len(props)]] for r in rows], float)
-        if table.shape != (count, len(props)):
-            raise CtsplatError(f"{path}: ASCII body has {table.shape} values, expected {count} x {len(props)}")
+        rows = body.decode("ascii", "replace").splitlines()[:count]
+        if len(rows) < count:
+            raise CtsplatError(f"{path}: ASCII body has fewer than the {count} vertex rows its header declares")
+        table = np.empty((count, len(props)))
+        for i, r in enumerate(rows):
+            values = r.split()[: len(props)]
+            try:
+                if len(values) < len(props):
+                    raise ValueError
+                table[i] = [float(v) for v in values]
+            except ValueError:
+                raise CtsplatError(f"{path}: vertex row {i + 1} ({r.strip()[:60]!r}) does not hold {len(props)} "
+                                   "numbers") from None
         return {nm: table[:, i] for i, nm in enumerate(names)}
     dt = np.dtype([(nm, _FORMATS[fmt] + t) for nm, t in props])
     if len(body) < count * dt.itemsize:

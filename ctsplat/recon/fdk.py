@@ -135,11 +135,24 @@ def orbit_angles(view_set: ViewSet) -> np.ndarray:
     return found[1]
 
 
-def _angular_weights(beta: np.ndarray) -> tuple[np.ndarray, bool, float, float]:
+def angular_weights(beta: np.ndarray) -> tuple[np.ndarray, bool, float, float]:
     """Per-view ``Δβ`` (half the gaps to the neighbours), whether the scan is short, its start and its range.
 
     A scan is short when its largest gap exceeds three times the median gap (a missing arc, not a sparse
     circle); its range then runs from the view after that gap to the view before it.
+
+    Parameters
+    ----------
+    beta : ndarray, shape (V,)
+        Source angles, radians, on a 2π circle (any order; distinct).
+
+    Returns
+    -------
+    dbeta : ndarray, shape (V,)
+        The angle each view covers, radians (end views of a short scan: half a gap beyond them).
+    short : bool
+    start, scan : float
+        The short scan's first angle and range, radians (0 and 2π for a full circle).
     """
     V = len(beta)
     order = np.argsort(beta)
@@ -175,7 +188,7 @@ def short_scan_shortfall(view_set: ViewSet) -> str | None:
     str or None
         One line naming the arc and what it needs; None when the orbit is a full scan or a long enough short scan.
     """
-    _, short, _, scan = _angular_weights(orbit_angles(view_set))
+    _, short, _, scan = angular_weights(orbit_angles(view_set))
     return _shortfall(scan, _half_fan(view_set.camera)) if short else None
 
 
@@ -273,7 +286,7 @@ def fdk_volume(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *,
     cosw = dsd / np.sqrt(dsd**2 + u[None, :] ** 2 + v[:, None] ** 2)  # (H, W)
 
     beta = orbit_angles(view_set)
-    dbeta, short, start, scan = _angular_weights(beta)
+    dbeta, short, start, scan = angular_weights(beta)
     if short:
         gamma = np.arctan(u / dsd)
         delta = _half_fan(cam)

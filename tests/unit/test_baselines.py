@@ -14,6 +14,7 @@ from ctsplat.baselines import (
     BASELINE_DEFAULTS,
     circular_sinograms,
     fbp_volume,
+    parallel_view_weights,
     run_baselines,
     sart_volumes,
     select_views,
@@ -87,6 +88,35 @@ def test_fbp_on_even_flipped_grid_with_other_detector_spacing():
     assert psnr3d(rec, vol.data) > psnr3d(direct, vol.data) - 1.0
     assert psnr3d(rec, vol.data) > 22.0
     assert psnr3d(rec, vol.data) > psnr3d(np.zeros_like(rec), vol.data) + 8
+
+
+def test_parallel_view_weights_share_each_direction_once():
+    """Half the gaps to the neighbouring directions on the circle of 180 degrees, split between coinciding views."""
+    even = np.arange(40) * 4.5
+    np.testing.assert_allclose(parallel_view_weights(even), 1.0, atol=1e-9)
+    np.testing.assert_allclose(parallel_view_weights(np.arange(40) * 9.0), 1.0, atol=1e-9)  # 360: pairs coincide
+    rng = np.random.default_rng(0)
+    theta = np.arange(25) * 7.2 + rng.uniform(0, 4, 25)  # uneven, no gap wide enough to be a missing wedge
+    phi = np.r_[theta[-1] - 180, theta, theta[0] + 180]
+    cell = (phi[2:] - phi[:-2]) / 2  # brute force on the unrolled circle
+    order = rng.permutation(25)
+    np.testing.assert_allclose(parallel_view_weights(theta[order] + 180 * rng.integers(0, 2, 25)),
+                               (cell / cell.mean())[order], rtol=1e-9)
+    arc = parallel_view_weights(np.arange(90) * 3.0)  # 270: 0..87 seen twice, 90..177 once
+    np.testing.assert_allclose(arc[:30], arc[30:60] / 2) and np.testing.assert_allclose(arc[:30], arc[60:])
+    np.testing.assert_allclose(parallel_view_weights(np.arange(30) * 3.0), 1.0)  # a limited arc stays even
+
+
+def test_fbp_on_an_arc_between_180_and_360_degrees_counts_each_direction_once():
+    vol = make_volume(33)
+    p180, vs180 = project(vol, 60, arc_deg=180.0)
+    p270, vs270 = project(vol, 90, arc_deg=270.0)  # the same 3-degree step
+    good = psnr3d(fbp_volume(p180, vs180, vol), vol.data)
+    rec = fbp_volume(p270, vs270, vol)
+    assert psnr3d(rec, vol.data) > good - 0.3, (psnr3d(rec, vol.data), good)
+    sino, theta, _ = circular_sinograms(p270, vs270, vol.affine, vol.shape, MU)  # iradon's even weights alone
+    plain = np.clip(np.stack([iradon(s, theta, circle=True) for s in sino], -1), 0, 1)
+    assert psnr3d(plain, vol.data) < good - 2.0, (psnr3d(plain, vol.data), good)
 
 
 def test_sart_matches_skimage_and_improves():

@@ -108,6 +108,20 @@ def test_unreadable_files_say_why(tmp_path: Path) -> None:
         read_ply_points(bad)
     with pytest.raises(CtsplatError, match="does not exist"):
         read_ply_vertices(tmp_path / "missing.ply")
+    head = b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nend_header\n"
+    for body, needle in ((b"1 2\n3\n", r"vertex row 2 \('3'\) does not hold 2 numbers"),
+                         (b"1 2\n", "fewer than the 2 vertex rows"),
+                         (b"1 2\n3 abc\n", r"vertex row 2 \('3 abc'\) does not hold 2 numbers")):
+        bad.write_bytes(head + body)
+        with pytest.raises(CtsplatError, match=needle):
+            read_ply_vertices(bad)
+    for line in (b"element vertex abc", b"element vertex -1", b"format", b"property float"):
+        bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\n"
+                        .replace(b"element vertex 1" if line.startswith(b"element") else
+                                 b"format binary_little_endian 1.0" if line == b"format" else
+                                 b"property float x", line) + b"end_header\n" + bytes(8))
+        with pytest.raises(CtsplatError, match=f"malformed PLY header line '{line.decode()}'"):
+            read_ply_vertices(bad)
     with pytest.raises(CtsplatError, match="expected 2"):
         write_ply_vertices(tmp_path / "o.ply", [("x", "float", [1.0, 2.0]), ("y", "float", [1.0])])
 

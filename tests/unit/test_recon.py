@@ -327,11 +327,11 @@ def test_parker_weights_match_the_published_formula_and_sum_to_one_over_redundan
 def test_a_short_scan_reports_the_length_of_its_arc() -> None:
     """N views at start + arc k / N cover ``arc`` (each view half a gap either side): the reported range, the
     shortfall message and the acceptance of an arc just over 180 deg + fan angle follow that true length."""
-    from ctsplat.recon.fdk import _angular_weights, _half_fan, orbit_angles, short_scan_shortfall
+    from ctsplat.recon.fdk import _half_fan, angular_weights, orbit_angles, short_scan_shortfall
 
     arc = 150.0
     vs = cone_set(16, 2.0, 60, arc=arc, start=20.0)
-    dbeta, short, _, scan = _angular_weights(orbit_angles(vs))
+    dbeta, short, _, scan = angular_weights(orbit_angles(vs))
     assert short
     assert scan == pytest.approx(np.radians(arc), abs=1e-9)
     np.testing.assert_allclose(dbeta, np.radians(arc / 60), rtol=1e-9)
