@@ -10,6 +10,7 @@ checkpoint on resume) and read by :func:`read_train_log` / :func:`read_per_view`
 from __future__ import annotations
 
 import csv
+import io
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -63,17 +64,32 @@ class CsvLog:
         if not self.path.exists():
             self.reset()
             return
-        with open(self.path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
+        text = self.path.read_text()
+        if not text.endswith("\n"):  # a row cut short by a crash is dropped, not kept as a row of empty fields
+            text = text[: text.rfind("\n") + 1]
+        rows = list(csv.DictReader(io.StringIO(text, newline="")))
         with atomic_path(self.path) as tmp, open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=self.columns, lineterminator="\n")
             w.writeheader()
             for r in rows:
-                if int(r["iteration"]) <= iteration:
+                if _iteration(r) is not None and _iteration(r) <= iteration:
                     w.writerow({k: r.get(k, "") for k in self.columns})
+
+    def header_matches(self) -> bool:
+        """Whether the file is missing or empty or starts with this log's header (rows are written by position).
+
+        :meth:`truncate_after` rewrites a file with another header under this one, column by column name."""
+        if not self.path.exists():
+            return True
+        with open(self.path, newline="") as fh:
+            first = fh.readline().rstrip("\r\n")
+        return not first or first == ",".join(self.columns)
 
     def append(self, rows: list[dict[str, Any]]) -> None:
         """Append rows (dicts keyed by column) and flush them to disk."""
+        if not self.header_matches():
+            raise CtsplatError(f"{self.path} has another header than this log's columns, so appended rows would "
+                               "land under other columns; move it away or start the run over")
         with open(self.path, "a", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=self.columns, lineterminator="\n")
             for r in rows:
@@ -85,8 +101,16 @@ class CsvLog:
 def _fmt(v: Any) -> Any:
     """Floats at full precision (``repr`` round-trips), everything else as the csv module writes it."""
     if isinstance(v, float):
-        return repr(v)
+        return repr(float(v))  # a NumPy float64 is a float, but its own repr is "np.float64(...)"
     return v
+
+
+def _iteration(row: dict[str, Any]) -> int | None:
+    """A log row's iteration, None for a row without a readable one."""
+    try:
+        return int(row.get("iteration") or "")
+    except ValueError:
+        return None
 
 
 def _ffill_short_gaps(df: pd.DataFrame, columns: Sequence[str], max_gap_iters: int) -> pd.DataFrame:
@@ -136,8 +160,8 @@ def read_train_log(path: str | os.PathLike[str], *, max_gap_iters: int = 10) -> 
     path = Path(path)
     try:
         df = pd.read_csv(path)
-    except (OSError, pd.errors.EmptyDataError) as exc:
-        raise CtsplatError(f"cannot read training log {path}: {exc}") from exc
+    except (OSError, pd.errors.EmptyDataError, pd.errors.ParserError) as exc:
+        raise CtsplatError(f"cannot read training log {path}: {' '.join(str(exc).split())}") from exc
     head = tuple(df.columns[: len(LOG_COLUMNS)])
     if head != LOG_COLUMNS:
         raise CtsplatError(f"{path}: first columns must be {','.join(LOG_COLUMNS)}, got {','.join(head)}")

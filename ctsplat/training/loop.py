@@ -273,7 +273,7 @@ def _restore_logs(out_dir: Path, ck: Checkpoint, logs: dict[str, CsvLog]) -> Non
         if name in stored:
             with atomic_path(out_dir / name) as tmp:
                 tmp.write_text(stored[name])
-        else:
+        if name not in stored or not csv_log.header_matches():  # (a checkpoint of code that logged other columns)
             csv_log.truncate_after(ck.iteration)
 
 

@@ -330,6 +330,31 @@ def test_read_per_view_reads_the_written_columns(tmp_path):
         read_per_view(p)
 
 
+def test_csv_log_writes_numpy_floats_and_truncates_a_crashed_log(tmp_path):
+    p = tmp_path / "train_log.csv"
+    log = CsvLog(p, LOG_COLUMNS)
+    log.reset()
+    log.append([{"iteration": 10, "timestamp": np.float64(1.5), "psnr2d": np.float64(30.25)},
+                {"iteration": 20, "timestamp": 3.0, "psnr2d": 31.0}])
+    assert p.read_text().splitlines()[1] == "10,1.5,30.25,,,"
+    assert read_train_log(p)["psnr2d"].tolist() == [30.25, 31.0]
+    with open(p, "a") as fh:  # a crash in the middle of a row, and a row without an iteration
+        fh.write(",4.0,1,1,1,1\n30,5.0,3")
+    log.truncate_after(200)
+    assert p.read_text().splitlines() == [",".join(LOG_COLUMNS), "10,1.5,30.25,,,", "20,3.0,31.0,,,"]
+    log.truncate_after(10)
+    assert p.read_text().splitlines()[1:] == ["10,1.5,30.25,,,"]
+    # a file of other columns: rows appended by position would land under them
+    p.write_text("iteration,psnr2d\n10,30.0\n")
+    with pytest.raises(CtsplatError, match="has another header than this log's columns"):
+        log.append([{"iteration": 20}])
+    log.truncate_after(10)  # a resumed run rewrites it under its own columns, by name
+    assert p.read_text().splitlines() == [",".join(LOG_COLUMNS), "10,,30.0,,,"]
+    p.write_text(",".join(LOG_COLUMNS) + "\n10,1,2,3,4,5\n20,1,2,3,4,5,6,7\n")  # a ragged row
+    with pytest.raises(CtsplatError, match=r"cannot read training log .*train_log\.csv: Error tokenizing"):
+        read_train_log(p)
+
+
 # ---------------------------------------------------------------------------------------------- gather
 
 
