@@ -169,10 +169,10 @@ def test_run_baselines_writes_csv_volumes_and_metrics(tmp_path):
     df = run_baselines(vol_path, rad, out, {**QUICK, "n_views": [12, 36, 99]})
     assert list(df.columns) == BASELINE_COLUMNS
     methods = ["fbp", "sart", "asd_pocs", "mbir"]
-    assert list(df["method"]) == methods * 3 and df["filter"][0] in ("ramp", "shepp-logan")
-    assert list(df["n_views"]) == [12] * 4 + [36] * 8  # 99 > 36 training views: all of them
+    assert list(df["method"]) == methods * 2 and df["filter"][0] in ("ramp", "shepp-logan")
+    assert list(df["n_views"]) == [12] * 4 + [36] * 4  # 99 > 36 training views: the same 36 views, run once
     csv = pd.read_csv(out / "baselines.csv", keep_default_na=False)
-    assert len(csv) == 12 and list(csv["n_views"]) == list(df["n_views"])
+    assert len(csv) == 8 and list(csv["n_views"]) == list(df["n_views"])
     trials = pd.read_csv(out / "trials.csv")
     for (nv, method), g in df.groupby(["n_views", "method"]):
         t = trials[(trials.n_views == nv) & (trials.method == method)]
@@ -185,7 +185,7 @@ def test_run_baselines_writes_csv_volumes_and_metrics(tmp_path):
                 assert best[k] == v or str(best[k]) == str(v), (method, k)
     sart = trials[(trials.method == "sart") & (trials.n_views == 36)]
     assert sorted(set(sart["relaxation"])) == [0.15, 1.0] and set(sart["iterations"]) <= {1, 2, 3}
-    for block in range(3):  # one best per view count (36 and 99 both use the 36 views)
+    for block in range(2):  # one best per view count
         g = df.iloc[4 * block : 4 * block + 4]
         assert g["best_on_val"].sum() == 1 and g.loc[g["best_on_val"], "val_psnr"].iloc[0] == g["val_psnr"].max()
     assert df["psnr2d"].notna().all() and (df["ssim2d"] > 0.5).all()
@@ -200,7 +200,7 @@ def test_run_baselines_writes_csv_volumes_and_metrics(tmp_path):
         assert rec.data.min() >= 0 and rec.data.max() <= 1
     assert (df[df.n_views == 36]["psnr3d"] > 20).all(), df
     prov = json.loads((out / "baselines.json").read_text())
-    assert prov["volume_id"] == "ph24" and len(prov["results"]) == 12
+    assert prov["volume_id"] == "ph24" and len(prov["results"]) == 8
     assert not list(tmp_path.glob("**/svmbir-*"))  # svmbir's cache is removed
     json.dumps(BASELINE_DEFAULTS)
     # a second run replaces the folder whole: no reconstruction of the first run's view counts stays behind
