@@ -259,6 +259,9 @@ def fbp_volume(line_integrals: np.ndarray, view_set: ViewSet, reference: Any, *,
                mu_scale_per_mm: float | None = None, clip: bool = True) -> np.ndarray:
     """Slice-by-slice filtered back-projection onto a reference grid (e.g. for ``init: fbp``).
 
+    ``skimage.transform.iradon`` per axial slice, each view weighted by the share of the directions it covers
+    (:func:`parallel_view_weights`: any arc and uneven subsets, not only views spread evenly over 180° or 360°).
+
     Parameters
     ----------
     line_integrals : ndarray (V, H, W)
