@@ -19,10 +19,10 @@ Usage::
 
 Targets: >= 95 % of the 66 photos registered in one model; held-out PSNR >= 25 dB and SSIM >= 0.8 at 1/4
 resolution within 20 minutes on 2 CPU cores. Measured (defaults, 2 idle cores, docs/results.md): 64 of 66 photos
-(97 %) in one model, 0.27 px mean reprojection error, 4438 points; at 266x177 held-out PSNR 24.6 dB (missed)
-and SSIM 0.85 (met) in 11 min 12 s with the SfM model reused; the error left is mostly the backdrop (the stand's
-untextured plate and the table, which SfM does not reconstruct) and the under-exposed photos. Settings are
-compared on validation photos with ``benchmarks/photo_folds.py``.
+(97 %) in one model, 0.27 px mean reprojection error, 4438 points; at 266x177 held-out PSNR 24.6 dB (missed; 23.9 dB
+over seeds 0-2) and SSIM 0.85 (met) in 11 min 12 s with the SfM model reused; the error left is mostly the
+backdrop (the stand's untextured plate and the table, which SfM does not reconstruct) and the under-exposed photos.
+Settings are compared on validation photos with ``benchmarks/photo_folds.py``.
 """
 
 from __future__ import annotations
