@@ -4,7 +4,8 @@ Every pair trains the default and the candidate (the default plus ``--candidate 
 ``photos`` section) with ``ctsplat photos-train`` on one SfM folder, on the same validation fold
 (``train.validation_offset``; the test photos are never trained on or scored) with the same seed, one thread per
 run and ``--jobs`` runs at a time. :func:`ctsplat.photos.select.paired_comparison` then gives the mean PSNR
-difference, its standard error and the verdict (the candidate wins only at two standard errors or more). Finished
+difference over the folds (a fold's seeds averaged first), its standard error and the verdict (the candidate wins
+only when the mean clears Student's one-sided 97.5 % quantile of standard errors: about two for many folds). Finished
 runs are kept and reused, so a comparison can be extended by more folds or seeds (not across kinds of CPU: a run
 trained on another CPU capability, AVX2 against AVX512, takes another rounding path and is refused). Writes
 ``OUT/pairs.csv`` (one row per pair), ``OUT/per_photo.csv`` and ``OUT/summary.json``, and prints the summary as
@@ -111,6 +112,10 @@ def run(argv: list[str] | None = None) -> int:
     if fixed:
         raise CtsplatError(f"--base/--candidate may not set {fixed[0].split('=', 1)[0]}: the folds and seeds hold "
                            "out the validation photos (--folds, --seeds), never the test photos")
+    split = [item for item in args.candidate if item.split("=", 1)[0].strip() == "train.test_every"]
+    if split:  # the arms would score different photos, and the candidate train on the default's test photos
+        raise CtsplatError("--candidate may not set train.test_every: it decides the test and validation photos, "
+                           "which both arms must share; set it with --base")
     arms = {"default": args.base, "candidate": [*args.base, *args.candidate]}
     test_every = photo_settings(check_section("photos", apply_sets({}, args.base)))["train"]["test_every"]
     for fold, seed in pairs:  # every run's settings are checked before the first one starts
@@ -134,13 +139,18 @@ def run(argv: list[str] | None = None) -> int:
     if scored_test:
         raise CtsplatError(f"run fold{scored_test[0][0]}_seed{scored_test[0][1]}_{scored_test[0][2]} scored its "
                            "test photos, not validation photos; remove it and run again")
+    for fold, seed in pairs:
+        if set(runs[(fold, seed, "default")]["per_photo"]) != set(runs[(fold, seed, "candidate")]["per_photo"]):
+            raise CtsplatError(f"fold{fold}_seed{seed}: the two arms scored different validation photos; remove "
+                               "both runs and run again")
+    folds = [fold for fold, _ in pairs]  # seeds of one fold share its photos: one difference per fold
     result = paired_comparison([runs[p + ("default",)]["psnr"] for p in pairs],
-                               [runs[p + ("candidate",)]["psnr"] for p in pairs])
+                               [runs[p + ("candidate",)]["psnr"] for p in pairs], groups=folds)
     _write_tables(out, pairs, runs, result["differences"])
     summary = {"candidate": args.candidate, "base": args.base, "folds": sorted(set(args.folds)),
                "seeds": sorted(set(args.seeds)), "sfm": str(sfm), "psnr": result,
                "ssim": paired_comparison([runs[p + ("default",)]["ssim"] for p in pairs],
-                                         [runs[p + ("candidate",)]["ssim"] for p in pairs]),
+                                         [runs[p + ("candidate",)]["ssim"] for p in pairs], groups=folds),
                "code_version": code_version()}
     write_json_atomic(out / "summary.json", summary)
     print(json.dumps(summary))

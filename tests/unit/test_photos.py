@@ -928,12 +928,27 @@ def test_paired_comparison_is_the_paired_t_statistic() -> None:
     r = paired_comparison(default, candidate)
     assert r["n"] == 5 and r["differences"] == pytest.approx(np.subtract(candidate, default).tolist())
     assert r["mean"] == pytest.approx(np.mean(np.subtract(candidate, default)))
-    assert r["z_score"] == pytest.approx(stats.ttest_rel(candidate, default).statistic)
-    assert r["verdict"] == "tie"
+    test = stats.ttest_rel(candidate, default, alternative="greater")
+    assert r["t_score"] == pytest.approx(test.statistic)
+    assert r["critical"] == pytest.approx(2.776, abs=1e-3)  # t(4) at 97.5 %: a win is a one-sided p <= 0.025
+    assert r["verdict"] == "tie" and test.pvalue > 0.025
     assert paired_comparison(default, [d + 0.5 + 0.01 * i for i, d in enumerate(default)])["verdict"] == "candidate"
     assert paired_comparison(default, [d - 0.5 - 0.01 * i for i, d in enumerate(default)])["verdict"] == "default"
     one = paired_comparison([24.0], [25.0])
     assert one["standard_error"] is None and one["verdict"] == "tie"  # one pair says nothing about the spread
+    same = paired_comparison([24.0, 23.0, 25.0], [24.5, 23.5, 25.5])  # every fold gains exactly 0.5 dB
+    assert same["standard_error"] == 0 and same["t_score"] is None and same["verdict"] == "candidate"
+    # 2.6 standard errors: a win by the normal rule, not by Student's t with 3 degrees of freedom (3.18)
+    d = np.array([0.5, 0.3, 0.6, 0.0])
+    near = paired_comparison(np.zeros(4), d)
+    assert near["t_score"] == pytest.approx(2.646, abs=1e-3) and near["verdict"] == "tie"
+    # a fold's seeds share its photos: their differences are averaged into one before the statistics
+    grouped = paired_comparison(np.zeros(5), [1.0, 3.0, 0.5, 0.7, 0.6], groups=[4, 4, 1, 2, 3])
+    assert grouped["units"] == 4 and grouped["unit_differences"] == pytest.approx([2.0, 0.5, 0.7, 0.6])
+    assert grouped["mean"] == pytest.approx(0.95) and grouped["n"] == 5
+    assert grouped["t_score"] == pytest.approx(stats.ttest_1samp([2.0, 0.5, 0.7, 0.6], 0).statistic)
+    with pytest.raises(CtsplatError, match="3 folds for 5 pairs"):
+        paired_comparison(np.zeros(5), np.ones(5), groups=[1, 2, 3])
 
 
 @pytest.mark.parametrize(("a", "b"), [([1.0, 2.0], [1.0]), ([], []), ([1.0, float("nan")], [1.0, 2.0])])
@@ -950,6 +965,13 @@ def test_reading_an_unfinished_run_names_what_is_missing(tmp_path: Path) -> None
     (tmp_path / "config.json").write_text("{}")
     with pytest.raises(CtsplatError, match=r"not a finished photo run \(missing training\.json, per_view_test\.csv\)"):
         read_validation_run(tmp_path)
+    (tmp_path / "per_view_test.csv").write_text("iteration,view_id,split,psnr2d,ssim2d\nfinal,05,val,24.0,0.8\n")
+    (tmp_path / "training.json").write_text('{"final_test_psnr": 2')  # cut short
+    with pytest.raises(CtsplatError, match=r"training\.json is not valid JSON.*remove the folder and train it again"):
+        read_validation_run(tmp_path)
+    (tmp_path / "training.json").write_text('{"final_test_psnr": 24.0}')
+    with pytest.raises(CtsplatError, match=r"is not a whole photo run \(KeyError: 'train'"):
+        read_validation_run(tmp_path)
 
 
 @pytest.mark.parametrize(("args", "needle"), [
@@ -958,6 +980,7 @@ def test_reading_an_unfinished_run_names_what_is_missing(tmp_path: Path) -> None
     (["--candidate", "train.iterations=0"], "photos.train.iterations: 0 is less than the minimum of 1"),
     (["--candidate", "train.holdout=test"], "may not set train.holdout: the folds and seeds hold out the validation"),
     (["--base", "train.seed=3", "--candidate", "train.sh_degree=1"], "may not set train.seed"),
+    (["--candidate", "train.test_every=16"], "--candidate may not set train.test_every"),
 ])
 def test_fold_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: list[str], needle: str) -> None:
     import os
