@@ -10,7 +10,7 @@ from typing import Any
 
 import pandas as pd
 
-from ctsplat.analysis.stats import convergence_velocity, mean_iters_per_s, milestones
+from ctsplat.analysis.stats import convergence_velocity, mean_iters_per_s, milestones, run_cells
 from ctsplat.formats.runlog import LOG_COLUMNS, METRICS_2D3D, PER_VIEW_COLUMNS, read_per_view, read_train_log
 from ctsplat.grid import GRID_AXES, cell_needs_sfm, parse_run_dir, run_axes, uses_colmap
 from ctsplat.utils import CtsplatError, atomic_path, dotted_items, read_json_object
@@ -380,9 +380,10 @@ def read_summary(path: str | os.PathLike[str]) -> pd.DataFrame:
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
         raise CtsplatError(f"{path} is not a CSV summary of `ctsplat gather` ({type(exc).__name__}); give the "
                            "summary.csv it wrote") from None
-    missing = [c for c in ("run_dir", "volume") if c not in summary]
+    missing = [c for c in ("run_dir", "volume", *GRID_AXES) if c not in summary]
     if missing:
         raise CtsplatError(f"{path} is not a summary of `ctsplat gather` (no {', '.join(missing)} column)")
+    run_cells(summary)  # two runs of one cell: refused before any table or figure is drawn
     trained = summary if "status" not in summary else summary[summary["status"] != NOT_RUN]
     gone = [d for d in trained["run_dir"].astype(str) if not Path(d).is_dir()]
     if gone:

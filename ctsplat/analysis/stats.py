@@ -39,6 +39,8 @@ __all__ = [
 
 # Columns that name a run's condition, in naming order (the seed is a replicate, not a condition).
 CONDITION_AXES: tuple[str, ...] = ("volume", *ALL_AXES)
+#: An optional axis's value in the run tables of runs whose grid did not have it.
+ABSENT = "(absent)"
 
 # Range of each metric: PSNR is unbounded (negative when the error exceeds the data range, as for unrectified runs);
 # SSIM lies in [-1, 1]. Densities are confined to it.
@@ -531,6 +533,41 @@ def natural_value(v: str) -> tuple[int, float | str]:
         return (1, v)
 
 
+def run_cells(summary: pd.DataFrame) -> pd.DataFrame:
+    """The summary with every condition axis filled (``ABSENT`` where a run's grid lacked an optional axis),
+    refused when two runs are of one grid cell.
+
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        The table of :func:`ctsplat.analysis.gather.gather`.
+
+    Returns
+    -------
+    pandas.DataFrame
+        A copy whose :data:`CONDITION_AXES` columns hold no NaN (pandas drops index rows holding NaN, so a run
+        without an optional axis would silently leave every table indexed by the axes).
+
+    Raises
+    ------
+    CtsplatError
+        When two runs share every axis value (two experiments with the same volume names gathered into one
+        summary): a pair or a curve would be their average.
+    """
+    axes = [a for a in CONDITION_AXES if a in summary]
+    filled = summary[axes].astype(object).where(summary[axes].notna(), ABSENT)
+    cells = summary.assign(**{a: filled[a] for a in axes})
+    repeated = cells.duplicated(axes, keep=False)
+    if repeated.any():
+        first = cells[repeated].iloc[0]
+        clash = cells[repeated & (cells[axes] == first[axes]).all(axis=1)]
+        dirs = clash["run_dir"].astype(str).tolist() if "run_dir" in clash else [str(i) for i in clash.index]
+        where = ", ".join(f"{a}={first[a]}" for a in axes)
+        raise CtsplatError(f"{dirs[0]} and {dirs[1]} are runs of one grid cell ({where}); a summary gathers one "
+                           "experiment: gather the others into their own summary")
+    return cells
+
+
 def paired_table(summary: pd.DataFrame, axis: str, metric_col: str) -> pd.DataFrame:
     """Runs that differ only in ``axis``: one row per pair group, one column per value of ``axis``.
 
@@ -547,11 +584,17 @@ def paired_table(summary: pd.DataFrame, axis: str, metric_col: str) -> pd.DataFr
     -------
     pandas.DataFrame
         Index: the values of every other axis (volume and seed included, so each group is one cell of the grid
-        with only ``axis`` changed); columns: the values of ``axis`` in natural order; groups with fewer than two
-        finite values are dropped.
+        with only ``axis`` changed; a feature axis a run does not have reads ``ABSENT``); columns: the values of
+        ``axis`` in natural order; groups with fewer than two finite values are dropped.
+
+    Raises
+    ------
+    CtsplatError
+        When two runs are of one grid cell (:func:`run_cells`).
     """
     others = [a for a in CONDITION_AXES if a != axis and a in summary]
-    df = summary.assign(_score=pd.to_numeric(summary[metric_col], errors="coerce"), _level=summary[axis].astype(str))
-    wide = df.pivot_table(index=others, columns="_level", values="_score", aggfunc="mean")
+    cells = run_cells(summary)
+    df = cells.assign(_score=pd.to_numeric(summary[metric_col], errors="coerce"), _level=summary[axis].astype(str))
+    wide = df.pivot_table(index=others, columns="_level", values="_score", aggfunc="first")
     wide = wide[sorted(wide.columns, key=natural_value)]
     return wide[wide.notna().sum(axis=1) >= 2]

@@ -28,6 +28,7 @@ from ctsplat.evaluation.metrics import normalise_r2, psnr3d_r2
 from ctsplat.evaluation.readout import choose_sharpening
 from ctsplat.geometry.cameras import ParallelCamera
 from ctsplat.geometry.orbits import covering_spacing_mm, fibonacci_directions, has_held_out_views, support_radius_mm
+from ctsplat.utils import CtsplatError
 
 # ------------------------------------------------------------------------------------------------ metrics
 
@@ -234,3 +235,28 @@ def test_covering_spacing_leaves_the_margin_inside_the_edge() -> None:
     assert spacing == pytest.approx(max(4.0 / (5.0 - 1.0), 6.0 / (10.0 - 1.0)))
     # at that spacing the farthest point sits exactly margin_px inside the detector edge (u = W - 1)
     assert 4.0 / spacing + cam.width / 2 == pytest.approx(cam.width - 1.0)
+
+
+def test_paired_table_keeps_runs_without_an_optional_axis_and_refuses_two_runs_of_one_cell() -> None:
+    """A feature axis only some runs have would drop the others from the pairs (pandas drops NaN index rows);
+    two runs of one cell (two experiments in one summary) would be averaged into one pair."""
+    s = _compositor_pairs([1.0, 2.0])
+    s["augment"] = [np.nan, np.nan, "on", "on"]  # seed 0's runs predate the axis
+    wide = paired_table(s, "compositor", "test_psnr3d")
+    assert len(wide) == 2 and sorted(wide.index.get_level_values("augment")) == ["(absent)", "on"]
+    row = _alpha_row(claims_table(s))
+    assert (row["result"], row["n_pairs"]) == ("holds", 2)
+    twice = pd.concat([_compositor_pairs([1.0]), _compositor_pairs([-5.0])]).assign(run_dir=[f"r{i}" for i in range(4)])
+    with pytest.raises(CtsplatError, match=r"r0 and r2 are runs of one grid cell \(volume=v, init=fbp, "
+                                           r"compositor=radiative"):
+        paired_table(twice, "compositor", "test_psnr3d")
+
+
+def test_claims_name_trained_runs_without_a_test_metric() -> None:
+    """A run whose evaluation failed leaves the pairs it belongs to; the claim's note says so."""
+    s = _compositor_pairs([1.0, 2.0, 0.5]).assign(run_dir=[f"r{i}" for i in range(6)], status="trained")
+    s.loc[2, "test_psnr3d"] = np.nan  # seed 1's radiative run
+    row = _alpha_row(claims_table(s))
+    assert (row["result"], row["n_pairs"]) == ("holds", 2)
+    assert "1 trained run(s) without test_psnr3d left out (e.g. r2)" in row["note"]
+    assert claims_table(s)["n_as_expected"].dtype == "Int64"

@@ -320,8 +320,20 @@ def test_analyse_refuses_a_bad_summary_in_one_line_and_draws_one_without_scores(
     with pytest.raises(CtsplatError, match=r"empty\.csv is empty; write it with `ctsplat gather`"):
         plots.analyse(tmp_path / "empty.csv", outputs)
     pd.DataFrame({"volume": ["p"], "psnr": [1.0]}).to_csv(tmp_path / "other.csv", index=False)
-    with pytest.raises(CtsplatError, match=r"other\.csv is not a summary of `ctsplat gather` \(no run_dir column\)"):
+    with pytest.raises(CtsplatError, match=r"other\.csv is not a summary of `ctsplat gather` \(no run_dir, init, "
+                                           r"compositor, mip, poses, views, seed column\)"):
         plots.analyse(tmp_path / "other.csv", outputs)
+    pd.DataFrame({"run_dir": ["r"], "volume": ["p"], "init": ["fbp"], "compositor": ["alpha"], "mip": ["on"],
+                  "poses": ["gt"], "seed": [0]}).to_csv(tmp_path / "noviews.csv", index=False)
+    with pytest.raises(CtsplatError, match=r"noviews\.csv is not a summary of `ctsplat gather` \(no views column\)"):
+        plots.analyse(tmp_path / "noviews.csv", outputs)
+    cell = {"volume": ["p"], "init": ["fbp"], "compositor": ["alpha"], "mip": ["on"], "poses": ["gt"], "views": [8],
+            "seed": [0]}
+    pd.concat([pd.DataFrame({"run_dir": [d], **cell}) for d in ("a/r", "b/r")]).to_csv(tmp_path / "two.csv",
+                                                                                      index=False)
+    with pytest.raises(CtsplatError, match=r"a/r and b/r are runs of one grid cell"):
+        plots.analyse(tmp_path / "two.csv", outputs)
+    assert not outputs["baselines"].parent.exists()
     view = {"id": 0, "R": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], "t": [0.0, 0.0, 500.0]}
     (tmp_path / "views.json").write_text(json.dumps({"camera": {"model": "cone"}, "views": [view] * 2}, indent=1))
     with pytest.raises(CtsplatError, match=r"views\.json is not a CSV summary of `ctsplat gather` \(ParserError\)"):
