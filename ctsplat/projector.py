@@ -247,8 +247,9 @@ def line_integrals(
     Raises
     ------
     CtsplatError
-        For ``step_voxels`` outside (0, 1], a volume that is not 3D with >= 2 voxels per axis, no views, an
-        unknown ``method``, or ``method="joseph"`` on a geometry it does not support.
+        For ``step_voxels`` outside (0, 1], a volume that is not 3D with >= 2 voxels per axis, no views, unequal
+        numbers of rotations and translations, an affine that is not invertible, an unknown ``method``, or
+        ``method="joseph"`` on a geometry it does not support.
 
     Examples
     --------
@@ -277,7 +278,11 @@ def line_integrals(
     ts = np.asarray(ts, float).reshape(-1, 3)
     if len(Rs) == 0:
         raise CtsplatError("empty view set: nothing to project")
+    if len(Rs) != len(ts):
+        raise CtsplatError(f"{len(Rs)} rotations but {len(ts)} translations: give one pose per view")
     A = np.asarray(affine, float)
+    if A.shape != (4, 4) or not np.isfinite(A).all() or abs(np.linalg.det(A[:3, :3])) < 1e-12:
+        raise CtsplatError(f"the volume's affine must be a finite, invertible 4 x 4 matrix, got {A.tolist()}")
     if method not in ("auto", "trilinear", "joseph"):
         raise CtsplatError(f"unknown projector method {method!r}; allowed: auto, trilinear, joseph")
     slice_axis = _slice_axis(camera, Rs, A)

@@ -70,7 +70,11 @@ __all__ = [
 # --------------------------------------------------------------------------------------------- cameras
 def _check_size(width: int, height: int) -> None:
     for name, n in (("width", width), ("height", height)):
-        if int(n) != n or int(n) <= 0:
+        try:
+            whole = int(n) == n and int(n) > 0
+        except (TypeError, ValueError, OverflowError):  # text, None, infinity, NaN
+            whole = False
+        if not whole:
             raise CtsplatError(f"detector {name} must be a positive integer number of pixels, got {n!r}")
 
 
@@ -314,13 +318,15 @@ def look_at(
     center = np.asarray(center, float)
     z = np.asarray(target, float) - center
     nz = np.linalg.norm(z)
+    if not np.isfinite(nz):
+        raise CtsplatError(f"camera centre {center} or target {target} is not finite")
     if nz == 0:
         raise CtsplatError("camera centre coincides with its target; use a positive distance")
     z = z / nz
     up = np.asarray(up, float)
     y = -up + np.dot(up, z) * z
     ny = np.linalg.norm(y)
-    if ny < 1e-9:
+    if not ny >= 1e-9:  # (a NaN up-vector fails here too)
         raise CtsplatError("view direction is parallel to the up-vector; keep |elevation| below 90 degrees")
     y = y / ny
     x = np.cross(y, z)
@@ -383,7 +389,7 @@ def pose_from_angles(azimuth_deg: float, elevation_deg: float, isocenter_mm: Seq
     >>> camera_center(R, t).round(6) + 0.0  # + 0.0 turns -0.0 into 0.0
     array([500.,   0.,   0.])
     """
-    if abs(elevation_deg) >= 90.0:
+    if not abs(elevation_deg) < 90.0:  # (NaN included)
         raise CtsplatError(f"elevation {elevation_deg} deg is out of range; keep |elevation| < 90")
     _check_positive("camera distance", distance_mm)
     iso = np.asarray(isocenter_mm, float)

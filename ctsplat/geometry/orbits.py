@@ -36,6 +36,7 @@ __all__ = [
     "classical_methods",
     "has_held_out_views",
     "arc_azimuths",
+    "unwrap_arc",
     "fibonacci_directions",
     "stratified_directions",
     "split_counts",
@@ -153,7 +154,8 @@ def has_held_out_views(cfg: Mapping[str, Any], split: str) -> bool:
     return int(count) > 0 if count is not None else float(cfg["split"].get(split, 0.0)) > 0
 
 
-def arc_azimuths(n: int, arc_deg: float, start_deg: float = 0.0, offsets: np.ndarray | None = None) -> np.ndarray:
+def arc_azimuths(n: int, arc_deg: float, start_deg: float = 0.0, offsets: np.ndarray | None = None, *,
+                 wrap: bool = True) -> np.ndarray:
     """Azimuths (degrees, in [0, 360)) of ``n`` views evenly spaced over an arc: ``start + arc (k + o_k) / n``.
 
     Parameters
@@ -166,11 +168,13 @@ def arc_azimuths(n: int, arc_deg: float, start_deg: float = 0.0, offsets: np.nda
         Azimuth of the first sector's start.
     offsets : ndarray, shape (n,), optional
         Position of each view inside its sector, in [0, 1) (0: the sector start; random offsets stratify).
+    wrap : bool, keyword-only
+        Wrap into [0, 360) (False: the angle along the arc, continuous where the arc crosses 0°).
 
     Returns
     -------
     ndarray, shape (n,)
-        Azimuths (degrees), wrapped into [0, 360).
+        Azimuths (degrees), wrapped into [0, 360) unless ``wrap`` is False.
 
     Raises
     ------
@@ -187,7 +191,33 @@ def arc_azimuths(n: int, arc_deg: float, start_deg: float = 0.0, offsets: np.nda
     if not 0 < arc_deg <= 360:
         raise CtsplatError(f"arc_deg {arc_deg} must be in (0, 360]")
     k = np.arange(int(n), dtype=float) + (0.0 if offsets is None else np.asarray(offsets, float))
-    return np.mod(start_deg + arc_deg * k / int(n), 360.0)
+    along = start_deg + arc_deg * k / int(n)
+    return np.mod(along, 360.0) if wrap else along
+
+
+def unwrap_arc(azimuth_deg: np.ndarray) -> np.ndarray:
+    """Azimuths of views on an arc as angles from its first view: the arc starts after the largest gap between
+    neighbouring views on the circle, so an arc that crosses 0° stays in one piece.
+
+    Parameters
+    ----------
+    azimuth_deg : ndarray, shape (V,)
+        Azimuths, degrees (any order, any turn).
+
+    Returns
+    -------
+    ndarray, shape (V,)
+        Degrees in [0, 360), 0 at the arc's first view.
+
+    Examples
+    --------
+    >>> unwrap_arc(np.array([300.0, 350.0, 40.0, 90.0]))
+    array([  0.,  50., 100., 150.])
+    """
+    a = np.mod(np.asarray(azimuth_deg, float), 360.0)
+    s = np.sort(a)
+    gaps = np.diff(np.concatenate([s, s[:1] + 360.0]))  # the gap after each sorted view, round the circle
+    return np.mod(a - s[(int(np.argmax(gaps)) + 1) % len(s)], 360.0)
 
 
 def fibonacci_directions(n: int, elevation_range_deg: Sequence[float] = (-60.0, 60.0),
@@ -444,7 +474,7 @@ def circular_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: flo
     training set is exactly what FBP/SART expect. Held-out (val/test) views are added at seeded random
     angles, one uniform angle per equal azimuth sector (stratified), with counts chosen so that the
     whole set follows ``split_fractions`` (train fraction = ``n_views`` / total; default 70/15/15, e.g.
-    50 train + 11 val + 10 test). ``wobble_deg > 0`` adds an elevation ``wobble * sin(wobble_cycles * azimuth)``
+    50 train + 11 val + 11 test). ``wobble_deg > 0`` adds an elevation ``wobble * sin(wobble_cycles * azimuth)``
     to all views (a non-planar orbit; not usable for slice-wise FBP).
 
     ``arc_deg`` (default 360) is the angular range of the training angles (``start + arc k / n_views``)
@@ -519,15 +549,17 @@ def circular_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: flo
             raise CtsplatError(f"split leaves '{s}' empty: {n} training views with fractions {fr}; "
                                f"use more views or set {s}: 0")
     rng = np.random.default_rng(seed)
-    az = [arc_azimuths(n, arc_deg, start_deg)]
+    az = [arc_azimuths(n, arc_deg, start_deg, wrap=False)]
     splits = ["train"] * n
     for s in ("val", "test"):
         m = held[s]
         if m:
-            az.append(arc_azimuths(m, arc_deg, start_deg, rng.uniform(0, 1, m)))
+            az.append(arc_azimuths(m, arc_deg, start_deg, rng.uniform(0, 1, m), wrap=False))
             splits += [s] * m
-    azimuth = np.concatenate(az)
-    elevation = (wobble_deg * np.sin(np.radians(wobble_cycles * azimuth)) if wobble_deg
+    along = np.concatenate(az)
+    azimuth = np.mod(along, 360.0)
+    # the wobble follows the angle along the orbit: on the wrapped azimuth an arc crossing 0° would jump there
+    elevation = (wobble_deg * np.sin(np.radians(wobble_cycles * along)) if wobble_deg
                  else np.zeros_like(azimuth))
     return _views_from_angles(azimuth, elevation, splits, isocenter_mm, distance_mm)
 
@@ -579,8 +611,9 @@ def carm_orbit(n_views: int, isocenter_mm: Sequence[float], dso_mm: float, *, ar
         if not val >= 0:
             raise CtsplatError(f"orbit_{name} must be >= 0, got {val}")
     iso = np.asarray(isocenter_mm, float)
-    az0 = arc_azimuths(int(n_views), arc_deg, start_deg)
-    el0 = wobble_deg * np.sin(np.deg2rad(wobble_cycles * az0))
+    along = arc_azimuths(int(n_views), arc_deg, start_deg, wrap=False)
+    az0 = np.mod(along, 360.0)
+    el0 = wobble_deg * np.sin(np.deg2rad(wobble_cycles * along))  # continuous where the arc crosses 0°
     az, el = az0.copy(), el0.copy()
     if jitter_deg > 0:
         rng = np.random.default_rng(seed)

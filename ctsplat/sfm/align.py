@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from ctsplat.geometry import camera_center
+from ctsplat.geometry.orbits import unwrap_arc
 from ctsplat.utils import CtsplatError
 
 __all__ = ["orbit_basis", "fuse_with_design", "umeyama", "robust_sim3", "rotation_error_deg", "evaluate_poses"]
@@ -39,7 +40,8 @@ def orbit_basis(azimuth_deg: np.ndarray, harmonics: int, full_circle: bool) -> n
         ``K``: the number of harmonics.
     full_circle : bool
         True: ``1, cos kφ, sin kφ`` (``k = 1..K``) of the azimuth ``φ``. False: ``cos(k π x)`` (``k = 0..2K``) of
-        the normalised arc position ``x = (a - min a) / ptp(a)`` in [0, 1].
+        the normalised arc position ``x`` in [0, 1], the angle from the arc's first view
+        (:func:`ctsplat.geometry.orbits.unwrap_arc`: an arc crossing 0° stays in one piece) over the arc's length.
 
     Returns
     -------
@@ -53,7 +55,8 @@ def orbit_basis(azimuth_deg: np.ndarray, harmonics: int, full_circle: bool) -> n
         for k in range(1, harmonics + 1):
             cols += [np.cos(k * phi), np.sin(k * phi)]
         return np.stack(cols, 1)
-    x = (a - a.min()) / max(float(np.ptp(a)), 1e-12)
+    along = unwrap_arc(a)
+    x = along / max(float(along.max()), 1e-12)
     return np.stack([np.cos(k * np.pi * x) for k in range(2 * harmonics + 1)], 1)
 
 

@@ -31,6 +31,7 @@ from ctsplat.geometry import (
     split_counts,
     world_to_camera,
 )
+from ctsplat.projector import line_integrals
 from ctsplat.utils import CtsplatError
 
 ISO = np.array([12.0, -30.0, 150.0])
@@ -258,6 +259,14 @@ def test_empty_view_sets_are_errors():
         (lambda: pose_from_angles(0.0, 0.0, ISO, 0.0), "distance"),
         (lambda: pose_from_angles(0.0, 90.0, ISO, 100.0), "elevation"),
         (lambda: sphere_orbit(10, ISO, 100.0, elevation_range_deg=(-95, 10)), "elevation_range_deg"),
+        (lambda: ParallelCamera(float("inf"), 32, 1.0), "width must be a positive integer number of pixels"),
+        (lambda: ParallelCamera(32, "a", 1.0), "height must be a positive integer number of pixels"),
+        (lambda: pose_from_angles(0.0, float("nan"), ISO, 100.0), "elevation nan deg is out of range"),
+        (lambda: circular_orbit(8, ISO, 100.0, wobble_deg=float("nan")), "elevation nan deg is out of range"),
+        (lambda: line_integrals(np.zeros((4, 4, 4)), np.eye(4), ParallelCamera(4, 4, 1.0), np.eye(3)[None],
+                                np.zeros((2, 3))), "1 rotations but 2 translations"),
+        (lambda: line_integrals(np.zeros((4, 4, 4)), np.diag([1.0, 1.0, 0.0, 1.0]), ParallelCamera(4, 4, 1.0),
+                                np.eye(3)[None], np.zeros((1, 3))), "finite, invertible 4 x 4"),
     ],
 )
 def test_bad_geometry_is_a_clear_error(make, match):

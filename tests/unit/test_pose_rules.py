@@ -79,6 +79,24 @@ def test_arc_basis_is_the_cosine_series_from_k_0_to_2k() -> None:
     phi = np.deg2rad(az)
     ref_full = np.stack([np.ones(5), np.cos(phi), np.sin(phi), np.cos(2 * phi), np.sin(2 * phi)], 1)
     np.testing.assert_allclose(orbit_basis(az, 2, full_circle=True), ref_full, atol=1e-12)
+    # the same arc turned to cross 0 degrees (wrapped azimuths 300..359, 0..130): the same basis
+    crossing = np.mod(az + 290.0, 360.0)
+    np.testing.assert_allclose(orbit_basis(crossing, 2, full_circle=False), ref, atol=1e-12)
+
+
+def test_a_c_arm_arc_crossing_zero_wobbles_smoothly() -> None:
+    """The wobble follows the angle along the orbit: no jump where the wrapped azimuth goes from 359 to 0."""
+    from ctsplat.geometry.orbits import carm_orbit, circular_orbit
+
+    for views in (carm_orbit(12, [0, 0, 0], 500.0, arc_deg=200.0, start_deg=300.0, wobble_deg=10.0,
+                             wobble_cycles=1.25),
+                  circular_orbit(12, [0, 0, 0], 500.0, arc_deg=200.0, start_deg=300.0, wobble_deg=10.0,
+                                 wobble_cycles=1.25, split_fractions={"train": 1.0})):
+        el = np.array([v.elevation_deg for v in views])
+        step = np.deg2rad(200.0 / 12)  # 10 * 1.25 * step bounds the change between neighbours
+        assert np.abs(np.diff(el)).max() <= 10.0 * 1.25 * step + 1e-9, el
+        along = 300.0 + 200.0 * np.arange(12) / 12
+        np.testing.assert_allclose(el, 10.0 * np.sin(np.deg2rad(1.25 * along)), atol=1e-9)
 
 
 def test_fusion_with_only_2k_plus_1_registered_views_returns_the_input_unchanged() -> None:
