@@ -352,8 +352,9 @@ class Gaussians:
         for name, t in self.tensors().items():
             if name in shapes and tuple(t.shape) != shapes[name]:
                 raise CtsplatError(f"Gaussians.{name} has shape {tuple(t.shape)}, expected {shapes[name]}")
-            if name in ("colors", "sh_rest") and t.shape[0] != n:
-                raise CtsplatError(f"Gaussians.{name} has {t.shape[0]} rows, expected {n}")
+            if name in ("colors", "sh_rest") and (t.ndim != {"colors": 2, "sh_rest": 3}[name] or t.shape[0] != n):
+                want = "(N, C)" if name == "colors" else "(N, K, C)"
+                raise CtsplatError(f"Gaussians.{name} has shape {tuple(t.shape)}, expected {want} with N = {n}")
             check = check_finite if isinstance(check_finite, bool) else name in check_finite
             if check and t.numel():
                 checked.append((name, t))
@@ -440,11 +441,19 @@ class Gaussians:
             payload = payload["gaussians"]
         if not isinstance(payload, dict) or payload.get("format") != "ctsplat.gaussians":
             raise CtsplatError(f"{path} is not a ctsplat Gaussian model (.pt written by Gaussians.save)")
-        t = payload["tensors"]
+        t, meta = payload.get("tensors"), payload.get("meta", {})
+        if not isinstance(t, dict) or not isinstance(meta, dict):
+            raise CtsplatError(f"{path}: the model's tensors and meta must be mappings; it is not a model written by "
+                               "Gaussians.save")
         missing = [k for k in ("means", "log_scales", "quats", "density_raw") if k not in t]
         if missing:
             raise CtsplatError(f"{path}: model is missing tensor {missing[0]!r}")
-        g = cls(**{k: v.to(device) for k, v in t.items()}, meta=dict(payload.get("meta", {})))
+        known = {f.name for f in fields(cls)} - {"meta"}
+        unknown = [k for k, v in t.items() if k not in known or not isinstance(v, torch.Tensor)]
+        if unknown:
+            raise CtsplatError(f"{path}: model holds {unknown[0]!r}, which is not a Gaussian parameter tensor; it was "
+                               "not written by this version's Gaussians.save")
+        g = cls(**{k: v.to(device) for k, v in t.items()}, meta=dict(meta))
         g.validate()
         return g
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,7 +18,7 @@ import numpy as np
 
 from ctsplat.baselines import FBP_FILTERS
 from ctsplat.splat.render import COMPOSITORS
-from ctsplat.utils import CtsplatError, merge_config
+from ctsplat.utils import SEED_MAX, CtsplatError, merge_config
 
 __all__ = ["TRAIN_DEFAULTS", "TRAIN_BOUNDS", "Bound", "INITS", "REFERENCE_INITS", "POSES", "SUPERVISIONS",
            "OPTIMIZER_PRESETS", "DENSIFY_STRATEGIES", "MODEL_SELECTIONS", "CONE_POSE_MODELS", "resolve_config",
@@ -268,7 +269,7 @@ TRAIN_BOUNDS: dict[str, Bound] = {
     "init_density": _POS,
     "sfm_fill_fraction": _UNIT,
     "views": _NONNEG_INT,
-    "seed": _NONNEG_INT,
+    "seed": Bound("integer", 0, SEED_MAX),
     "iterations": _POS_INT,
     "batch_views": _POS_INT,
     "init_asd_pocs.iterations": _NONNEG_INT,
@@ -359,9 +360,8 @@ def resolve_config(config: dict[str, Any] | None) -> dict[str, Any]:
                          ("supervision", SUPERVISIONS), ("fbp_filter", FBP_FILTERS)):
         if cfg[key] not in allowed:
             raise CtsplatError(f"unknown train.{key} {cfg[key]!r}; allowed: {', '.join(allowed)}")
-    if not isinstance(cfg["device"], str) or (cfg["device"] not in ("auto", "cpu")
-                                              and not cfg["device"].startswith("cuda")):
-        raise CtsplatError(f"unknown train.device {cfg['device']!r}; allowed: auto, cpu, cuda")
+    if not isinstance(cfg["device"], str) or not re.fullmatch(r"auto|cpu|cuda(:\d+)?", cfg["device"]):
+        raise CtsplatError(f"unknown train.device {cfg['device']!r}; allowed: auto, cpu, cuda, cuda:N")
     for dotted, bound in TRAIN_BOUNDS.items():
         bound.check(dotted, _get(cfg, dotted))
     for key in _BOOL_KEYS:
@@ -380,6 +380,9 @@ def resolve_config(config: dict[str, Any] | None) -> dict[str, Any]:
     if cfg["densify"]["split_mass"] not in ("conserve", "halve"):
         raise CtsplatError(f"unknown train.densify.split_mass {cfg['densify']['split_mass']!r}; allowed: conserve, "
                            "halve")
+    for key in ("volume", "radiographs", "sfm_dir", "sfm_radiographs"):
+        if cfg.get(key) is not None and not isinstance(cfg[key], str):
+            raise CtsplatError(f"train.{key} must be a path (text), got {cfg[key]!r}")
     if not cfg["volume"]:
         raise CtsplatError("train.volume is empty: give the preprocessed reference volume (.nii.gz)")
     if not cfg["radiographs"]:

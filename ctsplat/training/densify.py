@@ -351,9 +351,12 @@ class ErrorDensify(GradientDensify):
     """Error-driven densification, alone (``strategy: error``) or beside the gradient rule (``both``).
 
     After each training render the absolute residual map of the view is splatted back onto the Gaussians that
-    cover it: with ``a`` a Gaussian's amplitude parameter (``density_raw``; ``opacity_raw`` for alpha) and ``I``
-    the rendered image, ``e = Σ_p |r_p| ∂I_p/∂a / Σ_p ∂I_p/∂a`` is the mean residual under the Gaussian's
-    footprint, weighted by its contribution (the per-Gaussian factor of ``∂I/∂a`` cancels). Each view's ``e`` is
+    cover it: with ``a`` a Gaussian's amplitude parameter and ``I`` the rendered image, ``e = Σ_p |r_p| ∂I_p/∂a /
+    Σ_p ∂I_p/∂a`` is the mean residual under the Gaussian's footprint, weighted by its contribution (the
+    per-Gaussian factor of ``∂I/∂a`` cancels). ``a`` is ``density_raw`` for the radiative compositors, whose
+    ``∂I_p/∂a`` is the footprint, and the colour for alpha, whose ``∂I_p/∂c_i = α_i(p) T_i(p)`` is the blending
+    weight (the opacity's derivative changes sign across a footprint: ``T_i G_i (c_i − C_behind)``, no weight
+    of a mean). Both are non-negative, so ``e`` lies between the smallest and largest residual. Each view's ``e`` is
     divided by its mean over that view's visible Gaussians and accumulated like the positional-gradient
     statistic; Gaussians whose mean ratio reaches ``error_ratio`` are cloned or split by the same rules as
     :class:`GradientDensify` (``both``: either criterion).
@@ -374,7 +377,7 @@ class ErrorDensify(GradientDensify):
     def __init__(self, settings: dict[str, Any], *, compositor: str, iterations: int) -> None:
         super().__init__(settings, compositor=compositor, iterations=iterations)
         self.mode = str(settings.get("strategy", "error"))
-        self.amplitude_key = "opacity_raw" if compositor == "alpha" else "density_raw"
+        self.amplitude_key = "colors" if compositor == "alpha" else "density_raw"
 
     def collecting(self, iteration: int) -> bool:
         """Whether the step ``iteration`` (1-based) feeds a densification to come (residual maps cost a backward).
@@ -418,6 +421,7 @@ class ErrorDensify(GradientDensify):
         if g_w is None or g_1 is None:
             return None
         with torch.no_grad():
+            g_w, g_1 = g_w.reshape(len(amp), -1).sum(1), g_1.reshape(len(amp), -1).sum(1)  # colours: (N, C)
             cover = visible & (g_1.abs() > 0)
             if not bool(cover.any()):
                 return None

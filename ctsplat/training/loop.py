@@ -25,7 +25,9 @@ colour for the alpha compositor), each with its own learning rate decayed by a c
 Adaptive density control: :mod:`ctsplat.training.densify` (``densify.strategy``: positional gradient, training
 residual, or both; ``densify.prune_redundant``). Seeding (``init``): :mod:`ctsplat.training.seeding`.
 
-Robustness: a non-finite loss or parameter rolls back to the last good state, multiplies the learning rates by
+Robustness: a non-finite loss or parameter rolls the model back to its last snapshot (taken every 10 iterations
+and after each densification, so up to 9 good steps are undone; the iteration count, the view order and the random
+streams go on, and a densification due at that iteration is skipped), multiplies the learning rates by
 ``nan_lr_decay`` and is logged; ``nan_max_consecutive`` such events in a row, or ``nan_max_events`` within
 ``nan_window`` iterations (a run that diverges every other step never has many in a row), stop the run with a
 ``CtsplatError``. A run that ends with a collapsed model also fails instead of writing a model (``collapse_*``
@@ -350,6 +352,11 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     gen.manual_seed(int(cfg["seed"]))
     scene = load_scene(cfg)
     check_validation_choices(scene, cfg)  # before any work: the read-out's amount and model: best need them
+    window = losses.gaussian_window().numel()
+    cam = scene.train.camera
+    if float(cfg["lambda_ssim"]) > 0 and min(cam.width, cam.height) < window:
+        raise CtsplatError(f"train.lambda_ssim needs radiographs of at least {window} x {window} pixels (the SSIM "
+                           f"window), got {cam.width} x {cam.height}; set lambda_ssim: 0 or render larger ones")
     if scene.eval_split != "val":
         log.warning("the radiographs in %s have no validation views: the periodic evaluation (train_log.csv, "
                     "model_best.pt, the collapse checks) scores the test views; the final model is unaffected",

@@ -109,6 +109,15 @@ def test_save_load_round_trip(tmp_path):
     assert "weights_only" not in str(err.value)  # torch's advice to load untrusted files unsafely is not passed on
     with pytest.raises(CtsplatError, match="not found"):
         Gaussians.load(tmp_path / "missing.pt")
+    base = torch.load(path, weights_only=True)
+    for odd, needle in (({**base, "tensors": {**base["tensors"], "features_extra": torch.zeros(7)}},
+                         "holds 'features_extra', which is not a Gaussian parameter tensor"),
+                        ({**base, "meta": [1, 2]}, "tensors and meta must be mappings"),
+                        ({**base, "tensors": {**base["tensors"], "sh_rest": torch.zeros(7, 3)}},
+                         r"sh_rest has shape \(7, 3\), expected \(N, K, C\)")):
+        torch.save(odd, tmp_path / "odd.pt")
+        with pytest.raises(CtsplatError, match=needle):
+            Gaussians.load(tmp_path / "odd.pt")
 
 
 def test_ply_has_3dgs_layout_and_values(tmp_path):

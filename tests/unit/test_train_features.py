@@ -196,6 +196,35 @@ def test_error_densify_selects_the_gaussians_under_a_planted_residual(strategy):
     assert counts["cloned"] + counts["split"] == int(inside.sum()) and counts["n"] == n0 + int(inside.sum())
 
 
+def test_error_statistic_of_alpha_is_the_blending_weighted_mean_residual():
+    """For alpha the weights are the blending weights α_i T_i (the colour's derivative), not the opacity's
+    derivative, which changes sign across a footprint: a dark Gaussian in front of a bright one."""
+    from types import SimpleNamespace
+
+    g = Gaussians.from_values(np.array([[0.0, 0.0, -5.0], [3.0, 0.0, 5.0]]), np.array([4.0, 3.0]),
+                              np.array([1.0, 1.0]), opacities=np.array([0.6, 0.9]), colors=np.array([[0.1], [1.0]]))
+    params = {k: v.detach().clone().requires_grad_(True) for k, v in g.tensors().items()}
+    cam = ParallelCamera(32, 32, 1.0)
+    R, t = torch.eye(3), torch.tensor([0.0, 0.0, 100.0])
+    out = render(Gaussians(**params), cam, R, t, compositor="alpha")
+    residual = torch.rand(32, 32, generator=torch.Generator().manual_seed(0))
+    dens = make_densify({**config.TRAIN_DEFAULTS["densify"], "strategy": "error"}, compositor="alpha",
+                        iterations=100)
+    cover, ratio = dens.error_ratios(SimpleNamespace(params=params), out.image, residual, out.visible)
+    # brute force: each Gaussian's weight map is the change of the image when its colour alone moves
+    e = []
+    for i in range(2):
+        bumped = {k: v.detach().clone() for k, v in params.items()}
+        bumped["colors"][i] += 1.0
+        with torch.no_grad():
+            w = render(Gaussians(**bumped), cam, R, t, compositor="alpha").image - out.image.detach()
+        assert (w >= -1e-6).all()
+        e.append(float((w * residual).sum() / w.sum()))
+    assert cover.tolist() == [True, True]
+    np.testing.assert_allclose(ratio.numpy(), np.array(e) / np.mean(e), rtol=1e-4)
+    assert all(float(residual.min()) <= x <= float(residual.max()) for x in e)
+
+
 def test_gradient_statistic_does_not_depend_on_the_batch_size():
     # a loss averaged over a batch of views gives each view 1/B of its own loss's gradient; `loss_views` scales it
     # back, so a batch of two views adds the same statistic as the two views one at a time

@@ -480,3 +480,25 @@ def test_an_evaluated_run_with_its_figures_trains_again(scene_dir: Path, tmp_pat
     assert (out / "model_volume.json").is_file() and (out / "figures" / "acf.png").is_file()
     loop.train({**cfg, "iterations": 10}, out)
     assert json.loads((out / "training.json").read_text())["iterations"] == 10
+
+
+def test_ssim_on_radiographs_smaller_than_its_window_is_refused_before_training(tmp_path: Path) -> None:
+    from train_helpers import tiny_phantom, tiny_train_cfg
+
+    from ctsplat.formats.volume import Volume, save_volume
+    from ctsplat.projector import render_radiographs
+
+    data, aff = tiny_phantom()
+    save_volume(Volume(data, aff, {"volume_id": "small", "intensity": {"mu_scale_per_mm": 0.02}}),
+                tmp_path / "volume.nii.gz")
+    render_radiographs(tmp_path / "volume.nii.gz", tmp_path / "rad",
+                       {"detector_width": 8, "detector_height": 8, "n_views": 6, "device": "cpu"})
+    cfg = tiny_train_cfg(tmp_path, iterations=2, lambda_ssim=0.2)
+    with pytest.raises(CtsplatError, match=r"lambda_ssim needs radiographs of at least 11 x 11 pixels .* got 8 x 8"):
+        loop.train(cfg, tmp_path / "run")
+    assert not (tmp_path / "run" / "model.pt").exists()
+    # the key types: a path that is not text, a device that is not one
+    for key, value, needle in (("volume", 5, "train.volume must be a path"), ("device", "cudax", "train.device"),
+                               ("seed", 2**64, "train.seed")):
+        with pytest.raises(CtsplatError, match=needle):
+            config.resolve_config({**cfg, key: value})
