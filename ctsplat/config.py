@@ -1008,22 +1008,22 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("sfm", "lowpass_px"): _NON_NEGATIVE,  # 0 = no pre-blur
     ("sfm", "highpass_frac"): _NON_NEGATIVE,  # 0 = no high-pass
     ("sfm", "max_num_features"): _COUNT,
-    ("sfm", "peak_threshold"): _NON_NEGATIVE,
+    ("sfm", "peak_threshold"): _POSITIVE,  # COLMAP refuses 0
     ("sfm", "edge_threshold"): _POSITIVE,
     ("sfm", "sift_num_octaves"): _COUNT,
     ("sfm", "matching"): {"enum": ["exhaustive", "sequential"]},
     ("sfm", "sequential_overlap"): _COUNT,
     ("sfm", "max_ratio"): {"type": "number", "exclusiveMinimum": 0, "maximum": 1},
     ("sfm", "max_distance"): _POSITIVE,
-    ("sfm", "min_num_inliers"): _COUNT0,
+    ("sfm", "min_num_inliers"): _COUNT,  # COLMAP refuses 0 (as the two below)
     ("sfm", "max_error_px"): _POSITIVE,
     ("sfm", "mapper"): {"enum": ["incremental", "global"]},
-    ("sfm", "init_min_num_inliers"): _COUNT0,
+    ("sfm", "init_min_num_inliers"): _COUNT,
     ("sfm", "init_min_tri_angle_deg"): _ANGLE_DEG,
-    ("sfm", "abs_pose_min_num_inliers"): _COUNT0,
+    ("sfm", "abs_pose_min_num_inliers"): _COUNT,
     ("sfm", "abs_pose_min_inlier_ratio"): _FRACTION,
     ("sfm", "filter_min_tri_angle_deg"): _ANGLE_DEG,
-    ("sfm", "triangulation_min_angle_deg"): _ANGLE_DEG,
+    ("sfm", "triangulation_min_angle_deg"): {"type": "number", "exclusiveMinimum": 0, "maximum": 180},  # > 0: COLMAP
     ("sfm", "min_model_size"): _COUNT,
     ("sfm", "pose_prior"): {"enum": ["none", "position", "refine", "refine_prior", "isocentric"]},
     ("sfm", "refine_rounds"): _COUNT,

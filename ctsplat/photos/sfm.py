@@ -35,6 +35,7 @@ from ctsplat.photos.images import check_photo_count, check_photos, list_photos, 
 from ctsplat.sfm.colmap import (
     MAPPING_THREADS,
     MODEL_FILES,
+    colmap_errors,
     extraction_options,
     match_pairs,
     matching_options,
@@ -160,13 +161,9 @@ def run_photo_sfm(image_dir: str | Path, out_dir: str | Path, settings: dict[str
         pycolmap.set_random_seed(int(s["seed"]))
         pycolmap.logging.minloglevel = 3  # glog: fatal only; a failed step ends in one line of ours, not two
     _check_free_space(image_dir, names, out_dir)
-    with atomic_dir(out_dir, marker="summary.json", contents=SFM_FILES, inputs=(image_dir,)) as tmp:
-        try:
-            summary = _run(image_dir, names, tmp, s)
-        except RuntimeError as exc:  # COLMAP's C++ errors (a database it cannot write, a failed step)
-            first = (str(exc).strip().splitlines() or ["no message"])[0]
-            raise CtsplatError(f"COLMAP failed on {image_dir}: {first}; check the photos and the free space beside "
-                               f"{out_dir}") from exc
+    with (atomic_dir(out_dir, marker="summary.json", contents=SFM_FILES, inputs=(image_dir,)) as tmp,
+          colmap_errors(image_dir, fix=f"check the photos and the free space beside {out_dir}")):
+        summary = _run(image_dir, names, tmp, s)
     return summary
 
 

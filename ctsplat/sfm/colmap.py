@@ -21,6 +21,7 @@ import logging
 import shutil
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -143,8 +144,17 @@ def _matching(cfg: dict[str, Any]):  # noqa: ANN202 - pycolmap option objects
     return mat, ver
 
 
+#: COLMAP treats a camera whose focal length exceeds this many image sizes as wrongly estimated and skips its
+#: correspondences (its default is 10). Cone-beam intrinsics are exact and held fixed, and a small object far from
+#: the source (a 20 mm phantom at 400 mm) has a longer focal length than that: the filter would register nothing.
+MAX_FOCAL_LENGTH_RATIO = 1e4
+
+
 def _incremental_options(cfg: dict[str, Any]):  # noqa: ANN202
     o = pycolmap.IncrementalPipelineOptions()
+    o.max_focal_length_ratio = MAX_FOCAL_LENGTH_RATIO
+    o.mapper.max_focal_length_ratio = MAX_FOCAL_LENGTH_RATIO
+    o.triangulation.max_focal_length_ratio = MAX_FOCAL_LENGTH_RATIO
     o.num_threads = MAPPING_THREADS
     o.random_seed = int(cfg.get("_seed", 0))
     o.min_num_matches = int(cfg["min_num_inliers"])
@@ -184,6 +194,7 @@ def _global_options(cfg: dict[str, Any]):  # noqa: ANN202
     m.bundle_adjustment.ceres.use_gpu = False
     m.global_positioning.use_gpu = False
     m.min_tri_angle_deg = float(cfg["triangulation_min_angle_deg"])
+    m.retriangulation.max_focal_length_ratio = MAX_FOCAL_LENGTH_RATIO
     return o
 
 
@@ -250,18 +261,47 @@ def colmap_reconstruct(image_dir: str | Path, image_names: list[str], intrinsics
         reader.mask_path = str(mask_dir)  # <mask_dir>/<image name>.png; features on 0 pixels are dropped
     stats: dict[str, Any] = {}
     t0 = time.perf_counter()
-    pycolmap.extract_features(db_path, image_dir, image_names=list(image_names),
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=ext, device=pycolmap.Device.cpu)
-    if prior_centres is not None and cfg.get("pose_prior") == "position":
-        _write_pose_priors(db_path, image_names, np.asarray(prior_centres, float), float(cfg["prior_sigma_mm"]))
-    t1 = time.perf_counter()
-    match_features(db_path, image_names, cfg)
-    t2 = time.perf_counter()
-    models, map_stats = colmap_map(db_path, image_dir, work_dir, image_names, cfg, prior_centres=prior_centres,
-                                   prior_poses=prior_poses)
+    with colmap_errors(image_dir):
+        pycolmap.extract_features(db_path, image_dir, image_names=list(image_names),
+                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                  extraction_options=ext, device=pycolmap.Device.cpu)
+        if prior_centres is not None and cfg.get("pose_prior") == "position":
+            _write_pose_priors(db_path, image_names, np.asarray(prior_centres, float), float(cfg["prior_sigma_mm"]))
+        t1 = time.perf_counter()
+        match_features(db_path, image_names, cfg)
+        t2 = time.perf_counter()
+        models, map_stats = colmap_map(db_path, image_dir, work_dir, image_names, cfg, prior_centres=prior_centres,
+                                       prior_poses=prior_poses)
     stats.update(map_stats, seconds_features=t1 - t0, seconds_matching=t2 - t1)
     return models, stats
+
+
+@contextlib.contextmanager
+def colmap_errors(image_dir: str | Path, *, fix: str = "check the sfm settings") -> Iterator[None]:
+    """Turn COLMAP's errors into one line naming the image folder: its message's first line, then ``fix``.
+
+    COLMAP's failed checks arrive as ``ValueError`` (C++ ``std::invalid_argument``: an option it refuses), its
+    database and file errors as ``RuntimeError``; ctsplat's own errors pass unchanged.
+
+    Parameters
+    ----------
+    image_dir : str or Path
+        The images COLMAP was working on (for the message).
+    fix : str, keyword-only
+        What to do about it (for the message).
+
+    Raises
+    ------
+    CtsplatError
+        For a ``RuntimeError`` or ``ValueError`` of COLMAP's.
+    """
+    try:
+        yield
+    except CtsplatError:
+        raise
+    except (RuntimeError, ValueError) as exc:
+        first = next((line.strip() for line in str(exc).splitlines() if line.strip()), "no message")
+        raise CtsplatError(f"COLMAP failed on {image_dir}: {first}; {fix}") from exc
 
 
 def match_features(db_path: str | Path, image_names: list[str], config: dict[str, Any]) -> None:

@@ -611,6 +611,7 @@ def naive_slices_sfm(volume_data: np.ndarray, work_dir: str | Path, config: dict
     """
     cfg = dict(merge_config("sfm", {k: v for k, v in config.items() if not k.startswith("_")}, SFM_DEFAULTS))
     cfg["_seed"] = seed
+    cfg["_arc_deg"] = 0.0  # a stack of slices, not an orbit: no loop-closure pairs of the first and last slices
     data = np.asarray(volume_data, float)
     slices = np.moveaxis(data, 2, 0)  # (K, I, J)
     imgs = enhance_for_features(slices, clip=cfg["clahe_clip"], kernel_frac=cfg["clahe_kernel_frac"],

@@ -191,6 +191,16 @@ def test_sfm_refuses_a_full_disk_and_reports_colmap_failures_in_one_line(tmp_pat
         run_photo_sfm(photos, out)
     _nothing_written(tmp_path, tmp_path / "new")
 
+    def refused(image_dir: Path, names: list[str], tmp: Path, settings: dict) -> None:
+        reader = sfm.pycolmap.ImageReaderOptions()
+        reader.camera_model = "NOT_A_MODEL"  # COLMAP's failed check arrives as a ValueError
+        sfm.pycolmap.extract_features(tmp / "database.db", image_dir, reader_options=reader)
+
+    monkeypatch.setattr(sfm, "_run", refused)
+    with pytest.raises(CtsplatError, match=r"COLMAP failed on .*photos: .*Check failed"):
+        run_photo_sfm(photos, out)
+    _nothing_written(tmp_path, tmp_path / "new")
+
 
 def test_mixed_sizes_need_a_camera_per_image(tmp_path: Path) -> None:
     photos = tmp_path / "photos"

@@ -340,3 +340,24 @@ def test_sfm_refuses_an_output_folder_with_files_it_does_not_write(tmp_path) -> 
     assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == [
         "images", "images/IMG_001.jpg", "summary.json"]
     assert (out / "summary.json").read_text() == '{"mine": 1}'
+
+
+@pytest.mark.parametrize(("key", "value"), [("min_num_inliers", 0), ("init_min_num_inliers", 0),
+                                            ("abs_pose_min_num_inliers", 0), ("triangulation_min_angle_deg", 0),
+                                            ("peak_threshold", 0)])
+def test_values_colmap_refuses_are_refused_by_the_schema(key: str, value: float) -> None:
+    from ctsplat.config import check_section
+
+    with pytest.raises(CtsplatError, match=rf"sfm\.{key}"):
+        check_section("sfm", {key: value})
+
+
+def test_colmap_errors_become_one_line_naming_the_images() -> None:
+    from ctsplat.sfm.colmap import colmap_errors
+
+    with pytest.raises(CtsplatError, match=r"COLMAP failed on imgs: \[incremental_pipeline\.cc:350\] Check failed: "
+                                           r"options_->Check\(\); check the sfm settings$"):
+        with colmap_errors("imgs"):
+            raise ValueError("[incremental_pipeline.cc:350] Check failed: options_->Check()\n  stack")
+    with pytest.raises(CtsplatError, match=r"^ours$"), colmap_errors("imgs"):
+        raise CtsplatError("ours")  # ctsplat's own errors pass unchanged
