@@ -13,7 +13,6 @@ validation metrics while it runs.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import os
 import resource
@@ -313,18 +312,24 @@ def forward_fps(gaussians: Any, camera: Any, R: np.ndarray, t: np.ndarray, rende
     float
         Frames per second (CUDA synchronised around each render on a GPU).
     """
+    from ctsplat.splat.render import render
+
     cam = scaled_camera(camera, width, height)
-    dev = gaussians.means.device
+    dev, dt = gaussians.means.device, gaussians.means.dtype
+    # the pose on the device and the image left there: the render alone is timed, not copies to or from the host
+    Rt = torch.as_tensor(np.asarray(R), dtype=dt, device=dev)
+    tt = torch.as_tensor(np.asarray(t), dtype=dt, device=dev)
     times = []
-    for i in range(repeats + 1):
-        if dev.type == "cuda":
-            torch.cuda.synchronize(dev)
-        t0 = time.perf_counter()
-        render_views(gaussians, cam, np.asarray(R)[None], np.asarray(t)[None], render_kwargs)
-        if dev.type == "cuda":
-            torch.cuda.synchronize(dev)
-        if i:
-            times.append(time.perf_counter() - t0)
+    with torch.no_grad():
+        for i in range(repeats + 1):
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)
+            t0 = time.perf_counter()
+            render(gaussians, cam, Rt, tt, **dict(render_kwargs))
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)
+            if i:
+                times.append(time.perf_counter() - t0)
     return float(1.0 / np.median(times))
 
 
@@ -377,7 +382,8 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     """Evaluate a finished training run: the one place its held-out metrics are computed.
 
     Reads ``run_dir/config.json``, ``model.pt``, ``training.json`` and ``train_log.csv`` (written by
-    :func:`ctsplat.training.train`) and the scene's view sets; renders the split's views at their true poses,
+    :func:`ctsplat.training.train`) and the scene's view sets; renders the split's views at the scene's poses for
+    them (the true poses of the test and validation views; a ``train`` split at its training poses),
     voxelises the model on the reference grid, and measures 2D PSNR/SSIM/LPIPS, 3D PSNR/SSIM, forward FPS and the
     time to the validation milestones.
 
@@ -428,7 +434,13 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     from ctsplat.formats.volume import Volume, save_volume
     from ctsplat.scene import load_scene
     from ctsplat.splat.gaussians import Gaussians
-    from ctsplat.training.config import EVALUATION_KEYS, REFERENCE_INITS, mip_filter, render_kwargs
+    from ctsplat.training.config import (
+        EVALUATION_KEYS,
+        REFERENCE_INITS,
+        TRAIN_BOUNDS,
+        mip_filter,
+        render_kwargs,
+    )
 
     run_dir = Path(run_dir)
     needed = [run_dir / n for n in ("config.json", "model.pt", "training.json")]
@@ -460,6 +472,9 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         missing = [k for k in keys if k not in record]
         if missing:  # a record of another version, or an edited one: named here, not as a KeyError later
             raise CtsplatError(f"{path} has no {missing[0]!r} entry (written by another version, or edited); {fix}")
+    for key in ("turntable_frames", "fps_width", "fps_height"):  # given as settings, or an edited config
+        if key in cfg:
+            TRAIN_BOUNDS[key].check(key, cfg[key])
     dev = resolve_device(device)
     scene = load_scene(cfg)
     check_validation_choices(scene, cfg, model)
@@ -548,7 +563,8 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
                                   else trained["iterations"], views, vm))
     if split == "test":
         meta = {"source": "ctsplat voxelised Gaussian model",
-                "intensity": {"unit": "normalised", "mu_scale_per_mm": scene.mu_scale},
+                # the read-out is in the reference's units (normalised, or 1/mm for a reference stored in 1/mm)
+                "intensity": {**scene.volume.meta.get("intensity", {}), "mu_scale_per_mm": scene.mu_scale},
                 "reference_volume_id": scene.volume.volume_id, "uses_reference_volume": uses_ref,
                 "config_hash": run_cfg.get("config_hash"), "code_version": code_version()}
         save_volume(Volume(vol_model.astype(np.float32), np.asarray(scene.volume.affine, float),
@@ -671,9 +687,15 @@ def _gauge_aligned_metrics(run_dir: Path, g: Any, scene: Any, rk: dict[str, Any]
     Rs, ts = np.asarray(tr.Rs, float), np.asarray(tr.ts, float)
     refined = run_dir / "refined_views.json"
     if refined.exists():
-        by_id = {int(v["id"]): v for v in json.loads(refined.read_text())["views"]}
-        Rs = np.stack([np.asarray(by_id[int(i)]["R"], float) for i in tr.ids])
-        ts = np.stack([np.asarray(by_id[int(i)]["t"], float) for i in tr.ids])
+        fix = "train the run again (its refined poses are damaged)"
+        doc = read_json_object(refined, what="refined training poses", fix=fix)
+        try:
+            by_id = {int(v["id"]): v for v in doc["views"]}
+            Rs = np.stack([np.asarray(by_id[int(i)]["R"], float) for i in tr.ids])
+            ts = np.stack([np.asarray(by_id[int(i)]["t"], float) for i in tr.ids])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CtsplatError(f"{refined} lacks a training view's pose ({type(exc).__name__}: {exc}); "
+                               f"{fix}") from None
     if np.allclose(Rs, Rs_true, atol=1e-12) and np.allclose(ts, ts_true, atol=1e-9):
         return {}
     G, b = gauge_motion(Rs, ts, Rs_true, ts_true, tr.camera.model)

@@ -584,6 +584,9 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
         if it % int(cfg["checkpoint_every"]) == 0 or it == total:
             state.health["loss_sum"] = float(loss_sum)
             state.elapsed_s = time.perf_counter() - t_start
+            # the peak so far, across resumes: a resumed process alone would report only its own span
+            state.health["peak_memory_mb"] = max(float(state.health.get("peak_memory_mb", 0.0)),
+                                                 peak_memory_mb(device)[0])
             save_checkpoint(out_dir, state, rng, gen, chash, int(cfg["keep_checkpoints"]))
             # a run resumed from this checkpoint rolls a non-finite step back to it: so does this one
             snap = snapshot(state)
@@ -636,8 +639,8 @@ def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: 
     summary.update(pose_refine=state.pose is not None, **_pose_errors(state, scene))
     if state.pose is not None:
         _write_refined_views(state, scene, out_dir)
-    summary["peak_memory_mb"], summary["peak_memory_kind"] = peak_memory_mb(device)
-    summary["peak_memory_mb"] = round(summary["peak_memory_mb"], 1)
+    peak, summary["peak_memory_kind"] = peak_memory_mb(device)
+    summary["peak_memory_mb"] = round(max(peak, float(state.health.get("peak_memory_mb", 0.0))), 1)
     write_json_atomic(out_dir / "training.json", json_safe(summary))
     return summary
 

@@ -233,7 +233,8 @@ class TrainState:
     health : dict
         Collapse watch (:mod:`ctsplat.training.loop`): ``psnr_initial`` (dB), ``loss_first`` (mean loss of the
         first validation interval), ``loss_sum`` / ``loss_n`` (finite losses since the last validation),
-        ``loss_high`` (validations in a row with a high loss).
+        ``loss_high`` (validations in a row with a high loss); also ``peak_memory_mb``, the peak at the last
+        checkpoint across resumes (MiB).
     """
 
     params: dict[str, torch.Tensor]

@@ -102,6 +102,7 @@ def test_outputs_log_columns_and_metrics(full_run, scene_dir: Path) -> None:
     mv = load_volume(out / "model_volume.nii.gz")
     ref = load_volume(scene_dir / "volume.nii.gz")
     assert mv.meta["uses_reference_volume"] is True
+    assert mv.meta["intensity"] == ref.meta["intensity"]  # the reference's units (here: no kind, a test volume)
     assert psnr3d(mv.data, ref.data) == pytest.approx(m["psnr3d"], abs=1e-4)
     assert psnr3d_r2(mv.data, ref.data) == pytest.approx(m["psnr3d_r2"], abs=1e-4)
     assert ssim3d_r2(mv.data, ref.data) == pytest.approx(m["ssim3d_r2"], abs=1e-4)
@@ -141,7 +142,13 @@ def test_deterministic_and_resume_after_kill(full_run, scene_dir: Path, tmp_path
     assert proc.returncode == -9, proc.stderr
     assert not (killed / "metrics.json").exists()
     assert checkpoint.latest_checkpoint(killed).name == "ckpt_00000020.pt"
+    ck = checkpoint.latest_checkpoint(killed)
+    payload = torch.load(ck, weights_only=False)
+    assert 0 < payload["health"]["peak_memory_mb"] < 1e6
+    payload["health"]["peak_memory_mb"] = 1e6  # the killed process's peak, above anything this one reaches
+    torch.save(payload, ck)
     loop.train(cfg, killed, resume=True)
+    assert json.loads((killed / "training.json").read_text())["peak_memory_mb"] == 1e6  # across the resume
     res3 = evaluate(killed, device="cpu", write=False)
     assert _metric_rows(killed / "train_log.csv") == _metric_rows(again / "train_log.csv")
     assert res3["psnr3d"] == res2["psnr3d"] and res3["psnr2d"] == res2["psnr2d"]
@@ -676,6 +683,15 @@ def test_evaluation_failing_part_way_leaves_no_metrics(full_run, tmp_path: Path)
     with pytest.raises(CtsplatError, match=r"turntable\.gif is a folder, but a file is to be written there"):
         evaluate(run, device="cpu")
     assert not (run / "metrics.json").exists()  # the new gallery and volume are not described by the old metrics
+    for settings, needle in (({"fps_width": 0}, "fps_width"), ({"turntable_frames": 0}, "turntable_frames")):
+        with pytest.raises(CtsplatError, match=needle):
+            evaluate(run, device="cpu", settings=settings)
+    (run / "refined_views.json").write_text("{")
+    with pytest.raises(CtsplatError, match=r"refined_views\.json is not valid JSON"):
+        evaluate(run, device="cpu", write=False)
+    (run / "refined_views.json").write_text('{"views": []}')
+    with pytest.raises(CtsplatError, match=r"refined_views\.json lacks a training view's pose \(KeyError"):
+        evaluate(run, device="cpu", write=False)
 
 
 def test_cli_train_and_evaluate(scene_dir: Path, tmp_path: Path, capsys) -> None:
