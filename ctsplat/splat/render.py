@@ -97,6 +97,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
@@ -346,6 +347,8 @@ def project(
         jd = torch.tensor([1 / cam["sx"], 1 / cam["sy"]], dtype=dtype, device=dev)
         detj2 = (jd[0] * jd[1]) ** 2 * torch.ones_like(z)
         T = rot_c[:, :2, :] * jd[None, :, None]  # (N,2,3) the image rows of J times the Gaussian's axes
+        # every Gaussian, also one behind the rays' start plane z = 0 (the projector starts there): the splat is
+        # the line integral over the whole line, which differs only for Gaussians outside the volume's sphere
         valid = torch.ones(n, dtype=torch.bool, device=dev)
     else:
         fx, fy = cam["fx"], cam["fy"]
@@ -479,6 +482,9 @@ def _check_backend(backend: str, what: str) -> None:
 
 def _use_kernel(backend: str, device: torch.device) -> bool:
     """Whether the fused C++ kernels run: CPU tensors only; ``auto`` when they build, ``kernel`` always."""
+    if backend == "kernel" and device.type != "cpu":
+        raise CtsplatError(f"backend 'kernel' (the C++ CPU kernels) cannot render {device.type} tensors; use "
+                           "auto, triton or reference")
     if backend in ("reference", "triton") or device.type != "cpu":
         return False
     return _kernel.available() if backend == "auto" else True
@@ -562,8 +568,16 @@ _RENDERED = {"radiative": ("means", "log_scales", "quats", "density_raw"),
              "alpha": ("means", "log_scales", "quats", "opacity_raw", "colors", "sh_rest")}
 
 
-def _check_inputs(gaussians: Gaussians, filter_3d_var: torch.Tensor | None, compositor: str) -> None:
-    gaussians.validate(check_finite=_RENDERED[compositor])
+def _check_cutoff(sigma_cutoff: Any) -> None:
+    if not isinstance(sigma_cutoff, numbers.Real) or isinstance(sigma_cutoff, bool) or not 0 < sigma_cutoff < math.inf:
+        raise CtsplatError(f"sigma_cutoff must be a finite number > 0, got {sigma_cutoff!r}")
+
+
+def _check_inputs(gaussians: Gaussians, filter_3d_var: torch.Tensor | None, compositor: str | None) -> None:
+    """NaN/Inf in what ``compositor`` renders (None: nothing checked here, the caller validates) and the 3D filter's
+    variances."""
+    if compositor is not None:
+        gaussians.validate(check_finite=_RENDERED[compositor])
     if filter_3d_var is not None:
         fv = torch.as_tensor(filter_3d_var)
         # both conditions in one host synchronisation; the messages below tell them apart
@@ -648,11 +662,14 @@ def render(
         raise CtsplatError("background only applies to the alpha compositor (radiative images have no background)")
     if color_scale is not None and compositor != "alpha":
         raise CtsplatError("color_scale only applies to the alpha compositor (radiative Gaussians have no colour)")
-    if not 0 < sigma_cutoff < math.inf:
-        raise CtsplatError(f"sigma_cutoff must be a finite number > 0, got {sigma_cutoff}")
+    _check_cutoff(sigma_cutoff)
     if tuple(np.shape(R)) != (3, 3) or tuple(np.shape(t)) != (3,):  # shapes only: no device read-back per call
         raise CtsplatError(f"render needs one pose, R (3, 3) and t (3,); got {tuple(np.shape(R))} and "
                            f"{tuple(np.shape(t))}")
+    on_host = [x for x in (R, t) if not (isinstance(x, torch.Tensor) and x.device.type != "cpu")]
+    if not all(np.isfinite(np.asarray(x.detach() if isinstance(x, torch.Tensor) else x, float)).all()
+               for x in on_host):  # a NaN pose culls every Gaussian: a blank image, not an error, without this
+        raise CtsplatError("the camera pose (R, t) contains NaN/Inf")
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
     _check_tensors(gaussians)
@@ -686,6 +703,7 @@ def render(
         R_t, t_t = _as_pose(R, t, gaussians.means)
         cols = _colors_for_view(gaussians, R_t, t_t, cam["model"])
         if color_scale is not None:
+            color_scale = torch.as_tensor(color_scale)
             if color_scale.shape != (cols.shape[0],):
                 raise CtsplatError(f"color_scale has shape {tuple(color_scale.shape)}; expected ({cols.shape[0]},), "
                                    "one factor per Gaussian")
@@ -886,11 +904,18 @@ def voxelize(
     gaussians.validate()
     means = gaussians.means
     dtype, dev = means.dtype, means.device
-    if not 0 < sigma_cutoff < math.inf:
-        raise CtsplatError(f"sigma_cutoff must be a finite number > 0, got {sigma_cutoff}")
+    _check_cutoff(sigma_cutoff)
     if filter_3d_var is not None and int(torch.as_tensor(filter_3d_var).numel()) != means.shape[0]:
         raise CtsplatError(f"filter_3d_var has {int(torch.as_tensor(filter_3d_var).numel())} values for "
                            f"{means.shape[0]} Gaussians; compute it for this model (compute_3d_filter)")
+    if not (isinstance(filter_3d_var, torch.Tensor) and filter_3d_var.device.type != "cpu"):
+        # its values, where they are on the host (a negative variance would give a NaN volume)
+        _check_inputs(gaussians, filter_3d_var, None)
+    if tuple(np.shape(affine)) != (4, 4) or len(tuple(shape)) != 3:
+        raise CtsplatError(f"voxelize needs a (4, 4) affine and a grid shape (I, J, K); got {tuple(np.shape(affine))} "
+                           f"and {tuple(shape)}")
+    if region is not None and tuple(np.shape(region)) != (3, 2):
+        raise CtsplatError(f"voxelize region must be ((i0, i1), (j0, j1), (k0, k1)), got {region}")
     if not (isinstance(affine, torch.Tensor) and affine.device.type != "cpu"):
         # checked on the host when it is there (a device affine would cost a read-back per call): the inverse
         # below is taken without an error flag

@@ -513,6 +513,24 @@ def test_bad_cutoff_and_a_filter_of_another_model_raise_in_one_line():
             voxelize(g, (8, 8, 8), torch.eye(4, dtype=D64), sigma_cutoff=cutoff)
     with pytest.raises(CtsplatError, match="filter_3d_var has 3 values for 4 Gaussians"):
         voxelize(g, (8, 8, 8), torch.eye(4, dtype=D64), filter_3d_var=torch.zeros(3, dtype=D64))
+    with pytest.raises(CtsplatError, match="sigma_cutoff must be a finite number > 0, got '3'"):
+        render(g, ParallelCamera(16, 16, 1.0), *_pose(0.0, 0.0), sigma_cutoff="3")
+    # voxelize checks what render checks: the filter's values, and its own shapes
+    for fv, msg in ((torch.tensor([0.1, -0.2, 0.1, 0.1], dtype=D64), ">= 0"),
+                    (torch.tensor([0.1, float("nan"), 0.1, 0.1], dtype=D64), "NaN")):
+        with pytest.raises(CtsplatError, match=msg):
+            voxelize(g, (8, 8, 8), torch.eye(4, dtype=D64), filter_3d_var=fv)
+    for kw, msg in (({"affine": torch.eye(3, dtype=D64)}, r"needs a \(4, 4\) affine"),
+                    ({"shape": (8, 8)}, r"grid shape \(I, J, K\)"),
+                    ({"region": ((0, 4), (0, 4))}, "region must be")):
+        args = {"shape": (8, 8, 8), "affine": torch.eye(4, dtype=D64), **kw}
+        with pytest.raises(CtsplatError, match=msg):
+            voxelize(g, args.pop("shape"), args.pop("affine"), **args)
+    # a pose with NaN/Inf would cull every Gaussian: an error, not a blank image
+    R, t = _pose(0.0, 0.0)
+    for bad_R, bad_t in ((R * float("nan"), t), (R, t + torch.tensor([float("inf"), 0.0, 0.0], dtype=t.dtype))):
+        with pytest.raises(CtsplatError, match=r"pose \(R, t\) contains NaN/Inf"):
+            render(g, ParallelCamera(16, 16, 1.0), bad_R, bad_t)
 
 
 def test_float32_kernel_rows_of_every_length_and_image_corners():
