@@ -261,6 +261,7 @@ _GRID_COPIES, _INPLANE_COPIES = 6, 2
 
 def _check_grid_fits(counts: np.ndarray, n_slices: int, spacing_mm: np.ndarray) -> None:
     """Refuse an output grid whose arrays would not fit in this machine's memory, before allocating any."""
+    counts = np.asarray(counts, float)  # products of int64 counts can wrap round before the comparison
     need = 4 * (_GRID_COPIES * float(np.prod(counts)) + _INPLANE_COPIES * float(counts[0] * counts[1] * n_slices))
     try:
         total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
@@ -382,6 +383,9 @@ def resample_stack(
         with threadpool_limits(limits=1, user_api="blas"):
             out = (inter.reshape(-1, n_k) @ wnt).reshape(counts[0], counts[1], counts[2])
             cov = (cov_inter.reshape(-1, n_k) @ wnt).reshape(out.shape)
+    if not np.asarray(wn.sum(axis=1)).any():  # every output layer between the slices' positions: fill alone
+        raise CtsplatError(f"no output layer of {h[2]:.3g} mm lies on the {s[-1] - s[0] + gap:.3g} mm the slices "
+                           "cover, so the volume would hold only the fill value; use a finer grid or voxel size")
     out += np.float32(fill) * (1.0 - cov)
 
     affine = np.eye(4)

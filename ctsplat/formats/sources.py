@@ -588,7 +588,14 @@ def _why(exc: BaseException, *, with_type: bool = True, limit: int = 160) -> str
     'Expected total bytes to be an even multiple of bytes per value. Instead received <bytes> with length 8'
     >>> _why(KeyError("1.3.12.2.1107.5.1.1.20707.20020604104421111.3"), with_type=False)
     "'<UID>'"
+    >>> _why(PermissionError(13, "Permission denied", "/in/PAT_DOE_JANE/IM0001"))
+    'PermissionError: Permission denied'
+
+    An operating-system error names the file's path, whose folders an export may name after the patient: only its
+    reason is kept (the caller names the file by its position).
     """
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{type(exc).__name__}: {exc.strerror}" if with_type else exc.strerror
     text = str(exc).split("\n")[0]
     text = re.sub(r"""b(['"]).*?(?<!\\)\1""", "<bytes>", text)
     text = re.sub(r"\d+(?:\.\d+){3,}", "<UID>", text)
@@ -785,15 +792,42 @@ def _check_decoder(ds: Any, label: str) -> None:
         raise CtsplatError(f"{label}: transfer syntax {ts.name} ({ts}) is not supported by pydicom") from None
     if not decoder.is_available:
         pkg = _DECODER_PACKAGES.get(str(ts), "a pydicom pixel-data plugin (pylibjpeg or gdcm)")
-        raise CtsplatError(
-            f"{label} is compressed ({ts.name}) and no decoder is installed; install {pkg} "
-            f"(pip install 'ctsplat[j2k]')"
-        )
+        # the j2k extra holds the JPEG 2000 decoder only; the other plugins are named as pip installs them
+        how = ("pip install 'ctsplat[j2k]'" if "openjpeg" in pkg else
+               f"pip install {pkg.replace(' and ', ' ')}" if pkg.startswith("pylibjpeg") else "see pydicom's docs")
+        raise CtsplatError(f"{label} is compressed ({ts.name}) and no decoder is installed; install {pkg} ({how})")
+
+
+def _optional_number(value: Any) -> float | None:
+    """A descriptive header number (KVP, SliceThickness) as a float; None when absent or not one number (``"140kV"``,
+    a dual-energy ``80\\140``): such fields are recorded, never used."""
+    try:
+        return float(value) if value not in (None, "") else None
+    except (TypeError, ValueError):
+        return None
+
+
+def _header_int(ds: Any, key: str, label: str) -> int:
+    """An integer header field that decides how a file is read (NumberOfFrames, SamplesPerPixel); 1 when absent."""
+    value = ds.get(key, 1)
+    try:
+        return int(value or 1)
+    except (TypeError, ValueError):
+        raise CtsplatError(f"{label} has an invalid {key} (not an integer); fix the header or re-export the "
+                           "series") from None
 
 
 def _vec(ds: Any, key: str, n: int, label: str) -> np.ndarray:
     value = ds.get(key)
-    if value is None or len(value) != n:
+    if value is not None:
+        try:  # one number where n were expected has no length: pydicom hands a malformed value over as it is
+            count = 1 if isinstance(value, str | bytes) else len(value)
+        except TypeError:
+            count = 1
+        if count != n:
+            raise CtsplatError(f"{label} has an invalid {key} (need {n} values, it holds {count}); fix the header "
+                               "or re-export the series")
+    else:
         hint = {
             "ImagePositionPatient": "slice positions cannot be derived; re-export the series with geometry tags",
             "ImageOrientationPatient": "slice orientation is unknown; re-export the series with geometry tags",
@@ -982,12 +1016,12 @@ def _read_dicom_series(
         except Exception as exc:  # noqa: BLE001
             _handle_corrupt(path, label(path), _why(exc), skip_corrupt, skipped)
             continue
-        if int(ds.get("NumberOfFrames", 1) or 1) > 1:
+        if _header_int(ds, "NumberOfFrames", label(path)) > 1:
             raise CtsplatError(
                 f"{label(path)} is a multi-frame (enhanced) image; only one-slice-per-file series are supported - "
                 f"convert it to a NIfTI (e.g. dcm2niix) and ingest that"
             )
-        if int(ds.get("SamplesPerPixel", 1) or 1) != 1:
+        if _header_int(ds, "SamplesPerPixel", label(path)) != 1:
             raise CtsplatError(f"{label(path)} is not a greyscale image (SamplesPerPixel != 1); CT slices are "
                                "greyscale")
         _check_decoder(ds, label(path))
@@ -1099,7 +1133,7 @@ def _read_dicom_series(
         "modality": modality,
         "manufacturer": str(first.get("Manufacturer", "") or ""),
         "model": str(first.get("ManufacturerModelName", "") or ""),
-        "kvp": float(first.KVP) if first.get("KVP") not in (None, "") else None,
+        "kvp": _optional_number(first.get("KVP")),
         "transfer_syntax": ts.name if ts is not None else None,
         "n_series_found": len(series),
         "n_slices": len(slices),
@@ -1107,7 +1141,7 @@ def _read_dicom_series(
         "rows": ref["rows"],
         "columns": ref["cols"],
         "pixel_spacing_mm": [float(v) for v in ref["ps"]],
-        "slice_thickness_mm": float(first.SliceThickness) if first.get("SliceThickness") not in (None, "") else None,
+        "slice_thickness_mm": _optional_number(first.get("SliceThickness")),
         "slice_gaps_mm": rounded_gaps,
         "uniform_spacing": bool(np.ptp(gaps) < 1e-3),
         "nominal_slice_gap_mm": round(nominal, 6),

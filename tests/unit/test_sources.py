@@ -305,7 +305,15 @@ def test_compressed_without_decoder_names_the_package(tmp_path, monkeypatch):
     make_series(tmp_path / "j2k", shape=(32, 32, 3), transfer_syntax="1.2.840.10008.1.2.4.90")
     monkeypatch.setattr(Decoder, "is_available", property(lambda self: False))
     msg = assert_fails_cleanly(tmp_path / "j2k", tmp_path, "no decoder")
-    assert "pylibjpeg-openjpeg" in msg
+    assert "pylibjpeg-openjpeg" in msg and "pip install 'ctsplat[j2k]'" in msg
+    # JPEG Lossless needs another plugin than the j2k extra holds: named as pip installs it
+    from ctsplat.formats.sources import _check_decoder
+
+    ds = pydicom.dcmread(make_series(tmp_path / "raw", shape=(8, 8, 2))[0])
+    ds.file_meta.TransferSyntaxUID = "1.2.840.10008.1.2.4.70"
+    with pytest.raises(CtsplatError, match=r"install pylibjpeg and pylibjpeg-libjpeg \(pip install pylibjpeg "
+                                           r"pylibjpeg-libjpeg\)$"):
+        _check_decoder(ds, "file 1")
 
 
 # ------------------------------------------------------------------------------------------ bad input
@@ -410,6 +418,8 @@ def test_missing_image_position(tmp_path):
     ("ImageOrientationPatient", ["1", "0", "0", "0", "inf", "0"], "invalid ImageOrientationPatient"),
     ("RescaleSlope", "0", "invalid RescaleSlope/RescaleIntercept"),
     ("RescaleIntercept", "nan", "invalid RescaleSlope/RescaleIntercept"),
+    ("PixelSpacing", "1.5", "invalid PixelSpacing (need 2 values, it holds 1)"),
+    ("ImagePositionPatient", ["1", "2"], "invalid ImagePositionPatient (need 3 values, it holds 2)"),
 ])
 def test_invalid_geometry_or_rescale_values_fail_naming_the_tag(tmp_path, tag, value, needle):
     files = make_series(tmp_path / "s")
@@ -419,6 +429,42 @@ def test_invalid_geometry_or_rescale_values_fail_naming_the_tag(tmp_path, tag, v
         ds.save_as(f)
     msg = assert_fails_cleanly(tmp_path / "s", tmp_path, re.escape(needle))
     assert place(tmp_path / "s", files[0]) in msg or "file 1 of" in msg
+
+
+@pytest.mark.filterwarnings("ignore:Invalid value for VR")
+def test_descriptive_numbers_that_are_not_one_number_are_recorded_as_unknown(tmp_path):
+    """KVP "140kV", a dual-energy KVP 80\\140 and SliceThickness "2 mm" are described, never used: recorded as
+    null instead of ending the ingest in a traceback."""
+    files = make_series(tmp_path / "s")
+    for f in files:  # written as text (VR LO), as pydicom hands a malformed number over
+        ds = pydicom.dcmread(f)
+        ds[0x00180060] = pydicom.DataElement(0x00180060, "LO", "80\\140" if f == files[0] else "140kV")  # KVP
+        ds[0x00180050] = pydicom.DataElement(0x00180050, "LO", "2 mm")  # SliceThickness
+        ds.save_as(f)
+    ingest(tmp_path / "s", tmp_path / "out" / "volume.nii.gz", {"grid": 8})
+    source = json.loads((tmp_path / "out" / "volume.json").read_text())["source"]
+    assert source["kvp"] is None and source["slice_thickness_mm"] is None
+    ds = pydicom.dcmread(files[2])
+    ds[0x00280008] = pydicom.DataElement(0x00280008, "LO", "one")  # NumberOfFrames
+    ds.save_as(files[2])
+    msg = assert_fails_cleanly(tmp_path / "s", tmp_path / "x", r"invalid NumberOfFrames \(not an integer\)")
+    assert place(tmp_path / "s", files[2]) in msg
+
+
+def test_an_unreadable_file_is_named_by_its_place_not_its_path(tmp_path):
+    """Exports name folders after the patient: an operating-system error's path stays out of the message."""
+    from ctsplat.formats.sources import _why
+
+    err = PermissionError(13, "Permission denied", str(tmp_path / "PAT_DOE_JANE_19700923" / "IM0001"))
+    assert _why(err) == "PermissionError: Permission denied"
+
+
+def test_a_grid_with_no_layer_on_a_thin_slab_is_refused(tmp_path):
+    # a 3 mm slab 80 mm wide: a 16-voxel cube has 5 mm layers, the nearest 2.5 mm from the slab's middle
+    make_series(tmp_path / "s", shape=(8, 6, 3), spacing=(10.0, 10.0, 1.0))
+    with pytest.raises(CtsplatError, match="no output layer of 5 mm lies on the 3 mm the slices cover"):
+        ingest(tmp_path / "s", tmp_path / "out" / "volume.nii.gz", {"grid": 16})
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
 
 
 def test_single_slice(tmp_path):
