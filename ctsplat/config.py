@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from ctsplat.grid import expand_grid, needs_sfm, uses_colmap
+from ctsplat.photos.config import DENSIFY_CHOICES
 from ctsplat.utils import SEED_MAX, CtsplatError, first_nonfinite, merge_config
 
 __all__ = [
@@ -1112,7 +1113,7 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("photos", "train.max_points"): {"type": "integer", "minimum": 4},  # a seed scale needs 3 neighbours
     **{("photos", f"train.lr.{k}"): _NON_NEGATIVE for k in ("means", "means_final", "log_scales", "quats",
                                                              "opacity", "colors", "sh_rest", "background")},
-    ("photos", "train.densify.strategy"): {"enum": ["default", "mcmc"]},
+    ("photos", "train.densify.strategy"): {"enum": list(DENSIFY_CHOICES["strategy"])},
     ("photos", "train.densify.interval"): {"type": "integer", "minimum": 0},
     ("photos", "train.densify.start"): {"type": "integer", "minimum": 0},
     ("photos", "train.densify.stop_fraction"): _FRACTION,
@@ -1120,9 +1121,9 @@ REFINE: dict[tuple[str, str], dict[str, Any]] = {
     ("photos", "train.densify.percent_dense"): _POSITIVE,
     ("photos", "train.densify.prune_opacity"): _FRACTION,
     ("photos", "train.densify.prune_scale_fraction"): _POSITIVE,
-    ("photos", "train.densify.size_prune"): {"enum": ["after_reset", "always"]},
+    ("photos", "train.densify.size_prune"): {"enum": list(DENSIFY_CHOICES["size_prune"])},
     ("photos", "train.densify.near_prune"): {"type": "number", "minimum": 0},
-    ("photos", "train.densify.gradient"): {"enum": ["mean", "pixel"]},
+    ("photos", "train.densify.gradient"): {"enum": list(DENSIFY_CHOICES["gradient"])},
     ("photos", "train.densify.opacity_reset_interval"): {"type": "integer", "minimum": 0},
     ("photos", "train.densify.max_gaussians"): _COUNT,
     ("photos", "train.mcmc.cap_max"): _COUNT,

@@ -13,14 +13,18 @@ from typing import Any
 
 from ctsplat.utils import CtsplatError, merge_config
 
-__all__ = ["PHOTOS_DEFAULTS", "SFM_SUMMARY_KEYS", "photo_settings", "held_out_split", "validation_position",
-           "check_train_settings"]
+__all__ = ["PHOTOS_DEFAULTS", "DENSIFY_CHOICES", "SFM_SUMMARY_KEYS", "photo_settings", "held_out_split",
+           "validation_position", "check_train_settings"]
 
 #: the keys of a photo SfM folder's ``summary.json`` that the CLI prints and ``metrics.json`` repeats
 SFM_SUMMARY_KEYS = ("n_images", "n_registered", "registration_rate", "unregistered", "not_read", "models_found",
                     "mean_reprojection_error_px", "n_points")
 
 #: Defaults of the ``photos`` config section (JSON-serialisable).
+#: The allowed values of the ``photos.train.densify`` keys that name a method (the schema's enums are these).
+DENSIFY_CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("default", "mcmc"), "gradient": ("mean", "pixel"),
+                                               "size_prune": ("after_reset", "always")}
+
 PHOTOS_DEFAULTS: dict[str, Any] = {
     "sfm": {
         "max_image_size": 1024,  # SIFT runs on images downscaled to this longest side (CPU budget)
@@ -200,3 +204,7 @@ def check_train_settings(s: dict[str, Any]) -> None:
         raise CtsplatError(f"photos.train.downscale must be 1, 2, 4 or 8, got {s['downscale']}")
     if not 0 <= int(s["sh_degree"]) <= 3:
         raise CtsplatError(f"photos.train.sh_degree must be 0..3, got {s['sh_degree']}")
+    for key, allowed in DENSIFY_CHOICES.items():
+        if s["densify"][key] not in allowed:
+            raise CtsplatError(f"unknown photos.train.densify.{key} {s['densify'][key]!r}; allowed: "
+                               f"{', '.join(allowed)}")

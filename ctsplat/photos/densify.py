@@ -6,7 +6,9 @@ itself: Gaussians whose mean view-space positional gradient exceeds ``grad_thres
 most ``percent_dense`` × the scene extent) or split in two (larger ones; samples from the Gaussian, scales / 1.6);
 Gaussians with opacity below ``prune_opacity`` are pruned, and after the first opacity reset also those wider
 than ``prune_scale_fraction`` × the extent (3DGS's schedule: the large Gaussians that fill a backdrop early on are
-kept until then); every ``opacity_reset_interval`` iterations opacities are clamped to at most 0.01. With
+kept until then; 3DGS's other rule after a reset, Gaussians wider than 20 px in a view, is not applied); every
+``opacity_reset_interval`` iterations opacities are clamped to at most 0.01, while densifying (:func:`step_due`:
+from ``start``, before the stop). With
 ``size_prune: always`` the size rule applies from the first densification step, and prune-only steps (both rules,
 no clone or split) follow every ``interval`` iterations after densification stops, to the end of training: a
 schedule that stops densifying before the first reset would otherwise never prune by size. With ``near_prune``
@@ -41,11 +43,33 @@ from ctsplat.splat.gaussians import quat_to_rotmat
 from ctsplat.training.densify import GradientDensify
 from ctsplat.training.state import replace_params
 
-__all__ = ["AlphaDensify"]
+__all__ = ["AlphaDensify", "step_due"]
 
 _RESET_OPACITY = 0.01
 #: Pixel-GS's depth at which a view's gradient is no longer scaled down, as a fraction of the scene extent.
 PIXEL_GS_DEPTH_FRACTION = 0.37
+
+
+def step_due(iteration: int, *, start: int, interval: int, until: int) -> bool:
+    """Whether a density-control step runs after ``iteration`` completed iterations: every ``interval`` from
+    ``start`` (included: the defaults were chosen with it, where 3DGS starts after its ``densify_from_iter``) up to
+    ``until`` (excluded, as 3DGS's ``densify_until_iter``).
+
+    Parameters
+    ----------
+    iteration, start, interval, until : int
+        ``interval`` 0: never.
+
+    Returns
+    -------
+    bool
+
+    Examples
+    --------
+    >>> [i for i in range(0, 1100, 100) if step_due(i, start=500, interval=100, until=1000)]
+    [500, 600, 700, 800, 900]
+    """
+    return bool(interval) and start <= iteration < until and iteration % interval == 0
 
 
 class AlphaDensify:
@@ -115,18 +139,17 @@ class AlphaDensify:
         return self.grad_accum / self.grad_count.clamp_min(1e-30)
 
     def due(self, iteration: int) -> bool:
-        """Whether a densification step (after the stop, with ``size_prune: always``, a prune-only step) runs after
-        ``iteration`` completed iterations."""
+        """Whether a densification step (after the stop, with ``size_prune: always`` or ``near_prune``, a
+        prune-only step) runs after ``iteration`` completed iterations."""
         d = self.settings
-        # from the settings, not attributes: MCMCDensify borrows this method
         until = self.iterations if d["size_prune"] == "always" or float(d["near_prune"]) > 0 else self.stop
-        return bool(d["interval"]) and int(d["start"]) <= iteration <= until \
-            and iteration % int(d["interval"]) == 0 and iteration < self.iterations
+        return step_due(iteration, start=int(d["start"]), interval=int(d["interval"]), until=until)
 
     def reset_due(self, iteration: int) -> bool:
-        """Whether opacities are reset after ``iteration`` (only while densifying, as in 3DGS)."""
+        """Whether opacities are reset after ``iteration``: while densifying, as in 3DGS, so that a densification
+        step always follows a reset (one at the stop would leave its faded Gaussians unpruned)."""
         k = int(self.settings["opacity_reset_interval"])
-        return bool(k) and iteration % k == 0 and iteration <= self.stop and iteration < self.iterations
+        return bool(k) and iteration % k == 0 and iteration < min(self.stop, self.iterations)
 
     def step(self, params: dict[str, torch.Tensor], opt: torch.optim.Adam, gen: torch.Generator, *,
              iteration: int) -> tuple[dict[str, torch.Tensor], dict[str, int]]:

@@ -30,7 +30,7 @@ from typing import Any
 
 import torch
 
-from ctsplat.photos.densify import AlphaDensify
+from ctsplat.photos.densify import step_due
 from ctsplat.splat.gaussians import covariance
 from ctsplat.training.state import replace_params
 
@@ -120,8 +120,9 @@ class MCMCDensify:
 
     def due(self, iteration: int) -> bool:
         """Whether :meth:`step` runs after ``iteration`` completed iterations (the clone / split schedule, with
-        this strategy's stop)."""
-        return AlphaDensify.due(self, iteration)  # type: ignore[arg-type]
+        this strategy's stop; the default strategy's pruning options do not extend it)."""
+        d = self.settings
+        return step_due(iteration, start=int(d["start"]), interval=int(d["interval"]), until=self.stop)
 
     def reset_due(self, iteration: int) -> bool:
         """Never: the regulariser, not a reset, lets opacities fall."""

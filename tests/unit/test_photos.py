@@ -18,7 +18,7 @@ from PIL import Image
 from ctsplat.cli import main
 from ctsplat.config import prepare_config
 from ctsplat.geometry.cameras import camera_center, look_at
-from ctsplat.photos.config import photo_settings
+from ctsplat.photos.config import check_train_settings, photo_settings
 from ctsplat.photos.dataset import PhotoScene, PhotoView, PinholeCamera, load_scene, scene_extent, split_names
 from ctsplat.photos.evaluate import evaluate_photos, turntable_poses
 from ctsplat.photos.images import check_photos, jpeg_damage, list_photos, load_rgb
@@ -735,6 +735,26 @@ def test_size_prune_always_prunes_wide_gaussians_to_the_end_of_training(size_pru
     assert st["pruned"] == (2 if size_prune == "always" else 1)
     assert bool((widths > 0.1).any()) == (size_prune == "after_reset")
     assert params["means"].shape[0] == st["n"] == len(opt.param_groups[0]["params"][0])
+
+
+def test_density_schedules_stop_before_their_stop_and_no_reset_lands_on_it() -> None:
+    """3DGS densifies while ``iteration < densify_until_iter``; a reset at the stop itself would leave its faded
+    Gaussians unpruned. MCMC keeps its own stop whatever the default strategy's pruning options say."""
+    from ctsplat.photos.densify import AlphaDensify
+    from ctsplat.photos.mcmc import MCMCDensify
+
+    train = photo_settings()["train"]
+    d = {**train["densify"], "stop_fraction": 0.5, "opacity_reset_interval": 3000}
+    dens = AlphaDensify(d, iterations=30000, extent=1.0, means=_three_gaussians()["means"])
+    assert [i for i in range(3000, 30001, 3000) if dens.reset_due(i)] == [3000, 6000, 9000, 12000]
+    steps = [i for i in range(0, 30001, 100) if dens.due(i)]
+    assert steps[0] == 500 and steps[-1] == 14900
+    for extra in ({"size_prune": "always"}, {"near_prune": 0.5}, {}):
+        mcmc = MCMCDensify({**train["densify"], **extra}, train["mcmc"], iterations=6000)
+        assert max(i for i in range(0, 6001, 100) if mcmc.due(i)) == 4900  # stop 4980 (0.83 of 6000)
+    for key, bad in (("strategy", "MCMC"), ("gradient", "pixels"), ("size_prune", "alway")):
+        with pytest.raises(CtsplatError, match=rf"unknown photos\.train\.densify\.{key} '{bad}'"):
+            check_train_settings({**train, "densify": {**train["densify"], key: bad}})
 
 
 @pytest.mark.parametrize(("camera_z", "wide_pruned"), [(0.4, True), (-3.0, False)])
