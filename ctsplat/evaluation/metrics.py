@@ -9,8 +9,12 @@ Two 3D conventions, both on volumes normalised to [0, 1] and compared with data 
   sparse-view CT protocol: the same PSNR; SSIM per slice with an 11x11 Gaussian window (σ = 1.5, weights
   normalised), zero padding and the map averaged over the whole slice (C1 = 0.01², C2 = 0.03², population
   variances), only over slices whose reference has a positive maximum, averaged per axis and then over the
-  three axes. A reference outside [0, 1] is min-max normalised first (R²-Gaussian's volumes are), with the same
-  affine map applied to the test volume.
+  three axes. A reference outside [0, 1] is min-max normalised first, with the same affine map applied to the test
+  volume. The formulas are theirs; the volumes' scale is ctsplat's: R²-Gaussian's data generator clips to
+  -1000..2000 HU and min-max scales, so its references reach 1, while ctsplat's normalised volumes map
+  -1000..``hu_max`` HU (3000 by default) to [0, 1], so a head's densest bone stays below 1. Numbers of the two
+  pipelines on one CT then differ by about 20 log10(1 / max) in PSNR, ``max`` the reference's largest value here;
+  comparisons inside ctsplat are unaffected.
 
 References
 ----------
