@@ -122,7 +122,13 @@ def run(argv: list[str] | None = None) -> int:
         if not 1 <= fold < test_every:
             raise CtsplatError(f"--folds: {fold} is not a validation fold (1 .. {test_every - 1})")
         for extra in arms.values():
-            check_section("photos", apply_sets({}, run_sets(fold, seed, extra)))
+            train = photo_settings(check_section("photos", apply_sets({}, run_sets(fold, seed, extra))))["train"]
+            # the parsed settings, not the strings: --set 'train={"holdout": "test"}' sets the same keys
+            design = {"holdout": "validation", "validation_offset": fold, "seed": seed, "test_every": test_every}
+            moved = [k for k, v in design.items() if train[k] != v]
+            if moved:
+                raise CtsplatError(f"--base/--candidate may not set train.{moved[0]}: the folds, seeds and test "
+                                   "photos are this script's, the same for both arms")
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(out / f"fold{fold}_seed{seed}_{arm}", run_sets(fold, seed, extra))
             for fold, seed in pairs for arm, extra in arms.items()]

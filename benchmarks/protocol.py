@@ -31,10 +31,12 @@ Usage::
     python benchmarks/protocol.py                                  # the full CPU protocol (hours on 2 cores)
     python benchmarks/protocol.py --volumes phantom --views 25 --size 64 --iterations 300    # a quick point
     python benchmarks/protocol.py --volumes ct0051_head --views 50 --skip-gaussians \
-        --baseline-set asd_pocs_iterations=60 --baseline-set 'asd_pocs_alpha=[0.05,0.1,0.2]'   # a larger budget
+        --baseline-set asd_pocs_iterations=120                       # a larger budget than the protocol's
 
-``--baseline-set`` changes the classical methods' candidates or budgets (keys of the config's ``baselines``
-section); such a run caches its baselines apart from the default ones.
+The classical methods get the budget of ``config/r2_protocol.yaml``'s ``baselines.settings`` (ASD-POCS up to 60
+iterations over a TV grid, full detector: what the budget check found they need). ``--baseline-set`` changes
+their candidates or budgets (keys of the config's ``baselines`` section); each set of settings caches its
+baselines apart. A kept Gaussian run of other settings than the call's is refused, not reused.
 """
 
 from __future__ import annotations
@@ -128,11 +130,13 @@ def r2_scores(volume_path: Path | None, reference: np.ndarray) -> tuple[float | 
 
 
 def baselines_folder(rad: Path, views: list[int], settings: dict[str, Any]) -> Path:
-    """The cache folder of one baseline suite: the radiographs, the view counts and (hashed) any ``--baseline-set``."""
-    from ctsplat.utils import config_hash
+    """The cache folder of one baseline suite: the radiographs, the view counts and (hashed) the settings it runs
+    with, the library's defaults included (a changed default is another suite, not a cached one)."""
+    from ctsplat.baselines import BASELINE_DEFAULTS
+    from ctsplat.utils import config_hash, merge_config
 
-    tag = f"_{config_hash(settings)[:8]}" if settings else ""
-    return rad.parent / f"baselines_{rad.name}_v{'-'.join(map(str, views))}{tag}"
+    tag = config_hash(merge_config("baselines", settings, BASELINE_DEFAULTS))[:8]
+    return rad.parent / f"baselines_{rad.name}_v{'-'.join(map(str, views))}_{tag}"
 
 
 def saved_volume(bdir: Path, method: str, filt: Any, n: int) -> Path | None:
@@ -210,10 +214,25 @@ def train_config(sets: list[str], iterations: int, n_init: int) -> dict:
 #: baselines keys this script sets per view count
 OWN_BASELINE_KEYS = {"n_views": "--views", "save_volumes": None}
 
+#: The protocol's workflow config: its ``baselines.settings`` are this script's baseline budget too.
+PROTOCOL_CONFIG = ROOT / "config" / "r2_protocol.yaml"
+
+
+def protocol_baselines() -> dict[str, Any]:
+    """The ``baselines.settings`` of :data:`PROTOCOL_CONFIG` without ``sharpen`` (given per call): the ASD-POCS
+    budget and TV grid the budget check found the baselines need, on the full detector."""
+    import yaml
+
+    settings = dict(yaml.safe_load(PROTOCOL_CONFIG.read_text())["baselines"]["settings"])
+    settings.pop("sharpen", None)
+    return settings
+
+
 def baseline_config(sets: list[str], *, sharpen: dict[str, Any]) -> dict[str, Any]:
-    """The baselines settings beside the library defaults: ``sharpen`` (the Gaussians' read-out sharpening, offered
-    to the classical reconstructions alike), then the ``--baseline-set KEY=VALUE`` overrides, checked against the
-    ``baselines`` section of the schema."""
+    """The baselines settings beside the library defaults: the protocol config's budget
+    (:func:`protocol_baselines`), ``sharpen`` (the Gaussians' read-out sharpening, offered to the classical
+    reconstructions alike), then the ``--baseline-set KEY=VALUE`` overrides, checked against the ``baselines``
+    section of the schema."""
     from ctsplat.cli._common import section_config
     from ctsplat.utils import CtsplatError
 
@@ -221,17 +240,23 @@ def baseline_config(sets: list[str], *, sharpen: dict[str, Any]) -> dict[str, An
     for key, option in OWN_BASELINE_KEYS.items():
         if key in user:
             raise CtsplatError(f"--baseline-set {key} is set by this benchmark" + (f"; use {option}" if option else ""))
-    return {"sharpen": dict(sharpen), **user}
+    return {**protocol_baselines(), "sharpen": dict(sharpen), **user}
 
 
 def gaussian_row(name: str, vol: Path, rad: Path, n: int, shared: dict, run_dir: Path) -> dict:
     from ctsplat.evaluation import evaluate
     from ctsplat.training import train
+    from ctsplat.training.config import resolve_config
+    from ctsplat.utils import CtsplatError, config_hash, read_json_object
 
     cfg = {**shared, "volume": str(vol), "radiographs": str(rad), "views": n}
     if not (run_dir / "metrics.json").exists():
         train(cfg, run_dir)
         evaluate(run_dir, device=cfg["device"])
+    kept = read_json_object(run_dir / "config.json", what="run config", fix="remove the run folder")
+    if kept.get("config_hash") != config_hash(resolve_config(cfg)):  # a kept run of other settings is no row here
+        raise CtsplatError(f"{run_dir} holds a run of other settings than this call's (--set, --iterations, "
+                           "--n-init); remove it or give another --out")
     res = json.loads((run_dir / "metrics.json").read_text())
     log = pd.read_csv(run_dir / "train_log.csv")
     # the log holds the training's raw read-out: time to within 0.25 dB of the final raw one, plus the read-out's

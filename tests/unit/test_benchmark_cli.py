@@ -63,6 +63,8 @@ def test_quality_compositor_override_takes_effect(tmp_path, phantom_dicom):
     assert run_cfg["compositor"] == "radiative_unrectified"
     table = pd.read_csv(out / "quality.csv")
     assert table.loc[table["method"] == "gs:fbp", "compositor"].tolist() == ["radiative_unrectified"]
+    # the best baseline is picked against the reference: labelled as the oracle's pick it is
+    assert table.loc[table["method"] == "gs:fbp", "best_baseline"].iloc[0].endswith(" (oracle)")
 
 
 def test_baselines_arc_takes_effect_and_bad_options_are_refused(tmp_path, phantom_dicom):

@@ -1011,6 +1011,7 @@ def test_reading_an_unfinished_run_names_what_is_missing(tmp_path: Path) -> None
     (["--candidate", "train.holdout=test"], "may not set train.holdout: the folds and seeds hold out the validation"),
     (["--base", "train.seed=3", "--candidate", "train.sh_degree=1"], "may not set train.seed"),
     (["--candidate", "train.test_every=16"], "--candidate may not set train.test_every"),
+    (["--candidate", 'train={"holdout": "test"}'], "may not set train.holdout: the folds, seeds and test photos"),
 ])
 def test_fold_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: list[str], needle: str) -> None:
     import os

@@ -83,6 +83,16 @@ def test_protocol_tiny_run_writes_the_table(tmp_path):
     # the protocol's seed: FDK refined by ASD-POCS, its alpha kept when --set changes only the iterations
     assert info["train"]["init_asd_pocs"] == {"iterations": 3, "alpha": 0.1}
     assert "seed: fbp (fdk) + asd_pocs x3" in res.stderr
+    # the baselines' budget is the protocol config's (the budget check's), not the library's short default
+    import yaml
+
+    budget = yaml.safe_load((ROOT / "config" / "r2_protocol.yaml").read_text())["baselines"]["settings"]
+    assert {k: info["baselines"][k] for k in budget} == budget
+    # a kept run of other settings is not reused as this call's row
+    again = bench("--volumes", "phantom", "--views", "4", "--size", "16", "--iterations", "5", "--n-init", "100",
+                  "--threads", "1", "--set", "eval_every=2", "--set", "checkpoint_every=2", "--set", "figures=false",
+                  "--set", "init_asd_pocs.iterations=3", "--out", out, cwd=tmp_path)
+    assert again.returncode == 2 and "holds a run of other settings" in again.stderr.strip().splitlines()[-1]
 
 
 @pytest.mark.slow
