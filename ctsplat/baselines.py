@@ -614,8 +614,10 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
     test_rows = vs_all.indices("test")
     subsets = [select_views(vs_all, cfg["split"], c) for c in counts]  # errors on an empty split, before any work
     # counts capped to the split's size name the same views (0, 50 and 80 of 50): each subset runs once
-    first = {tuple(idx): i for i, idx in reversed(list(enumerate(subsets)))}
-    counts, subsets = [counts[i] for i in sorted(first.values())], [subsets[i] for i in sorted(first.values())]
+    first: dict[tuple[int, ...], int] = {}
+    for i, idx in enumerate(subsets):
+        first.setdefault(tuple(idx), i)
+    counts, subsets = [counts[i] for i in first.values()], [subsets[i] for i in first.values()]
     ref = volume.data
     unit = volume.metric_range  # 3D metrics compare normalised volumes
     rows: list[dict[str, Any]] = []

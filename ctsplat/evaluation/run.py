@@ -325,7 +325,7 @@ def forward_fps(gaussians: Any, camera: Any, R: np.ndarray, t: np.ndarray, rende
             if dev.type == "cuda":
                 torch.cuda.synchronize(dev)
             t0 = time.perf_counter()
-            render(gaussians, cam, Rt, tt, **dict(render_kwargs))
+            render(gaussians, cam, Rt, tt, **render_kwargs)
             if dev.type == "cuda":
                 torch.cuda.synchronize(dev)
             if i:

@@ -72,7 +72,7 @@ class CsvLog:
             w = csv.DictWriter(fh, fieldnames=self.columns, lineterminator="\n")
             w.writeheader()
             for r in rows:
-                if _iteration(r) is not None and _iteration(r) <= iteration:
+                if (it := _iteration(r)) is not None and it <= iteration:
                     w.writerow({k: r.get(k, "") for k in self.columns})
 
     def header_matches(self) -> bool:

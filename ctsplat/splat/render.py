@@ -573,11 +573,13 @@ def _check_cutoff(sigma_cutoff: Any) -> None:
         raise CtsplatError(f"sigma_cutoff must be a finite number > 0, got {sigma_cutoff!r}")
 
 
-def _check_inputs(gaussians: Gaussians, filter_3d_var: torch.Tensor | None, compositor: str | None) -> None:
-    """NaN/Inf in what ``compositor`` renders (None: nothing checked here, the caller validates) and the 3D filter's
-    variances."""
-    if compositor is not None:
-        gaussians.validate(check_finite=_RENDERED[compositor])
+def _check_inputs(gaussians: Gaussians, filter_3d_var: torch.Tensor | None, compositor: str) -> None:
+    gaussians.validate(check_finite=_RENDERED[compositor])
+    _check_filter_var(filter_3d_var)
+
+
+def _check_filter_var(filter_3d_var: torch.Tensor | None) -> None:
+    """Refuse 3D filter variances that are negative or not finite (they would give NaN renders and volumes)."""
     if filter_3d_var is not None:
         fv = torch.as_tensor(filter_3d_var)
         # both conditions in one host synchronisation; the messages below tell them apart
@@ -909,8 +911,7 @@ def voxelize(
         raise CtsplatError(f"filter_3d_var has {int(torch.as_tensor(filter_3d_var).numel())} values for "
                            f"{means.shape[0]} Gaussians; compute it for this model (compute_3d_filter)")
     if not (isinstance(filter_3d_var, torch.Tensor) and filter_3d_var.device.type != "cpu"):
-        # its values, where they are on the host (a negative variance would give a NaN volume)
-        _check_inputs(gaussians, filter_3d_var, None)
+        _check_filter_var(filter_3d_var)  # where the values are on the host: no device read-back per call
     if tuple(np.shape(affine)) != (4, 4) or len(tuple(shape)) != 3:
         raise CtsplatError(f"voxelize needs a (4, 4) affine and a grid shape (I, J, K); got {tuple(np.shape(affine))} "
                            f"and {tuple(shape)}")
