@@ -6,7 +6,9 @@ R²-Gaussian's 3D PSNR averages over the whole cube. A scan that fills a small p
 exact zero and a faint streak differ by many dB. This script splits the same squared error by region so a reader
 can see how much of a margin the object itself carries. The object is where the reference exceeds
 ``--threshold`` (attenuation normalised to [0, 1]); its bounding box is the box of those voxels. Every PSNR has data
-range 1, as R²'s.
+range 1, as R²'s. A classical row's ``suite`` is the baseline suite's cache folder (one per set of baseline
+settings, e.g. binned or full detector; its ``baselines.json`` holds them), so that two suites in one ``--out``
+folder give rows that can be told apart; the Gaussians' rows leave it empty.
 
 Usage::
 
@@ -29,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 
 from _common import cli_main  # noqa: E402
 
-COLUMNS = ["volume", "views", "method", "psnr3d_whole", "psnr3d_object_box", "psnr3d_outside_box",
+COLUMNS = ["volume", "views", "method", "suite", "psnr3d_whole", "psnr3d_object_box", "psnr3d_outside_box",
            "psnr3d_object", "object_box_fraction", "object_fraction"]
 
 
@@ -66,16 +68,17 @@ def region_scores(test: np.ndarray, reference: np.ndarray, *, threshold: float) 
             "object_box_fraction": float(box.mean()), "object_fraction": float(obj.mean())}
 
 
-def reconstructions(out: Path) -> list[tuple[str, int, str, Path, Path]]:
-    """``(volume, views, method, reconstruction, reference)`` for every saved volume under a protocol folder."""
+def reconstructions(out: Path) -> list[tuple[str, int, str, str, Path, Path]]:
+    """``(volume, views, method, suite, reconstruction, reference)`` for every saved volume under a protocol
+    folder; ``suite`` is the baseline suite's folder name, empty for the Gaussians."""
     found = []
     for cache in sorted((out / "cache").glob("*-s*")):
         name, reference = cache.name.rsplit("-s", 1)[0], cache / "volume.nii.gz"
         for path in sorted(cache.glob("baselines_*/*_n[0-9][0-9][0-9].nii.gz")):
             method, n = path.name.removesuffix(".nii.gz").rsplit("_n", 1)
-            found.append((name, int(n), method, path, reference))
+            found.append((name, int(n), method, path.parent.name, path, reference))
         for path in sorted((out / "runs" / cache.name).glob("views[0-9]*/model_volume.nii.gz")):
-            found.append((name, int(path.parent.name.removeprefix("views")), "gaussians", path, reference))
+            found.append((name, int(path.parent.name.removeprefix("views")), "gaussians", "", path, reference))
     return found
 
 
@@ -99,13 +102,13 @@ def run(argv: list[str] | None = None) -> int:
         raise CtsplatError(f"no saved reconstructions under {out}/cache or {out}/runs; give a protocol.py --out folder")
     refs: dict[Path, np.ndarray] = {}
     rows = []
-    for name, n, method, path, ref_path in found:
+    for name, n, method, suite, path, ref_path in found:
         if ref_path not in refs:
             refs[ref_path] = np.asarray(load_volume(ref_path).data, dtype=np.float64)
         test = np.asarray(load_volume(path).data, dtype=np.float64)
-        rows.append({"volume": name, "views": n, "method": method,
+        rows.append({"volume": name, "views": n, "method": method, "suite": suite,
                      **region_scores(test, refs[ref_path], threshold=args.threshold)})
-    table = pd.DataFrame(rows, columns=COLUMNS).sort_values(["volume", "views", "method"], kind="stable")
+    table = pd.DataFrame(rows, columns=COLUMNS).sort_values(["volume", "views", "method", "suite"], kind="stable")
     table.to_csv(out / "regions.csv", index=False, float_format="%.6g")
     print(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     return 0

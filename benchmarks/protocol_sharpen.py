@@ -14,7 +14,9 @@ Usage::
 
 Writes ``sharpened.csv`` into each folder and prints one table: per saved reconstruction the validation PSNR, the
 chosen amount, R²-Gaussian's 3D PSNR / SSIM as reconstructed and sharpened, and the 3D PSNR over the object (the
-reference above ``--threshold``; see ``protocol_regions.py``) as reconstructed and sharpened.
+reference above ``--threshold``; see ``protocol_regions.py``) as reconstructed and sharpened. ``suite`` names the
+baseline suite's cache folder (its ``baselines.json`` holds the settings), so that the rows of two suites in one
+``--out`` folder (binned and full detector) can be told apart.
 """
 
 from __future__ import annotations
@@ -34,9 +36,9 @@ from _common import cli_main  # noqa: E402
 from protocol import PROTOCOL_TRAIN, saved_volume  # noqa: E402
 from protocol_regions import region_scores  # noqa: E402
 
-COLUMNS = ["volume", "views", "method", "params", "val_psnr", "val_psnr_sharpened", "sharpen_amount", "psnr3d_r2",
-           "psnr3d_r2_sharpened", "ssim3d_r2", "ssim3d_r2_sharpened", "psnr3d_object", "psnr3d_object_sharpened",
-           "sharpen_seconds"]
+COLUMNS = ["volume", "views", "method", "suite", "params", "val_psnr", "val_psnr_sharpened", "sharpen_amount",
+           "psnr3d_r2", "psnr3d_r2_sharpened", "ssim3d_r2", "ssim3d_r2_sharpened", "psnr3d_object",
+           "psnr3d_object_sharpened", "sharpen_seconds"]
 
 
 def suites(out: Path) -> tuple[list[Path], list[Path]]:
@@ -88,7 +90,7 @@ def sharpen_suite(folder: Path, *, amounts: list[float], radius_voxels: float, t
                                "the suite chose it; the radiographs or the volume changed since")
         rows.append({
             "volume": folder.parent.name.rsplit("-s", 1)[0], "views": n, "method": r["method"],
-            "params": json.dumps(params, sort_keys=True), "val_psnr": float(r["val_psnr"]),
+            "suite": folder.name, "params": json.dumps(params, sort_keys=True), "val_psnr": float(r["val_psnr"]),
             "val_psnr_sharpened": sharp.val_psnr, "sharpen_amount": sharp.params["sharpen_amount"],
             "psnr3d_r2": psnr3d_r2(volume, ref), "psnr3d_r2_sharpened": psnr3d_r2(sharp.volume, ref),
             "ssim3d_r2": ssim3d_r2(volume, ref), "ssim3d_r2_sharpened": ssim3d_r2(sharp.volume, ref),

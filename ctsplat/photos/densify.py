@@ -6,10 +6,11 @@ itself: Gaussians whose mean view-space positional gradient exceeds ``grad_thres
 most ``percent_dense`` × the scene extent) or split in two (larger ones; samples from the Gaussian, scales / 1.6);
 Gaussians with opacity below ``prune_opacity`` are pruned, and after the first opacity reset also those wider
 than ``prune_scale_fraction`` × the extent (3DGS's schedule: the large Gaussians that fill a backdrop early on are
-kept until then; 3DGS's other rule after a reset, Gaussians wider than 20 px in a view, is not applied); every
-``opacity_reset_interval`` iterations opacities are clamped to at most 0.01, while densifying (:func:`step_due`:
-from ``start``, before the stop). With
-``size_prune: always`` the size rule applies from the first densification step, and prune-only steps (both rules,
+kept until then). 3DGS's other rule after a reset, Gaussians wider than 20 px in a view, is not applied: in 3DGS's
+code it never acts, because cloning and splitting zero every screen radius before the prune reads them, and its
+authors kept it so because the paper's results were made that way (graphdeco-inria/gaussian-splatting, issue
+123). Every ``opacity_reset_interval`` iterations opacities are clamped to at most 0.01, while densifying
+(:func:`step_due`: from ``start``, before the stop). With ``size_prune: always`` the size rule applies from the first densification step, and prune-only steps (both rules,
 no clone or split) follow every ``interval`` iterations after densification stops, to the end of training: a
 schedule that stops densifying before the first reset would otherwise never prune by size. With ``near_prune``
 > 0, Gaussians whose largest standard deviation exceeds ``near_prune`` × their distance to the nearest training

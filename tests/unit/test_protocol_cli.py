@@ -133,6 +133,7 @@ def test_sharpening_a_finished_suite_gives_what_the_suite_gives_when_it_sharpens
     after = pd.read_csv(plain / "sharpened.csv").set_index("method")
     made = pd.read_csv(next((sharp / "cache").rglob("baselines.csv"))).set_index("method")
     assert sorted(after.index) == sorted(made.index) == ["fdk", "sart"]
+    assert set(after["suite"]) == {next((plain / "cache").rglob("baselines.json")).parent.name}
     for method, row in after.iterrows():
         assert row["sharpen_amount"] == json.loads(made.loc[method, "params"])["sharpen_amount"]
         assert row["val_psnr_sharpened"] == pytest.approx(made.loc[method, "val_psnr"], abs=1e-6)
@@ -181,6 +182,17 @@ def test_protocol_regions_splits_the_error_by_region(tmp_path):
                                                                          abs=1e-3)
     assert math.isinf(table.loc["gaussians", "psnr3d_outside_box"])
     assert table.loc["gaussians", "object_box_fraction"] == pytest.approx(n_box / n, rel=1e-3)
+    assert table.loc["sart", "suite"] == "baselines_radiographs_n004_v4" and pd.isna(table.loc["gaussians", "suite"])
+
+    # a second suite (other baseline settings) in the same folder: its rows are told apart by their suite
+    save_volume(Volume(inside, np.eye(4)), cache / "baselines_radiographs_n004_v4_full" / "sart_n004.nii.gz")
+    res = regions(out, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    sart = pd.read_csv(out / "regions.csv").query("method == 'sart'").set_index("suite")
+    assert sorted(sart.index) == ["baselines_radiographs_n004_v4", "baselines_radiographs_n004_v4_full"]
+    assert math.isinf(sart.loc["baselines_radiographs_n004_v4", "psnr3d_object"])
+    assert sart.loc["baselines_radiographs_n004_v4_full", "psnr3d_object"] == pytest.approx(10 * np.log10(25),
+                                                                                             abs=1e-3)
 
 
 @pytest.mark.parametrize(("args", "needle"), [([], "no saved reconstructions under"),
