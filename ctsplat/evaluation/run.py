@@ -499,7 +499,8 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         raw = volume_metrics(vol_raw, scene.volume.data, r2=True, data_range=scene.volume.metric_range)
         sharpening.update({f"{k}_unsharpened": v for k, v in raw.items()})
     m3 = volume_metrics(vol_model, scene.volume.data, r2=True, data_range=scene.volume.metric_range)
-    m3.update(_gauge_aligned_metrics(run_dir, g, scene, rk, sharpening))
+    pose_fields, refined = _model_poses(run_dir, trained, model)
+    m3.update(_gauge_aligned_metrics(refined, g, scene, rk, sharpening))
     log_path = run_dir / "train_log.csv"
     targets = dict(milestones) if milestones else schema_defaults("analysis")["milestones"]
     times = milestone_times(read_train_log(log_path), targets) if log_path.exists() else {}
@@ -549,8 +550,9 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         # torch's CPU kernels round by vector instructions and threads: what the scores were computed with
         "platform": compute_platform(dev),
         "volume_id": scene.volume.volume_id,
-        # training-pose errors against the true poses, before and after pose refinement (training.json)
-        **{k: v for k, v in trained.items() if k.startswith("pose_")},
+        # training-pose errors against the true poses, before and after pose refinement, of the poses the
+        # evaluated model was fitted at (training.json)
+        **pose_fields,
     }
     if not write:
         return result
@@ -671,21 +673,35 @@ def check_validation_choices(scene: Any, cfg: dict[str, Any], model: str | None 
                            "with a validation split (n_val or split.val) or set model_selection: last")
 
 
-def _gauge_aligned_metrics(run_dir: Path, g: Any, scene: Any, rk: dict[str, Any],
+def _model_poses(run_dir: Path, trained: dict[str, Any], model: str) -> tuple[dict[str, Any], Path]:
+    """The training-pose fields of ``training.json`` and the refined-pose file (it may not exist: no refinement)
+    that belong to the evaluated model: the final poses for ``model.pt``; for ``model_best.pt`` of a run with pose
+    refinement, the poses it was fitted at when it was saved (``best_model_poses``, ``refined_views_best.json``)."""
+    fields = {k: v for k, v in trained.items() if k.startswith("pose_")}
+    if model != "best" or not trained.get("pose_refine"):
+        return fields, run_dir / "refined_views.json"
+    best, refined = trained.get("best_model_poses"), run_dir / "refined_views_best.json"
+    if not isinstance(best, dict) or not refined.is_file():
+        missing = "its 'best_model_poses' entry" if not isinstance(best, dict) else refined.name
+        raise CtsplatError(f"{run_dir} lacks {missing}, the poses model_best.pt was fitted at (written by another "
+                           "version); evaluate model: last, or train the run again")
+    return {**fields, **best}, refined
+
+
+def _gauge_aligned_metrics(refined: Path, g: Any, scene: Any, rk: dict[str, Any],
                            sharpening: dict[str, Any]) -> dict[str, Any]:
     """3D metrics of a model trained at poses other than the true ones, after the rigid motion its training images
-    cannot observe (:func:`ctsplat.training.poses.gauge_motion` of its final training poses against the true ones)
-    is undone: ``psnr3d_gauge_aligned``, ``ssim3d_gauge_aligned``, and that motion (``gauge_rotation_deg``,
-    ``gauge_shift_mm``). Empty for runs at the true poses. The moved read-out gets the sharpening chosen for the
-    run's own (``sharpening``, empty when off), so the pair differs from ``psnr3d`` / ``ssim3d`` by the motion
-    alone."""
+    cannot observe (:func:`ctsplat.training.poses.gauge_motion` of the training poses it was fitted at, ``refined``
+    or without that file the recorded ones, against the true ones) is undone: ``psnr3d_gauge_aligned``,
+    ``ssim3d_gauge_aligned``, and that motion (``gauge_rotation_deg``, ``gauge_shift_mm``). Empty for runs at the
+    true poses. The moved read-out gets the sharpening chosen for the run's own (``sharpening``, empty when off),
+    so the pair differs from ``psnr3d`` / ``ssim3d`` by the motion alone."""
     from ctsplat.evaluation.readout import sharpen
     from ctsplat.training.poses import gauge_motion, rotation_angles_deg
 
     tr = scene.train
     Rs_true, ts_true = tr.truth()
     Rs, ts = np.asarray(tr.Rs, float), np.asarray(tr.ts, float)
-    refined = run_dir / "refined_views.json"
     if refined.exists():
         fix = "train the run again (its refined poses are damaged)"
         doc = read_json_object(refined, what="refined training poses", fix=fix)

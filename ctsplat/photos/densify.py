@@ -8,15 +8,15 @@ Gaussians with opacity below ``prune_opacity`` are pruned, and after the first o
 than ``prune_scale_fraction`` × the extent (3DGS's schedule: the large Gaussians that fill a backdrop early on are
 kept until then). 3DGS's other rule after a reset, Gaussians wider than 20 px in a view, is not applied: in 3DGS's
 code it never acts, because cloning and splitting zero every screen radius before the prune reads them, and its
-authors kept it so because the paper's results were made that way (graphdeco-inria/gaussian-splatting, issue
-123). Every ``opacity_reset_interval`` iterations opacities are clamped to at most 0.01, while densifying
-(:func:`step_due`: from ``start``, before the stop). With ``size_prune: always`` the size rule applies from the first densification step, and prune-only steps (both rules,
-no clone or split) follow every ``interval`` iterations after densification stops, to the end of training: a
-schedule that stops densifying before the first reset would otherwise never prune by size. With ``near_prune``
-> 0, Gaussians whose largest standard deviation exceeds ``near_prune`` × their distance to the nearest training
-camera centre are pruned at every densification step and in prune-only steps to the end of training: such a
-Gaussian fills more than a photo's field of view of that camera, so it is no surface that camera saw, yet a
-held-out camera near it looks through it. The gradient
+authors kept it so because the paper's results were made that way (graphdeco-inria/gaussian-splatting, issue 123).
+Every ``opacity_reset_interval`` iterations opacities are clamped to at most 0.01, while densifying
+(:func:`step_due`: from ``start``, before the stop). With ``size_prune: always`` the size rule applies from the
+first densification step, and prune-only steps (both rules, no clone or split) follow every ``interval`` iterations
+after densification stops, to the end of training: a schedule that stops densifying before the first reset would
+otherwise never prune by size. With ``near_prune`` > 0, Gaussians whose largest standard deviation exceeds
+``near_prune`` × their distance to the nearest training camera centre are pruned at every densification step and in
+prune-only steps to the end of training: such a Gaussian fills more than a photo's field of view of that camera, so
+it is no surface that camera saw, yet a held-out camera near it looks through it. The gradient
 statistics are accumulated exactly as the radiative strategy does (:meth:`GradientDensify.accumulate`, 3DGS's NDC
 units). With ``gradient: pixel`` they follow Pixel-GS instead: each view's gradient norm is weighted by the pixels
 the Gaussian covers in it, so that a large Gaussian in a region the SfM points do not seed, seen whole in some

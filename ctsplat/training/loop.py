@@ -15,7 +15,9 @@ training view's camera carries a rigid correction (:class:`ctsplat.training.pose
 equivalent motion of the Gaussians, stepped by its own Adam together with the Gaussians, with a prior toward the
 starting pose in the loss and the common (unobservable) motion removed after every step. Validation and evaluation
 views keep their recorded poses. The corrected training poses go to ``refined_views.json``; pose errors against
-the true poses, before and after, to ``training.json``.
+the true poses, before and after, to ``training.json``. The poses ``model_best.pt`` was trained at go to
+``refined_views_best.json``, and their errors to ``training.json``'s ``best_model_poses``, so that an evaluation of
+that model reports the poses it was fitted with.
 
 Optimiser: Adam with one parameter group per quantity (means, log-scales, quaternions, density; plus opacity and
 colour for the alpha compositor), each with its own learning rate decayed by a cosine from ``lr`` to
@@ -125,7 +127,7 @@ log = logging.getLogger(__name__)
 #: Files of a run folder that a fresh (not resumed) training run removes first: outputs of an earlier run that
 #: would otherwise sit beside the new model.
 RUN_OUTPUTS = ("training.json", "metrics.json", "model.pt", "model_best.pt", "model.ply", "model_volume.nii.gz",
-               "per_view_test.csv", "refined_views.json")
+               "per_view_test.csv", "refined_views.json", "refined_views_best.json")
 
 #: Every file a run folder holds: training's, the evaluation's (any split, the figures, the read-outs and their
 #: sidecars), the per-run figures (:data:`ctsplat.analysis.RUN_FIGURES`, in ``figures/``), the lock, and the
@@ -580,6 +582,9 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                                    f"in {out_dir}); lower train.lr or check the inputs")
             if not float(row["psnr2d"]) <= float(state.health.get("best_psnr", -math.inf)):
                 state.health.update(best_psnr=float(row["psnr2d"]), best_iteration=it)
+                if state.pose is not None:  # the poses this model is fitted to, for its evaluation
+                    _write_refined_views(state, scene, out_dir, name="refined_views_best.json")
+                    state.health["best_model_poses"] = _pose_errors(state, scene)
                 _save_model(state, cfg, out_dir / "model_best.pt", chash, scene.mu_scale)
         if it % int(cfg["checkpoint_every"]) == 0 or it == total:
             state.health["loss_sum"] = float(loss_sum)
@@ -639,6 +644,7 @@ def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: 
     summary.update(pose_refine=state.pose is not None, **_pose_errors(state, scene))
     if state.pose is not None:
         _write_refined_views(state, scene, out_dir)
+        summary["best_model_poses"] = state.health.get("best_model_poses")
     peak, summary["peak_memory_kind"] = peak_memory_mb(device)
     summary["peak_memory_mb"] = round(max(peak, float(state.health.get("peak_memory_mb", 0.0))), 1)
     write_json_atomic(out_dir / "training.json", json_safe(summary))
@@ -706,8 +712,9 @@ def _pose_errors(state: TrainState, scene: Scene) -> dict[str, float]:
     return out
 
 
-def _write_refined_views(state: TrainState, scene: Scene, out_dir: Path) -> None:
-    """``refined_views.json``: the corrected training poses with their corrections and starting poses."""
+def _write_refined_views(state: TrainState, scene: Scene, out_dir: Path, *, name: str = "refined_views.json") -> None:
+    """``name`` (``refined_views.json``): the corrected training poses now, with their corrections, their starting
+    poses and the iteration."""
     tr = scene.train
     Rs, ts = state.pose.corrected_poses()
     om = np.degrees(state.pose.omega.detach().cpu().double().numpy())
@@ -715,8 +722,9 @@ def _write_refined_views(state: TrainState, scene: Scene, out_dir: Path) -> None
     views = [{"id": int(tr.ids[i]), "R": Rs[i].tolist(), "t": ts[i].tolist(), "R_start": tr.Rs[i].tolist(),
               "t_start": tr.ts[i].tolist(), "omega_deg": om[i].tolist(), "tau_mm": ta[i].tolist()}
              for i in range(len(tr))]
-    write_json_atomic(out_dir / "refined_views.json", {
-        "format": "ctsplat.refined_views", "format_version": 1, "camera": tr.camera.to_dict(),
+    write_json_atomic(out_dir / name, {
+        "format": "ctsplat.refined_views", "format_version": 1, "iteration": state.iteration,
+        "camera": tr.camera.to_dict(),
         "isocenter_mm": np.asarray(scene.isocenter_mm, float).tolist(),
         "convention": "x_cam = R x + t (OpenCV); omega (deg, camera frame) turns the camera about the isocentre, "
                       "tau (mm, camera frame) shifts it: R = exp(omega) R_start, t = exp(omega) (t_start - c) + c + "

@@ -273,6 +273,43 @@ def test_refinement_lowers_pose_error_and_raises_val_psnr(scene_dir: Path, tmp_p
     assert 0 < res["gauge_rotation_deg"] < 2.0 and np.isfinite(res["psnr3d_gauge_aligned"])
 
 
+def test_model_best_is_evaluated_at_the_poses_it_was_fitted_at(scene_dir: Path, tmp_path: Path) -> None:
+    """A refining run saves the poses ``model_best.pt`` was fitted at, with their errors; ``evaluate(model='best')``
+    reports those and undoes their gauge motion, not the final poses'."""
+    from ctsplat.scene import load_scene
+
+    run = tmp_path / "run"
+    rec = loop.train(_cfg(scene_dir, poses="perturbed+refine", eval_every=50), run)
+    saved = json.loads((run / "refined_views_best.json").read_text())
+    assert saved["iteration"] == rec["best_iteration"]
+    scene = load_scene(json.loads((run / "config.json").read_text())["config"])
+    tr = scene.train
+    Rs_true, ts_true = tr.truth()
+    by_id = {int(v["id"]): v for v in saved["views"]}
+    Rs = np.stack([np.asarray(by_id[int(i)]["R"]) for i in tr.ids])
+    ts = np.stack([np.asarray(by_id[int(i)]["t"]) for i in tr.ids])
+    errs = poses.pose_errors(Rs, ts, Rs_true, ts_true, scene.isocenter_mm, tr.camera.model)
+    for key, value in errs.items():
+        assert rec["best_model_poses"][f"pose_{key}_after"] == pytest.approx(value, abs=1e-9)
+    best = evaluate(run, device="cpu", model="best", write=False)
+    last = evaluate(run, device="cpu", write=False)
+    for key in errs:
+        assert best[f"pose_{key}_after"] == rec["best_model_poses"][f"pose_{key}_after"]
+        assert last[f"pose_{key}_after"] == rec[f"pose_{key}_after"]
+    assert "gauge_rotation_deg" in best and "gauge_rotation_deg" in last
+    # the best model's poses moved onto the true ones: no gauge motion is left for it, the final model keeps its own
+    for i, view_id in enumerate(tr.ids):
+        by_id[int(view_id)].update(R=Rs_true[i].tolist(), t=ts_true[i].tolist())
+    (run / "refined_views_best.json").write_text(json.dumps(saved))
+    assert "gauge_rotation_deg" not in evaluate(run, device="cpu", model="best", write=False)
+    assert evaluate(run, device="cpu", write=False)["gauge_rotation_deg"] == last["gauge_rotation_deg"]
+    # a run folder without them (another version) is refused in one line
+    (run / "refined_views_best.json").unlink()
+    with pytest.raises(CtsplatError, match=r"lacks refined_views_best\.json, the poses model_best\.pt was fitted "
+                                           r"at .*; evaluate model: last, or train the run again"):
+        evaluate(run, device="cpu", model="best", write=False)
+
+
 def test_carm_model_keeps_the_source_distance() -> None:
     """Cone beam, ``cone_model: carm``: no view moves along its central ray; ``rigid`` moves them along it."""
     Rs, ts = _ring(model="cone")

@@ -184,10 +184,10 @@ def test_gauge_aligned_metrics_score_the_sharpened_read_out(monkeypatch) -> None
     for amount in (0.6, 0.0):
         info = {"sharpen_amount": amount, "sharpen_radius_voxels": 1.0}
         own = ev.volume_metrics(read_out if amount == 0 else sharpen(read_out, amount=amount), ref, data_range=1.0)
-        got = ev._gauge_aligned_metrics(Path("no_run"), None, scene, {}, info)
+        got = ev._gauge_aligned_metrics(Path("no_run/refined_views.json"), None, scene, {}, info)
         assert got["psnr3d_gauge_aligned"] == pytest.approx(own["psnr3d"], abs=1e-9)
         assert got["ssim3d_gauge_aligned"] == pytest.approx(own["ssim3d"], abs=1e-9)
-    unsharpened = ev._gauge_aligned_metrics(Path("no_run"), None, scene, {}, {})
+    unsharpened = ev._gauge_aligned_metrics(Path("no_run/refined_views.json"), None, scene, {}, {})
     assert unsharpened["psnr3d_gauge_aligned"] == pytest.approx(ev.volume_metrics(read_out, ref)["psnr3d"], abs=1e-9)
     assert unsharpened["psnr3d_gauge_aligned"] != pytest.approx(
         ev.volume_metrics(sharpen(read_out, amount=0.6), ref)["psnr3d"], abs=1e-3)
