@@ -7,9 +7,12 @@ run and ``--jobs`` runs at a time. :func:`ctsplat.photos.select.paired_compariso
 difference over the folds (a fold's seeds averaged first), its standard error and the verdict (the candidate wins
 only when the mean clears Student's one-sided 97.5 % quantile of standard errors: about two for many folds). Finished
 runs are kept and reused, so a comparison can be extended by more folds or seeds (not across kinds of CPU: a run
-trained on another CPU capability, AVX2 against AVX512, takes another rounding path and is refused). Writes
-``OUT/pairs.csv`` (one row per pair), ``OUT/per_photo.csv`` and ``OUT/summary.json``, and prints the summary as
-one JSON line.
+trained on another CPU capability, AVX2 against AVX512, takes another rounding path and is refused). A kept run
+is reused by its settings, SfM folder and CPU, not by the code that trained it: a comparison extended after a code
+change pairs runs of two codes, which is sound only when the training path did not change between them. So every
+run's code version goes to ``pairs.csv`` and ``summary.json`` (``run_code_versions``), and runs of a code other
+than this one are named on stderr. Writes ``OUT/pairs.csv`` (one row per pair), ``OUT/per_photo.csv`` and
+``OUT/summary.json``, and prints the summary as one JSON line.
 
 Usage::
 
@@ -153,11 +156,18 @@ def run(argv: list[str] | None = None) -> int:
     result = paired_comparison([runs[p + ("default",)]["psnr"] for p in pairs],
                                [runs[p + ("candidate",)]["psnr"] for p in pairs], groups=folds)
     _write_tables(out, pairs, runs, result["differences"])
+    here = code_version()
+    versions = sorted({str(r["code_version"]) for r in runs.values()})
+    other = sorted(f"fold{f}_seed{s}_{arm}" for (f, s, arm), r in runs.items() if str(r["code_version"]) != here)
+    if other:
+        print(f"note: {len(other)} of {len(runs)} runs were trained by another code than this one ({here}): "
+              f"{', '.join(other)}; the pairs compare code as well as settings unless the training path is the same "
+              "in both", file=sys.stderr)
     summary = {"candidate": args.candidate, "base": args.base, "folds": sorted(set(args.folds)),
                "seeds": sorted(set(args.seeds)), "sfm": str(sfm), "psnr": result,
                "ssim": paired_comparison([runs[p + ("default",)]["ssim"] for p in pairs],
                                          [runs[p + ("candidate",)]["ssim"] for p in pairs], groups=folds),
-               "code_version": code_version()}
+               "code_version": here, "run_code_versions": versions}
     write_json_atomic(out / "summary.json", summary)
     print(json.dumps(summary))
     return 0
@@ -169,7 +179,9 @@ def _write_tables(out: Path, pairs: list[tuple[int, int]], runs: dict[tuple[int,
     rows = [{"fold": fold, "seed": seed, "default_psnr": runs[(fold, seed, "default")]["psnr"],
              "candidate_psnr": runs[(fold, seed, "candidate")]["psnr"],
              "difference_db": diff, "default_ssim": runs[(fold, seed, "default")]["ssim"],
-             "candidate_ssim": runs[(fold, seed, "candidate")]["ssim"]}
+             "candidate_ssim": runs[(fold, seed, "candidate")]["ssim"],
+             "default_code_version": runs[(fold, seed, "default")]["code_version"],
+             "candidate_code_version": runs[(fold, seed, "candidate")]["code_version"]}
             for (fold, seed), diff in zip(pairs, differences, strict=True)]
     photos = [{"fold": fold, "seed": seed, "photo": name, "default_psnr": psnr,
                "candidate_psnr": runs[(fold, seed, "candidate")]["per_photo"][name]}

@@ -103,7 +103,8 @@ def read_validation_run(run_dir: str | Path) -> dict[str, Any]:
     -------
     dict
         ``psnr`` and ``ssim`` (the mean over the held-out photos), ``per_photo`` (name -> PSNR in dB),
-        ``held_out`` (``val`` or ``test``), ``validation_offset``, ``seed``, ``n_gaussians`` and ``seconds``.
+        ``held_out`` (``val`` or ``test``), ``validation_offset``, ``seed``, ``n_gaussians``, ``seconds`` and
+        ``code_version`` (the code that trained it, None when not recorded).
 
     Raises
     ------
@@ -125,7 +126,8 @@ def read_validation_run(run_dir: str | Path) -> dict[str, Any]:
             per_photo = {r["view_id"]: float(r["psnr2d"]) for r in csv.DictReader(f) if r["iteration"] == "final"}
         return {"psnr": float(t["final_test_psnr"]), "ssim": float(t["final_test_ssim"]), "per_photo": per_photo,
                 "held_out": t["held_out"], "validation_offset": train.get("validation_offset"),
-                "seed": int(train["seed"]), "n_gaussians": int(t["n_gaussians"]), "seconds": float(t["seconds"])}
+                "seed": int(train["seed"]), "n_gaussians": int(t["n_gaussians"]), "seconds": float(t["seconds"]),
+                "code_version": cfg.get("code_version")}
     except (KeyError, TypeError, ValueError) as exc:
         raise CtsplatError(f"{run_dir} is not a whole photo run ({type(exc).__name__}: {exc} in training.json, "
                            f"config.json or per_view_test.csv); {fix}") from None

@@ -228,6 +228,21 @@ def test_fold_benchmark_pairs_real_runs_and_reuses_them(skull_subset: Path, tmp_
         val = sorted(n for n, s in split_names(names, 4, validation=True, validation_offset=fold).items()
                      if s == "val")
         assert sorted(photos.loc[photos["fold"] == fold, "photo"]) == val
+    from ctsplat.utils import code_version
+
+    # every run's code is recorded; a kept run of another code is reused (its settings are the same) but named
+    assert summary["run_code_versions"] == [code_version()] and "another code" not in second.stderr
+    assert set(pairs["default_code_version"]) == set(pairs["candidate_code_version"]) == {code_version()}
+    kept = out / "fold1_seed0_default" / "config.json"
+    kept.write_text(json.dumps({**json.loads(kept.read_text()), "code_version": "0123abc"}))
+    third = subprocess.run([*cmd, "--folds", "1", "3"], capture_output=True, text=True, env=env, timeout=600)
+    assert third.returncode == 0, third.stderr[-3000:]
+    assert "1 of 4 runs were trained by another code than this one" in third.stderr
+    assert "fold1_seed0_default;" in third.stderr
+    assert json.loads(third.stdout.strip().splitlines()[-1])["run_code_versions"] == sorted(["0123abc",
+                                                                                             code_version()])
+    pairs = pd.read_csv(out / "pairs.csv").set_index("fold")
+    assert pairs.loc[1, "default_code_version"] == "0123abc" and pairs.loc[3, "default_code_version"] == code_version()
     cfg = json.loads((out / "fold3_seed0_candidate" / "config.json").read_text())["train"]
     assert cfg["validation_offset"] == 3 and cfg["sh_degree"] == 0 and cfg["num_threads"] == 1
     clash = subprocess.run([*cmd[:-4], "--candidate", "train.sh_degree=1", "--seeds", "0", "--folds", "1"],
