@@ -16,6 +16,7 @@ import dataclasses
 import logging
 import os
 import resource
+import tempfile
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -533,7 +534,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         "model": model,
         "model_iteration": g.meta.get("iteration", trained["iterations"] if model == "last" else None),
         "model_size_bytes": model_size_bytes(model_path),
-        "model_ply_size_bytes": model_size_bytes(run_dir / "model.ply"),
+        "model_ply_size_bytes": _ply_size_bytes(g, run_dir, model),
         "uses_reference_volume": uses_ref,
         "init": cfg["init"],
         "compositor": cfg["compositor"],
@@ -723,6 +724,16 @@ def _gauge_aligned_metrics(refined: Path, g: Any, scene: Any, rk: dict[str, Any]
     m = volume_metrics(vol, scene.volume.data, data_range=scene.volume.metric_range)
     return {"psnr3d_gauge_aligned": m["psnr3d"], "ssim3d_gauge_aligned": m["ssim3d"],
             "gauge_rotation_deg": float(rotation_angles_deg(G[None])[0]), "gauge_shift_mm": float(np.linalg.norm(b))}
+
+
+def _ply_size_bytes(g: Any, run_dir: Path, model: str) -> int:
+    """Bytes of the evaluated model's 3DGS PLY: ``model.ply`` for the last model; for ``model_best.pt``, of which
+    no PLY is kept, the size of the one it writes (training writes ``model.ply`` the same way)."""
+    if model != "best":
+        return model_size_bytes(run_dir / "model.ply")
+    with tempfile.TemporaryDirectory() as tmp:
+        g.to_ply(Path(tmp) / "model_best.ply")
+        return model_size_bytes(Path(tmp) / "model_best.ply")
 
 
 def model_size_bytes(*paths: str | Path) -> int:

@@ -387,6 +387,14 @@ def test_model_best_is_the_best_validation_checkpoint_and_evaluate_uses_it(scene
     m = evaluate(out, device="cpu", model="best")
     assert json.loads((out / "metrics.json").read_text())["model"] == "best" and m["model_iteration"] == best_it
     assert {r["iteration"] for r in _rows(out / "per_view_test.csv")} == {str(best_it)}  # the model's own iteration
+    # its size is its own: a best model of half the Gaussians reports the PLY half of them make, not model.ply's
+    half = best[torch.arange(len(best) // 2)]
+    half.save(out / "model_best.pt")
+    half.to_ply(tmp_path / "half.ply")
+    m_half = evaluate(out, device="cpu", model="best", write=False)
+    assert m_half["n_gaussians"] == len(half)
+    assert m_half["model_ply_size_bytes"] == (tmp_path / "half.ply").stat().st_size < (out / "model.ply").stat().st_size
+    assert m_last["model_ply_size_bytes"] == (out / "model.ply").stat().st_size
     (out / "model_best.pt").unlink()
     with pytest.raises(CtsplatError, match="no model_best.pt"):
         evaluate(out, device="cpu", model="best", write=False)
