@@ -1,7 +1,8 @@
 """Snakemake adapter: rule train -> ctsplat.training.train (grid-cell config from params, paths from input).
 
 resume="auto": a job killed at its time limit or preempted continues from its newest checkpoint when the cell's
-config is unchanged (Snakemake keeps checkpoints/, which is not a declared output); a changed config starts over.
+config, its inputs' content and the code are unchanged (Snakemake keeps checkpoints/, which is not a declared
+output); a rerun after any of them changed starts over.
 """
 
 from pathlib import Path

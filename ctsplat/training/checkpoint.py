@@ -93,7 +93,8 @@ def save_checkpoint(out_dir: Path, state: TrainState, rng: np.random.Generator, 
     rng, gen : numpy Generator, torch Generator
         The run's random generators (their states are stored, with torch's global one).
     cfg_hash : str
-        The resolved config's hash; a resume with another config is refused.
+        The run's resume key (:func:`ctsplat.training.loop.resume_key`: config, inputs, code); a resume with
+        another one is refused.
     keep : int
         Number of newest checkpoints kept (at least 1).
 
@@ -145,6 +146,7 @@ class Checkpoint:
     ----------
     path : pathlib.Path
     config_hash : str
+        The resume key it was written with (:func:`ctsplat.training.loop.resume_key`).
     iteration : int
     payload : dict
         Everything :func:`save_checkpoint` stored.
@@ -217,7 +219,7 @@ def load_checkpoint(ck: Checkpoint | Path, cfg: dict[str, Any], device: torch.de
     voxel_mm : float
         Mean voxel edge (mm), for the mean learning rates.
     cfg_hash : str
-        Hash of ``cfg``; must equal the checkpoint's.
+        The run's resume key (:func:`ctsplat.training.loop.resume_key`); must equal the checkpoint's.
     half_extent_mm : float, optional
         Half the volume's largest extent (mm), for ``optimizer_preset: method``.
 
@@ -233,8 +235,9 @@ def load_checkpoint(ck: Checkpoint | Path, cfg: dict[str, Any], device: torch.de
     if not isinstance(ck, Checkpoint):
         ck = read_checkpoint(Path(ck))
     if ck.config_hash != cfg_hash:
-        raise CtsplatError(f"checkpoint {ck.path} was written with a different config (hash {ck.config_hash} vs "
-                           f"{cfg_hash}); resume with the same config, or start over (ctsplat train --restart)")
+        raise CtsplatError(f"checkpoint {ck.path} was written with a different config, other inputs or other code "
+                           f"(key {ck.config_hash} vs {cfg_hash}); resume with the same ones, or start over "
+                           "(ctsplat train --restart)")
     p = ck.payload
     try:
         params = {k: v.to(device).requires_grad_(True) for k, v in p["params"].items()}
@@ -271,7 +274,7 @@ def find_resumable(out_dir: Path, cfg_hash: str) -> tuple[Checkpoint | None, lis
     out_dir : pathlib.Path
         Run folder.
     cfg_hash : str
-        The current config's hash (only logged here; :func:`load_checkpoint` enforces it).
+        The run's resume key (only logged here; :func:`load_checkpoint` enforces it).
 
     Returns
     -------

@@ -57,6 +57,8 @@ NeurIPS.
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import math
 import shutil
@@ -353,6 +355,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     gen = torch.Generator(device="cpu")
     gen.manual_seed(int(cfg["seed"]))
     scene = load_scene(cfg)
+    ckey = resume_key(cfg, scene)
     check_validation_choices(scene, cfg)  # before any work: the read-out's amount and model: best need them
     window = losses.gaussian_window().numel()
     cam = scene.train.camera
@@ -373,14 +376,15 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     view_log = CsvLog(out_dir / "per_view.csv", PER_VIEW_COLUMNS)
     ckpt: Checkpoint | None = None
     if resume:
-        ckpt, _ = find_resumable(out_dir, chash)
+        ckpt, _ = find_resumable(out_dir, ckey)
         if ckpt is None:
             log.warning("no readable checkpoint in %s; starting from scratch", checkpoint_dir(out_dir))
-        elif resume == "auto" and ckpt.config_hash != chash:
-            log.info("the checkpoints in %s belong to another config; starting from scratch", checkpoint_dir(out_dir))
+        elif resume == "auto" and ckpt.config_hash != ckey:
+            log.info("the checkpoints in %s belong to another config, other inputs or other code; starting from "
+                     "scratch", checkpoint_dir(out_dir))
             ckpt = None
     if ckpt is not None:
-        state = load_checkpoint(ckpt, cfg, device, rng, gen, voxel_mm, chash, half_extent_mm)
+        state = load_checkpoint(ckpt, cfg, device, rng, gen, voxel_mm, ckey, half_extent_mm)
         _restore_logs(out_dir, ckpt, {"train_log.csv": train_log, "per_view.csv": view_log})
         log.info("resuming from %s (iteration %d)", ckpt.path, state.iteration)
     else:
@@ -592,7 +596,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
             # the peak so far, across resumes: a resumed process alone would report only its own span
             state.health["peak_memory_mb"] = max(float(state.health.get("peak_memory_mb", 0.0)),
                                                  peak_memory_mb(device)[0])
-            save_checkpoint(out_dir, state, rng, gen, chash, int(cfg["keep_checkpoints"]))
+            save_checkpoint(out_dir, state, rng, gen, ckey, int(cfg["keep_checkpoints"]))
             # a run resumed from this checkpoint rolls a non-finite step back to it: so does this one
             snap = snapshot(state)
             pose_snap = _pose_snapshot(state)
@@ -601,6 +605,38 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     bar.close()
     train_time = time.perf_counter() - t_start
     return _write_model(state, cfg, scene, out_dir, device, train_time, chash)
+
+
+def resume_key(cfg: dict[str, Any], scene: Scene) -> str:
+    """What a checkpoint must have been written for to be continued: this config, this scene's content and this
+    code.
+
+    The config names its inputs by path only, so a view set rendered again under the same path (a Snakemake rerun
+    after an input changed), another SfM model, or a code fix would otherwise resume a finished run from its last
+    checkpoint and write the old model again.
+
+    Parameters
+    ----------
+    cfg : dict
+        The resolved train config.
+    scene : Scene
+        The loaded scene: every split's images, poses and camera, and the volume's content id.
+
+    Returns
+    -------
+    str
+        A hash (:func:`ctsplat.utils.config_hash`) of the config, a SHA-256 of the scene's arrays and the SfM
+        seed points (when ``sfm_dir`` is set), and :func:`ctsplat.utils.code_version`.
+    """
+    h = hashlib.sha256(scene.volume.volume_id.encode())
+    for views in (scene.train, scene.val, scene.test):
+        h.update(json.dumps(views.camera.to_dict(), sort_keys=True).encode())
+        for array in (views.ids, views.Rs, views.ts, views.images):
+            h.update(np.ascontiguousarray(array).tobytes())
+    points = Path(str(cfg.get("sfm_dir") or "")) / "points3d.ply"
+    if cfg.get("sfm_dir") and points.is_file():  # the colmap seed reads them
+        h.update(points.read_bytes())
+    return config_hash({"config": cfg, "scene": h.hexdigest(), "code_version": code_version()})
 
 
 def _save_model(state: TrainState, cfg: dict[str, Any], path: Path, chash: str, mu_scale: float) -> Any:

@@ -244,8 +244,39 @@ def test_auto_resume_starts_over_for_another_config(scene_dir: Path, tmp_path: P
     with caplog.at_level(logging.INFO):
         loop.train(_cfg(scene_dir, iterations=20, lambda_ssim=0.3), out, resume="auto")
     assert "resuming from" in caplog.text
-    with pytest.raises(CtsplatError, match=r"different config .*ctsplat train --restart"):
+    with pytest.raises(CtsplatError, match=r"different config, .*ctsplat train --restart"):
         loop.train(_cfg(scene_dir, iterations=20), out, resume=True)
+
+
+def test_auto_resume_starts_over_when_the_inputs_or_the_code_changed(tmp_path: Path, caplog,
+                                                                      monkeypatch) -> None:
+    """The config names its inputs by path: radiographs rendered again under the same path (a Snakemake rerun after
+    an input changed) or another code version must train again, not resume the finished run's last checkpoint."""
+    from train_helpers import tiny_phantom, write_tiny_scene
+
+    data, aff = tiny_phantom()
+    scene = write_tiny_scene(tmp_path / "scene", data, aff, volume_id="first", n_views=12)
+    out = tmp_path / "run"
+    cfg = _cfg(scene, iterations=20)
+    first = loop.train(cfg, out)
+    model = (out / "model.pt").read_bytes()
+    with caplog.at_level(logging.INFO):  # unchanged: the finished run is continued (nothing left to do)
+        loop.train(cfg, out, resume="auto")
+    assert "resuming from" in caplog.text and (out / "model.pt").read_bytes() == model
+    caplog.clear()
+    write_tiny_scene(tmp_path / "scene", 0.8 * data, aff, volume_id="second", n_views=12)  # same paths
+    with caplog.at_level(logging.INFO):
+        again = loop.train(cfg, out, resume="auto")
+    assert "resuming" not in caplog.text and "other inputs or other code" in caplog.text
+    assert (out / "model.pt").read_bytes() != model and again["best_val_psnr"] != first["best_val_psnr"]
+    caplog.clear()
+    monkeypatch.setattr(loop, "code_version", lambda: "0.0.0+gother")
+    with caplog.at_level(logging.INFO):
+        loop.train(cfg, out, resume="auto")
+    assert "resuming" not in caplog.text and "other inputs or other code" in caplog.text
+    with pytest.raises(CtsplatError, match=r"different config, other inputs or other code .*--restart"):
+        monkeypatch.setattr(loop, "code_version", lambda: "0.0.0+gthird")
+        loop.train(cfg, out, resume=True)
 
 
 # ------------------------------------------------------------------------------------------ lock
