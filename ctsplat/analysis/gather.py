@@ -293,8 +293,10 @@ def gather(
             for m in TEST_METRICS:
                 row[f"test_{m}"] = metrics.pop(m, None)
             for k, v in dotted_items(metrics, lists_as_json=True).items():
-                # milestones come from the log with this gather's thresholds; pose errors from sfm/summary.json
-                if k not in row and k not in SFM_COLUMNS and not k.startswith(("iter_to_", "time_to_")):
+                # milestones come from the log with this gather's thresholds; pose errors from sfm/summary.json;
+                # the evaluation's own settings are the workflow's, the same for every run
+                if k not in row and k not in SFM_COLUMNS and not k.startswith(
+                        ("iter_to_", "time_to_", "evaluation_settings.", "evaluation_milestones.")):
                     row[k] = v
         if log_path.exists():
             log = read_train_log(log_path, max_gap_iters=max_gap_iters)

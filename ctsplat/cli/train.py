@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ctsplat.cli._common import section_config, seed_value
+from ctsplat.cli._common import apply_sets, section_config, seed_value
 
 
 def load_train_config(path: str | None, overrides: list[str]) -> dict[str, Any]:
@@ -66,7 +66,7 @@ def _evaluate(args: argparse.Namespace) -> None:
     run_dir = Path(args.run_dir)
     # a folder that is not a run is reported by evaluate; locking would create it, or leave a lock file in it
     with run_lock(run_dir) if (run_dir / "config.json").is_file() else contextlib.nullcontext():
-        res = evaluate(run_dir, split=args.split, device=args.device)
+        res = evaluate(run_dir, split=args.split, device=args.device, settings=apply_sets({}, args.set) or None)
     print(json.dumps(res, indent=2, default=str))
 
 
@@ -110,4 +110,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("run_dir", help="run folder written by `ctsplat train`")
     e.add_argument("--split", default="test", choices=["test", "val", "train"])
     e.add_argument("--device", default="auto")
+    e.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="an evaluation setting (figures, turntable_frames, fps_width, fps_height, model_selection, "
+                        "sharpen.amounts, sharpen.radius_voxels; repeatable); a setting not given keeps the value "
+                        "the last evaluation of this split recorded, else the run's")
     e.set_defaults(func=_evaluate)

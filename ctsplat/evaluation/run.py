@@ -398,7 +398,8 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         ``auto`` | ``cpu`` | ``cuda``.
     milestones : mapping, optional
         Validation targets, ``{metric: threshold}``, for the ``iter_to_*`` / ``time_to_*_s`` columns
-        (:func:`ctsplat.analysis.stats.milestones`); default: the ``analysis.milestones`` section's defaults.
+        (:func:`ctsplat.analysis.stats.milestones`); default: those an earlier evaluation of this split recorded
+        (``evaluation_milestones``), else the ``analysis.milestones`` section's defaults.
     write : bool
         Write ``metrics.json`` (``metrics_{split}.json`` for other splits), ``per_view_{split}.csv`` and, for the
         test split, ``model_volume.nii.gz`` and the figures (``gallery.png``, ``slices.png``, ``turntable.gif``)
@@ -408,7 +409,10 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         the run's ``model_selection``. Recorded as ``model`` (and ``model_iteration``) in the metrics.
     settings : mapping, optional
         :data:`ctsplat.training.config.EVALUATION_KEYS` (``figures``, ``turntable_frames``, ``fps_width``,
-        ``fps_height``) used instead of the run's own; other keys are refused.
+        ``fps_height``, ``model_selection``, ``sharpen``) used instead of the run's own; other keys are refused.
+        A key not given takes the value an earlier evaluation of this split recorded (``evaluation_settings`` in
+        its metrics file: the workflow evaluates with its own, which the run's ``config.json`` does not hold),
+        else the run's.
 
     Returns
     -------
@@ -459,7 +463,10 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     run_cfg = read_json_object(run_dir / "config.json", what="run config", fix=fix)
     if not isinstance(run_cfg.get("config"), dict):
         raise CtsplatError(f"run config {run_dir / 'config.json'} has no 'config' object; {fix}")
-    cfg = {**run_cfg["config"], **(settings or {})}
+    # score again as the earlier evaluation of this split did, where no setting is given
+    earlier = _recorded_evaluation(run_dir, split, EVALUATION_KEYS)
+    cfg = {**run_cfg["config"], **earlier.get("evaluation_settings", {}), **(settings or {})}
+    milestones = earlier.get("evaluation_milestones") if milestones is None else milestones
     model = model or cfg.get("model_selection", "last")
     if model not in ("last", "best"):
         raise CtsplatError(f"unknown model {model!r}; allowed: last, best")
@@ -532,6 +539,10 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         "peak_memory_kind": trained.get("peak_memory_kind"),
         "n_gaussians": len(g),
         "model": model,
+        # what this evaluation scored with, so that evaluating the run again scores it alike
+        "evaluation_settings": {**{k: cfg[k] for k in EVALUATION_KEYS if k != "progress" and k in cfg},
+                                "model_selection": model},
+        "evaluation_milestones": dict(targets),
         "model_iteration": g.meta.get("iteration", trained["iterations"] if model == "last" else None),
         "model_size_bytes": model_size_bytes(model_path),
         "model_ply_size_bytes": _ply_size_bytes(g, run_dir, model),
@@ -672,6 +683,21 @@ def check_validation_choices(scene: Any, cfg: dict[str, Any], model: str | None 
         raise CtsplatError(f"model_selection: best chooses a model on validation views, but the radiographs in "
                            f"{cfg['radiographs']} have none (it would choose on the test views); render them "
                            "with a validation split (n_val or split.val) or set model_selection: last")
+
+
+def _recorded_evaluation(run_dir: Path, split: str, keys: tuple[str, ...]) -> dict[str, Any]:
+    """``evaluation_settings`` (those of ``keys``) and ``evaluation_milestones`` of the split's earlier metrics
+    file, each a dict; an empty dict when there is none or it records neither."""
+    path = run_dir / ("metrics.json" if split == "test" else f"metrics_{split}.json")
+    if not path.is_file():
+        return {}
+    earlier = read_json_object(path, what="earlier metrics", fix="remove it and evaluate again")
+    out = {k: earlier[k] for k in ("evaluation_settings", "evaluation_milestones") if isinstance(earlier.get(k), dict)}
+    if "evaluation_settings" in out:
+        out["evaluation_settings"] = {k: v for k, v in out["evaluation_settings"].items() if k in keys}
+    if out:
+        log.info("%s: the settings %s recorded are used where none is given", run_dir, path.name)
+    return out
 
 
 def _model_poses(run_dir: Path, trained: dict[str, Any], model: str) -> tuple[dict[str, Any], Path]:

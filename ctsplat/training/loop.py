@@ -128,8 +128,9 @@ log = logging.getLogger(__name__)
 
 #: Files of a run folder that a fresh (not resumed) training run removes first: outputs of an earlier run that
 #: would otherwise sit beside the new model.
-RUN_OUTPUTS = ("training.json", "metrics.json", "model.pt", "model_best.pt", "model.ply", "model_volume.nii.gz",
-               "per_view_test.csv", "refined_views.json", "refined_views_best.json")
+RUN_OUTPUTS = ("training.json", "metrics.json", "metrics_val.json", "metrics_train.json", "model.pt", "model_best.pt",
+               "model.ply", "model_volume.nii.gz", "per_view_test.csv", "per_view_val.csv", "per_view_train.csv",
+               "refined_views.json", "refined_views_best.json")
 
 #: Every file a run folder holds: training's, the evaluation's (any split, the figures, the read-outs and their
 #: sidecars), the per-run figures (:data:`ctsplat.analysis.RUN_FIGURES`, in ``figures/``), the lock, and the

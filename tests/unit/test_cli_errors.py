@@ -269,13 +269,16 @@ def test_csvs_use_lf_and_figures_off_removes_stale_figures(scene, tmp_path, caps
         text = path.read_bytes()
         assert b"\r" not in text and text.endswith(b"\n"), path.name  # one line ending: LF
     # the same run evaluated again with figures: false keeps no figures of the earlier evaluation
-    cfg_path = run / "config.json"
-    run_cfg = json.loads(cfg_path.read_text())
-    run_cfg["config"]["figures"] = False
-    cfg_path.write_text(json.dumps(run_cfg))
-    assert main(["evaluate", str(run), "--device", "cpu"]) == 0
-    assert (run / "metrics.json").exists()
+    assert main(["evaluate", str(run), "--device", "cpu", "--set", "figures=false"]) == 0
+    assert json.loads((run / "metrics.json").read_text())["evaluation_settings"]["figures"] is False
     assert not any((run / f).exists() for f in figures)
+    # evaluated again without settings: as recorded (no figures), other settings as the run's
+    assert main(["evaluate", str(run), "--device", "cpu", "--set", "fps_width=40"]) == 0
+    recorded = json.loads((run / "metrics.json").read_text())
+    assert recorded["evaluation_settings"]["figures"] is False and recorded["fps_resolution"][0] == 40
+    assert not any((run / f).exists() for f in figures)
+    assert main(["evaluate", str(run), "--device", "cpu", "--set", "lr=1"]) == 2
+    assert "'lr' is not an evaluation key" in capsys.readouterr().err.strip().splitlines()[-1]
 
 
 def test_a_run_config_json_is_read_back_with_its_exponent_floats(tmp_path):

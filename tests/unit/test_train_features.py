@@ -404,6 +404,30 @@ def test_model_best_is_the_best_validation_checkpoint_and_evaluate_uses_it(scene
         evaluate(out, device="cpu", settings={"lr": 1.0}, write=False)
 
 
+def test_evaluating_again_scores_with_the_recorded_settings(scene_dir, tmp_path):
+    """The workflow evaluates with settings the run's config.json does not hold: metrics.json records them and the
+    milestones, and an evaluation without settings (``ctsplat evaluate RUN``) scores the run alike."""
+    out = tmp_path / "run"
+    loop.train(_cfg(scene_dir, iterations=20), out)
+    first = evaluate(out, device="cpu", settings={"fps_width": 40, "fps_height": 20, "model_selection": "best"},
+                     milestones={"psnr2d": 5.0})
+    assert first["fps_resolution"] == [40, 20] and first["model"] == "best"
+    again = evaluate(out, device="cpu", write=False)
+    assert again["fps_resolution"] == [40, 20] and again["model"] == "best"
+    assert again["evaluation_settings"] == first["evaluation_settings"]
+    assert again["evaluation_milestones"] == {"psnr2d": 5.0}
+    assert {k: v for k, v in again.items() if k.startswith("iter_to_")} == \
+        {k: v for k, v in first.items() if k.startswith("iter_to_")}
+    given = evaluate(out, device="cpu", settings={"fps_width": 24, "fps_height": 16}, write=False)
+    assert given["fps_resolution"] == [24, 16] and given["model"] == "best"  # the rest stays as recorded
+    val = evaluate(out, split="val", device="cpu")  # each split keeps its own record
+    assert val["fps_resolution"] == [_cfg(scene_dir)["fps_width"], _cfg(scene_dir)["fps_height"]]
+    # a new run in the folder removes every split's metrics: no earlier record is left to score it with
+    loop.train(_cfg(scene_dir, iterations=20, lambda_ssim=0.3), out, resume="auto")
+    assert not (out / "metrics.json").exists() and not (out / "metrics_val.json").exists()
+    assert not (out / "per_view_val.csv").exists()
+
+
 # --- 6. optimiser preset -----------------------------------------------------------------------------------------
 
 def test_method_preset_sets_one_learning_rate_and_the_cosine(scene_dir, tmp_path):
