@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -38,11 +39,12 @@ def _sfm(args: argparse.Namespace) -> None:
 
 
 def _train_and_evaluate(sfm_dir: str | Path, out_dir: str | Path, s: dict[str, Any]) -> dict[str, Any]:
-    from ctsplat.photos.evaluate import evaluate_photos
+    """Train and evaluate in the run's temporary folder, which replaces ``out_dir`` only when both succeed."""
     from ctsplat.photos.train import train_photos
+    from ctsplat.utils import read_json_object
 
-    train_photos(sfm_dir, out_dir, s["train"])
-    return evaluate_photos(out_dir, s["evaluate"])
+    train_photos(sfm_dir, out_dir, s["train"], evaluate=s["evaluate"])
+    return read_json_object(Path(out_dir) / "metrics.json", what="photo metrics", fix="run photos-train again")
 
 
 def _train(args: argparse.Namespace) -> None:
@@ -59,6 +61,9 @@ def _run(args: argparse.Namespace) -> None:
     out = Path(args.out_dir)
     check_run(out / "run", s["train"])  # before the SfM step, not after it
     summary = run_photo_sfm(args.images, out / "sfm", s["sfm"])
+    # an earlier run was trained on the SfM model just replaced: should training fail, it must not be left
+    # beside poses in another frame
+    shutil.rmtree(out / "run", ignore_errors=True)
     m = _train_and_evaluate(out / "sfm", out / "run", s)
     print(json.dumps({**{k: summary.get(k) for k in SFM_SUMMARY_KEYS}, **{k: m.get(k) for k in _METRIC_KEYS}}))
 

@@ -151,6 +151,16 @@ def scene_extent(Rs: list[np.ndarray], ts: list[np.ndarray]) -> float:
     return max(1.1 * float(np.linalg.norm(centres - centres.mean(0), axis=1).max()), 1e-6)
 
 
+def _read_model(sparse: Path) -> pycolmap.Reconstruction:
+    """The COLMAP model in ``sparse``; a damaged one (a file cut short or from another model) in one line."""
+    try:
+        return pycolmap.Reconstruction(str(sparse))
+    except (RuntimeError, ValueError, IndexError, KeyError, MemoryError) as exc:
+        first = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+        raise CtsplatError(f"cannot read the SfM model in {sparse} ({type(exc).__name__}: {first}); it is damaged "
+                           "or incomplete: run `ctsplat photos-sfm` again") from None
+
+
 def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, validation: bool = False,
                validation_offset: int | None = None, device: torch.device | str = "cpu") -> PhotoScene:
     """Read ``sfm_dir/sparse/0`` and ``sfm_dir/images`` into a :class:`PhotoScene`.
@@ -185,9 +195,12 @@ def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, 
     if not (sparse / "cameras.bin").is_file():
         raise CtsplatError(f"{sfm_dir} is not a photo SfM folder (no sparse/0/cameras.bin); run "
                            "`ctsplat photos-sfm IMAGES OUT` first")
+    missing = [name for name in ("images.bin", "points3D.bin") if not (sparse / name).is_file()]
+    if missing:
+        raise CtsplatError(f"the SfM model in {sparse} lacks {missing[0]}; run `ctsplat photos-sfm` again")
     if int(downscale) < 1:
         raise CtsplatError(f"downscale must be an integer >= 1, got {downscale}")
-    rec = pycolmap.Reconstruction(str(sparse))
+    rec = _read_model(sparse)
     images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
     splits = split_names([im.name for im in images], test_every, validation=validation,
                          validation_offset=validation_offset)
@@ -197,7 +210,11 @@ def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, 
         if cam.model.name != "PINHOLE":
             raise CtsplatError(f"camera of {im.name} is {cam.model.name}, expected PINHOLE (undistorted SfM output)")
         fx, fy, cx, cy = (float(v) for v in cam.params[:4])
-        pc = PinholeCamera(int(cam.width), int(cam.height), fx, fy, cx, cy).scaled(int(downscale))
+        try:
+            pc = PinholeCamera(int(cam.width), int(cam.height), fx, fy, cx, cy).scaled(int(downscale))
+        except (CtsplatError, ValueError, OverflowError) as exc:  # a damaged cameras.bin reads as nonsense
+            raise CtsplatError(f"the SfM model in {sparse} gives {im.name} an impossible camera ({exc}); it is "
+                               "damaged: run `ctsplat photos-sfm` again") from None
         path = sfm_dir / "images" / im.name
         if not path.is_file():
             raise CtsplatError(f"SfM image {path} is missing; run `ctsplat photos-sfm` again")

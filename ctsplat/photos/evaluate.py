@@ -178,6 +178,25 @@ def wrap_to_width(text: str, width_px: float, measure: Any) -> list[str]:
     return lines
 
 
+def footer_font(size_px: int = 10) -> Any:
+    """The turntable's footer font: matplotlib's DejaVu Sans (the gallery's), which covers Latin, Greek and
+    Cyrillic letters and typographic dashes and quotes; Pillow's built-in font draws accented letters as boxes.
+
+    Parameters
+    ----------
+    size_px : int
+        Font size in pixels.
+
+    Returns
+    -------
+    PIL.ImageFont.FreeTypeFont
+    """
+    from matplotlib import font_manager
+    from PIL import ImageFont
+
+    return ImageFont.truetype(font_manager.findfont("DejaVu Sans"), size_px)
+
+
 def save_turntable_gif(path: str | Path, frames: list[np.ndarray], attribution: str, fps: float = 12.0) -> None:
     """A looping GIF of RGB frames in [0, 1] with the attribution drawn under each frame, wrapped to its width.
 
@@ -192,15 +211,16 @@ def save_turntable_gif(path: str | Path, frames: list[np.ndarray], attribution: 
     from PIL import Image, ImageDraw
 
     width = frames[0].shape[1]
+    font = footer_font()
     draw = ImageDraw.Draw(Image.new("RGB", (1, 1)))
-    footer = "\n".join(wrap_to_width(_footer(attribution), width - 4, draw.textlength))
-    footer_px = int(draw.multiline_textbbox((0, 0), footer)[3]) + 3
+    footer = "\n".join(wrap_to_width(_footer(attribution), width - 4, lambda text: draw.textlength(text, font=font)))
+    footer_px = int(draw.multiline_textbbox((0, 0), footer, font=font)[3]) + 3
     out = []
     for f in frames:
         im = Image.fromarray((np.clip(f, 0, 1) * 255 + 0.5).astype(np.uint8))
         canvas = Image.new("RGB", (im.width, im.height + footer_px), (0, 0, 0))
         canvas.paste(im, (0, 0))
-        ImageDraw.Draw(canvas).multiline_text((2, im.height + 1), footer, fill=(200, 200, 200))
+        ImageDraw.Draw(canvas).multiline_text((2, im.height + 1), footer, fill=(200, 200, 200), font=font)
         out.append(canvas.convert("P", palette=Image.Palette.ADAPTIVE))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -482,8 +482,8 @@ def check_run(out_dir: str | Path, settings: dict[str, Any], *, inputs: tuple[st
     check_output_dir(Path(out_dir), marker=RUN_MARKERS, contents=RUN_FILES, inputs=inputs)
 
 
-def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, Any] | None = None
-                 ) -> dict[str, Any]:
+def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, Any] | None = None, *,
+                 evaluate: dict[str, Any] | None = None) -> dict[str, Any]:
     """Train alpha 3DGS on an SfM folder and write the run folder (module docstring).
 
     Parameters
@@ -495,6 +495,10 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
         nothing is written on failure).
     settings : dict, optional
         The ``photos.train`` section; missing keys take :data:`ctsplat.photos.config.PHOTOS_DEFAULTS`.
+    evaluate : dict, optional
+        The ``photos.evaluate`` section: the run is then also evaluated
+        (:func:`ctsplat.photos.evaluate.evaluate_photos`) before it replaces ``out_dir``, so a failed or interrupted
+        evaluation leaves an earlier run as it was instead of a new model without its metrics.
 
     Returns
     -------
@@ -523,4 +527,8 @@ def train_photos(sfm_dir: str | Path, out_dir: str | Path, settings: dict[str, A
         report.update({"resolution": [w, h], "downscale": int(s["downscale"]), "extent": scene.extent,
                        "device": str(device), "platform": compute_platform(device), **peak_memory(device)})
         write_json_atomic(tmp / "training.json", report)
+        if evaluate is not None:
+            from ctsplat.photos.evaluate import evaluate_photos  # it reads run folders with this module's helpers
+
+            evaluate_photos(tmp, evaluate, scene=scene)
     return report

@@ -278,6 +278,34 @@ def test_photos_run_refuses_what_training_would_before_sfm_runs(tmp_path: Path, 
     assert sorted(p.name for p in tmp_path.iterdir()) == (["photos"] if sets else ["out", "photos"])
 
 
+def test_photos_run_removes_the_run_of_a_replaced_sfm_model_when_training_fails(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Once the SfM model is replaced, the earlier run (poses in another frame) must not outlive a failed training."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        _jpeg(photos / f"{i:02d}.jpg", seed=i)
+    out = tmp_path / "out"
+    (out / "run").mkdir(parents=True)
+    for name in ("config.json", "model.pt", "metrics.json"):  # an earlier photo run
+        (out / "run" / name).write_text("{}")
+
+    def new_sfm(images: Path, sfm: Path, settings: dict) -> dict:
+        sfm.mkdir(parents=True, exist_ok=True)
+        (sfm / "summary.json").write_text("{}")
+        return {}
+
+    def failing_training(*args: object, **kwargs: object) -> None:
+        assert not (out / "run").exists()  # gone before training starts
+        raise CtsplatError("training failed here")
+
+    monkeypatch.setattr("ctsplat.photos.sfm.run_photo_sfm", new_sfm)
+    monkeypatch.setattr("ctsplat.photos.train.train_photos", failing_training)
+    assert main(["photos-run", str(photos), str(out)]) == 2
+    assert "training failed here" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["sfm"]
+
+
 def test_workflow_refuses_photo_training_settings_at_parse_time(tmp_path: Path) -> None:
     photos = tmp_path / "photos"
     photos.mkdir()
@@ -884,14 +912,46 @@ def test_sfm_and_training_never_replace_their_input(tmp_path: Path) -> None:
     assert (sfm / "summary.json").is_file()
 
 
+def test_photos_train_keeps_the_earlier_run_when_the_evaluation_fails(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Training and evaluation happen in the temporary folder: a failed evaluation leaves the earlier run whole."""
+    import ctsplat.photos.evaluate as photo_evaluate
+    import ctsplat.photos.train as photo_train
+
+    scene, _ = _synthetic_scene()
+    monkeypatch.setattr(photo_train, "load_scene", lambda *a, **k: scene)
+    sfm, run = tmp_path / "sfm", tmp_path / "run"
+    sfm.mkdir()
+    sets = ["--set", "train.iterations=2", "--set", "evaluate.turntable_frames=2", "--attribution", "A"]
+    assert main(["photos-train", str(sfm), str(run), *sets]) == 0
+    capsys.readouterr()
+    before = {p.relative_to(run).as_posix(): p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    assert {"model.pt", "metrics.json", "per_view_test.csv", "figures/gallery.png"} <= set(before)
+
+    def failing(run_dir: Path, *args: object, **kwargs: object) -> None:
+        (Path(run_dir) / "per_view_test.csv").write_text("half")  # part of its outputs, then the failure
+        raise CtsplatError("the evaluation failed here")
+
+    monkeypatch.setattr(photo_evaluate, "evaluate_photos", failing)
+    assert main(["photos-train", str(sfm), str(run), *sets[:1], "train.iterations=3", *sets[2:]]) == 2
+    assert "the evaluation failed here" in capsys.readouterr().err
+    assert {p.relative_to(run).as_posix(): p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run", "sfm"]  # no temporary folder left
+
+
 def test_turntable_attribution_is_wrapped_to_the_frame(tmp_path: Path) -> None:
     from PIL import ImageDraw
 
-    from ctsplat.photos.evaluate import save_turntable_gif, wrap_to_width
+    from ctsplat.photos.evaluate import footer_font, save_turntable_gif, wrap_to_width
 
     text = ("Photographs: Photogrammetry Test Set: Skull - Cameramoves - Flash - No Background by alansartlog, "
             "CC BY 4.0 (github.com/AlansCodeLog/photogrammetry-test-sets)")
-    measure = ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength
+    font = footer_font()
+    draw = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+
+    def measure(line: str) -> float:
+        return draw.textlength(line, font=font)
+
     lines = wrap_to_width(text, 120, measure)
     assert len(lines) > 3 and all(measure(line) <= 120 for line in lines)
     assert "".join(lines).replace(" ", "") == text.replace(" ", "")  # every character kept, in order
@@ -900,6 +960,13 @@ def test_turntable_attribution_is_wrapped_to_the_frame(tmp_path: Path) -> None:
     save_turntable_gif(tmp_path / "t.gif", frames, text.removeprefix("Photographs: "))
     gif = Image.open(tmp_path / "t.gif")
     assert gif.size[0] == 124 and gif.size[1] >= 40 + 10 * len(lines)  # a footer tall enough for every line
+    # accented letters and dashes are drawn as themselves: with a font that lacks them both names would draw
+    # the same boxes
+    footers = []
+    for name in ("J\u00fcrgen M\u00fcller \u2013 CC BY", "J\u00e9rgen M\u00e9ller \u2013 CC BY"):
+        save_turntable_gif(tmp_path / "u.gif", frames, name)
+        footers.append(np.asarray(Image.open(tmp_path / "u.gif").convert("L"))[40:])
+    assert footers[0].shape == footers[1].shape and not np.array_equal(*footers)
 
 
 def test_lpips_is_computed_on_rgb_renders_when_available(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

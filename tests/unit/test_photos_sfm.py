@@ -105,6 +105,22 @@ def test_ten_neighbouring_skull_photos_register_in_one_model(skull_subset: Path,
             errors.append(np.linalg.norm(uv - xy, axis=1))
         err = np.concatenate(errors)
         assert np.median(err) < 0.5 / factor and np.percentile(err, 90) < 1.5 / factor, (factor, np.median(err))
+    # a model file missing or cut short is named in one line, with what to do
+    import shutil
+
+    for name, cut, needle in (("points3D.bin", None, r"lacks points3D\.bin; run `ctsplat photos-sfm` again"),
+                              ("images.bin", None, r"lacks images\.bin"),
+                              ("images.bin", 0.5, r"cannot read the SfM model in .*photos-sfm` again"),
+                              ("points3D.bin", 0.5, r"cannot read the SfM model in .*photos-sfm` again")):
+        damaged = tmp_path / f"damaged_{name}_{cut}"
+        shutil.copytree(out, damaged)
+        model = damaged / "sparse" / "0" / name
+        if cut is None:
+            model.unlink()
+        else:
+            model.write_bytes(model.read_bytes()[:int(cut * model.stat().st_size)])
+        with pytest.raises(CtsplatError, match=needle):
+            load_scene(damaged, downscale=8)
     broken = sorted((out / "images").iterdir())[0]  # a truncated or damaged copy is named with what to do
     data = broken.read_bytes()
     broken.write_bytes(data[:2000])
