@@ -16,14 +16,21 @@ import pandas as pd
 
 
 def cli_main(run: Callable[[list[str] | None], int], argv: list[str] | None, script: str) -> int:
-    """Run ``run(argv)``; a :class:`~ctsplat.utils.CtsplatError` becomes one line ``script: error: ...`` and exit 2."""
-    from ctsplat.utils import CtsplatError
+    """Run ``run(argv)``; a :class:`~ctsplat.utils.CtsplatError` becomes one line ``script: error: ...`` and exit 2,
+    Ctrl-C or SIGTERM one line and exit 130 or 143, after the steps' temporary files are removed (as the command
+    line does)."""
+    from ctsplat.utils import CtsplatError, Terminated, terminate_as_interrupt
 
+    terminate_as_interrupt()  # a killed benchmark removes its temporary folders like an interrupted one
     try:
         return run(argv)
     except CtsplatError as exc:
-        print(f"{script}: error: {exc}", file=sys.stderr)
+        print(f"{script}: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:
+        how = "terminated" if isinstance(exc, Terminated) else "interrupted"
+        print(f"{script}: {how}; files are written whole or not at all: run it again", file=sys.stderr)
+        return 143 if isinstance(exc, Terminated) else 130
 
 
 def shared_train_config(sets: list[str], *, own_keys: Mapping[str, str | None], defaults: Mapping[str, Any],

@@ -35,6 +35,7 @@ import time
 from pathlib import Path
 
 import torch
+from _common import cli_main
 
 from ctsplat.cli._common import seed_value
 from ctsplat.config import check_section
@@ -51,16 +52,13 @@ ATTRIBUTION = ('"Photogrammetry Test Set: Skull - Cameramoves - Flash - No Backg
                "(github.com/AlansCodeLog/photogrammetry-test-sets)")
 
 
-def main() -> None:
-    """Run the benchmark; bad options and bad input end in one line on stderr (exit status 2)."""
-    try:
-        run()
-    except CtsplatError as exc:
-        print(f"benchmarks/photos.py: error: {' '.join(str(exc).split())}", file=sys.stderr)
-        raise SystemExit(2) from None
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; bad options and bad input end in one line on stderr (exit status 2), an interrupt in one
+    line too (:func:`_common.cli_main`)."""
+    return cli_main(run, argv, "benchmarks/photos.py")
 
 
-def run() -> None:
+def run(argv: list[str] | None = None) -> int:
     """Parse the options, then SfM, training and evaluation (module docstring)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--images", default=str(SKULL), help="photo folder (default: the skull set)")
@@ -75,7 +73,7 @@ def run() -> None:
     ap.add_argument("--sfm-only", action="store_true")
     ap.add_argument("--reuse-sfm", action="store_true", help="train on the SfM folder of a previous run")
     ap.add_argument("--out", default=str(OUT / "photos"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     train = {"iterations": args.iterations, "downscale": args.downscale, "holdout": args.holdout,
              "num_threads": args.threads, "device": args.device, "seed": args.seed}
     check_section("photos", {"train": train})
@@ -118,7 +116,8 @@ def run() -> None:
                 "code_version": code_version()})
     write_json_atomic(out.with_name(out.name + ".json"), row)  # beside the --out folder: photos.json by default
     print(json.dumps(row))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -545,6 +545,30 @@ def _benchmark(args: list[str], cwd: Path | None = None) -> Any:
                           text=True, env=env, timeout=120, cwd=cwd)
 
 
+@pytest.mark.parametrize(("signum", "status", "how"), [(2, 130, "interrupted"), (15, 143, "terminated")])
+def test_a_benchmark_killed_mid_step_removes_its_temporary_folder(tmp_path: Path, signum: int, status: int,
+                                                                  how: str) -> None:
+    """SIGTERM (a job's time limit) and Ctrl-C end a benchmark in one line, its steps' temporary folders removed."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    script = (f"import os, sys; sys.path.insert(0, {str(root / 'benchmarks')!r})\n"
+              "from _common import cli_main\n"
+              "from ctsplat.utils import atomic_dir\n"
+              "def run(argv):\n"
+              f"    with atomic_dir({str(tmp_path / 'out')!r}) as tmp:\n"
+              "        (tmp / 'half.txt').write_text('x')\n"
+              f"        os.kill(os.getpid(), {signum})\n"
+              "    return 0\n"
+              "sys.exit(cli_main(run, [], 'bench.py'))\n")
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                         env={**__import__("os").environ, "PYTHONPATH": str(root)})
+    assert res.returncode == status, res.stderr[-2000:]
+    assert res.stderr.strip() == f"bench.py: {how}; files are written whole or not at all: run it again"
+    assert list(tmp_path.iterdir()) == []  # neither the output nor its hidden temporary folder
+
+
 @pytest.mark.parametrize(("args", "needle"), [
     (["--downscale", "3"], "photos.train.downscale: 3 is not one of [1, 2, 4, 8]"),
     (["--iterations", "0"], "photos.train.iterations: 0 is less than the minimum of 1"),
