@@ -272,7 +272,28 @@ def _raise_first_error(errors: Iterable[Any], prefix: Iterable[Any] = ()) -> Non
     if err.validator == "type" and isinstance(err.instance, str) and _reads_as_non_text(err.instance):
         msg += (" (the value is text: quoted in the file, or a nested value of Snakemake's --config, which arrives "
                 "as text; write it unquoted in a --configfile)")
+    elif err.validator == "type" and isinstance(err.instance, str) and _yaml_float(err.instance):
+        msg += (f" (YAML reads a number in exponent form as text unless it has a dot and a signed exponent: "
+                f"write {_yaml_float(err.instance)})")
     raise CtsplatError(f"invalid config at {where}: {msg}")
+
+
+def _yaml_float(text: str) -> str | None:
+    """``text`` as a YAML 1.1 float when it is a number in exponent form that YAML reads as text (``5e-5``,
+    ``1.5E3``: no dot, or no sign on the exponent), e.g. ``5.0e-5``; None otherwise.
+
+    Examples
+    --------
+    >>> _yaml_float("5e-5"), _yaml_float("1.5E3"), _yaml_float("abc")
+    ('5.0e-5', '1.5e+3', None)
+    """
+    import re
+
+    match = re.fullmatch(r"\s*([-+]?)(\d+)(?:\.(\d*))?[eE]([-+]?)(\d+)\s*", text)
+    if match is None:
+        return None
+    sign, whole, frac, exp_sign, exp = match.groups()
+    return f"{sign}{whole}.{frac or '0'}e{exp_sign or '+'}{exp}"
 
 
 def _reads_as_non_text(text: str) -> bool:

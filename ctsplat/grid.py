@@ -191,7 +191,7 @@ def expand_grid(
     Raises
     ------
     CtsplatError
-        When an axis is missing or the grid expands to zero runs.
+        When an axis is missing, lists one value twice (``mip: ["on", true]``), or the grid expands to zero runs.
 
     Examples
     --------
@@ -211,6 +211,11 @@ def expand_grid(
     for a in ONOFF_AXES:
         if a in values:
             values[a] = [normalise_mip(v, a) for v in values[a]]
+    for a in names:  # the schema's uniqueItems sees "on" and true as two values; they are one cell
+        twice = next((v for i, v in enumerate(values[a]) if v in values[a][:i]), None)
+        if twice is not None:
+            raise CtsplatError(f"grid.axes.{a} lists {twice!r} twice (as {axes[a]!r}); every run would be made and "
+                               "counted twice: keep one")
     rows = [dict(zip(("volume", *names), combo, strict=True))
             for combo in itertools.product(list(volumes), *(values[a] for a in names))]
 

@@ -189,6 +189,19 @@ def test_empty_grid_is_an_error():
         prepare_config({"grid": {"exclude": [{"seed": 0}]}})
 
 
+@pytest.mark.parametrize(("axis", "values"), [("mip", ["on", True]), ("augment", [False, "off"])])
+def test_an_axis_value_given_twice_is_an_error(axis, values):
+    """The schema's uniqueItems sees "on" and true as two values; normalised they are one cell, run twice."""
+    with pytest.raises(CtsplatError, match=rf"grid\.axes\.{axis} lists '(on|off)' twice .*keep one"):
+        prepare_config({"grid": {"axes": {axis: values}}})
+
+
+def test_an_exponent_yaml_reads_as_text_is_named_with_its_fix():
+    with pytest.raises(CtsplatError, match=r"train\.lambda_density: '5e-5' is not of type 'number' \(YAML reads a "
+                                           r"number in exponent form as text .*: write 5\.0e-5\)"):
+        prepare_config({"train": {"lambda_density": "5e-5"}})
+
+
 def test_missing_volume_source_is_reported_with_key(tmp_path):
     with pytest.raises(CtsplatError, match=r"volumes\.head\.source: 'nope/ct'"):
         prepare_config({"volumes": {"head": {"source": "nope/ct"}}}, base_dir=tmp_path)
