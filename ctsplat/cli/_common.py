@@ -70,13 +70,26 @@ def load_section(path: str | None, section: str) -> dict[str, Any]:
 
 
 def parse_value(text: str) -> Any:
-    """An override value: JSON when it parses (``50``, ``1e5``, ``null``), else YAML (``[1, 2]``, ``on``), else text."""
+    """An override value: JSON when it parses (``50``, ``1e5``, ``null``), else YAML (``[1, 2]``, ``on``), else text.
+
+    YAML 1.1 reads ``010`` as octal 8, ``08`` as text and ``1:30`` as 90 (base 60); such a value is refused.
+
+    Raises
+    ------
+    CtsplatError
+        For a number YAML would read in base 8 or 60.
+    """
+    import re
+
     try:
         return json.loads(text)
     except json.JSONDecodeError:
         pass
     import yaml
 
+    if re.fullmatch(r"[-+]?0[0-9_]+|[-+]?[0-9][0-9_]*(:[0-5]?[0-9])+(\.[0-9_]*)?", text.strip()):
+        raise CtsplatError(f"{text!r} would be read in base 8 or 60, or as text (YAML 1.1); write the number in "
+                           "decimal without leading zeros")
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError:
@@ -89,7 +102,10 @@ def apply_sets(cfg: dict[str, Any], sets: list[str] | None) -> dict[str, Any]:
         if "=" not in item:
             raise CtsplatError(f"--set expects KEY=VALUE, got {item!r}")
         key, raw = item.split("=", 1)
-        value = parse_value(raw.strip())
+        try:
+            value = parse_value(raw.strip())
+        except CtsplatError as exc:
+            raise CtsplatError(f"--set {key.strip()}: {exc}") from None
         node = cfg
         parts = key.strip().split(".")
         for part in parts[:-1]:

@@ -128,6 +128,18 @@ def test_wrong_set_values_are_refused_before_running(scene, tmp_path, capsys, ar
     assert not out.exists()
 
 
+@pytest.mark.parametrize("value", ["010", "08", "1:30"])
+def test_a_set_number_yaml_would_read_in_another_base_is_refused(scene, tmp_path, capsys, value):
+    """YAML 1.1 reads 010 as 8 and 1:30 as 90: ``--set n_views=010`` rendered 8 views."""
+    vol, _ = scene
+    out = tmp_path / "out"
+    assert main(["project", "--volume", str(vol), "--out", str(out), "--set", f"n_views={value}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"ctsplat project: error: --set n_views: {value!r} would be read in base 8 or 60, or as text "
+                   "(YAML 1.1); write the number in decimal without leading zeros")
+    assert not out.exists()
+
+
 # ------------------------------------------------------------------------------------------------ unreadable TIFFs
 def test_truncated_radiographs_tiff(scene, tmp_path, capsys):
     vol, rad = scene
