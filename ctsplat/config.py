@@ -847,6 +847,7 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
                 f"or init: sfm) registers a C-arm view set: add radiographs.{sfm_geometry} with camera: cone, "
                 "orbit: carm (config/README.md)"
             )
+    _check_detector_fits_ssim(cfg)
     grid_geo = cfg["radiographs"][cfg["grid"]["geometry"]]
     no_val = not has_held_out_views(grid_geo, "val")
     if not has_held_out_views(grid_geo, "test"):
@@ -941,6 +942,33 @@ def _check_volume_preprocessing(name: str, override: Mapping[str, Any], defaults
         check_preprocessing(settings)  # what the schema cannot say (a window preset's name)
     except CtsplatError as exc:
         raise CtsplatError(f"invalid config at {where if override else 'preprocessing'}: {exc}") from None
+    grid = settings["grid"]
+    sides = grid if isinstance(grid, list) else [grid]
+    if settings["voxel_size_mm"] is None and grid is not None and min(int(g) for g in sides) < MIN_GRID_SIDE:
+        key = f"{where}.grid" if "grid" in override else "preprocessing.grid"
+        raise CtsplatError(f"invalid config at {key}: {grid} leaves fewer than {MIN_GRID_SIDE} voxels on a side, and "
+                           f"the runs' 3D SSIM needs {MIN_GRID_SIDE}; give a grid of at least {MIN_GRID_SIDE}")
+
+
+#: Voxels a side the runs' 3D SSIM needs (its smallest window, :func:`ctsplat.evaluation.metrics.ssim_window`).
+MIN_GRID_SIDE = 3
+
+
+def _check_detector_fits_ssim(cfg: Mapping[str, Any]) -> None:
+    """The training geometry's detector against the SSIM loss window (``train.lambda_ssim`` > 0): training would
+    refuse it only after ingest and projection."""
+    geo = cfg["grid"]["geometry"]
+    rad = cfg["radiographs"][geo]
+    side = min(int(rad["detector_width"]), int(rad["detector_height"]))
+    if float(cfg["train"]["lambda_ssim"]) <= 0 or side >= 32:  # every window fits: no need to load the loss
+        return
+    from ctsplat.training.losses import gaussian_window
+
+    window = gaussian_window().numel()
+    if side < window:
+        raise CtsplatError(f"invalid config at radiographs.{geo}: a {rad['detector_width']} x "
+                           f"{rad['detector_height']} detector is smaller than the SSIM loss window ({window} px) "
+                           f"that train.lambda_ssim uses; render at least {window} x {window} or set lambda_ssim: 0")
 
 
 # ----------------------------------------------------------------------------------------------------------------

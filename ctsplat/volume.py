@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import json
 import logging
 import os
 import time
@@ -92,6 +93,23 @@ _INTENSITY_MODES = ("attenuation", "window", "mu", "hu")
 #: provenance as the ``nonfinite`` step).
 NONFINITE_RULES = ("error", "fill_min")
 
+#: ``created_by`` of an ingested volume's sidecar: what :func:`ingest` may replace.
+INGEST_MARKER = "ctsplat.volume.ingest"
+
+
+def _check_ingest_target(out_path: Path) -> None:
+    """Refuse an existing output file that is not an earlier ingest output (its sidecar names no ingest): a
+    volume of another step (an evaluation's read-out, a phantom) or a NIfTI of someone else's would be replaced."""
+    if not (out_path.exists() or out_path.is_symlink()):
+        return
+    sidecar = json_path_for(out_path)
+    try:
+        ours = json.loads(sidecar.read_text()).get("created_by") == INGEST_MARKER
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        ours = False
+    if not ours:
+        raise CtsplatError(f"{out_path} exists and is not an earlier ingest output (no {sidecar.name} of an ingest "
+                           "beside it), and ingesting would replace it; choose another output name or remove it")
 
 def check_preprocessing(cfg: Mapping[str, Any]) -> None:
     """Check a ``preprocessing`` section (defaults filled) beyond its schema: names, ranges, the window.
@@ -658,7 +676,7 @@ def _check_not_ingested(source: Path) -> None:
     except CtsplatError:
         return  # not ours
     kind = meta.get("intensity", {}).get("kind") if isinstance(meta.get("intensity"), dict) else None
-    if meta.get("created_by") == "ctsplat.volume.ingest" and kind != "hu":
+    if meta.get("created_by") == INGEST_MARKER and kind != "hu":
         raise CtsplatError(f"{source} is a volume ingest already wrote ({sidecar.name}: intensity {kind}), not a "
                            f"scan in HU; use it as it is (project, baseline and train read it), or ingest the "
                            f"original scan again with other settings")
@@ -748,6 +766,7 @@ def ingest(
     if not out_path.name.endswith((".nii.gz", ".nii")):
         raise CtsplatError(f"output {out_path} must end in .nii.gz or .nii")
     check_sidecar_target(out_path)  # before the slow part
+    _check_ingest_target(out_path)
     if not isinstance(source, SliceStack):
         _check_not_the_source(Path(source), out_path)
         _check_not_ingested(Path(source))
@@ -804,7 +823,7 @@ def ingest(
     affine = affine.astype(np.float32).astype(float)  # exactly what the NIfTI sform stores
     meta: dict[str, Any] = {
         "format_version": 1,
-        "created_by": "ctsplat.volume.ingest",
+        "created_by": INGEST_MARKER,
         "code_version": code_version(),
         "volume_id": compute_volume_id(mapped, affine),
         "frame": "RAS+ world, mm (NIfTI affine: voxel index -> world)",

@@ -27,7 +27,15 @@ from typing import Any
 import numpy as np
 
 from ctsplat.geometry.cameras import Camera, camera_center, camera_from_dict, rotmat_to_qvec
-from ctsplat.utils import CtsplatError, atomic_dir, code_version, read_json_object, scratch_dir, write_json_atomic
+from ctsplat.utils import (
+    CtsplatError,
+    atomic_dir,
+    check_output_dir,
+    code_version,
+    read_json_object,
+    scratch_dir,
+    write_json_atomic,
+)
 
 __all__ = [
     "VIEWSET_FORMAT",
@@ -254,15 +262,19 @@ def write_png_stack(images: np.ndarray, out_dir: str | Path, names: list[str]) -
 
 #: The entries of a radiograph folder :func:`write_radiographs` writes, in the order they are moved into place:
 #: radiographs.json first, so a folder left half-moved is still known as an earlier output, views.json last, so
-#: it is refused by :func:`load_radiographs` until complete. Other files in the folder are left alone.
+#: it is refused by :func:`load_radiographs` until complete. A folder holding other files is not written
+#: (:func:`check_radiograph_targets`).
 RADIOGRAPH_FILES = ("radiographs.json", "line_integrals.tif", "png", "views.json")
 
 
 def check_radiograph_targets(out_dir: str | Path) -> None:
-    """Refuse a folder where writing radiographs would replace something that is not an earlier radiograph output.
+    """Refuse a folder where writing radiographs would replace something that is not an earlier radiograph output,
+    or mix them with other files.
 
     An earlier output is known by its ``radiographs.json`` (with the line-integral statistics this module writes);
-    without one, none of :data:`RADIOGRAPH_FILES` may exist. ``png/`` may hold only the views' PNGs.
+    without one, none of :data:`RADIOGRAPH_FILES` may exist. ``png/`` may hold only the views' PNGs, and the folder
+    nothing but :data:`RADIOGRAPH_FILES` (a training run's or someone else's folder is refused, as the other steps
+    refuse theirs: :func:`ctsplat.utils.check_output_dir`).
 
     Parameters
     ----------
@@ -286,6 +298,7 @@ def check_radiograph_targets(out_dir: str | Path) -> None:
             raise CtsplatError(f"cannot write {target}: a {'folder' if target.is_dir() else 'file'} of that name is "
                                "in the way; remove it or choose another output folder")
     if not present:
+        _check_no_foreign_files(out_dir)
         return
     try:
         ours = "line_integral_stats" in json.loads((out_dir / "radiographs.json").read_text())
@@ -305,6 +318,13 @@ def check_radiograph_targets(out_dir: str | Path) -> None:
     if foreign:
         raise CtsplatError(f"{png} holds {foreign[0]}, which a projection does not write, and writing radiographs "
                            "would delete it; choose another output folder or move it away")
+    _check_no_foreign_files(out_dir)
+
+
+def _check_no_foreign_files(out_dir: Path) -> None:
+    """Refuse a radiograph folder that holds files other than :data:`RADIOGRAPH_FILES`."""
+    contents = [f"{n}/*" if n == "png" else n for n in RADIOGRAPH_FILES]
+    check_output_dir(out_dir, marker=contents, in_place=True)
 
 
 def write_radiographs(out_dir: str | Path, p: np.ndarray, view_set: ViewSet, provenance: dict[str, Any]) -> None:

@@ -90,6 +90,33 @@ def check_orbit_settings(cfg: Mapping[str, Any], where: str = "radiographs") -> 
                            "splits by the split fractions (set n_val and n_test to null)")
     if cfg.get("pixel_spacing_mm") is not None and cfg.get("detector_size_factor") is not None:
         raise CtsplatError(f"{where}: set pixel_spacing_mm or detector_size_factor, not both")
+    if camera == "cone":  # the distances that do not depend on the volume's size (the projector checks the rest)
+        dso, dsd = cfg.get("dso_mm"), cfg.get("dsd_mm")
+        if dso is None and dsd is None:
+            dso, dsd, unit = cfg.get("dso_factor"), cfg.get("dsd_factor"), "_factor"
+        else:
+            unit = "_mm"
+        if isinstance(dso, int | float) and isinstance(dsd, int | float) and 0 < dsd <= dso:
+            raise CtsplatError(f"{where}: dsd{unit} ({dsd:g}) must be larger than dso{unit} ({dso:g}): the detector "
+                               "lies beyond the isocentre")
+    if orbit in ("circular", "sphere") and isinstance(cfg.get("n_views"), int) and cfg["n_views"] > 0:
+        _check_held_out_views(cfg, orbit, where)
+
+
+def _check_held_out_views(cfg: Mapping[str, Any], orbit: str, where: str) -> None:
+    """The orbit's split of its views, as the projector makes it (the split does not depend on the volume): a split
+    left empty is reported here, before any step runs."""
+    kwargs: dict[str, Any] = {"split_fractions": cfg.get("split") or {"train": 1.0}, "seed": 0}
+    try:
+        if orbit == "circular":
+            circular_orbit(int(cfg["n_views"]), np.zeros(3), 1000.0, **kwargs,
+                           heldout_counts={"val": cfg.get("n_val"), "test": cfg.get("n_test")})
+        else:
+            sphere_orbit(int(cfg["n_views"]), np.zeros(3), 1000.0, **kwargs,
+                         elevation_range_deg=cfg.get("elevation_range_deg", (-60.0, 60.0)),
+                         sampling=cfg.get("sphere_sampling", "fibonacci"))
+    except CtsplatError as exc:
+        raise CtsplatError(f"{where}: {exc}") from None
 
 
 def classical_methods(cfg: Mapping[str, Any]) -> tuple[str, ...]:
@@ -301,6 +328,12 @@ def _check_elevation_range(elevation_range_deg: Sequence[float]) -> tuple[float,
     return lo, hi
 
 
+def _more_views(split: str) -> str:
+    """The advice for a split left empty: test views are needed (a run is scored on them), validation views not."""
+    more = f"use more views (n_views) or a larger {split} fraction"
+    return more + (", or set val: 0 (no validation views)" if split == "val" else "")
+
+
 def split_counts(n: int, fractions: dict[str, float]) -> dict[str, int]:
     """Largest-remainder allocation of ``n`` views to ``train/val/test`` by ``fractions``.
 
@@ -342,7 +375,7 @@ def split_counts(n: int, fractions: dict[str, float]) -> dict[str, int]:
     for s, frac in zip(SPLITS, f, strict=True):
         if frac > 0 and out[s] == 0:
             raise CtsplatError(f"split leaves '{s}' empty: {n} views with fractions "
-                               f"{dict(zip(SPLITS, f.round(3).tolist(), strict=True))}; use more views or set {s}: 0")
+                               f"{dict(zip(SPLITS, f.round(3).tolist(), strict=True))}; {_more_views(s)}")
     return out
 
 
@@ -547,7 +580,7 @@ def circular_orbit(n_views: int, isocenter_mm: Sequence[float], distance_mm: flo
     for s in ("val", "test"):
         if s not in explicit and fr[s] > 0 and held[s] == 0:
             raise CtsplatError(f"split leaves '{s}' empty: {n} training views with fractions {fr}; "
-                               f"use more views or set {s}: 0")
+                               f"{_more_views(s)}, or give n_{s}")
     rng = np.random.default_rng(seed)
     az = [arc_azimuths(n, arc_deg, start_deg, wrap=False)]
     splits = ["train"] * n

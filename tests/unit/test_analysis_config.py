@@ -202,6 +202,29 @@ def test_an_exponent_yaml_reads_as_text_is_named_with_its_fix():
         prepare_config({"train": {"lambda_density": "5e-5"}})
 
 
+@pytest.mark.parametrize(("override", "needle"), [
+    ({"radiographs": {"circular": {"detector_width": 8, "detector_height": 8}}},
+     r"radiographs\.circular: a 8 x 8 detector is smaller than the SSIM loss window \(11 px\)"),
+    ({"radiographs": {"circular": {"n_views": 1}}, "grid": {"axes": {"views": [1]}}},
+     r"radiographs\.circular: split leaves 'val' empty: 1 training views .*, or give n_val"),
+    ({"radiographs": {"circular": {"orbit": "sphere", "n_views": 4, "n_val": None, "n_test": None}}},
+     r"radiographs\.circular: split leaves 'test' empty: 4 views .*; use more views \(n_views\) or a larger test "
+     r"fraction$"),
+    ({"radiographs": {"circular": {"camera": "cone", "dso_mm": 500, "dsd_mm": 100}}},
+     r"radiographs\.circular: dsd_mm \(100\) must be larger than dso_mm \(500\)"),
+    ({"radiographs": {"circular": {"camera": "cone", "dso_mm": None, "dsd_mm": None, "dso_factor": 3,
+                                   "dsd_factor": 2}}},
+     r"radiographs\.circular: dsd_factor \(2\) must be larger than dso_factor \(3\)"),
+    ({"preprocessing": {"grid": 2}}, r"preprocessing\.grid: 2 leaves fewer than 3 voxels on a side"),
+    ({"volumes": {"p": {"source": "phantom", "preprocessing": {"grid": [16, 16, 2]}}}},
+     r"volumes\.p\.preprocessing\.grid: \[16, 16, 2\] leaves fewer than 3 voxels"),
+])
+def test_settings_a_step_would_refuse_after_others_ran_are_refused_at_parse_time(override, needle):
+    """Each of these failed only in the project or train job, after phantom, ingest and projection had run."""
+    with pytest.raises(CtsplatError, match=rf"^invalid config at {needle}"):
+        prepare_config(override)
+
+
 def test_missing_volume_source_is_reported_with_key(tmp_path):
     with pytest.raises(CtsplatError, match=r"volumes\.head\.source: 'nope/ct'"):
         prepare_config({"volumes": {"head": {"source": "nope/ct"}}}, base_dir=tmp_path)

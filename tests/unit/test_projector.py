@@ -567,8 +567,8 @@ def test_radiograph_folder_is_written_whole_or_not_at_all(tmp_path) -> None:
 
 def test_radiographs_never_replace_files_of_someone_elses(tmp_path) -> None:
     """Writing radiographs into a folder replaces only an earlier projection's files: a folder holding a png/ of
-    other pictures, a views.json or a same-named volume sidecar without an earlier radiographs.json is refused
-    before any work, and nothing in it changes."""
+    other pictures, a views.json or a same-named volume sidecar without an earlier radiographs.json, or any other
+    file, is refused before any work, and nothing in it changes."""
     from ctsplat.formats.viewset import write_radiographs
     from ctsplat.geometry import circular_orbit
 
@@ -592,9 +592,20 @@ def test_radiographs_never_replace_files_of_someone_elses(tmp_path) -> None:
     with pytest.raises(CtsplatError, match=r"png holds notes\.png, which a projection does not write"):
         write_radiographs(out, 2 * p, vs, {})
     (out / "png" / "notes.png").unlink()
-    (out / "notes.txt").write_text("kept")  # other files beside the radiographs stay
+    (out / "notes.txt").write_text("kept")  # nor mixed with other files (a training run's folder, someone's notes)
+    with pytest.raises(CtsplatError, match=r"rad holds notes\.txt, which this step does not write, and its outputs "
+                                           r"would be mixed with it"):
+        write_radiographs(out, 2 * p, vs, {})
+    assert np.all(load_radiographs(out)[0] == 1.0) and (out / "notes.txt").read_text() == "kept"
+    (out / "notes.txt").unlink()
     write_radiographs(out, 2 * p, vs, {})
-    assert np.all(load_radiographs(out)[0] == 2.0) and (out / "notes.txt").read_text() == "kept"
+    assert np.all(load_radiographs(out)[0] == 2.0)
+    other = tmp_path / "other"  # a folder of other files only
+    other.mkdir()
+    (other / "model.pt").write_bytes(b"x")
+    with pytest.raises(CtsplatError, match=r"other already holds files that are not an earlier output"):
+        write_radiographs(other, p, vs, {})
+    assert sorted(f.name for f in other.iterdir()) == ["model.pt"]
     assert (mine / "png" / "holiday.png").read_bytes() == b"mine" and not list(tmp_path.glob(".*"))
 
 

@@ -138,10 +138,7 @@ def test_evaluate_sharpens_on_validation_and_keeps_the_raw_read_out(tmp_path: Pa
     if m["sharpen_amount"] == 0.0:
         assert m["psnr3d"] == pytest.approx(m["psnr3d_unsharpened"])
     # switched off: no sharpening keys, and the earlier raw read-out is not left beside the new one
-    cfg = json.loads((run / "config.json").read_text())
-    cfg["config"]["sharpen"] = {"amounts": [0.0], "radius_voxels": 1.0}
-    (run / "config.json").write_text(json.dumps(cfg))
-    m_off = evaluate(run, device="cpu")
+    m_off = evaluate(run, device="cpu", settings={"sharpen": {"amounts": [0.0], "radius_voxels": 1.0}})
     assert "sharpen_amount" not in m_off and "psnr3d_unsharpened" not in m_off
     assert m_off["psnr3d"] == pytest.approx(m["psnr3d_unsharpened"])
     assert not (run / "model_volume_unsharpened.nii.gz").exists()

@@ -12,7 +12,7 @@ from scipy import ndimage
 
 from ctsplat.cli import main
 from ctsplat.formats.sources import SliceStack
-from ctsplat.formats.volume import compute_volume_id, json_path_for, load_volume
+from ctsplat.formats.volume import Volume, compute_volume_id, json_path_for, load_volume, save_volume
 from ctsplat.utils import CtsplatError
 from ctsplat.volume import (
     PREPROCESSING_DEFAULTS,
@@ -272,6 +272,26 @@ def test_failed_write_leaves_nothing_and_keeps_previous(tmp_path, monkeypatch):
     after = {p.name: p.read_bytes() for p in out.parent.iterdir()}
     assert after == before  # no temp files, previous outputs untouched
     assert load_volume(out).volume_id == first.volume_id
+
+
+def test_ingest_replaces_only_an_earlier_ingest_output(tmp_path):
+    """A NIfTI of someone else's or another step's volume (an evaluation's read-out, with a volume sidecar) at the
+    output path is refused before the source is read; an earlier ingest output is replaced."""
+    hu, _ = head_like()
+    src = nifti_input(tmp_path, hu)
+    theirs = tmp_path / "theirs.nii.gz"
+    nib.save(nib.Nifti1Image(np.ones((4, 4, 4), np.float32), np.eye(4)), theirs)
+    read_out = tmp_path / "run" / "model_volume.nii.gz"
+    save_volume(Volume(np.ones((4, 4, 4), np.float32), np.eye(4), {"volume_id": "x"}), read_out)
+    for out in (theirs, read_out):
+        before = out.read_bytes()
+        with pytest.raises(CtsplatError, match=rf"{out.name} exists and is not an earlier ingest output .*choose "
+                                               "another output name or remove it"):
+            ingest(tmp_path / "no_such_source", out, {"grid": 8})
+        assert out.read_bytes() == before
+    out = tmp_path / "o" / "volume.nii.gz"
+    ingest(src, out, {"grid": 8})
+    assert ingest(src, out, {"grid": 12}).data.shape == load_volume(out).data.shape == (12, 12, 12)
 
 
 @pytest.mark.parametrize(

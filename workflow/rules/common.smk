@@ -225,6 +225,7 @@ def evaluate_inputs(wildcards):
     return {
         **run_inputs(wildcards),
         "model": f"{rd}/model.pt",
+        "model_best": f"{rd}/model_best.pt",  # model_selection: best scores it
         "run_config": f"{rd}/config.json",
         "training": f"{rd}/training.json",
         "log": f"{rd}/train_log.csv",

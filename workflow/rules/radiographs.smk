@@ -45,6 +45,7 @@ rule baseline:
                 "table": "classical baselines",
             },
         ),
+        info=f"{RESULTS}/{{volume}}/baselines/{{geometry}}/baselines.json",
     log:
         f"{RESULTS}/logs/baseline/{{volume}}/{{geometry}}.log",
     benchmark:

@@ -8,6 +8,7 @@ rule train:
         log=f"{RUN_PATTERN}/train_log.csv",
         per_view=f"{RUN_PATTERN}/per_view.csv",
         model=f"{RUN_PATTERN}/model.pt",
+        model_best=f"{RUN_PATTERN}/model_best.pt",
         ply=f"{RUN_PATTERN}/model.ply",
         run_config=f"{RUN_PATTERN}/config.json",
         training=f"{RUN_PATTERN}/training.json",
@@ -37,6 +38,7 @@ rule evaluate:
         metrics=f"{RUN_PATTERN}/metrics.json",
         per_view=f"{RUN_PATTERN}/per_view_test.csv",
         volume=f"{RUN_PATTERN}/model_volume.nii.gz",
+        volume_json=f"{RUN_PATTERN}/model_volume.json",
     log:
         f"{RUN_PATTERN}/logs/evaluate.log",
     benchmark:
