@@ -301,6 +301,9 @@ def evaluate_photos(run_dir: str | Path, settings: dict[str, Any] | None = None,
     training, sfm = ({} if not path.is_file() else read_json_object(path, what=what, fix=fix) for path, what, fix in (
         (run_dir / "training.json", "photo training record", "run `ctsplat photos-train` again"),
         (Path(cfg["sfm_dir"]) / "summary.json", "SfM summary", "run `ctsplat photos-sfm` again")))
+    if not sfm:
+        log.warning("%s has no summary.json: metrics.json will not report which photos registered; run `ctsplat "
+                    "photos-sfm` again to have it", cfg["sfm_dir"])
     if not s["attribution"]:
         log.warning("photos.evaluate.attribution is empty: the gallery and turntable show the photographs without "
                     "their credit line; give it (--attribution) where their licence asks for one")

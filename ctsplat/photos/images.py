@@ -64,8 +64,8 @@ def list_photos(folder: str | Path) -> list[str]:
                    if not p.name.startswith(".") and p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
     unread = unread_entries(folder)
     if unread:
-        log.warning("%s: %d entries look like photos but are not read (only %s files are; links must reach a "
-                    "file): %s", folder, len(unread), ", ".join(IMAGE_SUFFIXES), ", ".join(unread))
+        log.warning("%s: %d entries look like photos but are not read (only %s files in the folder itself are; "
+                    "links must reach a file): %s", folder, len(unread), ", ".join(IMAGE_SUFFIXES), ", ".join(unread))
     if not names:
         raise CtsplatError(f"photo folder {folder} holds no images ({', '.join(IMAGE_SUFFIXES)}); "
                            "point it at the folder with the photographs")
@@ -74,7 +74,8 @@ def list_photos(folder: str | Path) -> list[str]:
 
 def unread_entries(folder: str | Path) -> list[str]:
     """The entries of a photo folder that look like pictures but are not read: other picture formats
-    (:data:`OTHER_IMAGE_SUFFIXES`) and links to nothing; hidden names left out.
+    (:data:`OTHER_IMAGE_SUFFIXES`), links to nothing and sub-folders that hold photos (named ``name/``: the folder
+    is not read recursively); hidden names left out.
 
     Parameters
     ----------
@@ -91,7 +92,12 @@ def unread_entries(folder: str | Path) -> list[str]:
         broken_link = suffix in IMAGE_SUFFIXES and p.is_symlink() and not p.exists()
         return not p.name.startswith(".") and (suffix in OTHER_IMAGE_SUFFIXES or broken_link)
 
-    return sorted(p.name for p in Path(folder).iterdir() if unread(p))
+    def holds_photos(p: Path) -> bool:
+        return (not p.name.startswith(".") and p.is_dir()
+                and any(q.suffix.lower() in IMAGE_SUFFIXES and q.is_file() for q in p.iterdir()))
+
+    return sorted([p.name for p in Path(folder).iterdir() if unread(p)]
+                  + [f"{p.name}/" for p in Path(folder).iterdir() if holds_photos(p)])
 
 
 def check_photo_count(folder: str | Path, n_photos: int, min_registered: int) -> None:

@@ -155,10 +155,13 @@ def test_photo_listing_skips_hidden_files_and_names_the_pictures_it_does_not_rea
     (tmp_path / "06.jpg").symlink_to(tmp_path / "gone.jpg")
     (tmp_path / "notes.txt").write_text("not a picture")
     (tmp_path / "sub.jpg").mkdir()
+    (tmp_path / "day2").mkdir()  # photos in a sub-folder are not read either: named, not dropped unsaid
+    _jpeg(tmp_path / "day2" / "07.jpg", seed=7)
     with caplog.at_level("WARNING", logger="ctsplat.photos.images"):
         assert list_photos(tmp_path) == ["01.jpg", "02.JPG", "03.png"]
-    assert unread_entries(tmp_path) == ["04.webp", "05.heic", "06.jpg"]
-    assert "3 entries look like photos but are not read" in caplog.text and "04.webp, 05.heic, 06.jpg" in caplog.text
+    assert unread_entries(tmp_path) == ["04.webp", "05.heic", "06.jpg", "day2/"]
+    assert "4 entries look like photos but are not read" in caplog.text
+    assert "04.webp, 05.heic, 06.jpg, day2/" in caplog.text
     check_photos(tmp_path, list_photos(tmp_path), single_camera=False)  # the hidden file is not opened
 
 
