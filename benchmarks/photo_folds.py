@@ -31,6 +31,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from pathlib import Path
 from typing import Any
@@ -65,6 +66,21 @@ def _same_run(config: dict[str, Any], sfm: Path, sets: list[str]) -> bool:
     return all(have[k] == v if k in have else v == defaults.get(k) for k, v in wanted.items())
 
 
+#: The ``photos-train`` processes running now, and whether the comparison is being stopped (an interrupt or
+#: SIGTERM in the main thread): queued runs then start no process, running ones are terminated.
+_RUNNING: set[subprocess.Popen] = set()
+_LOCK = threading.Lock()
+_STOPPING = threading.Event()
+
+
+def _stop_children() -> None:
+    """Terminate the running ``photos-train`` processes (each removes its temporary folder, as on SIGTERM)."""
+    _STOPPING.set()
+    with _LOCK:
+        for proc in _RUNNING:
+            proc.terminate()
+
+
 def _train(sfm: Path, run_dir: Path, sets: list[str]) -> None:
     """One ``ctsplat photos-train`` process (its log beside the run folder); a finished run with the same settings
     on the same SfM folder is kept."""
@@ -84,11 +100,18 @@ def _train(sfm: Path, run_dir: Path, sets: list[str]) -> None:
     for item in sets:
         cmd += ["--set", item]
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
-    with open(run_dir.with_suffix(".log"), "w") as log:
-        res = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, check=False)
-    if res.returncode != 0:
-        raise CtsplatError(f"photos-train into {run_dir} failed (exit {res.returncode}); see "
-                           f"{run_dir.with_suffix('.log')}")
+    with open(run_dir.with_suffix(".log"), "w") as log, _LOCK:
+        if _STOPPING.is_set():
+            return
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        _RUNNING.add(proc)
+    try:
+        code = proc.wait()
+    finally:
+        with _LOCK:
+            _RUNNING.discard(proc)
+    if code != 0 and not _STOPPING.is_set():
+        raise CtsplatError(f"photos-train into {run_dir} failed (exit {code}); see {run_dir.with_suffix('.log')}")
 
 
 def run(argv: list[str] | None = None) -> int:
@@ -135,13 +158,20 @@ def run(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(out / f"fold{fold}_seed{seed}_{arm}", run_sets(fold, seed, extra))
             for fold, seed in pairs for arm, extra in arms.items()]
-    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+    pool = ThreadPoolExecutor(max_workers=args.jobs)
+    try:
         futures = [pool.submit(_train, sfm, d, sets) for d, sets in jobs]
         done, _ = wait(futures, return_when=FIRST_EXCEPTION)
         failed = [f for f in futures if f in done and f.exception() is not None]
         if failed:  # the queued runs are cancelled (hours of training), the running ones finish
             pool.shutdown(wait=True, cancel_futures=True)
             raise failed[0].exception()
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: nothing more starts, the running trainings stop
+        pool.shutdown(wait=False, cancel_futures=True)
+        _stop_children()
+        raise
+    finally:
+        pool.shutdown(wait=True)
     runs = {(fold, seed, arm): read_validation_run(out / f"fold{fold}_seed{seed}_{arm}")
             for fold, seed in pairs for arm in arms}
     scored_test = [key for key, r in runs.items() if r["held_out"] != "val"]

@@ -273,8 +273,13 @@ def _raise_first_error(errors: Iterable[Any], prefix: Iterable[Any] = ()) -> Non
         msg += (" (the value is text: quoted in the file, or a nested value of Snakemake's --config, which arrives "
                 "as text; write it unquoted in a --configfile)")
     elif err.validator == "type" and isinstance(err.instance, str) and _yaml_float(err.instance):
-        msg += (f" (YAML reads a number in exponent form as text unless it has a dot and a signed exponent: "
-                f"write {_yaml_float(err.instance)})")
+        types = err.validator_value if isinstance(err.validator_value, list) else [err.validator_value]
+        value = float(_yaml_float(err.instance))
+        if "number" in types:
+            msg += (f" (YAML reads a number in exponent form as text unless it has a dot and a signed exponent: "
+                    f"write {_yaml_float(err.instance)})")
+        elif "integer" in types and value.is_integer():
+            msg += f" (YAML reads a number in exponent form as text: write {int(value)})"
     raise CtsplatError(f"invalid config at {where}: {msg}")
 
 

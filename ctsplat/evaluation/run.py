@@ -30,6 +30,7 @@ from ctsplat.utils import (
     CtsplatError,
     code_version,
     compute_platform,
+    deep_update,
     json_safe,
     read_json_object,
     resolve_device,
@@ -465,7 +466,8 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         raise CtsplatError(f"run config {run_dir / 'config.json'} has no 'config' object; {fix}")
     # score again as the earlier evaluation of this split did, where no setting is given
     earlier = _recorded_evaluation(run_dir, split, EVALUATION_KEYS)
-    cfg = {**run_cfg["config"], **earlier.get("evaluation_settings", {}), **(settings or {})}
+    # key by key: --set sharpen.amounts=... keeps the recorded radius_voxels
+    cfg = deep_update(deep_update(run_cfg["config"], earlier.get("evaluation_settings", {})), dict(settings or {}))
     milestones = earlier.get("evaluation_milestones") if milestones is None else milestones
     model = model or cfg.get("model_selection", "last")
     if model not in ("last", "best"):

@@ -212,7 +212,7 @@ def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, 
         fx, fy, cx, cy = (float(v) for v in cam.params[:4])
         try:
             pc = PinholeCamera(int(cam.width), int(cam.height), fx, fy, cx, cy).scaled(int(downscale))
-        except (CtsplatError, ValueError, OverflowError) as exc:  # a damaged cameras.bin reads as nonsense
+        except (CtsplatError, ValueError, OverflowError, ZeroDivisionError) as exc:  # a damaged cameras.bin
             raise CtsplatError(f"the SfM model in {sparse} gives {im.name} an impossible camera ({exc}); it is "
                                "damaged: run `ctsplat photos-sfm` again") from None
         path = sfm_dir / "images" / im.name

@@ -45,7 +45,8 @@ second process writing the same folder fails at once, naming the first.
 
 The run folder gets ``config.json`` (resolved config, hash, code version, scene provenance), ``train_log.csv`` and
 ``per_view.csv`` (periodic validation, :mod:`ctsplat.formats.runlog`), ``checkpoints/``, the final ``model.pt``
-and ``model.ply``, ``model_best.pt`` (the model at the periodic validation with the highest PSNR) and
+and ``model.ply``, ``model_best.pt`` (the model at the periodic validation with the highest PSNR; kept in
+``checkpoints/`` while training, so that a resumed run has it even when a workflow manager removed the outputs) and
 ``training.json`` (wall time, iterations, events, best iteration). Test metrics are not computed here:
 :func:`ctsplat.evaluation.evaluate` reads the finished run folder.
 
@@ -132,13 +133,17 @@ RUN_OUTPUTS = ("training.json", "metrics.json", "metrics_val.json", "metrics_tra
                "model.ply", "model_volume.nii.gz", "per_view_test.csv", "per_view_val.csv", "per_view_train.csv",
                "refined_views.json", "refined_views_best.json")
 
+#: The best validation model and its poses: written into ``checkpoints/`` while training, copied out at the end.
+BEST_FILES = ("model_best.pt", "refined_views_best.json")
+
 #: Every file a run folder holds: training's, the evaluation's (any split, the figures, the read-outs and their
 #: sidecars), the per-run figures (:data:`ctsplat.analysis.RUN_FIGURES`, in ``figures/``), the lock, and the
 #: workflow's per-run logs. :func:`train` refuses a folder holding anything else, since a new run replaces the
 #: checkpoints and outputs in it.
-RUN_FILES = (*RUN_OUTPUTS, "config.json", "train_log.csv", "per_view.csv", "checkpoints/ckpt_*.pt*", "metrics_*.json",
-             "per_view_*.csv", "model_volume_*.nii.gz", "model_volume*.json", "gallery.png", "slices.png",
-             "turntable.gif", "figures/*.png", ".ctsplat.lock", "logs/*")
+RUN_FILES = (*RUN_OUTPUTS, *(f"checkpoints/{n}" for n in BEST_FILES), "config.json", "train_log.csv", "per_view.csv",
+             "checkpoints/ckpt_*.pt*", "metrics_*.json", "per_view_*.csv", "model_volume_*.nii.gz",
+             "model_volume*.json", "gallery.png", "slices.png", "turntable.gif", "figures/*.png", ".ctsplat.lock",
+             "logs/*")
 
 
 def _evaluate_periodic(state: TrainState, cfg: dict[str, Any], scene: Scene, val: ViewData
@@ -587,10 +592,14 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
                                    f"in {out_dir}); lower train.lr or check the inputs")
             if not float(row["psnr2d"]) <= float(state.health.get("best_psnr", -math.inf)):
                 state.health.update(best_psnr=float(row["psnr2d"]), best_iteration=it)
+                # kept beside the checkpoints until the run ends: a workflow manager removes a failed or rerun
+                # job's outputs, and a resumed run may not beat the best again
+                best_dir = checkpoint_dir(out_dir)
+                best_dir.mkdir(parents=True, exist_ok=True)
                 if state.pose is not None:  # the poses this model is fitted to, for its evaluation
-                    _write_refined_views(state, scene, out_dir, name="refined_views_best.json")
+                    _write_refined_views(state, scene, best_dir, name="refined_views_best.json")
                     state.health["best_model_poses"] = _pose_errors(state, scene)
-                _save_model(state, cfg, out_dir / "model_best.pt", chash, scene.mu_scale)
+                _save_model(state, cfg, best_dir / "model_best.pt", chash, scene.mu_scale)
         if it % int(cfg["checkpoint_every"]) == 0 or it == total:
             state.health["loss_sum"] = float(loss_sum)
             state.elapsed_s = time.perf_counter() - t_start
@@ -657,8 +666,13 @@ def _save_model(state: TrainState, cfg: dict[str, Any], path: Path, chash: str, 
 
 def _write_model(state: TrainState, cfg: dict[str, Any], scene: Scene, out_dir: Path, device: torch.device,
                  train_time: float, chash: str) -> dict[str, Any]:
-    """The final model (``model.pt``, ``model.ply``) and the training summary (``training.json``); the best
-    validation model (``model_best.pt``) was written at the periodic evaluations."""
+    """The final model (``model.pt``, ``model.ply``), the best validation model (``model_best.pt``, saved in
+    ``checkpoints/`` at the periodic evaluations, and its poses) and the training summary (``training.json``)."""
+    for name in BEST_FILES:
+        kept = checkpoint_dir(out_dir) / name
+        if kept.is_file():
+            with atomic_path(out_dir / name) as tmp:
+                shutil.copyfile(kept, tmp)
     g = _save_model(state, cfg, out_dir / "model.pt", chash, scene.mu_scale)
     g.to_ply(out_dir / "model.ply")
     summary = {

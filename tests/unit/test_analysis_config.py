@@ -200,6 +200,11 @@ def test_an_exponent_yaml_reads_as_text_is_named_with_its_fix():
     with pytest.raises(CtsplatError, match=r"train\.lambda_density: '5e-5' is not of type 'number' \(YAML reads a "
                                            r"number in exponent form as text .*: write 5\.0e-5\)"):
         prepare_config({"train": {"lambda_density": "5e-5"}})
+    with pytest.raises(CtsplatError, match=r"train\.iterations: '1e5' is not of type 'integer' \(YAML reads a number "
+                                           r"in exponent form as text: write 100000\)$"):
+        prepare_config({"train": {"iterations": "1e5"}})
+    with pytest.raises(CtsplatError, match=r"train\.lr: '5e-5' is not of type 'object'$"):  # no number: no hint
+        prepare_config({"train": {"lr": "5e-5"}})
 
 
 @pytest.mark.parametrize(("override", "needle"), [

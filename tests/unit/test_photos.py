@@ -1125,6 +1125,37 @@ def test_fold_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: 
     assert not (tmp_path / "o").exists()
 
 
+def test_fold_benchmark_stopped_by_sigterm_starts_no_queued_run(tmp_path: Path) -> None:
+    """A job's time limit (SIGTERM) stops the comparison: the queued trainings never start (they ran for hours)."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    sfm = tmp_path / "sfm" / "sparse" / "0"
+    sfm.mkdir(parents=True)
+    (sfm / "cameras.bin").write_bytes(b"")
+    script = (f"import os, signal, sys, threading, time; sys.path.insert(0, {str(root / 'benchmarks')!r})\n"
+              "import photo_folds\n"
+              "started = []\n"
+              "def fake(sfm, run_dir, sets):\n"
+              "    started.append(run_dir.name)\n"
+              "    time.sleep(0.5)\n"
+              "photo_folds._train = fake\n"
+              "threading.Timer(0.2, lambda: os.kill(os.getpid(), signal.SIGTERM)).start()\n"
+              f"rc = photo_folds.cli_main(photo_folds.run, ['--sfm', {str(tmp_path / 'sfm')!r}, '--candidate', "
+              f"'train.sh_degree=0', '--folds', '1', '2', '3', '4', '--jobs', '2', '--out', {str(tmp_path / 'o')!r}], "
+              "'photo_folds.py')\n"
+              "print(len(started))\n"
+              "sys.exit(rc)\n")
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(root)})
+    assert res.returncode == 143, res.stderr[-2000:]
+    assert res.stdout.strip() == "2"  # the two running when it came; six of the eight never started
+    assert res.stderr.strip().splitlines()[-1] == ("photo_folds.py: terminated; files are written whole or not at "
+                                                   "all: run it again")
+
+
 # ------------------------------------------------------------------------------------------------ blame
 def test_blame_names_a_planted_floater_and_its_gain_is_the_opacity_derivative() -> None:
     from dataclasses import replace

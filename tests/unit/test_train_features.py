@@ -420,6 +420,12 @@ def test_evaluating_again_scores_with_the_recorded_settings(scene_dir, tmp_path)
         {k: v for k, v in first.items() if k.startswith("iter_to_")}
     given = evaluate(out, device="cpu", settings={"fps_width": 24, "fps_height": 16}, write=False)
     assert given["fps_resolution"] == [24, 16] and given["model"] == "best"  # the rest stays as recorded
+    # a nested key is set alone: the recorded radius stays beside the given amounts
+    nested = evaluate(out, device="cpu", settings={"sharpen": {"amounts": [0.0, 0.5]}}, write=False)
+    assert nested["evaluation_settings"]["sharpen"] == {"amounts": [0.0, 0.5],
+                                                        "radius_voxels": first["evaluation_settings"]["sharpen"][
+                                                            "radius_voxels"]}
+    assert nested["sharpen_amount"] in (0.0, 0.5)
     val = evaluate(out, split="val", device="cpu")  # each split keeps its own record
     assert val["fps_resolution"] == [_cfg(scene_dir)["fps_width"], _cfg(scene_dir)["fps_height"]]
     # a new run in the folder removes every split's metrics: no earlier record is left to score it with

@@ -248,6 +248,38 @@ def test_auto_resume_starts_over_for_another_config(scene_dir: Path, tmp_path: P
         loop.train(_cfg(scene_dir, iterations=20), out, resume=True)
 
 
+def test_a_resumed_run_writes_model_best_after_a_workflow_manager_removed_the_outputs(
+        scene_dir: Path, tmp_path: Path) -> None:  # noqa: F811
+    """Snakemake removes a job's declared outputs before it reruns it (and after it fails): the best validation model
+    is kept beside the checkpoints, so a resumed run, finished or killed part-way, still writes it."""
+    from ctsplat.splat.gaussians import Gaussians
+
+    outputs = ("model.pt", "model_best.pt", "model.ply", "training.json", "config.json", "train_log.csv",
+               "per_view.csv")
+    full = tmp_path / "full"
+    loop.train(_cfg(scene_dir, keep_checkpoints=3), full)
+    best = Gaussians.load(full / "model_best.pt")
+    for name in outputs:  # a rerun of the finished job: resumed from its last checkpoint, nothing left to train
+        (full / name).unlink()
+    loop.train(_cfg(scene_dir, keep_checkpoints=3), full, resume="auto")
+    again = Gaussians.load(full / "model_best.pt")
+    assert again.meta["iteration"] == best.meta["iteration"] and torch.equal(again.means, best.means)
+
+    def stop_at_25(it: int, st) -> None:  # noqa: ANN001
+        if it == 25:
+            raise KeyboardInterrupt
+
+    cut = tmp_path / "cut"
+    with pytest.raises(KeyboardInterrupt):
+        loop.train(_cfg(scene_dir, keep_checkpoints=3), cut, callback=stop_at_25)
+    assert not (cut / "model_best.pt").exists()  # an output only once the run has ended
+    for name in outputs:
+        (cut / name).unlink(missing_ok=True)
+    loop.train(_cfg(scene_dir, keep_checkpoints=3), cut, resume="auto")
+    resumed = Gaussians.load(cut / "model_best.pt")
+    assert resumed.meta["iteration"] == best.meta["iteration"] and torch.equal(resumed.means, best.means)
+
+
 def test_auto_resume_starts_over_when_the_inputs_or_the_code_changed(tmp_path: Path, caplog,
                                                                       monkeypatch) -> None:
     """The config names its inputs by path: radiographs rendered again under the same path (a Snakemake rerun after
