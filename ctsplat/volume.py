@@ -100,7 +100,7 @@ INGEST_MARKER = "ctsplat.volume.ingest"
 def _check_ingest_target(out_path: Path) -> None:
     """Refuse an existing output file that is not an earlier ingest output (its sidecar names no ingest): a
     volume of another step (an evaluation's read-out, a phantom) or a NIfTI of someone else's would be replaced."""
-    if not (out_path.exists() or out_path.is_symlink()):
+    if out_path.is_dir() or not (out_path.exists() or out_path.is_symlink()):  # a folder: the write says so
         return
     sidecar = json_path_for(out_path)
     try:
@@ -766,10 +766,10 @@ def ingest(
     if not out_path.name.endswith((".nii.gz", ".nii")):
         raise CtsplatError(f"output {out_path} must end in .nii.gz or .nii")
     check_sidecar_target(out_path)  # before the slow part
-    _check_ingest_target(out_path)
     if not isinstance(source, SliceStack):
         _check_not_the_source(Path(source), out_path)
         _check_not_ingested(Path(source))
+    _check_ingest_target(out_path)
     cfg = merge_config("preprocessing", preprocessing, PREPROCESSING_DEFAULTS)
     check_preprocessing(cfg)
     cfg = preprocessing_in_effect(cfg)
