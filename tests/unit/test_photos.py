@@ -556,7 +556,9 @@ def test_a_benchmark_killed_mid_step_removes_its_temporary_folder(tmp_path: Path
     import sys
 
     root = Path(__file__).resolve().parents[2]
-    script = (f"import os, sys; sys.path.insert(0, {str(root / 'benchmarks')!r})\n"
+    # Ctrl-C as a terminal delivers it: a shell starts background jobs with SIGINT ignored, and Python keeps that
+    script = (f"import os, signal, sys; sys.path.insert(0, {str(root / 'benchmarks')!r})\n"
+              "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
               "from _common import cli_main\n"
               "from ctsplat.utils import atomic_dir\n"
               "def run(argv):\n"
