@@ -441,6 +441,10 @@ class Gaussians:
             payload = payload["gaussians"]
         if not isinstance(payload, dict) or payload.get("format") != "ctsplat.gaussians":
             raise CtsplatError(f"{path} is not a ctsplat Gaussian model (.pt written by Gaussians.save)")
+        if payload.get("version", _FORMAT_VERSION) != _FORMAT_VERSION:  # its tensors may mean something else
+            raise CtsplatError(f"{path} is a Gaussian model of format version {payload.get('version')!r}; this "
+                               f"ctsplat reads version {_FORMAT_VERSION}: use the ctsplat that wrote it, or train "
+                               "again")
         t, meta = payload.get("tensors"), payload.get("meta", {})
         if not isinstance(t, dict) or not isinstance(meta, dict):
             raise CtsplatError(f"{path}: the model's tensors and meta must be mappings; it is not a model written by "

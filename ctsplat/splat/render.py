@@ -1049,7 +1049,11 @@ def render_to_folder(
     dev = resolve_device(device)
     g = Gaussians.load(model_path, device=dev)
     vs = ViewSet.load(views_path)
-    scale = float(mu_scale if mu_scale is not None else g.meta.get("mu_scale_per_mm", 1.0))
+    scale = mu_scale if mu_scale is not None else g.meta.get("mu_scale_per_mm", 1.0)
+    if isinstance(scale, bool) or not isinstance(scale, int | float) or not (math.isfinite(scale) and scale > 0):
+        raise CtsplatError(f"{model_path} records mu_scale_per_mm {scale!r}, not a finite number > 0; give the "
+                           "scale to 1/mm with --mu-scale")
+    scale = float(scale)
     if compositor is None:
         compositor = str(g.meta.get("compositor", "radiative"))
     if mip is None:
@@ -1071,6 +1075,9 @@ def render_to_folder(
             images.append(img.detach().cpu().float().numpy())
     seconds = time.perf_counter() - t0
     stack = np.stack(images).astype(np.float32)
+    if not np.isfinite(stack).all():  # e.g. a huge --mu-scale overflows float32
+        raise CtsplatError(f"rendering {model_path} gave non-finite pixels (mu_scale {scale:g}); use a smaller "
+                           "--mu-scale, or check the model")
     info = {"model": str(model_path), "views": str(views_path), "compositor": compositor, "split": split,
             "mip": mip, "mu_scale": scale, "n_views": len(vs), "n_gaussians": len(g), "seconds": seconds,
             "code_version": code_version()}

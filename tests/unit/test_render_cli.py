@@ -174,3 +174,23 @@ def test_render_cli_names_a_view_set_folder_and_a_gpu_out_of_memory(tmp_path, ca
     monkeypatch.setattr(module, "render_to_folder", bug)
     with pytest.raises(RuntimeError, match="shape mismatch"):  # a bug keeps its traceback
         main(["render", str(tmp_path / "model.pt"), str(tmp_path / "views.json"), str(tmp_path / "r")])
+
+
+@pytest.mark.parametrize(("edit", "args", "needle"), [
+    (lambda p: p.update(version=99), [], "is a Gaussian model of format version 99; this ctsplat reads version 1"),
+    (lambda p: p["meta"].update(mu_scale_per_mm=-2.0), [],
+     "records mu_scale_per_mm -2.0, not a finite number > 0; give the scale to 1/mm with --mu-scale"),
+    (lambda p: None, ["--mu-scale", "1e308"], "gave non-finite pixels (mu_scale 1e+308); use a smaller --mu-scale"),
+])
+def test_render_refuses_what_it_cannot_render_right(tmp_path, capsys, edit, args, needle):
+    """A model of another format version, a recorded scale that is no scale, and a scale that overflows: one line,
+    nothing written (each rendered images of nonsense, NaN or zeros before, with exit status 0)."""
+    _setup(tmp_path)
+    payload = torch.load(tmp_path / "model.pt", weights_only=True)
+    edit(payload)
+    torch.save(payload, tmp_path / "edited.pt")
+    out = tmp_path / "out"
+    assert main(["render", str(tmp_path / "edited.pt"), str(tmp_path / "views.json"), str(out), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and "\n" not in err, err
+    assert not out.exists() and not list(tmp_path.glob(".out*"))
