@@ -272,12 +272,12 @@ def _raise_first_error(errors: Iterable[Any], prefix: Iterable[Any] = ()) -> Non
     if err.validator == "type" and isinstance(err.instance, str) and _reads_as_non_text(err.instance):
         msg += (" (the value is text: quoted in the file, or a nested value of Snakemake's --config, which arrives "
                 "as text; write it unquoted in a --configfile)")
-    elif err.validator == "type" and isinstance(err.instance, str) and _yaml_float(err.instance):
+    elif err.validator == "type" and isinstance(err.instance, str) and (as_float := _yaml_float(err.instance)):
         types = err.validator_value if isinstance(err.validator_value, list) else [err.validator_value]
-        value = float(_yaml_float(err.instance))
+        value = float(as_float)
         if "number" in types:
             msg += (f" (YAML reads a number in exponent form as text unless it has a dot and a signed exponent: "
-                    f"write {_yaml_float(err.instance)})")
+                    f"write {as_float})")
         elif "integer" in types and value.is_integer():
             msg += f" (YAML reads a number in exponent form as text: write {int(value)})"
     raise CtsplatError(f"invalid config at {where}: {msg}")
@@ -811,13 +811,19 @@ def prepare_config(config: Mapping[str, Any], base_dir: str | os.PathLike[str] =
             f"invalid config at baselines.geometry: {cfg['baselines']['geometry']!r} is a C-arm orbit (orbit: carm) "
             "with no validation views to choose the baselines' parameters on; name a circular or sphere geometry"
         )
-    from ctsplat.geometry.orbits import check_orbit_settings, classical_methods, has_held_out_views
+    from ctsplat.geometry.orbits import (
+        check_held_out_views,
+        check_orbit_settings,
+        classical_methods,
+        has_held_out_views,
+    )
 
     for geo, values in cfg["radiographs"].items():
         user_split = ((config.get("radiographs") or {}).get(geo) or {}).get("split")
         check_split(values["split"], f"radiographs.{geo}.split",
                     given=user_split if isinstance(user_split, Mapping) else None)
         check_orbit_settings(values, f"invalid config at radiographs.{geo}")
+        check_held_out_views(values, f"invalid config at radiographs.{geo}")
     check_grid_exclude(cfg)
     sfm_settings = cfg["sfm"]["settings"]
     if float(sfm_settings["percentile_low"]) >= float(sfm_settings["percentile_high"]):

@@ -488,6 +488,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     dev = resolve_device(device)
     scene = load_scene(cfg)
     check_validation_choices(scene, cfg, model)
+    pose_fields, refined = _model_poses(run_dir, trained, model)  # before any rendering: it may refuse the run
     g = Gaussians.load(model_path, device=dev)
     views = scene.split(split)
     if split == "test" and scene.info.get("test_views_from") == "val":
@@ -509,7 +510,6 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
         raw = volume_metrics(vol_raw, scene.volume.data, r2=True, data_range=scene.volume.metric_range)
         sharpening.update({f"{k}_unsharpened": v for k, v in raw.items()})
     m3 = volume_metrics(vol_model, scene.volume.data, r2=True, data_range=scene.volume.metric_range)
-    pose_fields, refined = _model_poses(run_dir, trained, model)
     m3.update(_gauge_aligned_metrics(refined, g, scene, rk, sharpening))
     log_path = run_dir / "train_log.csv"
     targets = dict(milestones) if milestones else schema_defaults("analysis")["milestones"]
@@ -570,7 +570,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     }
     if not write:
         return result
-    metrics_path = run_dir / ("metrics.json" if split == "test" else f"metrics_{split}.json")
+    metrics_path = _metrics_path(run_dir, split)
     # the metrics go last: an evaluation that fails part-way leaves no metrics beside outputs they do not describe
     metrics_path.unlink(missing_ok=True)
     per_view = CsvLog(run_dir / f"per_view_{split}.csv", PER_VIEW_COLUMNS)
@@ -687,10 +687,15 @@ def check_validation_choices(scene: Any, cfg: dict[str, Any], model: str | None 
                            "with a validation split (n_val or split.val) or set model_selection: last")
 
 
+def _metrics_path(run_dir: Path, split: str) -> Path:
+    """Where an evaluation of ``split`` writes its metrics: ``metrics.json`` (test), else ``metrics_{split}.json``."""
+    return run_dir / ("metrics.json" if split == "test" else f"metrics_{split}.json")
+
+
 def _recorded_evaluation(run_dir: Path, split: str, keys: tuple[str, ...]) -> dict[str, Any]:
     """``evaluation_settings`` (those of ``keys``) and ``evaluation_milestones`` of the split's earlier metrics
     file, each a dict; an empty dict when there is none or it records neither."""
-    path = run_dir / ("metrics.json" if split == "test" else f"metrics_{split}.json")
+    path = _metrics_path(run_dir, split)
     if not path.is_file():
         return {}
     earlier = read_json_object(path, what="earlier metrics", fix="remove it and evaluate again")

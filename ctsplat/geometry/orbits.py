@@ -33,6 +33,7 @@ from ctsplat.utils import CtsplatError
 
 __all__ = [
     "check_orbit_settings",
+    "check_held_out_views",
     "classical_methods",
     "has_held_out_views",
     "arc_azimuths",
@@ -99,13 +100,28 @@ def check_orbit_settings(cfg: Mapping[str, Any], where: str = "radiographs") -> 
         if isinstance(dso, int | float) and isinstance(dsd, int | float) and 0 < dsd <= dso:
             raise CtsplatError(f"{where}: dsd{unit} ({dsd:g}) must be larger than dso{unit} ({dso:g}): the detector "
                                "lies beyond the isocentre")
-    if orbit in ("circular", "sphere") and isinstance(cfg.get("n_views"), int) and cfg["n_views"] > 0:
-        _check_held_out_views(cfg, orbit, where)
 
 
-def _check_held_out_views(cfg: Mapping[str, Any], orbit: str, where: str) -> None:
-    """The orbit's split of its views, as the projector makes it (the split does not depend on the volume): a split
-    left empty is reported here, before any step runs."""
+def check_held_out_views(cfg: Mapping[str, Any], where: str = "radiographs") -> None:
+    """The split of a circular or sphere orbit's views, made as the projector makes it (it does not depend on the
+    volume), so that the workflow reports a split left empty before any step runs; the projector, which builds the
+    orbit anyway, needs no separate check.
+
+    Parameters
+    ----------
+    cfg : mapping
+        One geometry's settings with the defaults filled.
+    where : str
+        Key path shown in the error.
+
+    Raises
+    ------
+    CtsplatError
+        For a held-out split with a positive fraction that would receive no view.
+    """
+    orbit = cfg.get("orbit")
+    if orbit not in ("circular", "sphere") or not isinstance(cfg.get("n_views"), int) or cfg["n_views"] <= 0:
+        return
     kwargs: dict[str, Any] = {"split_fractions": cfg.get("split") or {"train": 1.0}, "seed": 0}
     try:
         if orbit == "circular":

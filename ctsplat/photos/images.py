@@ -96,8 +96,8 @@ def unread_entries(folder: str | Path) -> list[str]:
         return (not p.name.startswith(".") and p.is_dir()
                 and any(q.suffix.lower() in IMAGE_SUFFIXES and q.is_file() for q in p.iterdir()))
 
-    return sorted([p.name for p in Path(folder).iterdir() if unread(p)]
-                  + [f"{p.name}/" for p in Path(folder).iterdir() if holds_photos(p)])
+    entries = list(Path(folder).iterdir())
+    return sorted([p.name for p in entries if unread(p)] + [f"{p.name}/" for p in entries if holds_photos(p)])
 
 
 def check_photo_count(folder: str | Path, n_photos: int, min_registered: int) -> None:
