@@ -1,5 +1,5 @@
-"""What the training benchmarks share: the one-line error exit, the shared train settings, cache folders and the
-time to a quality level.
+"""What the benchmarks share: the one-line error exit, tables written whole, the shared train settings, cache
+folders and the time to a quality level.
 
 Imported by the scripts in this folder (Python puts a script's folder first on ``sys.path``).
 """
@@ -31,6 +31,23 @@ def cli_main(run: Callable[[list[str] | None], int], argv: list[str] | None, scr
         how = "terminated" if isinstance(exc, Terminated) else "interrupted"
         print(f"{script}: {how}; files are written whole or not at all: run it again", file=sys.stderr)
         return 143 if isinstance(exc, Terminated) else 130
+
+
+def write_csv(table: pd.DataFrame, path: str | Path, **kwargs: Any) -> Path:
+    """Write ``table`` to ``path`` whole or not at all (:func:`ctsplat.utils.atomic_path`): an interrupted run
+    leaves the earlier table, never a truncated one. ``kwargs`` go to :meth:`pandas.DataFrame.to_csv` (``index``
+    False and Unix line ends unless given).
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    from ctsplat.utils import atomic_path
+
+    with atomic_path(path) as tmp:
+        table.to_csv(tmp, **{"index": False, "lineterminator": "\n", **kwargs})
+    return Path(path)
 
 
 def shared_train_config(sets: list[str], *, own_keys: Mapping[str, str | None], defaults: Mapping[str, Any],

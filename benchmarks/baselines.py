@@ -31,6 +31,7 @@ from pathlib import Path
 import pandas as pd
 import torch
 import yaml
+from _common import cli_main, write_csv
 
 from ctsplat.baselines import run_baselines
 from ctsplat.formats.volume import load_volume
@@ -52,7 +53,7 @@ def geometry_config(name: str, grid: int, side_mm: float, n_views: int, arc_deg:
             "dso_mm": 2.5 * side_mm, "dsd_mm": 3.5 * side_mm, "pixel_spacing_mm": 2.0 * side_mm / det}
 
 
-def main(argv: list[str] | None = None) -> int:
+def run(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--source", default=str(ROOT.parent / "shared" / "data" / "ct0051_head"),
                     help="a DICOM folder / NIfTI / TIFF stack, or 'phantom' (default: %(default)s)")
@@ -122,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     table.insert(0, "volume", f"{name}@{args.grid}^3")
     args.out = args.out or str(Path(args.work) / f"baselines_{name}_{args.grid}{tag}.csv")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    table.to_csv(args.out, index=False, lineterminator="\n")
+    write_csv(table, args.out)
     print()
     show = table.assign(chosen=[json.dumps({k: v for k, v in json.loads(p).items() if k != "detector_binning"})
                                 for p in table["params"]])
@@ -131,6 +132,11 @@ def main(argv: list[str] | None = None) -> int:
     print(show[cols].to_string(index=False, float_format=lambda x: f"{x:.3f}"))
     print(f"-> {args.out}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """:func:`run` with the benchmarks' one-line errors and clean Ctrl-C / SIGTERM exits (:func:`_common.cli_main`)."""
+    return cli_main(run, argv, "baselines.py")
 
 
 if __name__ == "__main__":

@@ -41,7 +41,7 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from _common import cli_main, data_cache, shared_train_config  # noqa: E402
+from _common import cli_main, data_cache, shared_train_config, write_csv  # noqa: E402
 
 #: train overrides of each variant (applied on top of the shared config; the baseline has none)
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -164,9 +164,9 @@ def run(argv: list[str] | None = None) -> int:
                 "densify_pruned": trained.get("densify_pruned"), "config_hash": res["config_hash"],
                 "settings": " ".join(args.set),
             })
-            pd.DataFrame(rows).to_csv(out / "features.csv", index=False, lineterminator="\n")
+            write_csv(pd.DataFrame(rows), out / "features.csv")
     table = pd.DataFrame(rows)
-    table.to_csv(out / "features.csv", index=False, lineterminator="\n")
+    write_csv(table, out / "features.csv")
     with pd.option_context("display.width", 200, "display.max_columns", 20, "display.float_format", "{:.3f}".format):
         print(table[["views", "variant", "psnr3d", "ssim3d", "psnr2d_test", "val_psnr2d", "val_delta_db",
                      "wall_time_s", "n_gaussians"]].to_string(index=False))

@@ -41,6 +41,8 @@ OUT = HERE / "out"
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
 
+from _common import cli_main  # noqa: E402
+
 
 def _time(step, reps: int, budget_s: float) -> tuple[float, int]:
     import torch
@@ -132,7 +134,7 @@ def train_row(data: str, size: int) -> dict | None:
             "psnr3d": gs["psnr3d_r2"], "script_wall_s": round(wall, 1)}
 
 
-def main(argv: list[str] | None = None) -> int:
+def run(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--reps", type=int, default=20, help="minimum timed repetitions per row")
     p.add_argument("--budget-s", type=float, default=3.0, help="keep repeating a row for this long (<= 10x reps)")
@@ -174,6 +176,11 @@ def main(argv: list[str] | None = None) -> int:
             w.writerow({"gpu": name, **r})
     print(f"wrote {OUT / 'gpu.csv'}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """:func:`run` with the benchmarks' one-line errors and clean Ctrl-C / SIGTERM exits (:func:`_common.cli_main`)."""
+    return cli_main(run, argv, "gpu.py")
 
 
 if __name__ == "__main__":

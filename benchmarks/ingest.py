@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import pandas as pd
+from _common import cli_main, write_csv
 
 from ctsplat.formats.sources import read_dicom_series
 from ctsplat.volume import ingest, resample_stack
@@ -46,10 +47,10 @@ def bench(name: str, folder: Path, cfg: dict, repeats: int) -> list[dict]:
     return rows
 
 
-def main() -> int:
+def run(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=2)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be >= 1, got {args.repeats}")
     head, j2k = DATA / "ct0051_head", DATA / "totalseg_abdomen_j2k"
@@ -74,7 +75,7 @@ def main() -> int:
     df = pd.DataFrame(rows)
     out = ROOT / "benchmarks" / "out"
     out.mkdir(parents=True, exist_ok=True)
-    df.to_csv(out / "ingest.csv", index=False, lineterminator="\n")
+    write_csv(df, out / "ingest.csv")
     summary = df.groupby(["series", "target", "source_shape", "output_shape"], sort=False)[
         ["read_s", "resample_s", "ingest_from_stack_s", "total_s"]
     ].median()
@@ -82,6 +83,11 @@ def main() -> int:
     print(summary.round(2).to_string())
     print(f"wrote {out / 'ingest.csv'}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """:func:`run` with the benchmarks' one-line errors and clean Ctrl-C / SIGTERM exits (:func:`_common.cli_main`)."""
+    return cli_main(run, argv, "ingest.py")
 
 
 if __name__ == "__main__":

@@ -46,7 +46,7 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from _common import cli_main, data_cache, shared_train_config  # noqa: E402
+from _common import cli_main, data_cache, shared_train_config, write_csv  # noqa: E402
 
 POSES = ("gt", "perturbed", "perturbed+refine", "colmap", "colmap+refine")
 CONE = {"dso_mm": 600.0, "dsd_mm": 1000.0}
@@ -191,7 +191,7 @@ def run(argv: list[str] | None = None) -> int:
                 "wall_time_s": trained["wall_time_s"], "total_time_s": round(time.perf_counter() - t0, 3),
                 "n_gaussians": res["n_gaussians"], "config_hash": res["config_hash"], "settings": " ".join(args.set),
             })
-            pd.DataFrame(rows).to_csv(out / "poses.csv", index=False)
+            write_csv(pd.DataFrame(rows), out / "poses.csv")
     df = pd.DataFrame(rows)
     with pd.option_context("display.width", 200, "display.max_columns", 30):
         print(df.drop(columns=["config_hash", "settings"]).round(3).to_string(index=False))

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -21,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
+from _common import cli_main, write_csv
 
 from ctsplat.geometry import ConeCamera, ParallelCamera, camera_rays, pose_from_angles, sphere_orbit
 from ctsplat.phantom import rasterize, shepp_logan_ellipsoids
@@ -55,7 +57,7 @@ def n_samples(camera, Rs, ts, affine, vol, step_voxels: float) -> int:
     return total
 
 
-def main() -> None:
+def run(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--angles", type=int, default=180)
@@ -63,7 +65,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--skip-trilinear", action="store_true", help="do not time the trilinear path on the parallel set")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     for name in ("size", "angles", "cone_views", "threads"):
         if getattr(args, name) < (8 if name == "size" else 1):
             ap.error(f"--{name.replace('_', '-')} must be >= {8 if name == 'size' else 1}, got {getattr(args, name)}")
@@ -127,13 +129,19 @@ def main() -> None:
 
     df = pd.DataFrame(rows)
     OUT.mkdir(parents=True, exist_ok=True)
-    df.to_csv(OUT / "projector.csv", index=False, lineterminator="\n")
+    write_csv(df, OUT / "projector.csv")
     print(f"torch threads: {torch.get_num_threads()}, device: {args.device}, cpu count: {os.cpu_count()}, "
           f"load average: {os.getloadavg()[0]:.1f}")
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         print(df.to_string(index=False, float_format=lambda x: f"{x:.4g}" if not math.isnan(x) else ""))
     print(f"-> {OUT / 'projector.csv'}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """:func:`run` with the benchmarks' one-line errors and clean Ctrl-C / SIGTERM exits (:func:`_common.cli_main`)."""
+    return cli_main(run, argv, "projector.py")
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

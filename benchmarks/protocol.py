@@ -57,7 +57,7 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from _common import cli_main, shared_train_config, time_to  # noqa: E402
+from _common import cli_main, shared_train_config, time_to, write_csv  # noqa: E402
 
 DEFAULT_VOLUMES = ["phantom", "ct0051_head", "totalseg_abdomen_j2k"]
 N_VAL, N_TEST = 10, 100
@@ -342,7 +342,7 @@ def run(argv: list[str] | None = None) -> int:
             table["_v"] = table["volume"].map({v: i for i, v in enumerate(args.volumes)})
             table = table.sort_values(["_v", "views"], kind="stable").drop(columns="_v")
         table = table[[c for c in TABLE_COLUMNS if c in table] + [c for c in table if c not in TABLE_COLUMNS]]
-        table.to_csv(out / "protocol.csv", index=False, lineterminator="\n")
+        write_csv(table, out / "protocol.csv")
         (out / "protocol.md").write_text(markdown(table))
         return table
 

@@ -29,7 +29,7 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from _common import cli_main  # noqa: E402
+from _common import cli_main, write_csv  # noqa: E402
 
 COLUMNS = ["volume", "views", "method", "suite", "psnr3d_whole", "psnr3d_object_box", "psnr3d_outside_box",
            "psnr3d_object", "object_box_fraction", "object_fraction"]
@@ -109,7 +109,7 @@ def run(argv: list[str] | None = None) -> int:
         rows.append({"volume": name, "views": n, "method": method, "suite": suite,
                      **region_scores(test, refs[ref_path], threshold=args.threshold)})
     table = pd.DataFrame(rows, columns=COLUMNS).sort_values(["volume", "views", "method", "suite"], kind="stable")
-    table.to_csv(out / "regions.csv", index=False, float_format="%.6g")
+    write_csv(table, out / "regions.csv", float_format="%.6g")
     print(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     return 0
 

@@ -32,7 +32,7 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from _common import cli_main  # noqa: E402
+from _common import cli_main, write_csv  # noqa: E402
 from protocol import PROTOCOL_TRAIN, saved_volume  # noqa: E402
 from protocol_regions import region_scores  # noqa: E402
 
@@ -136,7 +136,7 @@ def run(argv: list[str] | None = None) -> int:
                                                                    radius_voxels=args.radius_voxels,
                                                                    threshold=args.threshold, device=args.device)]
         table = pd.DataFrame(rows, columns=COLUMNS)
-        table.to_csv(out / "sharpened.csv", index=False)
+        write_csv(table, out / "sharpened.csv")
         tables.append(table)
     everything = pd.concat(tables, ignore_index=True)
     print(everything.drop(columns=["params"]).to_string(index=False, float_format=lambda v: f"{v:.4g}"))

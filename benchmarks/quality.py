@@ -34,7 +34,7 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from _common import cli_main, data_cache, shared_train_config, time_to  # noqa: E402
+from _common import cli_main, data_cache, shared_train_config, time_to, write_csv  # noqa: E402
 
 
 def prepare(data: Path, cache: Path, n_views: int, n_val: int, n_test: int, detector: int) -> tuple[Path, Path]:
@@ -154,10 +154,10 @@ def run(argv: list[str] | None = None) -> int:
                 "uses_reference_volume": res["uses_reference_volume"], "config_hash": res["config_hash"],
                 "settings": " ".join(args.set),
             })
-            pd.DataFrame(rows).to_csv(out / "quality.csv", index=False, lineterminator="\n")
-            pd.concat(curves).to_csv(out / "quality_curves.csv", index=False, lineterminator="\n")
+            write_csv(pd.DataFrame(rows), out / "quality.csv")
+            write_csv(pd.concat(curves), out / "quality_curves.csv")
     table = pd.DataFrame(rows)
-    table.to_csv(out / "quality.csv", index=False, lineterminator="\n")
+    write_csv(table, out / "quality.csv")
     with pd.option_context("display.width", 200, "display.max_columns", 20, "display.float_format", "{:.3f}".format):
         print(table[[c for c in ("views", "method", "compositor", "psnr3d", "ssim3d", "margin_vs_best_baseline_db",
                                  "psnr2d_test", "wall_time_s", "time_to_beat_baseline_s", "time_to_final_quality_s",

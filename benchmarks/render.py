@@ -27,6 +27,8 @@ import sys
 import time
 from pathlib import Path
 
+from _common import cli_main, write_csv
+
 OUT = Path(__file__).resolve().parent / "out"
 FOV_MM = 200.0
 
@@ -133,7 +135,7 @@ def _voxelize_arg(text: str) -> tuple[int, int]:
     return n, size
 
 
-def main(argv: list[str] | None = None) -> int:
+def run(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--one"]:  # child process: one configuration, JSON on stdout
         q = argparse.ArgumentParser()
@@ -204,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     df = pd.DataFrame(rows)
     OUT.mkdir(parents=True, exist_ok=True)
     csv = OUT / ("render_voxelize.csv" if a.only_voxelize else "render.csv")
-    df.to_csv(csv, index=False, lineterminator="\n")
+    write_csv(df, csv)
     print()
     cols = ["device", "backend", "mode", "n_gaussians", "width", "height", "ms_median", "ms_min", "cpu_ms_median",
             "fps", "peak_mem_mb", "loadavg_1min"]
@@ -235,6 +237,11 @@ def main(argv: list[str] | None = None) -> int:
               f"CPU {tr['cpu_ms_median']:.1f} ms (load {tr['loadavg_1min']:.1f})")
     print(f"wrote {csv}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """:func:`run` with the benchmarks' one-line errors and clean Ctrl-C / SIGTERM exits (:func:`_common.cli_main`)."""
+    return cli_main(run, argv, "render.py")
 
 
 if __name__ == "__main__":

@@ -23,11 +23,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from _common import cli_main, write_csv
 
 from ctsplat.utils import CtsplatError
 
@@ -182,7 +184,7 @@ def sweep_overrides(sets: list[str]) -> dict:
     return extra
 
 
-def main() -> None:
+def run(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--only", help="volume name (head, phantom_beads, phantom_smooth, beads_in_air) or label substring")
     ap.add_argument("--quick", action="store_true", help="first matching configuration only")
@@ -192,7 +194,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (rendering); COLMAP runs on one")
     ap.add_argument("--seed", type=int, default=0, help="orbit jitter + COLMAP seed (labels get a -s<seed> suffix)")
     ap.add_argument("--csv", default=str(OUT / "sfm.csv"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
 
     import torch
 
@@ -260,14 +262,20 @@ def main() -> None:
         old = pd.read_csv(args.csv)
         keep = ~old.set_index(["volume", "label"]).index.isin(df.set_index(["volume", "label"]).index)
         df = pd.concat([old[keep], df], ignore_index=True)
-    df.to_csv(args.csv, index=False, lineterminator="\n")
+    write_csv(df, args.csv)
     with pd.option_context("display.width", 250, "display.max_columns", 30):
         cols = ["volume", "label", "n_views", "detector_px", "dso_mm", "orbit_jitter_deg", "registration_rate",
                 "models_found", "model_sizes", "rot_err_deg_median", "rot_err_deg_p90", "unfused_rot_err_deg_median",
                 "design_rot_err_deg_median", "centre_err_mm_median", "ok", "seconds"]
         print(df[[c for c in cols if c in df]].round(3).to_string(index=False))
     _ = np  # numpy kept for interactive use
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """:func:`run` with the benchmarks' one-line errors and clean Ctrl-C / SIGTERM exits (:func:`_common.cli_main`)."""
+    return cli_main(run, argv, "sfm.py")
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -33,6 +33,8 @@ import sys
 import time
 from pathlib import Path
 
+from _common import cli_main
+
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 OUT = Path(__file__).resolve().parent / "out"
@@ -101,7 +103,7 @@ def _steps(n: int, size: int, grid: int) -> dict:
             f"voxelize {n // 1000}k {grid}³": vox, f"voxelize {n // 1000}k region {hi - lo}³": vox_region}
 
 
-def main(argv: list[str] | None = None) -> int:
+def run(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--threads", default="1,2", help="comma-separated thread counts (default 1,2)")
     p.add_argument("--reps", type=int, default=15, help="timed repetitions per configuration and thread count")
@@ -152,6 +154,11 @@ def main(argv: list[str] | None = None) -> int:
         w.writerows(rows)
     print(f"load average {os.getloadavg()[0]:.2f} at the end; wrote {OUT / 'threads.csv'}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """:func:`run` with the benchmarks' one-line errors and clean Ctrl-C / SIGTERM exits (:func:`_common.cli_main`)."""
+    return cli_main(run, argv, "threads.py")
 
 
 if __name__ == "__main__":

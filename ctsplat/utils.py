@@ -45,6 +45,7 @@ __all__ = [
     "read_json_object",
     "first_nonfinite",
     "json_safe",
+    "CODE_PATHS",
     "code_version",
     "compute_platform",
     "config_hash",
@@ -579,33 +580,54 @@ def json_safe(obj: Any) -> Any:
     return obj
 
 
-def code_version() -> str:
+#: What a run's code version covers: the library and what wires it (rules compute parameters, scripts call the
+#: library).
+CODE_PATHS = ("ctsplat", "workflow", "scripts", "Snakefile")
+
+
+def code_version(root: str | Path | None = None) -> str:
     """The ``ctsplat`` version, plus the git commit when run from a checkout.
+
+    Parameters
+    ----------
+    root : str or Path, optional
+        The checkout (default: the one this module lies in).
 
     Returns
     -------
     str
-        ``"<version>+g<12-hex commit>"`` with ``-dirty`` appended when files under ``ctsplat/``, ``workflow/``,
-        ``scripts/`` or the ``Snakefile`` differ from the commit (or are new); the bare version when git or the
-        checkout is unavailable.
+        ``"<version>+g<12-hex commit>"``; when files under :data:`CODE_PATHS` differ from the commit (or are new),
+        ``-dirty-<8 hex>`` follows, a SHA-256 of the differences and the new files' contents, so that two edits of
+        one commit are two versions (a checkpoint resumes only under its own code). The bare version when git or
+        the checkout is unavailable.
+
+    Examples
+    --------
+    >>> code_version("/nonexistent").count("+g")
+    0
     """
     from ctsplat import __version__
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(root) if root is not None else Path(__file__).resolve().parent.parent
+
+    def git(*args: str) -> bytes:
+        return subprocess.run(["git", "-C", str(root), *args], capture_output=True, timeout=10, check=True).stdout
+
     try:
-        sha = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"],
-            capture_output=True, text=True, timeout=5, check=True,
-        ).stdout.strip()
-        # the library and what wires it (rules compute parameters, scripts call the library), new files included
-        dirty = subprocess.run(
-            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=normal", "--", "ctsplat",
-             "workflow", "scripts", "Snakefile"],
-            capture_output=True, text=True, timeout=5, check=True,
-        ).stdout.strip()
-        return f"{__version__}+g{sha}{'-dirty' if dirty else ''}"
+        sha = git("rev-parse", "--short=12", "HEAD").decode().strip()
+        new = git("ls-files", "--others", "--exclude-standard", "-z", "--", *CODE_PATHS).split(b"\0")
+        diff = git("diff", "--binary", "HEAD", "--", *CODE_PATHS)
     except (OSError, subprocess.SubprocessError):
         return __version__
+    new = sorted(n for n in new if n)
+    if not diff and not new:
+        return f"{__version__}+g{sha}"
+    h = hashlib.sha256(diff)
+    for name in new:
+        h.update(b"\0" + name + b"\0")
+        with contextlib.suppress(OSError):  # a file removed meanwhile counts by its name
+            h.update((root / name.decode(errors="surrogateescape")).read_bytes())
+    return f"{__version__}+g{sha}-dirty-{h.hexdigest()[:8]}"
 
 
 def compute_platform(device: Any = "cpu") -> dict[str, Any]:

@@ -110,3 +110,41 @@ def test_benchmark_options_are_checked(tmp_path, script, args, needle):
     assert res.returncode == 2, res.stderr
     assert needle in last_line(res)
     assert list(tmp_path.iterdir()) == []
+
+
+BENCHMARKS = sorted(p.name for p in (ROOT / "benchmarks").glob("*.py") if not p.name.startswith("_"))
+
+
+@pytest.mark.parametrize("script", BENCHMARKS)
+def test_every_benchmark_exits_through_the_shared_clean_exit(script):
+    """A benchmark killed by SIGTERM (a cluster's time limit) or Ctrl-C must remove its temporary files and say so
+    in one line; each script's entry point goes through ``_common.cli_main``, which does that (the test below)."""
+    import ast
+
+    tree = ast.parse((ROOT / "benchmarks" / script).read_text())
+    calls = {n.func.id for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
+    assert "cli_main" in calls, f"{script} does not call _common.cli_main"
+
+
+def test_a_terminated_benchmark_leaves_no_table_and_says_so(tmp_path, phantom_dicom):
+    """SIGTERM while the baselines run: exit 143, one line, no table, no temporary file in the cache."""
+    import signal
+    import time
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([sys.executable, str(ROOT / "benchmarks" / "baselines.py"), "--source", str(phantom_dicom),
+                             "--grid", "16", "--views", "40", "--sart-iterations", "200", "--work",
+                             str(tmp_path / "work"), "--out", str(tmp_path / "b.csv")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    assert proc.stdout is not None
+    line = ""
+    while not line.startswith("volume "):  # ingested: the baselines run next
+        line = proc.stdout.readline()
+        assert line or proc.poll() is None, proc.communicate()
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("baselines.py: terminated;"), err
+    assert not (tmp_path / "b.csv").exists()
+    assert [p for p in (tmp_path / "work").rglob("*") if ".tmp" in p.name] == []

@@ -311,6 +311,36 @@ def test_auto_resume_starts_over_when_the_inputs_or_the_code_changed(tmp_path: P
         loop.train(cfg, out, resume=True)
 
 
+def test_code_version_tells_two_edits_of_one_commit_apart(tmp_path: Path) -> None:
+    """A checkpoint resumes only under its own code version: an edit in a tree that already differs from its
+    commit must give another version, and files outside the code (results) must not."""
+    from ctsplat.utils import code_version
+
+    def git(*args: str) -> None:
+        subprocess.run(["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t", *args],
+                       check=True, capture_output=True)
+
+    (tmp_path / "ctsplat").mkdir()
+    (tmp_path / "ctsplat" / "a.py").write_text("x = 1\n")
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-q", "-m", "c")
+    clean = code_version(tmp_path)
+    assert "+g" in clean and "dirty" not in clean
+    (tmp_path / "results.csv").write_text("not code\n")
+    assert code_version(tmp_path) == clean
+    (tmp_path / "ctsplat" / "a.py").write_text("x = 2\n")
+    first = code_version(tmp_path)
+    (tmp_path / "ctsplat" / "a.py").write_text("x = 3\n")
+    second = code_version(tmp_path)
+    assert first.startswith(clean + "-dirty-") and second.startswith(clean + "-dirty-") and first != second
+    assert code_version(tmp_path) == second  # the same tree, the same version
+    (tmp_path / "ctsplat" / "new.py").write_text("y = 1\n")
+    third = code_version(tmp_path)
+    (tmp_path / "ctsplat" / "new.py").write_text("y = 2\n")
+    assert len({second, third, code_version(tmp_path)}) == 3  # a new file counts by its content
+
+
 # ------------------------------------------------------------------------------------------ lock
 HOLD = """
 import sys, time
