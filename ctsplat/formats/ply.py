@@ -58,8 +58,10 @@ def write_ply_vertices(
         Body encoding. ASCII writes ``float`` values with six decimals (``%.6f``), ``double`` with 17
         significant digits and integer types as integers (truncated).
     comments : sequence of str
-        ``comment`` lines of the header.
+        ``comment`` lines of the header, written after ``element vertex N`` (single lines).
     """
+    if any("\n" in c or "\r" in c for c in comments):
+        raise CtsplatError("PLY comments must be single lines")
     if fmt not in _FORMATS:
         raise CtsplatError(f"unknown PLY format {fmt!r}; expected one of {', '.join(_FORMATS)}")
     cols = []
@@ -72,7 +74,9 @@ def write_ply_vertices(
     for name, _, v in cols:
         if len(v) != n:
             raise CtsplatError(f"PLY property {name!r} has {len(v)} values, expected {n} (one per vertex)")
-    header = ["ply", f"format {fmt} 1.0", *(f"comment {c}" for c in comments), f"element vertex {n}"]
+    # the comments follow the element line: the reference 3DGS viewer (SIBR) reads the vertex count from the
+    # header's third line
+    header = ["ply", f"format {fmt} 1.0", f"element vertex {n}", *(f"comment {c}" for c in comments)]
     header += [f"property {ply_type} {name}" for name, ply_type, _ in cols]
     header.append("end_header")
     head = ("\n".join(header) + "\n").encode("ascii")

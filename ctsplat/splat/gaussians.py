@@ -466,10 +466,14 @@ class Gaussians:
 
         Properties: ``x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3 density`` with the 3DGS
         encodings (``f_dc = (colour - 0.5) / C0``, ``opacity`` = logit, ``scale`` = log, ``rot`` = wxyz) plus the
-        radiative ``density`` ρ (activated) where it renders. Grey colours are replicated to RGB; a model
-        without colours is shown grey with brightness ``ρ / max ρ``; a model without opacity gets opacity
-        ``1 - exp(-ρ·2 s̄)`` clamped to [0.01, 0.99] (viewer display only). Read back with
-        :func:`ctsplat.formats.ply.read_ply_vertices`.
+        radiative ``density`` ρ (activated, in the normalised units the model was trained in: × ``mu_scale_per_mm``,
+        named in a header comment when ``meta`` records it, gives 1/mm) where it renders. Grey colours are
+        replicated to RGB; a model without colours is shown grey with brightness ``ρ / max ρ``; a model without
+        opacity gets opacity ``1 - exp(-ρ·2 s̄)`` clamped to [0.01, 0.99] (viewer display only). A model that
+        renders with Mip-Splatting's 3D filter (``filter_3d_var``, ``meta["mip"]``) is written with the filter
+        fused in, as Mip-Splatting exports it: variances ``s² + v`` and opacity and density × ``sqrt(Π s² / (s² +
+        v))`` (:func:`ctsplat.splat.render.render`'s filtered kernel), so that a viewer without the filter draws the
+        field the model renders. Read back with :func:`ctsplat.formats.ply.read_ply_vertices`.
 
         Parameters
         ----------
@@ -479,12 +483,25 @@ class Gaussians:
             Write the radiative ``density`` column. A model trained with the alpha compositor renders opacity and
             colour only, so its densities mean nothing to a reader: False leaves them out (the plain 3DGS layout).
             Default: unless ``meta["compositor"]`` is ``"alpha"``.
+
+        References
+        ----------
+        Yu, Z., Chen, A., Huang, B., Sattler, T., Geiger, A. (2024). Mip-Splatting: alias-free 3D Gaussian
+        splatting. CVPR (the 3D smoothing filter and its fused export).
         """
         if density is None:
             density = self.meta.get("compositor") != "alpha"
         n = len(self)
+        fused = self.filter_3d_var is not None and bool(self.meta.get("mip", True))
         with torch.no_grad():
-            dens = self.densities.detach().cpu().double()
+            log_scales = self.log_scales.detach().cpu().double()
+            comp = torch.ones(n, dtype=torch.float64)
+            if fused:
+                s2 = torch.exp(2 * log_scales)
+                s2f = s2 + self.filter_3d_var.detach().cpu().double().reshape(-1, 1)
+                comp = torch.sqrt(torch.prod(s2 / s2f, dim=-1))
+                log_scales = 0.5 * torch.log(s2f)
+            dens = self.densities.detach().cpu().double() * comp
             if self.colors is not None:
                 col = self.colors.detach().cpu().double()
                 if col.shape[1] not in (1, 3):
@@ -495,9 +512,10 @@ class Gaussians:
                 col = (dens / dens.max().clamp_min(1e-12))[:, None].expand(n, 3) if n else torch.zeros(0, 3)
             f_dc = (col - 0.5) / SH_C0
             if self.opacity_raw is not None:
-                op_raw = self.opacity_raw.detach().cpu().double()
+                op_raw = torch.logit(torch.sigmoid(self.opacity_raw.detach().cpu().double()) * comp) if fused \
+                    else self.opacity_raw.detach().cpu().double()
             else:
-                thick = 2 * torch.exp(self.log_scales.detach().cpu().double()).mean(-1)
+                thick = 2 * torch.exp(log_scales).mean(-1)
                 op = (1 - torch.exp(-dens * thick)).clamp(0.01, 0.99)
                 op_raw = torch.logit(op)
             rest = torch.zeros(n, 0, dtype=torch.float64)
@@ -514,10 +532,15 @@ class Gaussians:
                 *[(f"f_dc_{i}", f_dc[:, i]) for i in range(3)],
                 *[(f"f_rest_{i}", rest[:, i]) for i in range(rest.shape[1])],
                 ("opacity", op_raw),
-                *[(f"scale_{i}", self.log_scales[:, i]) for i in range(3)],
+                *[(f"scale_{i}", log_scales[:, i]) for i in range(3)],
                 *[(f"rot_{i}", q[:, i]) for i in range(4)],
                 *([("density", dens)] if density else []),
             ]
             cols = [(name, "float", v.detach().cpu().numpy()) for name, v in cols]
-        layout = "3DGS layout + radiative density" if density else "3DGS layout"
-        write_ply_vertices(path, cols, fmt="binary_little_endian", comments=[f"ctsplat Gaussians ({layout})"])
+        comments = [f"ctsplat Gaussians ({'3DGS layout + radiative density' if density else '3DGS layout'})"]
+        if fused:
+            comments.append("Mip-Splatting 3D filter fused in (scales, opacity and density include it)")
+        scale = self.meta.get("mu_scale_per_mm")
+        if density and isinstance(scale, int | float) and math.isfinite(scale) and scale > 0:
+            comments.append(f"density is normalised: x mu_scale_per_mm {float(scale)!r} = attenuation in 1/mm")
+        write_ply_vertices(path, cols, fmt="binary_little_endian", comments=comments)
