@@ -64,6 +64,7 @@ from ctsplat.utils import CtsplatError, LoggedWarning
 
 __all__ = [
     "NIFTI_SUFFIXES",
+    "NIFTI_UNIT_MM",
     "SCAN_FILE_SUFFIXES",
     "source_kind",
     "TIFF_SUFFIXES",
@@ -1246,8 +1247,15 @@ def _stack_from_affine(data: np.ndarray, affine: np.ndarray, units: str, source:
     )
 
 
+#: NIfTI spatial units (``xyzt_units``) in mm; "unknown" (code 0, what many writers leave) is read as mm, the
+#: unit NIfTI readers assume.
+NIFTI_UNIT_MM = {"mm": 1.0, "unknown": 1.0, "micron": 1e-3, "meter": 1e3}
+
+
 def read_nifti(path: str | Path, *, units: str = "hu") -> SliceStack:
-    """Read a 3D NIfTI-1/2 volume; its affine (sform, else qform, as nibabel resolves it) is the RAS world frame.
+    """Read a 3D NIfTI-1/2 volume; its affine (sform, else qform, as nibabel resolves it) is the RAS world frame,
+    converted to mm from the header's spatial unit (:data:`NIFTI_UNIT_MM`). A file with neither an sform nor a qform
+    is refused: its orientation is unknown.
 
     Parameters
     ----------
@@ -1276,10 +1284,16 @@ def read_nifti(path: str | Path, *, units: str = "hu") -> SliceStack:
     data = np.squeeze(data) if data.ndim > 3 else data
     if data.ndim != 3 or min(data.shape) < 2:
         raise CtsplatError(f"NIfTI {path} has shape {data.shape}; ingest needs a 3D volume with >= 2 slices")
+    unit = img.header.get_xyzt_units()[0]
+    if unit not in NIFTI_UNIT_MM:
+        raise CtsplatError(f"NIfTI {path} gives its spatial unit as {unit!r}, not a length; write mm, micron or "
+                           "meter into the header (xyzt_units)")
+    to_mm = NIFTI_UNIT_MM[unit]
     source = {
         "kind": "nifti",
         "shape": list(data.shape),
-        "zooms_mm": [float(z) for z in img.header.get_zooms()[:3]],
+        "zooms_mm": [float(z) * to_mm for z in img.header.get_zooms()[:3]],
+        "spatial_unit": unit,
         "value_range": _finite_range(data),
         "units": units,
     }
@@ -1289,8 +1303,14 @@ def read_nifti(path: str | Path, *, units: str = "hu") -> SliceStack:
     if int(stored["sform_code"]) == 0 and any(z == 0 for z in pixdim):  # the qform scales by pixdim as well
         raise CtsplatError(f"NIfTI {path} has voxel sizes (pixdim) {pixdim} and no sform, so its voxel size is "
                            "unknown; write the voxel size into the header")
+    if int(stored["sform_code"]) == 0 and int(stored["qform_code"]) == 0:
+        raise CtsplatError(f"NIfTI {path} has neither an sform nor a qform (both codes 0), so its orientation is "
+                           "unknown (readers guess one with x mirrored); write the voxel-to-world affine into the "
+                           "header, e.g. nibabel's img.set_qform(affine, code=1)")
+    affine = np.asarray(img.affine, float).copy()
+    affine[:3, :] *= to_mm  # world positions and voxel axes in mm
     try:
-        return _stack_from_affine(data, img.affine, units, source)
+        return _stack_from_affine(data, affine, units, source)
     except CtsplatError as exc:
         raise CtsplatError(f"NIfTI {path}: {exc}") from None
 

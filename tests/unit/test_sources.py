@@ -936,3 +936,28 @@ def test_pixel_padding_takes_the_series_smallest_measured_value(tmp_path, with_r
         ds.PixelData = px.tobytes()
         ds.save_as(f)
     assert read_dicom_series(tmp_path / "s").source["pixel_padding"]["n_pixels"] == 3 * 8
+
+
+@pytest.mark.parametrize(("unit", "to_mm"), [("mm", 1.0), ("unknown", 1.0), ("micron", 1e-3), ("meter", 1e3)])
+def test_nifti_spatial_unit_is_converted_to_mm(tmp_path, unit, to_mm):
+    """A NIfTI in micrometres or metres is a volume of that size in mm, not one a thousand times off."""
+    affine = np.diag([500.0, 400.0, 300.0, 1.0])
+    affine[:3, 3] = [-1000.0, 20.0, 5.0]
+    img = nib.Nifti1Image(np.arange(6 * 5 * 4, dtype=np.float32).reshape(6, 5, 4), affine)
+    img.header.set_xyzt_units(unit)
+    nib.save(img, tmp_path / "v.nii.gz")
+    stack = read_source(tmp_path / "v.nii.gz")
+    np.testing.assert_allclose(stack.spacing_ij, np.array([500.0, 400.0]) * to_mm)
+    np.testing.assert_allclose(stack.origins[0], affine[:3, 3] * to_mm)
+    np.testing.assert_allclose(stack.origins[1] - stack.origins[0], [0.0, 0.0, 300.0 * to_mm])
+    assert stack.source["spatial_unit"] == unit
+    np.testing.assert_allclose(stack.source["zooms_mm"], np.array([500.0, 400.0, 300.0]) * to_mm)
+
+
+def test_nifti_without_an_orientation_is_refused(tmp_path):
+    """Neither sform nor qform: nibabel falls back to an x-mirrored guess; refused instead of ingested mirrored."""
+    data = np.zeros((6, 5, 4), np.float32)
+    header = nib.Nifti1Header()
+    header["pixdim"][1:4] = 1.0
+    _write_nifti_as_is(tmp_path / "bare.nii", header, data)
+    assert_fails_cleanly(tmp_path / "bare.nii", tmp_path, r"neither an sform nor a qform \(both codes 0\)")
