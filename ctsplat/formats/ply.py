@@ -18,6 +18,7 @@ References
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -120,20 +121,23 @@ def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise CtsplatError(f"PLY file {path} does not exist")
     raw = path.read_bytes()
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
+    end = re.search(rb"^end_header\r?(\n|$)", raw, flags=re.MULTILINE)  # the line, not the words in a comment
+    if not re.match(rb"ply\r?\n", raw) or end is None:
         raise CtsplatError(f"{path} is not a PLY file (no 'ply' magic / end_header)")
-    header = raw[:end].decode("ascii", "replace").splitlines()
-    nl = raw.find(b"\n", end)
-    body = raw[nl + 1:] if nl >= 0 else b""
+    header = raw[:end.start()].decode("ascii", "replace").splitlines()[1:]
+    body = raw[end.end():]
     fmt, count, props, element, elements = "ascii", 0, [], None, []
     for line in header:
         parts = line.split()
-        if not parts:
+        if not parts or parts[0] in ("comment", "obj_info"):
             continue
         try:
+            if parts[0] not in ("format", "element", "property"):
+                raise ValueError("unknown keyword")
             if parts[0] == "format":
                 fmt = parts[1]
+                if parts[2] != "1.0":
+                    raise CtsplatError(f"{path}: PLY format version {parts[2]!r}; this reader reads 1.0")
             elif parts[0] == "element":
                 element = parts[1]
                 elements.append(element)
@@ -146,6 +150,8 @@ def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
                     raise CtsplatError(f"{path}: list properties on vertices are not supported")
                 if parts[1] not in PLY_TYPES:
                     raise CtsplatError(f"{path}: unknown PLY property type {parts[1]!r}")
+                if any(parts[2] == name for name, _ in props):
+                    raise CtsplatError(f"{path}: vertex property {parts[2]!r} appears twice in the PLY header")
                 props.append((parts[2], PLY_TYPES[parts[1]]))
         except CtsplatError:
             raise
@@ -166,9 +172,9 @@ def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
             raise CtsplatError(f"{path}: ASCII body has fewer than the {count} vertex rows its header declares")
         table = np.empty((count, len(props)))
         for i, r in enumerate(rows):
-            values = r.split()[: len(props)]
+            values = r.split()
             try:
-                if len(values) < len(props):
+                if len(values) != len(props):
                     raise ValueError
                 table[i] = [float(v) for v in values]
             except ValueError:

@@ -160,7 +160,7 @@ def read_train_log(path: str | os.PathLike[str], *, max_gap_iters: int = 10) -> 
     path = Path(path)
     try:
         df = pd.read_csv(path)
-    except (OSError, pd.errors.EmptyDataError, pd.errors.ParserError) as exc:
+    except (OSError, UnicodeDecodeError, pd.errors.EmptyDataError, pd.errors.ParserError) as exc:
         raise CtsplatError(f"cannot read training log {path}: {' '.join(str(exc).split())}") from exc
     head = tuple(df.columns[: len(LOG_COLUMNS)])
     if head != LOG_COLUMNS:
@@ -199,8 +199,8 @@ def read_per_view(path: str | os.PathLike[str]) -> pd.DataFrame:
     path = Path(path)
     try:
         df = pd.read_csv(path)
-    except (OSError, pd.errors.EmptyDataError) as exc:
-        raise CtsplatError(f"cannot read per-view log {path}: {exc}") from exc
+    except (OSError, UnicodeDecodeError, pd.errors.EmptyDataError, pd.errors.ParserError) as exc:
+        raise CtsplatError(f"cannot read per-view log {path}: {' '.join(str(exc).split())}") from exc
     missing = [c for c in PER_VIEW_COLUMNS if c not in df.columns]
     if missing:
         raise CtsplatError(f"{path}: missing column {missing[0]!r}; expected {','.join(PER_VIEW_COLUMNS)}")

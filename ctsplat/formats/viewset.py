@@ -87,6 +87,11 @@ class View:
     def __post_init__(self) -> None:
         self.R = np.asarray(self.R, float).reshape(3, 3)
         self.t = np.asarray(self.t, float).reshape(3)
+        for name in ("azimuth_deg", "elevation_deg"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float | np.number):
+                raise ValueError(f"view {self.id}: {name} {value!r} is not a number")
+            setattr(self, name, float(value))
         if self.split not in SPLITS:
             raise CtsplatError(f"view {self.id}: unknown split {self.split!r}; allowed: {', '.join(SPLITS)}")
 
@@ -216,8 +221,18 @@ class ViewSet:
                 if not (np.isfinite(R).all() and np.allclose(R @ R.T, np.eye(3), atol=1e-3)
                         and np.linalg.det(R) > 0):
                     raise ValueError(f"view {v.id}: {key} is not a rotation matrix (orthonormal, determinant +1)")
-        return cls(camera_from_dict(d["camera"]), views, str(d.get("volume_id", "unknown")),
-                   np.asarray(d.get("isocenter_mm", [0, 0, 0]), float), dict(d.get("meta", {})))
+            for pose, prefix in ((v, ""), *(() if v.design is None else ((v.design, "design."),))):
+                values = {"t": pose.t, "azimuth_deg": pose.azimuth_deg, "elevation_deg": pose.elevation_deg}
+                bad = next((k for k, x in values.items() if not np.isfinite(np.asarray(x, float)).all()), None)
+                if bad is not None:  # a NaN translation renders an image of zeros, not an error
+                    raise ValueError(f"view {v.id}: {prefix}{bad} is not finite")
+        if not isinstance(d["camera"], dict):
+            raise ValueError("'camera' is not an object")
+        iso = np.asarray(d.get("isocenter_mm", [0, 0, 0]), float)
+        if iso.shape != (3,) or not np.isfinite(iso).all():
+            raise ValueError("isocenter_mm is not three finite numbers")
+        return cls(camera_from_dict(d["camera"]), views, str(d.get("volume_id", "unknown")), iso,
+                   dict(d.get("meta", {})))
 
     @classmethod
     def load(cls, path: str | Path) -> ViewSet:

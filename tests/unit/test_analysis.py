@@ -577,3 +577,15 @@ def test_gather_compares_each_run_with_the_strongest_baseline_at_its_views(tmp_p
     # the geometries: the baselines' from their folder, a run's from its config.json (None without one)
     assert r8["best_baseline_geometry"] == "circular" and pd.isna(r8["geometry"])
     assert (r16["geometry"], r16["best_baseline_geometry"]) == ("cone", "circular")
+
+
+@pytest.mark.parametrize("content", [b"\x89PNG\r\n\x1a\n\xff\xfe\x00binary",
+                                     b"iteration,view_id,azimuth_deg,elevation_deg,split,psnr2d,ssim2d\n"
+                                     b"0,1,10,0,val,20,0.5\n0,2,20,0,val,21,0.6,extra,fields\n"])
+def test_unreadable_logs_are_named_in_one_line(tmp_path, content):
+    """A binary file or a row with more fields than the header: one line naming the file, not a traceback."""
+    for name, reader in (("per_view.csv", read_per_view), ("train_log.csv", read_train_log)):
+        p = tmp_path / name
+        p.write_bytes(content)
+        with pytest.raises(CtsplatError, match=rf"cannot read .*{name}"):
+            reader(p)

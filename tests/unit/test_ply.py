@@ -124,6 +124,18 @@ def test_unreadable_files_say_why(tmp_path: Path) -> None:
             read_ply_vertices(bad)
     with pytest.raises(CtsplatError, match="expected 2"):
         write_ply_vertices(tmp_path / "o.ply", [("x", "float", [1.0, 2.0]), ("y", "float", [1.0])])
+    ok = b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n"
+    for old, new, needle in ((b"property float y", b"property float x", "property 'x' appears twice"),
+                             (b"element vertex", b"elemnt vertex", "malformed PLY header line 'elemnt vertex 1'"),
+                             (b"ply\n", b"plyfoo\n", "not a PLY file"),
+                             (b"ascii 1.0", b"ascii 2.0", "PLY format version '2.0'"),
+                             (b"1 2\n", b"1 2 3\n", r"vertex row 1 \('1 2 3'\) does not hold 2 numbers")):
+        bad.write_bytes(ok.replace(old, new, 1))
+        with pytest.raises(CtsplatError, match=needle):
+            read_ply_vertices(bad)
+    # the words end_header inside a comment do not end the header
+    bad.write_bytes(ok.replace(b"element", b"comment made before end_header was written\nelement"))
+    assert read_ply_vertices(bad)["y"].tolist() == [2.0]
 
 
 def test_big_endian_file_written_by_hand_reads_back(tmp_path: Path) -> None:

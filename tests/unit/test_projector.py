@@ -487,6 +487,11 @@ def test_a_view_set_with_a_view_missing_its_rotation_is_named(tmp_path) -> None:
          "view 1: R is not a rotation matrix"),  # orthonormal but a reflection
         (lambda d: d["views"][2].update(id=d["views"][0]["id"]), "view id 0 appears more than once"),
         (lambda d: d.update(views="abc"), "'views' is not a list of view objects"),
+        (lambda d: d["views"][1].update(t=[float("nan"), 0.0, 0.0]), "view 1: t is not finite"),
+        (lambda d: d["views"][2].update(azimuth_deg="x"), "view 2: azimuth_deg 'x' is not a number"),
+        (lambda d: d["views"][0].update(elevation_deg=float("inf")), "view 0: elevation_deg is not finite"),
+        (lambda d: d.update(camera=None), "'camera' is not an object"),
+        (lambda d: d.update(isocenter_mm=[0.0, float("nan"), 0.0]), "isocenter_mm is not three finite numbers"),
     ],
 )
 def test_a_view_set_that_is_not_a_set_of_camera_poses_is_refused(tmp_path, edit, needle) -> None:
