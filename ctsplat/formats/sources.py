@@ -561,7 +561,8 @@ def _walk_files(folder: Path) -> list[Path]:
 
 class _FileLabels:
     """Names a file of the input folder by its place in path order, never by its name (DICOM file names are often
-    SOP Instance UIDs, which carry the acquisition date and time)."""
+    SOP Instance UIDs, which carry the acquisition date and time) nor by the folder's path (the warnings that use
+    these labels reach the workflow's logs, and an export's folders may be named after the patient)."""
 
     def __init__(self, folder: Path, files: list[Path]) -> None:
         self.folder = folder
@@ -569,7 +570,7 @@ class _FileLabels:
         self.place = {p: i + 1 for i, p in enumerate(files)}
 
     def __call__(self, path: Path) -> str:
-        return f"file {self.place[path]} of {self.n} under {self.folder} (in sorted path order)"
+        return f"file {self.place[path]} of {self.n} in the input folder (in sorted path order)"
 
 
 #: Header fields that tell series without a SeriesInstanceUID apart (hashed into their id, never shown).
@@ -762,8 +763,8 @@ def _choose_series(
         pick = allowed[0]
         if len(series) > 1:
             log.warning(
-                "%d series in %s; using the largest %s one, %s (choose another with series_uid / --series-uid "
-                "ID): %s", len(series), folder, pick.modality or "?", pick.id, listing,
+                "%d series in the input folder; using the largest %s one, %s (choose another with series_uid / "
+                "--series-uid ID): %s", len(series), pick.modality or "?", pick.id, listing,
             )
     if pick.modality.upper() not in {m.upper() for m in allow_modalities}:
         raise CtsplatError(

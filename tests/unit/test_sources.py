@@ -85,7 +85,7 @@ def make_series(
 def place(folder: Path, path: Path) -> str:
     """How errors and warnings name a file of a DICOM folder: by its place in path order, never by its name."""
     files = sorted(p for p in folder.rglob("*") if p.is_file())
-    return f"file {files.index(path) + 1} of {len(files)} under {folder} (in sorted path order)"
+    return f"file {files.index(path) + 1} of {len(files)} in the input folder (in sorted path order)"
 
 
 def assert_fails_cleanly(source, tmp_path: Path, match: str, **kw) -> str:
