@@ -422,7 +422,8 @@ def voxel_boxes(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tens
 class Voxelize(torch.autograd.Function):
     """``μ`` on a grid: each Gaussian adds ``ρ exp(-½ dᵀ P d)`` over its voxel box (rows along k vectorised);
     hand-written backward (see csrc/voxelize.h). Same inputs as :class:`ctsplat.splat._reference.Voxelize` minus
-    chunking: memory is the output grid (plus one per-thread grid while it is below 2^27 voxels) and O(N)."""
+    chunking: memory is the output grid and O(N) (threads scatter into disjoint slabs of the first index axis,
+    no per-thread grids)."""
 
     @staticmethod
     def forward(ctx, means, prec6, dens, lo, ext, affine, origin, out_shape):  # noqa: ANN001

@@ -1,10 +1,10 @@
 """Pure-PyTorch twins of the fused kernels (:mod:`ctsplat.splat._kernel`): rasterisers and the voxelizer.
 
-Plain autograd, any device (the only path on CUDA). The kernels are tested against these functions (values and
-gradients) and these against brute-force references; :func:`ctsplat.splat.render.project` is the reference
-projection. Rasterisation enumerates every (Gaussian, pixel) pair of the bounding boxes with ``repeat_interleave``
-and scatters with ``index_add`` (alpha: pairs stably sorted by pixel, then depth); the voxelizer does the same for
-(Gaussian, voxel) pairs in chunks of bounded size.
+Plain autograd, any device (on CUDA the fallback when Triton is not installed). The kernels are tested against
+these functions (values and gradients) and these against brute-force references;
+:func:`ctsplat.splat.render.project` is the reference projection. Rasterisation enumerates every (Gaussian, pixel)
+pair of the bounding boxes with ``repeat_interleave`` and scatters with ``index_add`` (alpha: pairs stably sorted by
+pixel, then depth); the voxelizer does the same for (Gaussian, voxel) pairs in chunks of bounded size.
 
 References
 ----------
@@ -108,7 +108,9 @@ def splat_alpha_reference(proj: Projection, colors: torch.Tensor, height: int, w
     if gid.numel() == 0:
         # no Gaussian touches a pixel: zero image, still connected to the parameters (zero gradients, as the
         # fused kernels give), so that a training step's backward does not fail
-        return (out + 0.0 * (proj.amps.sum() + colors.sum())).reshape(height, width, c)
+        keep = proj.valid  # culled Gaussians' projections need not be finite
+        linked = proj.amps.sum() + colors.sum() + proj.means2d[keep].sum() + proj.conics[keep].sum()
+        return (out + 0.0 * linked).reshape(height, width, c)
     srt = torch.sort(pix, stable=True)
     pix = srt.values
     gid = gid[srt.indices]

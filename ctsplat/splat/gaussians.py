@@ -35,9 +35,11 @@ import torch.nn.functional as F
 from ctsplat.formats.ply import write_ply_vertices
 from ctsplat.utils import CtsplatError, save_torch_atomic
 
-__all__ = ["Gaussians", "quat_to_rotmat", "covariance", "inverse_softplus", "eval_sh", "SH_C0"]
+__all__ = ["Gaussians", "quat_to_rotmat", "covariance", "inverse_softplus", "eval_sh", "SH_C0", "SH_REST_SIZES"]
 
 SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi))
+#: Coefficients per channel of ``sh_rest`` at SH degrees 1, 2 and 3: ``(d + 1)² - 1``.
+SH_REST_SIZES = (3, 8, 15)
 _SH_C1 = 0.4886025119029199
 _SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 _SH_C3 = (
@@ -355,6 +357,12 @@ class Gaussians:
             if name in ("colors", "sh_rest") and (t.ndim != {"colors": 2, "sh_rest": 3}[name] or t.shape[0] != n):
                 want = "(N, C)" if name == "colors" else "(N, K, C)"
                 raise CtsplatError(f"Gaussians.{name} has shape {tuple(t.shape)}, expected {want} with N = {n}")
+            if name == "sh_rest" and t.shape[1] not in SH_REST_SIZES:
+                raise CtsplatError(f"Gaussians.sh_rest holds {t.shape[1]} coefficients per channel; SH degrees 1, 2 "
+                                   f"and 3 hold {', '.join(map(str, SH_REST_SIZES))}")
+            if name == "sh_rest" and self.colors is not None and t.shape[2] != self.colors.shape[1]:
+                raise CtsplatError(f"Gaussians.sh_rest has {t.shape[2]} colour channels, the colours "
+                                   f"{self.colors.shape[1]}; give both one channel count")
             check = check_finite if isinstance(check_finite, bool) else name in check_finite
             if check and t.numel():
                 checked.append((name, t))

@@ -548,7 +548,7 @@ def _check_tensors(gaussians: Gaussians) -> None:
     on one device (the fused kernels read raw pointers of every tensor on the means' device)."""
     dtype, dev = gaussians.means.dtype, gaussians.means.device
     if dtype not in (torch.float32, torch.float64):
-        raise CtsplatError(f"render takes float32 or float64 Gaussians, got {dtype}; convert them with "
+        raise CtsplatError(f"render and voxelize take float32 or float64 Gaussians, got {dtype}; convert them with "
                            "gaussians.to(dtype=torch.float32)")
     for name, v in gaussians.tensors().items():
         if v.dtype != dtype:
@@ -672,6 +672,8 @@ def render(
     if not all(np.isfinite(np.asarray(x.detach() if isinstance(x, torch.Tensor) else x, float)).all()
                for x in on_host):  # a NaN pose culls every Gaussian: a blank image, not an error, without this
         raise CtsplatError("the camera pose (R, t) contains NaN/Inf")
+    if isinstance(mu_scale, bool) or not (isinstance(mu_scale, int | float) and 0 < mu_scale < math.inf):
+        raise CtsplatError(f"mu_scale must be a finite number > 0 (1/mm per density unit), got {mu_scale!r}")
     cam = camera_intrinsics(camera)
     H, W = cam["H"], cam["W"]
     _check_tensors(gaussians)
@@ -904,6 +906,8 @@ def voxelize(
     Tensor (I, J, K) (or the region's shape), density units of ρ, same dtype/device as the means.
     """
     gaussians.validate()
+    _check_tensors(gaussians)
+    _check_backend(backend, "voxelize")
     means = gaussians.means
     dtype, dev = means.dtype, means.device
     _check_cutoff(sigma_cutoff)
@@ -960,7 +964,9 @@ def voxelize(
             ext = (hi - lo).clamp_min(0)
         keep = torch.nonzero(ext.prod(-1) > 0).flatten()
     if keep.numel() == 0:
-        return torch.zeros(n_out, dtype=dtype, device=dev).reshape(out_shape) + 0 * gaussians.densities.sum()
+        # zero, still connected to every parameter it depends on (a backward through it must not fail)
+        linked = (gaussians.densities.sum() + means.sum() + gaussians.log_scales.sum() + gaussians.quats.sum())
+        return torch.zeros(n_out, dtype=dtype, device=dev).reshape(out_shape) + 0 * linked
 
     def kept(t: torch.Tensor) -> torch.Tensor:  # no copy when every Gaussian reaches the output
         return t if keep.numel() == len(t) else t[keep]
@@ -976,7 +982,6 @@ def voxelize(
     rot = quat_to_rotmat(kept(gaussians.quats))
     prec = (rot / s2f_k[:, None, :]) @ rot.transpose(-1, -2)
     prec6 = torch.stack([prec[:, 0, 0], prec[:, 1, 1], prec[:, 2, 2], prec[:, 0, 1], prec[:, 0, 2], prec[:, 1, 2]], -1)
-    _check_backend(backend, "voxelize")
     fused = _fused(backend, dev)
     args = (kept(means), prec6, dens, kept(lo), kept(ext), A, reg[:, 0], out_shape)
     if fused is not None:

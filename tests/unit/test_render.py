@@ -881,3 +881,41 @@ def test_edge_inputs_fail_in_one_line_or_keep_the_graph():
                                         cy=3.0), "principal point")):
         with pytest.raises(CtsplatError, match=match):
             render(g.detach(), bad, R, t)
+
+
+def test_blank_outputs_keep_every_parameter_in_the_graph_and_bad_inputs_are_named():
+    """A reference alpha render no Gaussian reaches, of a model without trained opacity or colours, and a voxel
+    region no Gaussian reaches still backpropagate (zero gradients, as the fused kernels give); voxelize refuses
+    half precision, mixed dtypes and an unknown backend whether or not a Gaussian reaches it; render refuses an SH
+    layout of no degree and a non-positive or non-finite mu_scale."""
+    g = _mixture(3, seed=4, dtype=torch.float64)
+    means = (g.means + torch.tensor([500.0, 0.0, 0.0], dtype=D64)).requires_grad_(True)
+    scales = g.log_scales.clone().requires_grad_(True)
+    bare = Gaussians(means=means, log_scales=scales, quats=g.quats, density_raw=g.density_raw)
+    cam = ParallelCamera(8, 6, 1.0)
+    R, t = _pose(20.0, 10.0, dist=100.0)
+    render(bare, cam, R, t, compositor="alpha", backend="reference").image.sum().backward()
+    assert means.grad is not None and float(means.grad.abs().max()) == 0.0
+    affine = np.eye(4)
+    for backend in ("reference", "auto"):
+        means.grad = None
+        voxelize(bare, (4, 4, 4), affine, backend=backend).sum().backward()
+        assert float(means.grad.abs().max()) == 0.0 and scales.grad is not None
+    for model, needle in ((g.detach().to(dtype=torch.float16), "take float32 or float64 Gaussians"),
+                          (Gaussians(**{**g.detach().tensors(), "density_raw": g.density_raw.detach().float()}),
+                           "Gaussians.density_raw is torch.float32, the means torch.float64")):
+        with pytest.raises(CtsplatError, match=needle):
+            voxelize(model, (4, 4, 4), affine)
+    for far in (False, True):
+        with pytest.raises(CtsplatError, match="unknown voxelize backend 'bogus'"):
+            voxelize(bare.detach() if far else g.detach(), (4, 4, 4), affine, backend="bogus")
+    coloured = _mixture(3, seed=5, dtype=torch.float64)
+    coloured.colors = torch.rand(3, 3, dtype=D64)
+    for sh, needle in ((torch.zeros(3, 5, 3, dtype=D64), "holds 5 coefficients per channel"),
+                       (torch.zeros(3, 3, 2, dtype=D64), "sh_rest has 2 colour channels, the colours 3")):
+        coloured.sh_rest = sh
+        with pytest.raises(CtsplatError, match=needle):
+            render(coloured, cam, R, t, compositor="alpha")
+    for scale in (float("nan"), 0.0, -1e3, float("inf")):
+        with pytest.raises(CtsplatError, match="mu_scale must be a finite number > 0"):
+            render(g.detach(), cam, R, t, mu_scale=scale)
