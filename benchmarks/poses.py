@@ -82,11 +82,12 @@ def training_views(vol: Path, cache: Path, beam: str, n: int, detector: int) -> 
     """The beam's circular orbit: ``n`` training, 10 validation and 100 test views (cached)."""
     from ctsplat.projector import render_radiographs
 
-    rad = cache / f"{beam}_n{n:03d}_d{detector}"
+    rad = cache / f"{beam}_n{n:03d}_v010_t100_d{detector}"
     if not (rad / "views.json").exists():
         tot = n + 110
+        # a circular orbit's n_views counts the training views; the fractions set the held-out counts from it
         cfg = {"camera": beam, "orbit": "circular", "detector_width": detector, "detector_height": detector,
-               "n_views": tot, "split": {"train": n / tot, "val": 10 / tot, "test": 100 / tot}}
+               "n_views": n, "split": {"train": n / tot, "val": 10 / tot, "test": 100 / tot}}
         if beam == "cone":
             cfg.update(CONE, arc_deg=360.0)
         render_radiographs(vol, rad, cfg, seed=0)

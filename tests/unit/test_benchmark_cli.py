@@ -148,3 +148,21 @@ def test_a_terminated_benchmark_leaves_no_table_and_says_so(tmp_path, phantom_di
     assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("baselines.py: terminated;"), err
     assert not (tmp_path / "b.csv").exists()
     assert [p for p in (tmp_path / "work").rglob("*") if ".tmp" in p.name] == []
+
+
+@pytest.mark.parametrize(("beam", "n"), [("parallel", 50), ("cone", 8)])
+def test_pose_benchmark_renders_the_split_it_describes(tmp_path, monkeypatch, phantom_dicom, beam, n):
+    """``n`` training, 10 validation and 100 test views (a circular orbit's ``n_views`` counts training views)."""
+    import importlib.util
+    from collections import Counter
+
+    from ctsplat.volume import ingest
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    spec = importlib.util.spec_from_file_location("poses_benchmark", ROOT / "benchmarks" / "poses.py")
+    poses = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(poses)
+    ingest(phantom_dicom, tmp_path / "v.nii.gz", {"grid": 16})
+    rad = poses.training_views(tmp_path / "v.nii.gz", tmp_path, beam, n, 16)
+    views = json.loads((rad / "views.json").read_text())["views"]
+    assert Counter(v["split"] for v in views) == {"train": n, "val": 10, "test": 100}
