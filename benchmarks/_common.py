@@ -7,6 +7,7 @@ Imported by the scripts in this folder (Python puts a script's folder first on `
 from __future__ import annotations
 
 import hashlib
+import subprocess
 import sys
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -48,6 +49,36 @@ def write_csv(table: pd.DataFrame, path: str | Path, **kwargs: Any) -> Path:
     with atomic_path(path) as tmp:
         table.to_csv(tmp, **{"index": False, "lineterminator": "\n", **kwargs})
     return Path(path)
+
+
+def run_child(cmd: list[str], *, grace_s: float = 60.0, **kwargs: Any) -> subprocess.CompletedProcess:
+    """:func:`subprocess.run` with ``capture_output`` and ``text``, except that Ctrl-C or SIGTERM of this process
+    (:func:`cli_main`'s :class:`KeyboardInterrupt`) passes SIGTERM on to the child and waits up to ``grace_s`` for it
+    to remove its temporary files (``subprocess.run`` kills it after a quarter second), then re-raises."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs)
+    try:
+        out, err = proc.communicate()
+    except KeyboardInterrupt:
+        proc.terminate()
+        try:
+            proc.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        raise
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+
+
+def out_folder(path: str | Path, option: str = "--out") -> Path:
+    """The benchmark's output folder, created; a file in its place is one line naming ``option``."""
+    from ctsplat.utils import CtsplatError
+
+    path = Path(path)
+    blocker = next((p for p in (path, *path.parents) if p.exists()), None)
+    if blocker is not None and not blocker.is_dir():
+        raise CtsplatError(f"{option} {path}: {blocker} is a file, not a folder; give a folder")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
 
 
 def shared_train_config(sets: list[str], *, own_keys: Mapping[str, str | None], defaults: Mapping[str, Any],

@@ -31,9 +31,10 @@ from pathlib import Path
 import pandas as pd
 import torch
 import yaml
-from _common import cli_main, write_csv
+from _common import cli_main, out_folder, write_csv
 
 from ctsplat.baselines import run_baselines
+from ctsplat.config import check_section
 from ctsplat.formats.volume import load_volume
 from ctsplat.projector import render_radiographs
 from ctsplat.volume import ingest
@@ -79,6 +80,8 @@ def run(argv: list[str] | None = None) -> int:
         if not sep:
             ap.error(f"--set {item!r}: expected KEY=VALUE")
         settings[key] = yaml.safe_load(value)
+    check_section("baselines", settings)  # before the ingest and the rendering, not after them
+    out_folder(args.work, "--work")
     torch.set_num_threads(min(2, os.cpu_count() or 1))
 
     if args.source == "phantom":

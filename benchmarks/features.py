@@ -41,7 +41,9 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from _common import cli_main, data_cache, shared_train_config, write_csv  # noqa: E402
+from _common import cli_main, data_cache, out_folder, shared_train_config, write_csv  # noqa: E402
+
+from ctsplat.utils import write_json_atomic  # noqa: E402
 
 #: train overrides of each variant (applied on top of the shared config; the baseline has none)
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -131,7 +133,7 @@ def run(argv: list[str] | None = None) -> int:
         print(f"features.py: error: no volume source at {data}", file=sys.stderr)
         return 2
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out_folder(out)
     cache = data_cache(out, data, f"-g{args.grid}")
     cache.mkdir(parents=True, exist_ok=True)
     variants = list(args.variants)
@@ -170,8 +172,7 @@ def run(argv: list[str] | None = None) -> int:
     with pd.option_context("display.width", 200, "display.max_columns", 20, "display.float_format", "{:.3f}".format):
         print(table[["views", "variant", "psnr3d", "ssim3d", "psnr2d_test", "val_psnr2d", "val_delta_db",
                      "wall_time_s", "n_gaussians"]].to_string(index=False))
-    (out / "features.json").write_text(json.dumps({"args": vars(args), "train": shared, "variants": VARIANTS},
-                                                  indent=2))
+    write_json_atomic(out / "features.json", {"args": vars(args), "train": shared, "variants": VARIANTS})
     return 0
 
 

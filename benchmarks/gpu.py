@@ -30,10 +30,11 @@ import csv
 import importlib.util
 import os
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
+
+import pandas as pd
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -41,7 +42,7 @@ OUT = HERE / "out"
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
 
-from _common import cli_main  # noqa: E402
+from _common import cli_main, run_child, write_csv  # noqa: E402
 
 
 def _time(step, reps: int, budget_s: float) -> tuple[float, int]:
@@ -115,6 +116,8 @@ def train_row(data: str, size: int) -> dict | None:
     if not (Path(data) / "ct0051_head").is_dir():
         print(f"train row skipped: ct0051_head not found in {data}", file=sys.stderr)
         return None
+    from ctsplat.utils import CtsplatError
+
     out = OUT / f"gpu_protocol_s{size}"
     cmd = [sys.executable, str(HERE / "protocol.py"), "--volumes", "ct0051_head", "--views", "50", "--size",
            str(size), "--threads", str(os.cpu_count() or 1), "--set", "device=cuda", "--baseline-set",
@@ -122,11 +125,11 @@ def train_row(data: str, size: int) -> dict | None:
     t0 = time.perf_counter()
     # ROOT first, the caller's PYTHONPATH kept: a machine may hold the dependencies in a folder named there
     path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
-    proc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": path}, capture_output=True, text=True)
+    proc = run_child(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": path})
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         print(proc.stdout[-2000:] + proc.stderr[-4000:], file=sys.stderr)
-        raise SystemExit(f"train row failed (exit {proc.returncode}): {' '.join(cmd)}")
+        raise CtsplatError(f"train row failed (exit {proc.returncode}; its output above): {' '.join(cmd)}")
     with open(out / "protocol.csv") as fh:
         gs = [r for r in csv.DictReader(fh) if r["method"].startswith("gaussians")][-1]
     return {"row": f"train {size}³ 50 views (head protocol)", "backend": "auto(cuda)",
@@ -146,6 +149,8 @@ def run(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if min(args.train_sizes) < 8:
         p.error("--train-sizes must be >= 8")
+    if args.reps < 1 or not 0 < args.budget_s < float("inf"):
+        p.error("--reps must be >= 1 and --budget-s a number of seconds > 0")
     import torch
 
     if not torch.cuda.is_available():
@@ -167,13 +172,8 @@ def run(argv: list[str] | None = None) -> int:
             rows.append(tr)
             print(f"{tr['row']}: time to final quality {tr['time_to_final_s']} s, training wall "
                   f"{tr['train_wall_s']} s, 3D PSNR (R²) {tr['psnr3d']} dB")
-    OUT.mkdir(exist_ok=True)
     fields = sorted({k for r in rows for k in r}, key=lambda k: (k != "row", k))
-    with open(OUT / "gpu.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=["gpu", *fields])
-        w.writeheader()
-        for r in rows:
-            w.writerow({"gpu": name, **r})
+    write_csv(pd.DataFrame([{"gpu": name, **r} for r in rows], columns=["gpu", *fields]), OUT / "gpu.csv")
     print(f"wrote {OUT / 'gpu.csv'}")
     return 0
 

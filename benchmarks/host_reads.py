@@ -21,18 +21,19 @@ This script runs :func:`ctsplat.training.train` with the Triton kernels in Trito
 
 Reads of tensors that live on the CPU also on a GPU run (``random_region``'s draws from its CPU generator, region
 bounds) are listed too; the table marks the call sites, so what is a device read on a GPU can be told apart.
-Writes ``benchmarks/out/host_reads.csv``.
+Writes ``host_reads.csv`` in the ``--out`` folder (default ``benchmarks/out/host_reads``).
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
-import csv
 import importlib
 import os
 import sys
 from pathlib import Path
+
+import pandas as pd
 
 os.environ["TRITON_INTERPRET"] = "1"  # before triton is imported
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -43,7 +44,7 @@ OUT = HERE / "out"
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
 
-from _common import cli_main  # noqa: E402
+from _common import cli_main, out_folder, write_csv  # noqa: E402
 
 
 def _count(its: int, sets: list[str], vol: Path, rad: Path, out: Path) -> tuple[collections.Counter, dict[str, int]]:
@@ -78,7 +79,7 @@ def run(argv: list[str] | None = None) -> int:
     render_mod._use_triton = lambda backend, device: backend in ("auto", "triton")
     render_mod._use_kernel = lambda backend, device: False
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out_folder(out)
     vol, rad = protocol.prepare("phantom", Path("unused"), out, 64, 50)
     c10, o10 = _count(10, args.set, vol, rad, out)
     c30, o30 = _count(30, args.set, vol, rad, out)
@@ -92,13 +93,10 @@ def run(argv: list[str] | None = None) -> int:
         if per_it > 0:
             rows.append({"read": op, "site": "(profiler)", "code": "", "per_iteration": per_it})
     rows.sort(key=lambda r: -r["per_iteration"])
-    with open(OUT / "host_reads.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=["read", "site", "code", "per_iteration"], lineterminator="\n")
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(pd.DataFrame(rows, columns=["read", "site", "code", "per_iteration"]), out / "host_reads.csv")
     for r in rows:
         print(f"{r['per_iteration']:6.2f}  {r['read']:24s} {r['site']:32s} {r['code'][:70]}")
-    print(f"total per iteration: {sum(r['per_iteration'] for r in rows):.2f}; wrote {OUT / 'host_reads.csv'}")
+    print(f"total per iteration: {sum(r['per_iteration'] for r in rows):.2f}; wrote {out / 'host_reads.csv'}")
     return 0
 
 

@@ -55,8 +55,10 @@ def run(argv: list[str] | None = None) -> int:
         parser.error(f"--repeats must be >= 1, got {args.repeats}")
     head, j2k = DATA / "ct0051_head", DATA / "totalseg_abdomen_j2k"
     if not head.is_dir():
-        print(f"real data not found at {DATA}; nothing to benchmark", file=sys.stderr)
-        return 1
+        from ctsplat.utils import CtsplatError
+
+        raise CtsplatError(f"ct0051_head not found in {DATA}; put the shared data beside the checkout or name its "
+                           "folder in CTSPLAT_SHARED_DATA")
     targets = [
         {"label": "1 mm isotropic", "voxel_size_mm": 1.0, "grid": None},
         {"label": "grid 128^3", "grid": 128},

@@ -37,13 +37,21 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
-from _common import cli_main
+from _common import cli_main, out_folder
 
 from ctsplat.cli._common import apply_sets
 from ctsplat.config import check_section
 from ctsplat.photos.config import photo_settings
 from ctsplat.photos.select import paired_comparison, read_validation_run
-from ctsplat.utils import CtsplatError, atomic_path, code_version, compute_platform, dotted_items, write_json_atomic
+from ctsplat.utils import (
+    CtsplatError,
+    atomic_path,
+    code_version,
+    compute_platform,
+    dotted_items,
+    read_json_object,
+    write_json_atomic,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "out"
@@ -81,20 +89,32 @@ def _stop_children() -> None:
             proc.terminate()
 
 
+def _kept(sfm: Path, run_dir: Path, sets: list[str]) -> bool:
+    """Whether ``run_dir`` holds a finished run to keep: the same settings on the same SfM folder, trained on a CPU
+    of this one's capability; one line when it holds a run that cannot be kept. Every run is checked before the
+    first training starts, not hours into the comparison."""
+    if not (run_dir / "training.json").is_file():
+        return False
+    fix = "remove it or choose another --out"
+    config = read_json_object(run_dir / "config.json", what="kept run's config", fix=fix)
+    training = read_json_object(run_dir / "training.json", what="kept run's training record", fix=fix)
+    try:
+        same = _same_run(config, sfm, sets)
+    except (KeyError, TypeError, ValueError, CtsplatError):
+        same = False
+    if not same:
+        raise CtsplatError(f"{run_dir} holds a run with other settings or another SfM folder; {fix}")
+    made = (training.get("platform") or {}).get("cpu_capability")
+    here = compute_platform()["cpu_capability"]
+    if made is not None and made != here:
+        # another kind of CPU rounds differently: the run would not pair with the other arm trained here
+        raise CtsplatError(f"{run_dir} was trained on a {made} CPU and this one is {here}, so it does not pair "
+                           f"with runs made here; {fix}")
+    return True
+
+
 def _train(sfm: Path, run_dir: Path, sets: list[str]) -> None:
-    """One ``ctsplat photos-train`` process (its log beside the run folder); a finished run with the same settings
-    on the same SfM folder is kept."""
-    if (run_dir / "training.json").is_file():
-        if not _same_run(json.loads((run_dir / "config.json").read_text()), sfm, sets):
-            raise CtsplatError(f"{run_dir} holds a run with other settings or another SfM folder; remove it or "
-                               "choose another --out")
-        made = json.loads((run_dir / "training.json").read_text()).get("platform", {}).get("cpu_capability")
-        here = compute_platform()["cpu_capability"]
-        if made is not None and made != here:
-            # another kind of CPU rounds differently: the run would not pair with the other arm trained here
-            raise CtsplatError(f"{run_dir} was trained on a {made} CPU and this one is {here}, so it does not pair "
-                               "with runs made here; remove it or choose another --out")
-        return
+    """One ``ctsplat photos-train`` process (its log beside the run folder)."""
     cmd = [sys.executable, "-c", "import sys; from ctsplat.cli import main; sys.exit(main())", "photos-train",
            str(sfm), str(run_dir)]
     for item in sets:
@@ -155,9 +175,10 @@ def run(argv: list[str] | None = None) -> int:
             if moved:
                 raise CtsplatError(f"--base/--candidate may not set train.{moved[0]}: the folds, seeds and test "
                                    "photos are this script's, the same for both arms")
-    out.mkdir(parents=True, exist_ok=True)
+    out_folder(out)
     jobs = [(out / f"fold{fold}_seed{seed}_{arm}", run_sets(fold, seed, extra))
             for fold, seed in pairs for arm, extra in arms.items()]
+    jobs = [(d, sets) for d, sets in jobs if not _kept(sfm, d, sets)]
     pool = ThreadPoolExecutor(max_workers=args.jobs)
     try:
         futures = [pool.submit(_train, sfm, d, sets) for d, sets in jobs]

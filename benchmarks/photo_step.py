@@ -9,7 +9,8 @@ What a training iteration of ``ctsplat photos-train`` costs once densification h
 without the optimiser step and density control: each iteration renders one training photo (in the shuffled order
 of the seed), takes 3DGS's loss with the library's ``lambda_dssim`` and back-propagates it to every parameter.
 The first ``--warmup`` iterations are not timed (kernel build, first-touch pages). Prints one JSON line: the model
-size, the image size, the threads and the median and mean seconds per iteration; ``--csv`` appends it as a row.
+size, the image size, the threads and the median and mean seconds per iteration; ``--csv`` adds it as a row (the
+table is written whole).
 Set ``OMP_WAIT_POLICY=PASSIVE`` (the default here) so that torch's idle OpenMP workers do not spin against the
 kernels' threads. Compare two commits by alternating runs with their worktrees on ``PYTHONPATH``.
 """
@@ -17,7 +18,6 @@ kernels' threads. Compare two commits by alternating runs with their worktrees o
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import statistics
@@ -27,9 +27,11 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from _common import cli_main  # noqa: E402
+from _common import cli_main, write_csv  # noqa: E402
 
 _PARAMS = ("means", "log_scales", "quats", "opacity_raw", "colors", "sh_rest")
+#: The columns of a ``--csv`` row.
+ROW_COLUMNS = ("code_version", "n_gaussians", "width", "height", "threads", "iterations", "median_s", "mean_s")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -41,7 +43,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--warmup", type=int, default=5, help="untimed iterations first (default 5)")
     p.add_argument("--threads", type=int, default=2, help="torch and kernel threads (default 2)")
     p.add_argument("--seed", type=int, default=0, help="order of the training photos (default 0)")
-    p.add_argument("--csv", type=Path, default=None, help="append the result as a row of this CSV")
+    p.add_argument("--csv", type=Path, default=None, help="add the result as a row of this CSV")
     return p
 
 
@@ -59,6 +61,18 @@ def run(argv: list[str] | None = None) -> int:
 
     if args.iterations < 1 or args.warmup < 0 or args.threads < 1:
         raise CtsplatError("--iterations and --threads must be at least 1 and --warmup at least 0")
+    earlier = None
+    if args.csv is not None and args.csv.exists():  # checked before the timing, not after it
+        import pandas as pd
+
+        try:
+            earlier = pd.read_csv(args.csv)
+        except (OSError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
+            raise CtsplatError(f"--csv {args.csv} cannot be read ({' '.join(str(exc).split())}); give a table of "
+                               "this benchmark or a new file") from None
+        if list(earlier.columns) != list(ROW_COLUMNS):
+            raise CtsplatError(f"--csv {args.csv} holds columns {','.join(map(str, earlier.columns))}, not this "
+                               f"benchmark's ({','.join(ROW_COLUMNS)}); give another file")
     torch.set_num_threads(args.threads)
     lam = float(photo_settings()["train"]["lambda_dssim"])
     scene = load_scene(args.sfm_dir, downscale=args.downscale)
@@ -82,14 +96,12 @@ def run(argv: list[str] | None = None) -> int:
            "width": int(train[0].camera.width), "height": int(train[0].camera.height), "threads": args.threads,
            "iterations": args.iterations, "median_s": statistics.median(times), "mean_s": statistics.fmean(times)}
     print(json.dumps(row))
-    if args.csv is not None:
-        new = not args.csv.exists()
-        args.csv.parent.mkdir(parents=True, exist_ok=True)
-        with args.csv.open("a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(row))
-            if new:
-                w.writeheader()
-            w.writerow(row)
+    if args.csv is not None:  # one row added to the table, which is written whole
+        import pandas as pd
+
+        table = pd.concat([earlier, pd.DataFrame([row])], ignore_index=True) if earlier is not None else \
+            pd.DataFrame([row])
+        write_csv(table, args.csv)
     return 0
 
 

@@ -46,7 +46,7 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from _common import cli_main, data_cache, shared_train_config, write_csv  # noqa: E402
+from _common import cli_main, data_cache, out_folder, shared_train_config, write_csv  # noqa: E402
 
 POSES = ("gt", "perturbed", "perturbed+refine", "colmap", "colmap+refine")
 CONE = {"dso_mm": 600.0, "dsd_mm": 1000.0}
@@ -153,7 +153,7 @@ def run(argv: list[str] | None = None) -> int:
     if args.data != "phantom" and not Path(args.data).exists():
         print(f"poses.py: error: no volume source at {args.data}", file=sys.stderr)
         return 2
-    out = Path(args.out)
+    out = out_folder(args.out)
     cache = data_cache(out, args.data, f"-g{args.grid}")
     cache.mkdir(parents=True, exist_ok=True)
     vol = ingest_volume(args.data, cache, args.grid)

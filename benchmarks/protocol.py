@@ -57,7 +57,9 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from _common import cli_main, shared_train_config, time_to, write_csv  # noqa: E402
+from _common import cli_main, data_cache, out_folder, shared_train_config, time_to, write_csv  # noqa: E402
+
+from ctsplat.utils import atomic_path, write_json_atomic  # noqa: E402
 
 DEFAULT_VOLUMES = ["phantom", "ct0051_head", "totalseg_abdomen_j2k"]
 N_VAL, N_TEST = 10, 100
@@ -102,12 +104,21 @@ def source_of(name: str, data: Path, cache: Path, size: int) -> Path:
     return path
 
 
+def volume_key(name: str, data: Path, size: int) -> str:
+    """The folder name of one volume's cache and runs: ``{name}-s{size}``, plus a hash of the scan's resolved path
+    for scans (``-{8 hex}``), so that another ``--data`` with a scan of the same name is not served from this
+    one's cache."""
+    if name == "phantom":
+        return f"{name}-s{size}"
+    return f"{name}-s{size}-{data_cache(Path(), data / name).name.rsplit('-', 1)[1]}"
+
+
 def prepare(name: str, data: Path, out: Path, size: int, n_train: int) -> tuple[Path, Path]:
     """Ingest once per volume and size, render one protocol view set per training-angle count (cached)."""
     from ctsplat.projector import render_radiographs
     from ctsplat.volume import ingest
 
-    cache = out / "cache" / f"{name}-s{size}"
+    cache = out / "cache" / volume_key(name, data, size)
     cache.mkdir(parents=True, exist_ok=True)
     vol = cache / "volume.nii.gz"
     if not vol.exists():
@@ -331,8 +342,7 @@ def run(argv: list[str] | None = None) -> int:
     for name in args.volumes:
         if name != "phantom" and not (data / name).exists():
             raise CtsplatError(f"--volumes {name}: {data / name} not found (give --data, or use phantom)")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = out_folder(args.out)
     rows: list[dict] = []
     errors: dict[str, str] = {}
 
@@ -343,9 +353,16 @@ def run(argv: list[str] | None = None) -> int:
             table = table.sort_values(["_v", "views"], kind="stable").drop(columns="_v")
         table = table[[c for c in TABLE_COLUMNS if c in table] + [c for c in table if c not in TABLE_COLUMNS]]
         write_csv(table, out / "protocol.csv")
-        (out / "protocol.md").write_text(markdown(table))
+        with atomic_path(out / "protocol.md") as tmp:
+            tmp.write_text(markdown(table))
         return table
 
+    def record(**extra: Any) -> None:  # what made the table beside it, from the start (an interrupted run too)
+        write_json_atomic(out / "protocol.json", {"args": vars(args), "train": shared,
+                                                  "baselines": baseline_settings,
+                                                  "geometry": protocol_geometry(0, args.size), **extra})
+
+    record(finished=False)
     t_start = time.perf_counter()
     for name in args.volumes:
         for n_train, counts in angle_sets(args.views):
@@ -356,7 +373,8 @@ def run(argv: list[str] | None = None) -> int:
             rows.extend(base)
             write()
             for n in counts if not args.skip_gaussians else []:
-                g = gaussian_row(name, vol, rad, n, shared, out / "runs" / f"{name}-s{args.size}" / f"views{n:03d}")
+                run_dir = out / "runs" / volume_key(name, data, args.size) / f"views{n:03d}"
+                g = gaussian_row(name, vol, rad, n, shared, run_dir)
                 best, label = best_classical(base, name, n)
                 if best is not None:
                     key = "psnr3d_r2" if best.get("psnr3d_r2") is not None and g["psnr3d_r2"] is not None else "psnr3d"
@@ -365,11 +383,7 @@ def run(argv: list[str] | None = None) -> int:
                 rows.append(g)
                 write()
     table = write()
-    (out / "protocol.json").write_text(json.dumps({"args": vars(args), "train": shared,
-                                                   "baselines": baseline_settings,
-                                                   "geometry": protocol_geometry(0, args.size),
-                                                   "baseline_errors": errors,
-                                                   "total_seconds": time.perf_counter() - t_start}, indent=2))
+    record(finished=True, baseline_errors=errors, total_seconds=time.perf_counter() - t_start)
     print(markdown(table), end="")
     return 0
 

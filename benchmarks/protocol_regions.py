@@ -20,6 +20,7 @@ Writes ``regions.csv`` into the protocol folder and prints it.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
@@ -73,7 +74,8 @@ def reconstructions(out: Path) -> list[tuple[str, int, str, str, Path, Path]]:
     folder; ``suite`` is the baseline suite's folder name, empty for the Gaussians."""
     found = []
     for cache in sorted((out / "cache").glob("*-s*")):
-        name, reference = cache.name.rsplit("-s", 1)[0], cache / "volume.nii.gz"
+        # protocol.volume_key: {name}-s{size}, and -{hash of the scan's path} for scans
+        name, reference = re.sub(r"-s\d+(-[0-9a-f]{8})?$", "", cache.name), cache / "volume.nii.gz"
         for path in sorted(cache.glob("baselines_*/*_n[0-9][0-9][0-9].nii.gz")):
             method, n = path.name.removesuffix(".nii.gz").rsplit("_n", 1)
             found.append((name, int(n), method, path.parent.name, path, reference))

@@ -22,7 +22,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import sys
@@ -34,7 +33,9 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from _common import cli_main, data_cache, shared_train_config, time_to, write_csv  # noqa: E402
+from _common import cli_main, data_cache, out_folder, shared_train_config, time_to, write_csv  # noqa: E402
+
+from ctsplat.utils import write_json_atomic  # noqa: E402
 
 
 def prepare(data: Path, cache: Path, n_views: int, n_val: int, n_test: int, detector: int) -> tuple[Path, Path]:
@@ -110,14 +111,14 @@ def run(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from ctsplat.evaluation import evaluate
     from ctsplat.training import train
+    from ctsplat.utils import CtsplatError
 
     shared = train_config(args.set, args.iterations, args.n_init)  # refused before any work
     data = Path(args.data)
     if not data.is_dir():
-        print(f"ct0051_head not found at {data}", file=sys.stderr)
-        return 2
+        raise CtsplatError(f"--data {data}: no such folder; give a DICOM folder (default: ../shared/data/ct0051_head)")
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out_folder(out)
     cache = data_cache(out, data)
     rows, curves = [], []
     for n in args.views:
@@ -162,7 +163,7 @@ def run(argv: list[str] | None = None) -> int:
         print(table[[c for c in ("views", "method", "compositor", "psnr3d", "ssim3d", "margin_vs_best_baseline_db",
                                  "psnr2d_test", "wall_time_s", "time_to_beat_baseline_s", "time_to_final_quality_s",
                                  "uses_reference_volume") if c in table]].to_string(index=False))
-    (out / "quality.json").write_text(json.dumps({"args": vars(args), "train": shared}, indent=2))
+    write_json_atomic(out / "quality.json", {"args": vars(args), "train": shared})
     return 0
 
 

@@ -22,12 +22,11 @@ import json
 import math
 import os
 import resource
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-from _common import cli_main, write_csv
+from _common import cli_main, run_child, write_csv
 
 OUT = Path(__file__).resolve().parent / "out"
 FOV_MM = 200.0
@@ -118,7 +117,7 @@ def _spawn(args: list[str]) -> dict:
     # workers steal the cores the other thread needs (measured here: 2-thread fwd+bwd 5x slower without it)
     env = dict(os.environ, OMP_NUM_THREADS=args[args.index("--threads") + 1])
     env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    res = subprocess.run([sys.executable, __file__, "--one", *args], capture_output=True, text=True, env=env)
+    res = run_child([sys.executable, __file__, "--one", *args], env=env)
     if res.returncode != 0:
         raise RuntimeError(res.stderr.strip().splitlines()[-1] if res.stderr.strip() else "benchmark child failed")
     return json.loads(res.stdout.strip().splitlines()[-1])

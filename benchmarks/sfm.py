@@ -127,7 +127,8 @@ def volume_path(name: str, grid: int) -> Path:
         beads_in_air(out)
     elif name == "head":
         if not HEAD.is_dir():
-            raise SystemExit(f"head CT not found at {HEAD}")
+            raise CtsplatError(f"ct0051_head not found at {HEAD}; put the shared data beside the checkout or name "
+                               "its folder in CTSPLAT_SHARED_DATA")
         ingest(HEAD, out, {"grid": grid})
     else:
         dcm = base / f"dicom_{name}_{grid}"
@@ -184,6 +185,23 @@ def sweep_overrides(sets: list[str]) -> dict:
     return extra
 
 
+def _earlier_table(path: Path) -> pd.DataFrame | None:
+    """The ``--csv`` table of an earlier sweep (None when there is none); one line when it cannot be one."""
+    if path.is_dir():
+        raise CtsplatError(f"--csv {path} is a folder; give a CSV file")
+    if not path.exists():
+        return None
+    try:
+        old = pd.read_csv(path)
+    except (OSError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
+        raise CtsplatError(f"--csv {path} cannot be read ({' '.join(str(exc).split())}); give this sweep's table or "
+                           "a new file") from None
+    if not {"volume", "label"} <= set(old.columns):
+        raise CtsplatError(f"--csv {path} is not a table of this sweep (no volume and label columns); give another "
+                           "file")
+    return old
+
+
 def run(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--only", help="volume name (head, phantom_beads, phantom_smooth, beads_in_air) or label substring")
@@ -201,13 +219,14 @@ def run(argv: list[str] | None = None) -> int:
     from ctsplat.formats.volume import load_volume
     from ctsplat.sfm.step import naive_slices_sfm, run_sfm
 
+    if args.threads < 1 or args.grid < 8:
+        ap.error("--threads must be >= 1 and --grid >= 8")
     torch.set_num_threads(args.threads)
     try:
         extra = sweep_overrides(args.set)
     except CtsplatError as exc:
         ap.error(str(exc))
-    if args.threads < 1 or args.grid < 8:
-        ap.error("--threads must be >= 1 and --grid >= 8")
+    earlier = _earlier_table(Path(args.csv))  # the table the sweep adds to, checked before the sweep
     runs = [r for r in SWEEP if not args.only or args.only == r[0] or args.only in r[1]]
     if not runs:
         ap.error(f"--only {args.only!r} matches no configuration (volumes: "
@@ -257,11 +276,9 @@ def run(argv: list[str] | None = None) -> int:
                      "seconds": round(time.perf_counter() - t0, 1)})
         print(json.dumps(rows[-1]), flush=True)
     df = pd.DataFrame(rows)
-    Path(args.csv).parent.mkdir(parents=True, exist_ok=True)
-    if Path(args.csv).exists():  # keep rows of earlier partial sweeps that were not re-run
-        old = pd.read_csv(args.csv)
-        keep = ~old.set_index(["volume", "label"]).index.isin(df.set_index(["volume", "label"]).index)
-        df = pd.concat([old[keep], df], ignore_index=True)
+    if earlier is not None:  # keep rows of earlier partial sweeps that were not re-run
+        keep = ~earlier.set_index(["volume", "label"]).index.isin(df.set_index(["volume", "label"]).index)
+        df = pd.concat([earlier[keep], df], ignore_index=True)
     write_csv(df, args.csv)
     with pd.option_context("display.width", 250, "display.max_columns", 30):
         cols = ["volume", "label", "n_views", "detector_px", "dso_mm", "orbit_jitter_deg", "registration_rate",

@@ -25,7 +25,6 @@ accumulation into the previous step's gradients). Writes ``benchmarks/out/thread
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import os
 import statistics
@@ -33,7 +32,8 @@ import sys
 import time
 from pathlib import Path
 
-from _common import cli_main
+import pandas as pd
+from _common import cli_main, write_csv
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -111,15 +111,20 @@ def run(argv: list[str] | None = None) -> int:
     p.add_argument("--size", type=int, default=256, help="image side, px")
     p.add_argument("--grid", type=int, default=128, help="voxelizer grid side")
     args = p.parse_args(argv)
+    from ctsplat.utils import CtsplatError
+
+    try:
+        threads = [int(x) for x in args.threads.split(",")]
+    except ValueError:
+        raise CtsplatError(f"--threads {args.threads!r}: expected comma-separated integers, e.g. 1,2") from None
+    if min(threads) < 1 or min(args.reps, args.n, args.size, args.grid) < 1:
+        raise CtsplatError("--threads, --reps, --n, --size and --grid must be at least 1")
     import torch
 
     from ctsplat.splat import _kernel
 
     if not _kernel.available():
-        print(f"error: the fused C++ kernel is unavailable ({_kernel._failed}); install a C++ compiler",
-              file=sys.stderr)
-        return 1
-    threads = [int(x) for x in args.threads.split(",")]
+        raise CtsplatError(f"the fused C++ kernel is unavailable ({_kernel._failed}); install a C++ compiler")
     steps = _steps(args.n, args.size, args.grid)
     rows = []
     print(f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} at start; "
@@ -147,11 +152,7 @@ def run(argv: list[str] | None = None) -> int:
                          "min_ms": round(1e3 * min(times[k]), 3), "speedup_vs_1": round(med[threads[0]] / med[k]
                                                                                           * threads[0], 3),
                          "reps": args.reps, "load_avg_1min": round(os.getloadavg()[0], 2)})
-    OUT.mkdir(exist_ok=True)
-    with open(OUT / "threads.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(pd.DataFrame(rows), OUT / "threads.csv")
     print(f"load average {os.getloadavg()[0]:.2f} at the end; wrote {OUT / 'threads.csv'}")
     return 0
 

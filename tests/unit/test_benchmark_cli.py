@@ -102,6 +102,13 @@ def test_baselines_arc_takes_effect_and_bad_options_are_refused(tmp_path, phanto
         ("host_reads.py", ["--set", "nviews=3"], "unknown config key train.nviews"),
         ("photo_step.py", ["sfm", "model.pt", "--iterations", "0"], "--iterations and --threads must be at least 1"),
         ("photo_step.py", ["sfm", "model.pt"], "sfm is not a photo SfM folder"),
+        ("threads.py", ["--threads", "1,x"], "--threads '1,x': expected comma-separated integers"),
+        ("threads.py", ["--reps", "0"], "--threads, --reps, --n, --size and --grid must be at least 1"),
+        ("sfm.py", ["--threads", "0"], "--threads must be >= 1"),
+        ("gpu.py", ["--reps", "0"], "--reps must be >= 1"),
+        ("photo_blame.py", ["run", "--threads", "0"], "--top and --threads must be >= 1"),
+        ("baselines.py", ["--source", "phantom", "--set", "nosuchkey=1", "--work", "w"],
+         "unknown config key baselines.nosuchkey"),
     ],
 )
 def test_benchmark_options_are_checked(tmp_path, script, args, needle):
@@ -166,3 +173,71 @@ def test_pose_benchmark_renders_the_split_it_describes(tmp_path, monkeypatch, ph
     rad = poses.training_views(tmp_path / "v.nii.gz", tmp_path, beam, n, 16)
     views = json.loads((rad / "views.json").read_text())["views"]
     assert Counter(v["split"] for v in views) == {"train": n, "val": 10, "test": 100}
+
+
+@pytest.mark.parametrize(
+    ("script", "args"),
+    [
+        ("protocol.py", ["--volumes", "phantom", "--out", "{f}"]),
+        ("features.py", ["--data", "{d}", "--out", "{f}"]),
+        ("quality.py", ["--data", "{d}", "--out", "{f}"]),
+        ("poses.py", ["--data", "phantom", "--out", "{f}"]),
+        ("host_reads.py", ["--out", "{f}"]),
+        ("baselines.py", ["--source", "phantom", "--work", "{f}"]),
+    ],
+)
+def test_an_output_folder_that_is_a_file_is_named_in_one_line(tmp_path, script, args):
+    (tmp_path / "afile").write_text("not a folder\n")
+    (tmp_path / "data").mkdir()
+    args = [a.format(f=tmp_path / "afile" / "out", d=tmp_path / "data") for a in args]
+    res = bench(script, *args, cwd=tmp_path)
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert f"{tmp_path / 'afile'} is a file, not a folder; give a folder" in last_line(res)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "data"]
+
+
+def test_tables_a_benchmark_adds_to_are_checked_before_the_work(tmp_path):
+    """sfm.py's and photo_step.py's --csv: a folder or another benchmark's table is refused before the sweep or the
+    timing, not after it."""
+    (tmp_path / "other.csv").write_text("a,b\n1,2\n")
+    (tmp_path / "folder").mkdir()
+    for csv, needle in ((tmp_path / "folder", "is a folder; give a CSV file"),
+                        (tmp_path / "other.csv", "is not a table of this sweep")):
+        res = bench("sfm.py", "--only", "beads_in_air", "--quick", "--csv", csv, cwd=tmp_path)
+        assert res.returncode == 2 and needle in last_line(res), res.stderr[-2000:]
+    res = bench("photo_step.py", "sfm", "model.pt", "--csv", tmp_path / "other.csv", cwd=tmp_path)
+    assert res.returncode == 2 and "holds columns a,b, not this benchmark's" in last_line(res)
+    assert (tmp_path / "other.csv").read_text() == "a,b\n1,2\n"
+
+
+def test_a_terminated_benchmark_passes_the_signal_to_its_child(tmp_path):
+    """``_common.run_child``: SIGTERM of the benchmark reaches its child as SIGTERM (whose handler removes its
+    temporary files), not as the SIGKILL ``subprocess.run`` sends after a quarter second."""
+    import signal
+    import textwrap
+    import time
+
+    child = tmp_path / "child.py"
+    child.write_text(textwrap.dedent(f"""
+        import pathlib, signal, sys, time
+        def bye(*_):
+            time.sleep(0.5)  # longer than subprocess.run's grace
+            pathlib.Path({str(tmp_path / "cleaned")!r}).touch()
+            sys.exit(143)
+        signal.signal(signal.SIGTERM, bye)
+        pathlib.Path({str(tmp_path / "started")!r}).touch()
+        time.sleep(60)
+    """))
+    parent = (f"import sys; sys.path.insert(0, {str(ROOT / 'benchmarks')!r})\n"
+              "from _common import cli_main, run_child\n"
+              f"sys.exit(cli_main(lambda a: run_child([sys.executable, {str(child)!r}]).returncode, None, 'p.py'))\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([sys.executable, "-c", parent], stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 60
+    while not (tmp_path / "started").exists():
+        assert proc.poll() is None and time.monotonic() < deadline
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and err.strip().splitlines()[-1].startswith("p.py: terminated;"), err
+    assert (tmp_path / "cleaned").exists()

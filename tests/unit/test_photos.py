@@ -1127,6 +1127,37 @@ def test_fold_benchmark_refuses_bad_options_with_one_line(tmp_path: Path, args: 
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize(("fold", "files", "needle"), [
+    (2, {"training.json": "{}"}, "kept run's config"),
+    (2, {"training.json": "{}", "config.json": '{"sfm_dir": "elsewhere", "train": {}}'},
+     "holds a run with other settings or another SfM folder"),
+])
+def test_fold_benchmark_checks_kept_runs_before_training_any(tmp_path: Path, fold: int, files: dict,
+                                                               needle: str) -> None:
+    """A kept run that cannot pair (no config, other settings) in the last fold is named before the first fold
+    trains, not hours later; nothing is trained."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    sfm = tmp_path / "sfm" / "sparse" / "0"
+    sfm.mkdir(parents=True)
+    (sfm / "cameras.bin").write_bytes(b"")
+    kept = tmp_path / "o" / f"fold{fold}_seed0_candidate"
+    kept.mkdir(parents=True)
+    for name, text in files.items():
+        (kept / name).write_text(text)
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    res = subprocess.run([sys.executable, str(root / "benchmarks" / "photo_folds.py"), "--sfm", str(tmp_path / "sfm"),
+                          "--candidate", "train.sh_degree=1", "--folds", "1", str(fold), "--out", str(tmp_path / "o")],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr[-2000:]
+    line = res.stderr.strip().splitlines()[-1]
+    assert line.startswith("benchmarks/photo_folds.py: error:") and needle in line, line
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == [kept.name]  # no training started
+
+
 def test_fold_benchmark_stopped_by_sigterm_starts_no_queued_run(tmp_path: Path) -> None:
     """A job's time limit (SIGTERM) stops the comparison: the queued trainings never start (they ran for hours)."""
     import os

@@ -162,17 +162,18 @@ def test_protocol_regions_splits_the_error_by_region(tmp_path):
     box = np.zeros(ref.shape, bool)
     box[2:5, 3:9, 4:6] = True
     out = tmp_path / "p"
-    cache = out / "cache" / "slab-s10"
+    cache = out / "cache" / "slab-s10-0123abcd"  # protocol.volume_key of a scan: name, size, hash of its path
     save_volume(Volume(ref, np.eye(4)), cache / "volume.nii.gz")
     outside = ref + np.where(box, 0.0, 0.1).astype(np.float32)
     save_volume(Volume(outside, np.eye(4)), cache / "baselines_radiographs_n004_v4" / "sart_n004.nii.gz")
     inside = ref + np.where(ref > 0, 0.2, 0.0).astype(np.float32)
-    save_volume(Volume(inside, np.eye(4)), out / "runs" / "slab-s10" / "views004" / "model_volume.nii.gz")
+    save_volume(Volume(inside, np.eye(4)), out / "runs" / cache.name / "views004" / "model_volume.nii.gz")
 
     res = regions(out, cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
     table = pd.read_csv(out / "regions.csv").set_index("method")
     assert set(table.index) == {"sart", "gaussians"} and set(table["views"]) == {4}
+    assert set(table["volume"]) == {"slab"}
     n, n_box, n_obj = ref.size, 36, 35
     assert table.loc["sart", "psnr3d_whole"] == pytest.approx(10 * np.log10(n / ((n - n_box) * 0.01)), abs=1e-3)
     assert table.loc["sart", "psnr3d_outside_box"] == pytest.approx(20.0, abs=1e-3)
@@ -213,3 +214,22 @@ def test_protocol_sharpen_refuses_bad_input(tmp_path, args, needle):
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert needle in res.stderr.strip().splitlines()[-1]
     assert not (tmp_path / "empty").exists()
+
+
+def test_protocol_does_not_serve_one_scan_from_the_cache_of_another_of_the_same_name(tmp_path):
+    """Two --data folders each holding a scan called ``scan``: the second run ingests its own, and protocol.json
+    records the run from its start."""
+    from ctsplat.phantom import write_phantom_dicom
+
+    for folder, variant in (("dA", "kak_slaney"), ("dB", "high_contrast")):
+        write_phantom_dicom(tmp_path / folder / "scan", size=16, beads=False, variant=variant)
+    out = tmp_path / "p"
+    scores = []
+    for folder in ("dA", "dB"):
+        res = bench("--volumes", "scan", "--data", tmp_path / folder, "--views", "4", "--size", "16",
+                    "--skip-gaussians", "--baseline-set", "methods=[fdk]", "--out", out, cwd=tmp_path)
+        assert res.returncode == 0, res.stderr[-3000:]
+        record = json.loads((out / "protocol.json").read_text())
+        assert record["finished"] and record["args"]["data"] == str(tmp_path / folder)
+        scores.append(pd.read_csv(out / "protocol.csv")["psnr3d"].tolist())
+    assert len(list((out / "cache").glob("scan-s16-*"))) == 2 and scores[0] != scores[1]
