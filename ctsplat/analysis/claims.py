@@ -76,31 +76,45 @@ def _unscored_note(runs: pd.DataFrame) -> str:
             "gather and analyse again")
 
 
+_NO_BASELINE = ("no classical baseline at its volume and view count: baselines.enabled is false, gather ran "
+                "without --baselines, or the baselines were made at other view counts")
+
+
 def _baseline_rows(summary: pd.DataFrame) -> list[dict[str, Any]]:
-    """The headline claim, one row per init: rectified radiative runs at the true poses (mip on where the grid has
-    it) against the strongest classical reconstruction at the same volume and view count; a "no pairs" row,
-    never none, when nothing can be compared."""
+    """The headline claim, one row per init: rectified radiative runs at the true poses (mip on where that init
+    has it) against the strongest classical reconstruction at the same volume and view count; a "no pairs" row,
+    never none, when nothing can be compared, saying why (no test metrics, no baseline)."""
     need = {"best_baseline", "best_baseline_test_psnr3d", "test_psnr3d", "compositor", "init", "poses"}
     s = pd.DataFrame()
     if need <= set(summary.columns):
         s = summary[(summary["compositor"] == "radiative") & (summary["init"] != "volume")
                     & (summary["poses"] == "gt")]
-        unscored = _unscored_note(s)
-        s = s.assign(d=pd.to_numeric(s["test_psnr3d"], errors="coerce")
-                     - pd.to_numeric(s["best_baseline_test_psnr3d"], errors="coerce")).dropna(subset=["d"])
-    mip = "on"
-    if "mip" in s and len(s):
-        mip = "on" if (s["mip"].astype(str) == "on").any() else str(s["mip"].iloc[0])
-        s = s[s["mip"].astype(str) == mip]
+        if "status" in s:
+            s = s[s["status"].astype(str) != NOT_RUN]
     if s.empty:  # the headline claim: say that it was not measured, never drop it
         return [{"comparison": f"rectified radiative vs the strongest classical reconstruction ({_HONEST})",
                  "expected": "Gaussians higher", "result": "no pairs", "n_pairs": 0, "n_as_expected": None,
                  "median_difference_psnr3d_db": None, "median_difference_ssim3d": None,
-                 "note": "no rectified radiative run at the true poses has a classical baseline at its volume and "
-                         "view count: baselines.enabled is false, gather ran without --baselines, or the "
-                         "baselines were made at other view counts"}]
+                 "note": f"no rectified radiative run at the true poses has a {_NO_BASELINE}"}]
     rows = []
     for init, g in s.groupby("init", sort=True):
+        mip = "on"
+        if "mip" in g:  # per init, before runs are dropped: a run without metrics must not switch the claim
+            mip = "on" if (g["mip"].astype(str) == "on").any() else str(g["mip"].iloc[0])
+            g = g[g["mip"].astype(str) == mip]
+        unscored = _unscored_note(g)
+        test = pd.to_numeric(g["test_psnr3d"], errors="coerce")
+        base = pd.to_numeric(g["best_baseline_test_psnr3d"], errors="coerce")
+        no_base = int((test.notna() & base.isna()).sum())
+        g = g.assign(d=test - base).dropna(subset=["d"])
+        label = (f"rectified radiative (init={init}, mip {mip}, poses gt) vs the strongest classical reconstruction "
+                 f"at the same views ({_HONEST})")
+        missing = f"{no_base} scored run(s) have no {_NO_BASELINE}" if no_base else ""
+        if g.empty:
+            rows.append({"comparison": label, "expected": "Gaussians higher", "result": "no pairs", "n_pairs": 0,
+                         "n_as_expected": None, "median_difference_psnr3d_db": None,
+                         "median_difference_ssim3d": None, "note": "; ".join(x for x in (unscored, missing) if x)})
+            continue
         d = g["d"].to_numpy(float)
         ssim = (pd.to_numeric(g.get("test_ssim3d"), errors="coerce")
                 - pd.to_numeric(g.get("best_baseline_test_ssim3d"), errors="coerce")).median()
@@ -120,12 +134,14 @@ def _baseline_rows(summary: pd.DataFrame) -> list[dict[str, Any]]:
             ahead = f"{gap:.2f} dB higher" if gap > 0 else "level"  # a tie, not "-0.00 dB higher"
             note = (f"{method} is {ahead} at {int(worst['views'])} views ({worst['volume']}): "
                     f"{budget}{BASELINE_PRIORS.get(method, method + ' had its settings chosen on validation views')}")
-        note = "; ".join(x for x in (_geometry_note(g), note, unscored) if x)
-        rows.append({"comparison": f"rectified radiative (init={init}, mip {mip}, poses gt) vs the strongest classical "
-                                   f"reconstruction at the same views ({_HONEST})",
-                     "expected": "Gaussians higher", "result": result, "n_pairs": len(d),
+        note = "; ".join(x for x in (_geometry_note(g), note, unscored, missing) if x)
+        rows.append({"comparison": label, "expected": "Gaussians higher", "result": result, "n_pairs": len(d),
                      "n_as_expected": int((d > 0).sum()), "median_difference_psnr3d_db": float(np.median(d)),
                      "median_difference_ssim3d": float(ssim) if pd.notna(ssim) else None, "note": note})
+    if all(r["result"] == "no pairs" for r in rows):  # nothing compared at all: one row, every reason once
+        notes = list(dict.fromkeys(n for r in rows for n in r["note"].split("; ") if n))
+        return [{**rows[0], "comparison": f"rectified radiative vs the strongest classical reconstruction ({_HONEST})",
+                 "note": "; ".join(notes)}]
     return rows
 
 

@@ -280,12 +280,13 @@ def gather(
         row: dict[str, Any] = {"volume": None, **parse_run_dir(rd), "run_dir": str(rd)}
         metrics_path = rd / "metrics.json"
         log_path = rd / "train_log.csv"
-        if not metrics_path.exists() and not log_path.exists():
-            reason = _not_run_reason(rd, row)
-            if reason is None:
-                raise CtsplatError(f"gather: {rd} has neither metrics.json nor train_log.csv; did training finish?")
+        # a cell of a failed SfM run is not run even when an earlier, successful SfM left its outputs behind
+        reason = _not_run_reason(rd, row)
+        if reason is not None:
             rows.append({**row, "status": NOT_RUN, "not_run_reason": reason})
             continue
+        if not metrics_path.exists() and not log_path.exists():
+            raise CtsplatError(f"gather: {rd} has neither metrics.json nor train_log.csv; did training finish?")
         row["status"] = "trained"
         row["geometry"] = _run_geometry(rd)
         if metrics_path.exists():

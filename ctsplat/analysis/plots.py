@@ -111,6 +111,12 @@ def condition_styles(table: pd.DataFrame, label_col: str = "condition", exclude:
         ls = LINESTYLES[levels[1].index(str(r[used[1]])) % len(LINESTYLES)] if len(used) > 1 else "-"
         marker = MARKERS[rest.index(tuple(str(r[a]) for a in used[2:])) % len(MARKERS)] if len(used) > 2 else "o"
         out[str(r[label_col])] = {"color": colour, "linestyle": ls, "marker": marker, "markevery": 0.1}
+    seen = [(tuple(st["color"]) if not isinstance(st["color"], str) else st["color"], st["linestyle"], st["marker"])
+            for st in out.values()]
+    if len(set(seen)) < len(seen):  # more levels than the palette, line styles or markers tell apart: one colour each
+        colours = sns.color_palette("husl", n_colors=len(out))
+        out = {name: {"color": colours[i], "linestyle": LINESTYLES[i % len(LINESTYLES)],
+                      "marker": MARKERS[i % len(MARKERS)], "markevery": 0.1} for i, name in enumerate(out)}
     return out
 
 
@@ -685,9 +691,10 @@ def plot_ablation(summary: pd.DataFrame, out: str | os.PathLike[str]) -> plt.Fig
                 ax.legend(seen.values(), seen.keys(), fontsize=6, loc="best")
             ax.set_xticks(x, [_level_label(axis, c) for c in wide.columns])
             first, last = wide.columns[0], wide.columns[-1]
-            delta = (wide[last] - wide[first]).median()
+            diff = wide[last] - wide[first]
             unit = " dB" if m.startswith("psnr") else ""
-            ax.set_title(f"{len(wide)} pairs; median {last}−{first}: {delta:+.3g}{unit}", fontsize=8)
+            ax.set_title(f"{int(diff.notna().sum())} pairs; median {last}−{first}: {diff.median():+.3g}{unit}",
+                         fontsize=8)
             ax.set_xlabel(axis if i == len(metric_cols) - 1 else "")
             ax.set_ylabel(f"test {METRIC_LABELS.get(m, m)}" if col.startswith("test_") else
                           f"last validation {METRIC_LABELS.get(m, m)}")
@@ -757,8 +764,12 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
     if len(s):
         cond_axes = [a for a in ("volume", *ALL_AXES) if a not in ("views", "seed") and a in s]
         named = varying_axes(s, cond_axes) or [a for a in cond_axes if a != "volume"]
+        from ctsplat.training.config import REFERENCE_INITS
+
+        reads = s["init"].isin(REFERENCE_INITS) if "init" in s else pd.Series(False, index=s.index)
         s = s.assign(condition="Gaussian, " + s[named].astype(str).apply(
-            lambda r: ", ".join(f"{a}={r[a]}" for a in named), axis=1))
+            lambda r: ", ".join(f"{a}={r[a]}" for a in named), axis=1) + reads.map({True: " [reads reference]",
+                                                                                     False: ""}))
         for cond, st in condition_styles(s, "condition", axes=cond_axes).items():
             g = s[s["condition"] == cond]
             mean = g.groupby("views", as_index=False)["score"].mean()
@@ -767,13 +778,20 @@ def plot_baselines(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os
             drawn = True
     if drawn:
         ax.set_xlabel("number of training views")
-        ax.set_ylabel(METRIC_LABELS.get(metric, metric))
+        ax.set_ylabel(_score_label(col, metric))
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), handlelength=3.5)
         ax.grid(alpha=0.3)
     else:
         _empty(ax, "no Gaussian runs or baselines")
     ax.set_title("Gaussian model vs classical reconstructions per view count")
     return _save(fig, out)
+
+
+def _score_label(col: str, metric: str) -> str:
+    """The axis label of the Gaussians' score column: test values, or the last validation values where the summary
+    has no test metrics (the classical methods' values beside them are test values)."""
+    name = METRIC_LABELS.get(metric, metric)
+    return f"test {name}" if col.startswith("test_") else f"Gaussians: last validation {name}; classical: test {name}"
 
 
 def _plot_baseline_bars(summary: pd.DataFrame, baselines: pd.DataFrame, out: str | os.PathLike[str], *, col: str,
@@ -807,7 +825,7 @@ def _plot_baseline_bars(summary: pd.DataFrame, baselines: pd.DataFrame, out: str
         ax.set_xlim(lo - 2.0 if metric.startswith("psnr") else max(0.0, lo - 0.1), None)
         for yi, b in zip(y, bars, strict=True):
             ax.text(b[1], yi, f" {b[1]:.2f}", va="center", fontsize=7)
-        ax.set_xlabel(f"test {METRIC_LABELS.get(metric, metric)}")
+        ax.set_xlabel(_score_label(col, metric))
         ax.grid(alpha=0.3, axis="x")
     ax.set_title(f"Gaussian runs vs classical reconstructions, {views} training views\n(grey: classical, settings "
                  "chosen on validation views; blue: rectified radiative; green: other compositors; orange: seeded "
@@ -844,6 +862,7 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
     summary = read_summary(summary_csv)
     baselines = read_baselines(baselines_csvs)  # every input is read before the first output is written
     logs = load_runs(summary, max_gap_iters=cfg["max_gap_iters"])
+    per_view = load_per_view(summary) if "kde" in outputs else None
     if "provenance" in outputs:  # first: what the outputs are made from, and it marks the folder as analyse's
         write_json_atomic(outputs["provenance"], analysis_provenance(summary_csv, summary, cfg, baselines_csvs))
     for a in GRID_AXES:
@@ -855,7 +874,7 @@ def analyse(summary_csv: str | os.PathLike[str], outputs: Mapping[str, str | os.
     if "acf" in outputs:
         plot_acf_runs(logs, outputs["acf"], max_lag=cfg["acf_max_lag"], window=cfg["window"])
     if "kde" in outputs:
-        plot_kde_conditions(load_per_view(summary), outputs["kde"], n_windows=cfg["kde_windows"])
+        plot_kde_conditions(per_view, outputs["kde"], n_windows=cfg["kde_windows"])
     if "correlations_plot" in outputs:
         plot_correlations(logs, outputs["correlations_plot"], n_windows=cfg["kde_windows"])
     if "correlations" in outputs:

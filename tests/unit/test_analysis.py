@@ -557,6 +557,14 @@ def test_gather_lists_the_cells_of_a_failed_sfm_run_as_not_run(tmp_path):
     (tmp_path / "phantom" / "sfm" / "summary.json").write_text(json.dumps({"ok": True, "registration_rate": 1.0}))
     with pytest.raises(CtsplatError, match="neither metrics.json nor train_log.csv"):
         gather([gt, colmap], tmp_path / "summary2.csv")
+    # trained while an earlier SfM run was ok, the cell's outputs stay when SfM fails later: not run all the same
+    trained = _fake_run(tmp_path, poses="colmap", views=8, seed=0)
+    assert trained == colmap and (colmap / "metrics.json").exists()
+    assert gather([gt, colmap], tmp_path / "summary3.csv").set_index("run_dir").loc[str(colmap), "status"] == "trained"
+    (tmp_path / "phantom" / "sfm" / "summary.json").write_text(json.dumps({
+        "ok": False, "registration_rate": 1.0, "rot_err_deg_median": 3.2, "reason": "median rotation error 3.2 deg"}))
+    stale = gather([gt, colmap], tmp_path / "summary4.csv").set_index("run_dir").loc[str(colmap)]
+    assert stale["status"] == "not run" and pd.isna(stale["test_psnr3d"])
 
 
 def test_gather_compares_each_run_with_the_strongest_baseline_at_its_views(tmp_path):

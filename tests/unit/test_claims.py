@@ -100,3 +100,22 @@ def test_the_headline_claim_names_pairs_of_different_geometries():
     assert fbp["note"] == ("1 of 1 pairs compare different view geometries (Gaussians on sphere1200, classical on "
                            "circular150): the same volume and view count, not the same views, so those differences "
                            "are not like for like")
+
+
+def test_the_headline_claim_keeps_each_init_when_a_run_has_no_test_metrics():
+    """A trained run without test metrics (its evaluation failed) leaves its own init's row as "no pairs" naming it,
+    keeps that init at mip on, and is not named in another init's row; runs with baselines but no test metrics are
+    not blamed on the baselines."""
+    s = _summary()
+    lone = (s["init"] == "uniform") & (s["compositor"] == "radiative") & (s["mip"] == "on")
+    s.loc[lone, ["test_psnr3d", "test_ssim3d"]] = float("nan")
+    t = claims_table(s)
+    uni = _row(t, "rectified radiative (init=uniform, mip on")
+    assert uni["result"] == "no pairs" and "r/uniform/radiative/on" in uni["note"] and "baseline" not in uni["note"]
+    fbp = _row(t, "rectified radiative (init=fbp, mip on")
+    assert fbp["result"] == "holds" and "uniform" not in fbp["note"]
+    honest = (s["compositor"] == "radiative") & (s["init"] != "volume")
+    s.loc[honest, ["test_psnr3d", "test_ssim3d"]] = float("nan")
+    head = claims_table(s)[lambda x: x["comparison"].str.contains("strongest classical")]
+    assert list(head["result"]) == ["no pairs"] and "without test_psnr3d" in head["note"].iloc[0]
+    assert "baselines.enabled is false" not in head["note"].iloc[0]

@@ -426,3 +426,40 @@ def test_analyse_and_run_figures_write_every_output(tmp_path):
     assert all(_is_png(p) for p in run_out.values())
     with pytest.raises(CtsplatError, match="unknown analysis output 'nope'"):
         plots.analyse(tmp_path / "summary.csv", {"nope": tmp_path / "x.png"})
+
+
+def test_figures_say_what_they_plot_when_conditions_scores_or_pairs_run_short(tmp_path):
+    """More conditions than colours, line styles and markers still get one style each; a reference-seeded run is
+    labelled so in the line chart as in the bars; a summary without test metrics is not labelled "test"; the
+    ablation title counts the pairs its median is over."""
+    table = pd.DataFrame([{"c": f"init={i}, views={v}", "init": i, "views": v} for i in ("fbp", "uniform")
+                          for v in (4, 8, 16, 24, 32, 40, 48, 56, 64)])
+    styles = plots.condition_styles(table, "c", axes=["init", "views"])
+    keys = [(str(st["color"]), st["linestyle"], st["marker"]) for st in styles.values()]
+    assert len(set(keys)) == len(keys) == 18
+    summary = pd.DataFrame({"volume": "p", "init": ["fbp", "fbp", "volume", "volume"], "compositor": "radiative",
+                            "mip": "on", "poses": "gt", "views": [8, 16, 8, 16], "seed": 0,
+                            "test_psnr3d": [20.0, 25.0, 30.0, 33.0]})
+    base = pd.DataFrame({"method": ["fbp", "fbp"], "n_views": [8, 16], "psnr3d": [15.0, 18.0], "ssim3d": [0.1, 0.2]})
+    fig = plots.plot_baselines(summary, base, tmp_path / "lines.png")
+    labels = {ln.get_label() for ln in fig.axes[0].get_lines()}
+    assert "Gaussian, init=volume [reads reference]" in labels and "Gaussian, init=fbp" in labels
+    val = summary.rename(columns={"test_psnr3d": "val_psnr3d_last"}).query("views == 8")
+    fig = plots.plot_baselines(val, base.query("n_views == 8"), tmp_path / "bars.png")
+    assert fig.axes[0].get_xlabel() == "Gaussians: last validation PSNR 3D (dB); classical: test PSNR 3D (dB)"
+    runs = [_make_run(tmp_path, init=i, views=v) for i in ("fbp", "uniform") for v in (8, 16)]
+    runs.append(_make_run(tmp_path, init="volume", views=8))  # a cell without its 16-view partner
+    fig = plots.plot_ablation(gather(runs, tmp_path / "s.csv"), tmp_path / "ab.png")
+    init_ax = next(ax for ax in fig.axes if ax.get_xlabel() == "init")
+    # the 16-view cells have fbp and uniform only: their line is drawn, but the median volume−fbp is over one pair
+    assert init_ax.get_title().startswith("1 pairs; median volume−fbp")
+
+
+def test_analyse_reads_every_input_before_writing_an_output(tmp_path):
+    runs = [_make_run(tmp_path, init=i) for i in ("fbp", "uniform")]
+    gather(runs, tmp_path / "summary.csv")
+    _per_view().drop(columns="azimuth_deg").to_csv(runs[1] / "per_view.csv", index=False)
+    outputs = {name: tmp_path / "figures" / fname for name, (fname, _) in ANALYSIS_OUTPUTS.items()}
+    with pytest.raises(CtsplatError, match="missing column 'azimuth_deg'"):
+        plots.analyse(tmp_path / "summary.csv", outputs)
+    assert not (tmp_path / "figures").exists() or not any((tmp_path / "figures").iterdir())
