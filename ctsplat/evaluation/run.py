@@ -748,7 +748,7 @@ def _gauge_aligned_metrics(refined: Path, g: Any, scene: Any, rk: dict[str, Any]
                                f"{fix}") from None
     if np.allclose(Rs, Rs_true, atol=1e-12) and np.allclose(ts, ts_true, atol=1e-9):
         return {}
-    G, b = gauge_motion(Rs, ts, Rs_true, ts_true, tr.camera.model)
+    G, b = gauge_motion(Rs, ts, Rs_true, ts_true, tr.camera.model, center_mm=scene.isocenter_mm)
     moved = gauge_aligned_model(g, G, b)
     vol = voxelize_model(moved, scene.volume.shape, scene.volume.affine, rk.get("filter_3d_var"))
     if sharpening and float(sharpening["sharpen_amount"]) != 0:  # amount 0 is the read-out as given

@@ -92,7 +92,7 @@ from ctsplat.training.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from ctsplat.training.config import REFERENCE_INITS, mip_filter, render_kwargs, resolve_config
+from ctsplat.training.config import EVALUATION_KEYS, REFERENCE_INITS, mip_filter, render_kwargs, resolve_config
 from ctsplat.training.densify import make_densify, reset_stats
 from ctsplat.training.features import Augmenter, density_lambda
 from ctsplat.training.poses import PoseCorrection, pose_errors, refine_enabled
@@ -271,10 +271,20 @@ def _collapse_reason(state: TrainState, cfg: dict[str, Any], row: dict[str, floa
     return None
 
 
+#: What an earlier run's evaluation and figures leave in a run folder (patterns of :data:`RUN_FILES`), removed with
+#: :data:`RUN_OUTPUTS` when a run starts afresh.
+EVALUATION_OUTPUTS = ("metrics_*.json", "per_view_*.csv", "model_volume_*.nii.gz", "model_volume*.json",
+                      "gallery.png", "slices.png", "turntable.gif", "figures/*.png")
+
+
 def _discard_outputs(out_dir: Path) -> None:
-    """Remove the final outputs of an earlier run (they must not sit beside a new or failed run's logs)."""
+    """Remove the final outputs of an earlier run and what its evaluation made of them (they must not sit beside
+    a new or failed run's logs)."""
     for name in RUN_OUTPUTS:
         (out_dir / name).unlink(missing_ok=True)
+    for pattern in EVALUATION_OUTPUTS:
+        for path in out_dir.glob(pattern):
+            path.unlink(missing_ok=True)
 
 
 def _restore_logs(out_dir: Path, ck: Checkpoint, logs: dict[str, CsvLog]) -> None:
@@ -646,7 +656,8 @@ def resume_key(cfg: dict[str, Any], scene: Scene) -> str:
     points = Path(str(cfg.get("sfm_dir") or "")) / "points3d.ply"
     if cfg.get("sfm_dir") and points.is_file():  # the colmap seed reads them
         h.update(points.read_bytes())
-    return config_hash({"config": cfg, "scene": h.hexdigest(), "code_version": code_version()})
+    trained = {k: v for k, v in cfg.items() if k not in EVALUATION_KEYS}  # they do not change the trained model
+    return config_hash({"config": trained, "scene": h.hexdigest(), "code_version": code_version()})
 
 
 def _save_model(state: TrainState, cfg: dict[str, Any], path: Path, chash: str, mu_scale: float) -> Any:

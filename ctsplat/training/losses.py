@@ -257,7 +257,7 @@ def total_loss(
     data_range : float
         Dynamic range of the images (SSIM).
     lambda_l1, lambda_ssim, lambda_density, lambda_scale, lambda_tv : float
-        Weights of the terms (>= 0; a term with weight 0 is not computed).
+        Weights of the terms (>= 0; a term with weight 0 is not computed, except the L1 term, which is always logged).
     tv_volume : Tensor, shape (i, j, k), optional
         Voxelised random sub-volume for the TV term; required when ``lambda_tv > 0``.
 
@@ -266,7 +266,7 @@ def total_loss(
     loss : Tensor, 0-d
     terms : dict of str to Tensor
         ``l1``, ``dssim`` (= 1 - SSIM), ``density``, ``scale``, ``tv``: unweighted values, 0-d and detached (``float``
-        them to log; a term with weight 0 is 0).
+        them to log; a term with weight 0 is 0, except ``l1``, the image error, which is always measured).
     """
     zero = img.new_zeros(())
     t_l1 = l1(img, ref)

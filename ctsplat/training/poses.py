@@ -377,14 +377,17 @@ def common_rotation(Rs: np.ndarray, Rs_true: np.ndarray) -> np.ndarray:
     return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
 
 
-def gauge_motion(Rs: np.ndarray, ts: np.ndarray, Rs_true: np.ndarray, ts_true: np.ndarray, model: str
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def gauge_motion(Rs: np.ndarray, ts: np.ndarray, Rs_true: np.ndarray, ts_true: np.ndarray, model: str, *,
+                 center_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The rigid world motion ``m = G x + b`` between the true frame (``x``) and the frame of a model trained at
     the poses ``(Rs, ts)`` (``m``): what the training images cannot tell apart from the truth.
 
-    Each view asks ``R_i (G x + b) + t_i = R_true_i x + t_true_i``: ``G`` is :func:`common_rotation` and ``b`` the
-    least-squares solution of ``P R_i b = P (t_true_i - t_i)`` (``P`` drops the ray component for parallel beam,
-    where a shift along the rays changes no image; directions no view constrains get 0).
+    Each view asks ``R_i (G x + b) + t_i = R_true_i x + t_true_i``. ``G`` is :func:`common_rotation`; the views'
+    rotations differ from ``R_true_i G⁻¹`` a little, so the shift is fitted where the object is, at ``c =
+    center_mm`` (the isocentre): ``b = c + b' - G c`` with ``b'`` the least-squares solution of ``P R_i b' = P
+    ((R_true_i c + t_true_i) - (R_i c + t_i))`` (``P`` drops the ray component for parallel beam, where a shift
+    along the rays changes no image; directions no view constrains get 0). Fitted at the world origin instead,
+    the shift would depend on where a scan's coordinates put their origin, hundreds of mm away for many.
 
     Parameters
     ----------
@@ -392,6 +395,8 @@ def gauge_motion(Rs: np.ndarray, ts: np.ndarray, Rs_true: np.ndarray, ts_true: n
     ts, ts_true : ndarray (V, 3)
         World-to-camera poses (mm): those the model was trained at, and the true ones.
     model : {"parallel", "cone"}
+    center_mm : ndarray (3,), optional
+        The point the shift is fitted at, world mm (default: the origin).
 
     Returns
     -------
@@ -399,11 +404,14 @@ def gauge_motion(Rs: np.ndarray, ts: np.ndarray, Rs_true: np.ndarray, ts_true: n
     b : ndarray (3,), mm
     """
     Rs, ts = np.asarray(Rs, float), np.asarray(ts, float)
+    Rs_true, ts_true = np.asarray(Rs_true, float), np.asarray(ts_true, float)
+    c = np.zeros(3) if center_mm is None else np.asarray(center_mm, float).reshape(3)
+    G = common_rotation(Rs, Rs_true)
     P = np.diag([1.0, 1.0, 0.0 if model == "parallel" else 1.0])
     PR = np.einsum("ij,vjk->vik", P, Rs)
-    rhs = np.einsum("ij,vj->vi", P, np.asarray(ts_true, float) - ts)
-    b = np.linalg.pinv(np.einsum("vki,vkj->ij", PR, PR)) @ np.einsum("vki,vk->i", PR, rhs)
-    return common_rotation(Rs, Rs_true), b
+    rhs = np.einsum("ij,vj->vi", P, (Rs_true @ c + ts_true) - (Rs @ c + ts))
+    b_c = np.linalg.pinv(np.einsum("vki,vkj->ij", PR, PR)) @ np.einsum("vki,vk->i", PR, rhs)
+    return G, c + b_c - G @ c
 
 
 def rotation_angles_deg(rel: np.ndarray) -> np.ndarray:

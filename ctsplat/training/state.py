@@ -267,9 +267,11 @@ class TrainState:
 class ViewSampler:
     """Stratified view sampling over direction.
 
-    Training views are ordered by azimuth (then elevation) and cut into ``batch`` contiguous strata; each epoch
-    permutes every stratum and each batch takes one view per stratum, so every batch spans the directions and
-    every view is used once per epoch (for ``batch = 1``: a random permutation per epoch).
+    Training views are ordered by azimuth (then elevation) and cut into ``batch`` contiguous strata (sizes differ by
+    at most one); each epoch permutes every stratum and each batch takes one view per stratum, so every batch spans
+    the directions. An epoch has as many batches as the largest stratum has views: every view is used once, and
+    when ``batch`` does not divide the number of views, the smaller strata use one view twice (so their views are
+    drawn ``(k + 1) / k`` times as often, ``k`` their size; for ``batch = 1``: a random permutation per epoch).
 
     Parameters
     ----------
@@ -285,7 +287,7 @@ class ViewSampler:
         self.strata = [s for s in np.array_split(order, batch) if s.size]
 
     def refill(self, rng: np.random.Generator) -> list[list[int]]:
-        """One epoch of batches: every training view once, one per stratum in each batch.
+        """One epoch of batches, one view per stratum in each: every training view at least once (class docstring).
 
         Parameters
         ----------

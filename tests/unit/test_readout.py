@@ -172,12 +172,12 @@ def test_gauge_aligned_metrics_score_the_sharpened_read_out(monkeypatch) -> None
     read_out = gaussian_filter(ref, 1.2).astype(np.float32)
     monkeypatch.setattr(ev, "voxelize_model", lambda g, shape, affine, f=None: read_out)
     monkeypatch.setattr(ev, "gauge_aligned_model", lambda g, G, b: g)
-    monkeypatch.setattr(poses, "gauge_motion", lambda Rs, ts, Rt, tt, model: (np.eye(3), np.zeros(3)))
+    monkeypatch.setattr(poses, "gauge_motion", lambda Rs, ts, Rt, tt, model, **kw: (np.eye(3), np.zeros(3)))
     R = np.stack([np.eye(3)] * 4)
     train_views = SimpleNamespace(truth=lambda: (R, np.zeros((4, 3))), Rs=R, ts=np.full((4, 3), 1e-3),
                                   ids=np.arange(4), camera=SimpleNamespace(model="cone"))
     scene = SimpleNamespace(train=train_views, volume=SimpleNamespace(data=ref, shape=ref.shape, affine=np.eye(4),
-                                                                      metric_range=1.0))
+                                                                      metric_range=1.0), isocenter_mm=np.zeros(3))
     for amount in (0.6, 0.0):
         info = {"sharpen_amount": amount, "sharpen_radius_voxels": 1.0}
         own = ev.volume_metrics(read_out if amount == 0 else sharpen(read_out, amount=amount), ref, data_range=1.0)

@@ -571,8 +571,32 @@ def test_an_evaluated_run_with_its_figures_trains_again(scene_dir: Path, tmp_pat
     for leftover in ("checkpoints/.ckpt_00000005.q1w2e3r4.tmp.pt", ".model_volume.k2j3h4.tmp.nii.gz"):
         (out / leftover).write_bytes(b"")  # what a killed (SIGKILL) write leaves
     assert (out / "model_volume.json").is_file() and (out / "figures" / "acf.png").is_file()
+    made = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
     loop.train({**cfg, "iterations": 10}, out)
     assert json.loads((out / "training.json").read_text())["iterations"] == 10
+    # what the earlier evaluation and figures made of the earlier model is gone, not left beside the new one
+    for name in ("model_volume.json", "gallery.png", "slices.png", "figures/acf.png", "metrics.json"):
+        assert name in made and not (out / name).exists(), name
+    assert (out / "logs" / "train.log").read_text() == "log"
+
+
+def test_changed_evaluation_settings_do_not_stop_a_run_resuming(scene_dir: Path, tmp_path: Path,  # noqa: F811
+                                                                 caplog) -> None:
+    """figures, progress, sharpening and the other evaluation keys do not change the trained model: a run resumes
+    under other values of them (``ctsplat train --resume --quiet``)."""
+    out = tmp_path / "run"
+    cfg = _cfg(scene_dir, iterations=20, checkpoint_every=10, figures=False, progress=False)
+
+    def stop_at_15(it: int, st) -> None:  # noqa: ANN001
+        if it == 15:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        loop.train(cfg, out, callback=stop_at_15)
+    with caplog.at_level(logging.INFO):
+        loop.train({**cfg, "figures": True, "progress": True, "turntable_frames": 3}, out, resume=True)
+    assert "resuming from" in caplog.text
+    assert json.loads((out / "training.json").read_text())["iterations"] == 20
 
 
 def test_ssim_on_radiographs_smaller_than_its_window_is_refused_before_training(tmp_path: Path) -> None:
