@@ -347,14 +347,20 @@ class AlphaComposite(torch.autograd.Function):
         fwd = _fn("alpha_fwd", dt)
         m, c, o = (t.detach().to(dt).contiguous() for t in (means2d, conics, opac))
         col = colors.detach().to(dt).contiguous()
-        if col.shape[1] > 32:
-            raise ValueError(f"alpha kernel supports at most 32 colour channels, got {col.shape[1]}")
+        if col.shape[1] > 32:  # render() appends one channel (the coverage) when a background is given
+            from ctsplat.utils import CtsplatError
+
+            raise CtsplatError(f"the C++ alpha kernel composites at most 32 channels (31 colours with a background), "
+                               f"got {col.shape[1]}; render with backend='reference'")
         b = bbox.to(torch.int64).contiguous()
         order = torch.argsort(depths.detach(), stable=True).to(torch.int64).contiguous()
         counts = (b[:, 1] - b[:, 0]) * (b[:, 3] - b[:, 2])
         total = int(counts.sum()) if counts.numel() else 0
         if total >= 2**31:
-            raise ValueError("alpha kernel: more than 2^31 (Gaussian, pixel) pairs; render at a lower resolution")
+            from ctsplat.utils import CtsplatError
+
+            raise CtsplatError(f"{total} (Gaussian, pixel) pairs exceed the C++ alpha kernel's 2^31; render at a "
+                               "lower resolution or with fewer or smaller Gaussians")
         offsets = torch.empty(height * width + 1, dtype=torch.int64)
         ids = torch.empty(total, dtype=torch.int32)
         _fn("alpha_lists_c")(m.shape[0], _ptr(order), _ptr(b), height, width, _ptr(offsets), _ptr(ids),

@@ -123,6 +123,11 @@ def _ranges_to_pairs(
         counts = counts * c
     n = counts.shape[0]
     idx = torch.repeat_interleave(torch.arange(n, device=dev), counts)
+    if idx.numel() >= 2**31:  # the kernels index pairs and offsets in int32 (its size is on the host already)
+        from ctsplat.utils import CtsplatError
+
+        raise CtsplatError(f"{idx.numel()} (cell, Gaussian) pairs exceed the Triton kernels' 2^31; render at a lower "
+                           "resolution or with fewer or smaller Gaussians")
     starts = torch.cumsum(counts, 0) - counts
     local = torch.arange(idx.numel(), device=dev) - starts[idx]
     cell = torch.zeros_like(local)

@@ -919,3 +919,20 @@ def test_blank_outputs_keep_every_parameter_in_the_graph_and_bad_inputs_are_name
     for scale in (float("nan"), 0.0, -1e3, float("inf")):
         with pytest.raises(CtsplatError, match="mu_scale must be a finite number > 0"):
             render(g.detach(), cam, R, t, mu_scale=scale)
+
+
+def test_the_kernels_channel_limit_is_one_line_naming_the_way_out():
+    """32 colours and a background are 33 channels to the C++ alpha kernel: refused in one line that names the
+    reference backend, which renders them."""
+    from ctsplat.splat import _kernel
+
+    if not _kernel.available():
+        pytest.skip("the C++ kernel does not build here")
+    g = _mixture(3, seed=6, dtype=torch.float64)
+    g.colors = torch.rand(3, 32, dtype=D64)
+    cam = ParallelCamera(8, 6, 1.0)
+    R, t = _pose(20.0, 10.0, dist=100.0)
+    with pytest.raises(CtsplatError, match=r"at most 32 channels \(31 colours with a background\), got 33"):
+        render(g, cam, R, t, compositor="alpha", backend="kernel", background=torch.zeros(32, dtype=D64))
+    img = render(g, cam, R, t, compositor="alpha", backend="reference", background=torch.zeros(32, dtype=D64)).image
+    assert img.shape == (6, 8, 32)
