@@ -48,9 +48,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "sfm", help="COLMAP (pycolmap) poses from cone-beam radiographs; alignment and pose accuracy",
         description="Run pycolmap with the known intrinsics on the radiographs of a C-arm view set (written by "
-                    "`ctsplat project` with camera: cone, orbit: carm), align the recovered poses to the true ones "
-                    "and write sparse/0, poses.csv, summary.json, points3d.ply and aligned_views.json into OUT_DIR. "
-                    "Too few registrations do not fail: summary.json records ok: false.")
+                    "`ctsplat project` with camera: cone, orbit: carm), put the recovered poses in the frame of "
+                    "the designed orbit, score them against the true ones after a Sim(3) to those, and write "
+                    "sparse/0, poses.csv, summary.json, points3d.ply and aligned_views.json into OUT_DIR. Too few "
+                    "registrations do not fail: summary.json records ok: false.")
     p.add_argument("radiographs", help="radiographs folder of the C-arm view set (line_integrals.tif, views.json)")
     p.add_argument("out_dir", help="output folder")
     p.add_argument("--config", help="YAML/JSON file with the sfm settings (or a workflow config: its sfm.settings)")

@@ -618,8 +618,10 @@ def carm_orbit(n_views: int, isocenter_mm: Sequence[float], dso_mm: float, *, ar
                jitter_deg: float = 0.0, jitter_mm: float = 0.0, seed: int = 0) -> list[View]:
     """A designed C-arm cone-beam orbit and the true poses of its views, which deviate from the design.
 
-    Designed view ``i``: azimuth φ_i from :func:`arc_azimuths`, elevation θ_i = wobble · sin(cycles · φ_i), source
-    at ``c_i = iso + DSO (cos θ cos φ, cos θ sin φ, sin θ)`` looking at the isocentre. The true view adds
+    Designed view ``i``: azimuth φ_i from :func:`arc_azimuths`, elevation θ_i = wobble · sin(cycles · a_i) with
+    ``a_i`` the angle along the arc from ``start_deg`` (φ_i unwrapped, so that the elevation stays continuous where
+    the arc crosses 0°; equal to φ_i on an arc that does not, or with whole cycles), source at ``c_i = iso + DSO (cos
+    θ cos φ, cos θ sin φ, sin θ)`` looking at the isocentre. The true view adds
     independent N(0, jitter_deg²) errors to φ_i and θ_i and, with ``jitter_mm > 0``, shifts the whole
     source-detector assembly by δ_i ~ N(0, jitter_mm² I) (a gantry whose isocentre wobbles): the true source is
     at ``c_i + δ_i`` looking at ``iso + δ_i``.

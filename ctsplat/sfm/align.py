@@ -261,7 +261,8 @@ def robust_sim3(src: np.ndarray, dst: np.ndarray, threshold: float, *, iteration
 
     Inliers: ``|s R src_i + t - dst_i| <= threshold`` (units of ``dst``). Ties in the inlier count are broken by
     the MSAC score ``Σ min(err_i, threshold)``. The winner is refit on its inliers and the inliers re-selected,
-    up to three times. When no sample reaches 3 inliers, all points are used. Deterministic for a ``seed``.
+    up to three times. When no sample reaches 3 inliers, all points are fitted (and the returned inliers are those
+    within the threshold of that fit, possibly none). Deterministic for a ``seed``.
 
     Parameters
     ----------
@@ -319,7 +320,8 @@ def robust_sim3(src: np.ndarray, dst: np.ndarray, threshold: float, *, iteration
             break
         best = new
     s, R, t = umeyama(src[best], dst[best])
-    return s, R, t, best
+    # the points within the threshold of this fit: with no 3-point consensus the fit used all, not all are inliers
+    return s, R, t, np.linalg.norm(s * src @ R.T + t - dst, axis=1) <= threshold
 
 
 def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:

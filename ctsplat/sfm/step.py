@@ -161,6 +161,17 @@ SFM_DEFAULTS: dict[str, Any] = {
 }
 
 
+def colmap_seed(seed: int) -> int:
+    """The seed COLMAP gets: pycolmap takes a signed 32-bit integer, the project's seeds run to 2³² - 1.
+
+    Examples
+    --------
+    >>> colmap_seed(7), colmap_seed(2**31 + 7)
+    (7, 7)
+    """
+    return int(seed) % 2**31
+
+
 def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str, Any], *,
               dso_mm: float | None = None, alignment: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Summary numbers of one SfM run: registration rates, median / p90 errors, models, and the ``ok`` verdict.
@@ -236,17 +247,17 @@ def summarize(rows: list[dict[str, Any]], report: dict[str, Any], cfg: dict[str,
     out["alignment_inlier_rate"] = int(alignment["n_inliers"]) / int(alignment["n_used"]) if aligned else None
     short = []
     if out["registration_rate"] < cfg["min_registration_rate"]:
-        short.append(f"registration rate {out['registration_rate']:.2f} (need >= {cfg['min_registration_rate']})")
+        short.append(f"registration rate {out['registration_rate']:.4g} (need >= {cfg['min_registration_rate']})")
     rot_median = out["rot_err_deg_median"]
     if rot_median is None or rot_median > cfg["max_median_rotation_error_deg"]:
-        shown = "none (fewer than 3 views registered)" if rot_median is None else f"{rot_median:.3g} deg"
+        shown = "none (fewer than 3 views registered)" if rot_median is None else f"{rot_median:.5g} deg"
         short.append(f"median rotation error {shown} (need <= {cfg['max_median_rotation_error_deg']} deg)")
     frac = out["centre_err_frac_median"]
     if frac is not None and frac > cfg["max_median_centre_error_frac"]:
-        short.append(f"median centre error {frac:.3g} of DSO (need <= {cfg['max_median_centre_error_frac']})")
+        short.append(f"median centre error {frac:.5g} of DSO (need <= {cfg['max_median_centre_error_frac']})")
     inliers = out["alignment_inlier_rate"]
     if inliers is not None and inliers < cfg["min_alignment_inlier_rate"]:
-        short.append(f"{inliers:.2f} of the registered views within the alignment threshold"
+        short.append(f"{inliers:.4g} of the registered views within the alignment threshold"
                      f" (need >= {cfg['min_alignment_inlier_rate']})")
     out["ok"] = not short
     if short:
@@ -346,7 +357,7 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
         ``(main pycolmap model or None, alignment dict of evaluate_poses)``.
     """
     cfg = dict(config)
-    cfg["_seed"] = seed
+    cfg["_seed"] = colmap_seed(seed)
     out_dir = Path(out_dir)
     img_dir = out_dir / "images"
     names = write_pngs(images_u8, img_dir, prefix=prefix, ids=ids)
@@ -489,6 +500,61 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
             raise
 
 
+def design_frame(rows: list[dict[str, Any]], align: Mapping[str, Any], design_centres: np.ndarray, *,
+                 in_design_frame: bool, threshold_mm: float, iterations: int, seed: int) -> dict[str, Any] | None:
+    """The recovered poses as training gets them: in the frame of the designed orbit, which a user knows, not of
+    the true one, which only scores them.
+
+    ``rows`` hold the poses aligned to the true camera centres by ``align`` (:func:`evaluate_poses`: ``x_true = s
+    R x_sfm + t``); that alignment is undone. A model made with a pose prior or fused with the design
+    (``in_design_frame``) is in the design's frame already and is exported as it is; any other is moved there by a
+    robust Sim(3) from its camera centres to the designed ones (with the scores' alignment settings).
+
+    Parameters
+    ----------
+    rows : list of dict
+        Per view: ``view`` (row), ``R`` (3, 3) and ``t`` (3,), truth-aligned, None when not registered.
+    align : mapping
+        ``ok``, ``scale``, ``R``, ``t`` of the alignment to the truth.
+    design_centres : ndarray (V, 3)
+        The designed camera centres, world mm.
+    in_design_frame : bool
+    threshold_mm, iterations, seed
+        RANSAC inlier distance (mm), samples and seed of the Sim(3) to the design.
+
+    Returns
+    -------
+    dict or None
+        ``poses`` (row -> ``(R, t)`` world-to-camera, mm) and the Sim(3) ``scale``, ``R``, ``t`` from the SfM
+        model's frame into the design's (for its points); None when nothing was aligned.
+    """
+    from ctsplat.sfm.align import robust_sim3
+
+    if not align.get("ok"):
+        return None
+    s, Rg, tg = float(align["scale"]), np.asarray(align["R"], float), np.asarray(align["t"], float)
+    model: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for r in rows:  # undo x_true = s Rg x + tg: R = R_w Rg, c = Rgᵀ (c_w - tg) / s
+        if r["R"] is not None:
+            R = np.asarray(r["R"], float) @ Rg
+            c = Rg.T @ (camera_center(r["R"], r["t"]) - tg) / s
+            model[int(r["view"])] = (R, -R @ c)
+    if len(model) < 3:
+        return None
+    if in_design_frame:
+        e_s, e_R, e_t = 1.0, np.eye(3), np.zeros(3)
+    else:
+        keys = sorted(model)
+        src = np.stack([camera_center(*model[k]) for k in keys])
+        e_s, e_R, e_t, _ = robust_sim3(src, design_centres[keys], threshold_mm, iterations=iterations, seed=seed)
+    poses = {}
+    for k, (R, t) in model.items():
+        Rw = R @ e_R.T
+        cw = e_s * e_R @ camera_center(R, t) + e_t
+        poses[k] = (Rw, -Rw @ cw)
+    return {"poses": poses, "scale": e_s, "R": e_R, "t": e_t}
+
+
 def _register_and_write(p: np.ndarray, vs: ViewSet, out_dir: Path, cfg: dict[str, Any], seed: int,
                         naive_volume: np.ndarray | None, radiographs_dir: str | Path) -> dict[str, Any]:
     """:func:`run_sfm` after its checks: enhance, register, align and write the outputs into ``out_dir``."""
@@ -523,28 +589,34 @@ def _register_and_write(p: np.ndarray, vs: ViewSet, out_dir: Path, cfg: dict[str
                 write_model(main, out_dir / "sparse" / "0")
             else:
                 shutil.rmtree(out_dir / "sparse" / "0", ignore_errors=True)
-            if main is not None and align["ok"]:
+            export = design_frame(rows, align, design_centres,
+                                  in_design_frame=cfg["pose_prior"] != "none" or "unfused" in summary,
+                                  threshold_mm=float(cfg["align_inlier_threshold_frac"]) * float(cam.dso_mm),
+                                  iterations=int(cfg["align_iterations"]), seed=seed)
+            if main is not None and export is not None:
                 xyz = np.array([pt.xyz for pt in main.points3D.values()]).reshape(-1, 3)
-                write_points_ply(out_dir / "points3d.ply", align["scale"] * xyz @ align["R"].T + align["t"])
+                write_points_ply(out_dir / "points3d.ply", export["scale"] * xyz @ export["R"].T + export["t"])
             else:
                 (out_dir / "points3d.ply").unlink(missing_ok=True)
             if (out_dir / "images").exists():
                 shutil.rmtree(out_dir / "images")
             (work / "images").rename(out_dir / "images")
         finally:
+            shutil.rmtree(out_dir / "colmap", ignore_errors=True)  # an earlier run's work folder is not this one's
             if cfg["keep_work"] and (work / "colmap").exists():
-                shutil.rmtree(out_dir / "colmap", ignore_errors=True)
                 (work / "colmap").rename(out_dir / "colmap")
 
     # physical plausibility: a view whose optical axis misses the isocentre by more than the detector's
     # half field of view atan((W/2) / fx) cannot have imaged the object; such poses are not exported
     half_fov = math.degrees(math.atan(0.5 * W / cam.fx))
+    exported = export["poses"] if export is not None else {}
     for r in rows:
         r["plausible"] = False
-        if r["R"] is not None:
-            c = camera_center(r["R"], r["t"])
+        if r["view"] in exported:
+            R_e, t_e = exported[r["view"]]
+            c = camera_center(R_e, t_e)
             d = (iso - c) / max(float(np.linalg.norm(iso - c)), 1e-9)
-            r["plausible"] = bool(math.degrees(math.acos(float(np.clip(r["R"][2] @ d, -1, 1)))) <= half_fov)
+            r["plausible"] = bool(math.degrees(math.acos(float(np.clip(R_e[2] @ d, -1, 1)))) <= half_fov)
     summary["n_plausible"] = int(sum(r["plausible"] for r in rows))
     summary["plausible_rate"] = summary["n_plausible"] / len(rows)
     by_row = vs.views
@@ -556,9 +628,10 @@ def _register_and_write(p: np.ndarray, vs: ViewSet, out_dir: Path, cfg: dict[str
     } for r in rows])
     with atomic_path(out_dir / "poses.csv") as tmp:
         table.to_csv(tmp, index=False, lineterminator="\n")
-    views = [View(int(ids[r["view"]]), r["R"], r["t"], by_row[r["view"]].azimuth_deg,
-                  by_row[r["view"]].elevation_deg, "train", by_row[r["view"]].design)
-             for r in rows if r["R"] is not None and r["plausible"]]
+    # the recovered poses in the design's frame, with the designed directions: nothing the truth decided
+    views = [View(int(ids[r["view"]]), *exported[r["view"]], by_row[r["view"]].design.azimuth_deg,
+                  by_row[r["view"]].design.elevation_deg, "train", by_row[r["view"]].design)
+             for r in rows if r["plausible"]]
     vs_meta = {"source": "sfm", "registration_rate": summary["registration_rate"], "ok": summary["ok"],
                "n_views_designed": len(rows), "radiographs": str(radiographs_dir)}
     if views:
@@ -610,7 +683,7 @@ def naive_slices_sfm(volume_data: np.ndarray, work_dir: str | Path, config: dict
         ``colmap`` (stage statistics).
     """
     cfg = dict(merge_config("sfm", {k: v for k, v in config.items() if not k.startswith("_")}, SFM_DEFAULTS))
-    cfg["_seed"] = seed
+    cfg["_seed"] = colmap_seed(seed)
     cfg["_arc_deg"] = 0.0  # a stack of slices, not an orbit: no loop-closure pairs of the first and last slices
     data = np.asarray(volume_data, float)
     slices = np.moveaxis(data, 2, 0)  # (K, I, J)

@@ -60,6 +60,31 @@ def test_robust_sim3_recovers_exactly_despite_outliers() -> None:
     np.testing.assert_array_equal(inl, expected)
 
 
+def test_the_verdict_never_prints_a_failing_value_as_a_passing_one() -> None:
+    """159 of 200 views (0.795 < 0.8), a rotation error of 2.0004° (> 2°), 79 of 159 inliers (0.497 < 0.5): each
+    is shown with the digits that make it fail, not rounded onto its threshold."""
+    cfg = merge_config("sfm", {"max_median_rotation_error_deg": 2.0}, SFM_DEFAULTS)
+    rows = [{"registered": i < 159, "rot_err_deg": 2.0004 if i < 159 else np.nan, "centre_err_mm": 1.0}
+            for i in range(200)]
+    out = summarize(rows, {"models_found": 1, "model_sizes": [159]}, cfg, dso_mm=400.0,
+                    alignment={"ok": True, "n_inliers": 79, "n_used": 159})
+    assert out["ok"] is False
+    assert "registration rate 0.795 (need >= 0.8)" in out["reason"]
+    assert "median rotation error 2.0004 deg (need <= 2.0 deg)" in out["reason"]
+    assert "0.4969 of the registered views" in out["reason"]
+
+
+def test_robust_sim3_without_a_consensus_reports_no_inliers() -> None:
+    """No 3-point sample agrees within the threshold: the fit uses every point, and the inliers it reports are the
+    points within the threshold of that fit (none), not all of them (the verdict's inlier rate reads them)."""
+    rng = np.random.default_rng(5)
+    src = rng.normal(0, 100, (8, 3))
+    dst = rng.normal(0, 100, (8, 3))  # unrelated: residuals of tens of mm
+    s, R, t, inl = robust_sim3(src, dst, threshold=1.0, iterations=100, seed=0)
+    err = np.linalg.norm(s * src @ R.T + t - dst, axis=1)
+    assert err.min() > 1.0 and not inl.any()
+
+
 def test_robust_sim3_needs_three_points() -> None:
     with pytest.raises(CtsplatError, match="at least 3"):
         robust_sim3(np.zeros((2, 3)), np.zeros((2, 3)), threshold=1.0)
@@ -192,7 +217,7 @@ def test_the_verdict_fails_right_rotations_with_wrong_centres_or_few_inliers() -
     far = [dict(r, centre_err_mm=30.0 + i) for i, r in enumerate(rows)]  # median 39.5 mm, 9.9 % of DSO
     bad = summarize(far, report, cfg, dso_mm=400.0, alignment={"ok": True, "n_inliers": 7, "n_used": 20})
     assert bad["ok"] is False and bad["rot_err_deg_median"] <= cfg["max_median_rotation_error_deg"]
-    assert bad["reason"] == ("median centre error 0.0988 of DSO (need <= 0.05); 0.35 of the registered views"
+    assert bad["reason"] == ("median centre error 0.09875 of DSO (need <= 0.05); 0.35 of the registered views"
                              " within the alignment threshold (need >= 0.5)")
     assert sfm_failure(bad) == bad["reason"]
     loose = merge_config("sfm", {"max_median_centre_error_frac": 0.1, "min_alignment_inlier_rate": 0.3},

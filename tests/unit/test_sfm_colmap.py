@@ -384,3 +384,34 @@ def test_merge_models_maps_a_partial_model_into_the_largest_frame() -> None:
     # too little overlap: the partial model is reported but not merged
     _, poses2, report2 = merge_models({0: b, 1: a}, min_shared=4)
     assert report2["merged"] == [] and len(poses2) == 10
+
+
+def test_exported_poses_and_points_do_not_depend_on_the_true_poses(bead_run, tmp_path: Path) -> None:
+    """Training on SfM poses must use nothing the truth decided: with the true orbit turned 5° as a whole (the
+    images, the design and the recovered model unchanged), the exported poses, their directions and the seed points
+    are the same (aligned to the truth, they turned with it); the scores, taken after a Sim(3) to the truth, too."""
+    import shutil
+
+    from scipy.spatial.transform import Rotation
+
+    out, s, _ = bead_run
+    carm = tmp_path / "carm"
+    shutil.copytree(out.parent / "carm", carm)
+    doc = json.loads((carm / "views.json").read_text())
+    turn = Rotation.from_euler("z", 5.0, degrees=True).as_matrix()
+    for v in doc["views"]:
+        v["R"] = (np.asarray(v["R"]) @ turn.T).tolist()
+        v["azimuth_deg"] = float(v["azimuth_deg"]) + 5.0
+    (carm / "views.json").write_text(json.dumps(doc))
+    shutil.copytree(out, tmp_path / "out")  # an earlier run in the folder, with its kept COLMAP work folder
+    (tmp_path / "out" / "colmap").mkdir()
+    (tmp_path / "out" / "colmap" / "database.db").write_text("an earlier run's")
+    other = run_sfm(carm, tmp_path / "out", CFG, seed=0)
+    assert not (tmp_path / "out" / "colmap").exists()  # keep_work is off: no work folder of another run stays
+    assert other["rot_err_deg_median"] == pytest.approx(s["rot_err_deg_median"], abs=1e-6)
+    first, second = ViewSet.load(out / "aligned_views.json"), ViewSet.load(tmp_path / "out" / "aligned_views.json")
+    assert [v.id for v in first.views] == [v.id for v in second.views]
+    np.testing.assert_allclose(second.Rs(), first.Rs(), atol=1e-9)
+    np.testing.assert_allclose(second.ts(), first.ts(), atol=1e-6)
+    np.testing.assert_allclose([v.azimuth_deg for v in second.views], [v.design.azimuth_deg for v in first.views])
+    assert (tmp_path / "out" / "points3d.ply").read_text() == (out / "points3d.ply").read_text()
