@@ -530,10 +530,14 @@ def select_views(view_set: ViewSet, split: str, n: int) -> np.ndarray:
 
 
 #: Columns of ``baselines.csv``: the first seven as before (the analysis figures read them), then the validation
-#: score that chose the parameters, the chosen parameters (JSON), the 2D test metrics, the time of every candidate
-#: and whether the row is the best classical reconstruction on validation for its view count.
+#: score that chose the parameters, the chosen parameters (JSON), the 2D test metrics, the time of every candidate,
+#: whether the row is the best classical reconstruction on validation for its view count, and whether an iterative
+#: method chose the last iteration of its budget while still improving (``at_cap``: its budget stopped it).
 BASELINE_COLUMNS = ["method", "filter", "iterations", "n_views", "psnr3d", "ssim3d", "seconds", "val_psnr", "params",
-                    "psnr2d", "ssim2d", "selection_seconds", "best_on_val"]
+                    "psnr2d", "ssim2d", "selection_seconds", "best_on_val", "at_cap"]
+
+#: The setting that caps each iterative method's iterations (named when the cap binds).
+ITERATION_CAPS = {"sart": "sart_max_iterations", "asd_pocs": "asd_pocs_iterations"}
 
 #: The files of a baselines folder beside ``baselines.csv`` and ``baselines.json``: every trial, and each reconstruction
 #: (``{method}_n{views:03d}.nii.gz`` with its sidecar, when ``save_volumes``). A folder holding anything else is
@@ -642,7 +646,11 @@ def run_baselines(volume_path: str | Path, radiographs_dir: str | Path, out_dir:
                    "psnr3d": psnr3d(c.volume / unit, ref / unit), "ssim3d": ssim3d(c.volume / unit, ref / unit),
                    "seconds": c.seconds, "val_psnr": c.val_psnr,
                    "params": json.dumps(c.params, sort_keys=True), "psnr2d": float("nan"), "ssim2d": float("nan"),
-                   "selection_seconds": c.selection_seconds, "best_on_val": c is best}
+                   "selection_seconds": c.selection_seconds, "best_on_val": c is best, "at_cap": bool(c.at_cap)}
+            if c.at_cap:
+                log.warning("baselines, %d views: %s chose the last of its %d iterations, still improving on "
+                            "validation: its budget, not the validation views, stopped it; raise baselines.%s",
+                            nv, c.method, int(c.params["iterations"]), ITERATION_CAPS.get(c.method, "iterations"))
             if test is not None:
                 pred, target = test.render(c.volume), test.target
                 row["psnr2d"] = float(np.mean([psnr(a, b) for a, b in zip(pred, target, strict=True)]))

@@ -125,6 +125,9 @@ class Choice:
     seconds: float  # reconstruction time of the chosen candidate (validation scoring excluded)
     selection_seconds: float = 0.0  # every candidate's reconstruction (scoring excluded)
     trials: list[dict[str, Any]] = field(default_factory=list)
+    #: an iterative method chose the last iteration its budget allowed, still improving on validation: the cap,
+    #: not the validation views, stopped it
+    at_cap: bool = False
 
 
 def _finish(x: np.ndarray | torch.Tensor, clip: bool) -> np.ndarray:
@@ -209,14 +212,18 @@ def choose_iterative(method: str, candidates: Iterable[dict[str, Any]],
     -------
     Choice
         The best (candidate, iteration); ``params`` includes ``iterations``. ``trials`` has one row per
-        candidate and iteration.
+        candidate and iteration. ``at_cap``: the chosen iteration is the last its candidate ran, which patience
+        did not stop (the iteration budget did).
     """
     best: Choice | None = None
     trials: list[dict[str, Any]] = []
     total = 0.0
-    for params in candidates:
+    capped_at: dict[int, int] = {}  # candidate -> its last iteration, for those the budget stopped
+    best_candidate = -1
+    for k, params in enumerate(candidates):
         t0 = time.perf_counter()
-        cand_best, since = -np.inf, 0
+        cand_best, since, last = -np.inf, 0, None
+        stopped = False
         for it, x in iterates(**params):
             elapsed = time.perf_counter() - t0
             t1 = time.perf_counter()
@@ -225,13 +232,19 @@ def choose_iterative(method: str, candidates: Iterable[dict[str, Any]],
             trials.append({"method": method, **params, "iterations": it, "val_psnr": score, "seconds": elapsed})
             if best is None or rank(score) > rank(best.val_psnr):
                 best = Choice(method, {**params, "iterations": it}, score, vol, elapsed)
+                best_candidate = k
             since = 0 if rank(score) > cand_best else since + 1
             cand_best = max(cand_best, rank(score))
+            last = it
             t0 += time.perf_counter() - t1  # keep the scoring out of the reconstruction time
             if patience is not None and since >= patience:
+                stopped = True
                 break
+        if not stopped and last is not None:
+            capped_at[k] = last
         total += time.perf_counter() - t0
     if best is None:
         raise CtsplatError(f"{method}: no candidate parameters to choose from")
     best.selection_seconds, best.trials = total, trials
+    best.at_cap = capped_at.get(best_candidate) == best.params["iterations"]
     return best

@@ -450,4 +450,15 @@ def test_patience_stops_a_candidate_after_that_many_checks_without_improvement()
     assert run("dip", 3) == [1, 2, 3, 4, 5, 6]
     assert run("plateau", None) == list(range(1, 8))
     res = choose_iterative("m", [{"name": "dip"}], iterates, ByMean(), clip=False, patience=2)
-    assert res.params == {"name": "dip", "iterations": 3}
+    assert res.params == {"name": "dip", "iterations": 3} and not res.at_cap  # patience stopped it
+    # still rising at its last iteration: the budget, not the validation views, stopped it, and the choice says so
+    rising = choose_iterative("m", [{"name": "plateau"}, {"name": "rising"}], iterates, ByMean(), clip=False,
+                              patience=2)
+    assert rising.params == {"name": "rising", "iterations": 6} and rising.at_cap
+    peaked = choose_iterative("m", [{"name": "dip"}], iterates, ByMean(), clip=False)  # best at its last, 9
+    assert peaked.params["iterations"] == 7 and peaked.at_cap
+    early = choose_iterative("m", [{"name": "plateau"}], iterates, ByMean(), clip=False, patience=10)
+    assert early.params["iterations"] == 7 and early.at_cap
+    settled = {"name": "settled"}
+    sequences["settled"] = [1, 3, 2]
+    assert not choose_iterative("m", [settled], iterates, ByMean(), clip=False).at_cap  # best before the last
