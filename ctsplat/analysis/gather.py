@@ -386,6 +386,8 @@ def read_summary(path: str | os.PathLike[str]) -> pd.DataFrame:
     missing = [c for c in ("run_dir", "volume", *GRID_AXES) if c not in summary]
     if missing:
         raise CtsplatError(f"{path} is not a summary of `ctsplat gather` (no {', '.join(missing)} column)")
+    if summary.empty:  # gather refuses to write one without runs: a header alone is a damaged or hand-made file
+        raise CtsplatError(f"{path} lists no runs; write it with `ctsplat gather` from the run folders")
     run_cells(summary)  # two runs of one cell: refused before any table or figure is drawn
     trained = summary if "status" not in summary else summary[summary["status"] != NOT_RUN]
     gone = [d for d in trained["run_dir"].astype(str) if not Path(d).is_dir()]

@@ -333,6 +333,9 @@ def test_analyse_refuses_a_bad_summary_in_one_line_and_draws_one_without_scores(
                                                                                       index=False)
     with pytest.raises(CtsplatError, match=r"a/r and b/r are runs of one grid cell"):
         plots.analyse(tmp_path / "two.csv", outputs)
+    pd.DataFrame(columns=["run_dir", *cell]).to_csv(tmp_path / "header.csv", index=False)
+    with pytest.raises(CtsplatError, match=r"header\.csv lists no runs; write it with `ctsplat gather`"):
+        plots.analyse(tmp_path / "header.csv", outputs)
     assert not outputs["baselines"].parent.exists()
     view = {"id": 0, "R": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], "t": [0.0, 0.0, 500.0]}
     (tmp_path / "views.json").write_text(json.dumps({"camera": {"model": "cone"}, "views": [view] * 2}, indent=1))
