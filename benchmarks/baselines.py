@@ -81,9 +81,11 @@ def run(argv: list[str] | None = None) -> int:
             ap.error(f"--set {item!r}: expected KEY=VALUE")
         settings[key] = yaml.safe_load(value)
     check_section("baselines", settings)  # before the ingest and the rendering, not after them
-    out_folder(args.work, "--work")
     torch.set_num_threads(min(2, os.cpu_count() or 1))
 
+    if args.source != "phantom" and not Path(args.source).exists():
+        ap.error(f"--source {args.source} does not exist (or use --source phantom)")
+    out_folder(args.work, "--work")  # after every check of the options and the source
     if args.source == "phantom":
         from ctsplat.phantom import write_phantom_dicom
 
@@ -93,8 +95,6 @@ def run(argv: list[str] | None = None) -> int:
             write_phantom_dicom(source)
     else:
         source = Path(args.source)
-        if not source.exists():
-            ap.error(f"--source {source} does not exist (or use --source phantom)")
         key, name = hashlib.sha256(str(source.resolve()).encode()).hexdigest()[:8], source.name
     work = Path(args.work) / f"{name}-{key}_{args.grid}"
     vol_path = work / "volume.nii.gz"

@@ -38,8 +38,9 @@ def run(argv: list[str] | None = None) -> int:
     ap.add_argument("--top", type=int, default=3, help="Gaussians named and removed per photo (>= 1)")
     ap.add_argument("--threads", type=int, default=1)
     a = ap.parse_args(argv)
-    if a.top < 1 or a.threads < 1:
-        raise CtsplatError(f"--top and --threads must be >= 1, got {a.top} and {a.threads}")
+    for name, value in (("--top", a.top), ("--threads", a.threads)):
+        if value < 1:
+            raise CtsplatError(f"{name} must be >= 1, got {value}")
     run_dir = Path(a.run_dir)
     cfg = run_config(run_dir)
     torch.set_num_threads(a.threads)

@@ -106,7 +106,7 @@ def test_baselines_arc_takes_effect_and_bad_options_are_refused(tmp_path, phanto
         ("threads.py", ["--reps", "0"], "--threads, --reps, --n, --size and --grid must be at least 1"),
         ("sfm.py", ["--threads", "0"], "--threads must be >= 1"),
         ("gpu.py", ["--reps", "0"], "--reps must be >= 1"),
-        ("photo_blame.py", ["run", "--threads", "0"], "--top and --threads must be >= 1"),
+        ("photo_blame.py", ["run", "--threads", "0"], "--threads must be >= 1, got 0"),
         ("baselines.py", ["--source", "phantom", "--set", "nosuchkey=1", "--work", "w"],
          "unknown config key baselines.nosuchkey"),
     ],
