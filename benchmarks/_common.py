@@ -51,6 +51,24 @@ def write_csv(table: pd.DataFrame, path: str | Path, **kwargs: Any) -> Path:
     return Path(path)
 
 
+def earlier_table(path: str | Path, option: str = "--csv") -> pd.DataFrame | None:
+    """The table an earlier run of a benchmark wrote to ``path``, which this run adds rows to (None when there is
+    none), read before the work; a folder or an unreadable file is one line naming ``option``. Its columns are the
+    caller's to check."""
+    from ctsplat.utils import CtsplatError
+
+    path = Path(path)
+    if path.is_dir():
+        raise CtsplatError(f"{option} {path} is a folder; give a CSV file")
+    if not path.exists():
+        return None
+    try:
+        return pd.read_csv(path)
+    except (OSError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
+        raise CtsplatError(f"{option} {path} cannot be read ({' '.join(str(exc).split())}); give this benchmark's "
+                           "table or a new file") from None
+
+
 def run_child(cmd: list[str], *, grace_s: float = 60.0, **kwargs: Any) -> subprocess.CompletedProcess:
     """:func:`subprocess.run` with ``capture_output`` and ``text``, except that Ctrl-C or SIGTERM of this process
     (:func:`cli_main`'s :class:`KeyboardInterrupt`) passes SIGTERM on to the child and waits up to ``grace_s`` for it
@@ -116,11 +134,16 @@ def shared_train_config(sets: list[str], *, own_keys: Mapping[str, str | None], 
     return check_section("train", {**cfg, **fixed, "progress": False})
 
 
-def data_cache(out: Path, data: Path | str, suffix: str = "") -> Path:
-    """The cache folder of one data set: its name and a hash of its resolved path (``phantom`` stays as is)."""
+def data_key(data: Path | str) -> str:
+    """Eight hex digits of a data set's resolved path (of ``phantom`` as it is): what tells two scans of one name
+    apart in a cache."""
     data = str(data)
-    key = hashlib.sha256((data if data == "phantom" else str(Path(data).resolve())).encode()).hexdigest()[:8]
-    return Path(out) / "cache" / f"{Path(data).name}-{key}{suffix}"
+    return hashlib.sha256((data if data == "phantom" else str(Path(data).resolve())).encode()).hexdigest()[:8]
+
+
+def data_cache(out: Path, data: Path | str, suffix: str = "") -> Path:
+    """The cache folder of one data set: its name and :func:`data_key`."""
+    return Path(out) / "cache" / f"{Path(str(data)).name}-{data_key(data)}{suffix}"
 
 
 def time_to(log: pd.DataFrame, value: float) -> float | None:

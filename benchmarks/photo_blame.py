@@ -22,14 +22,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-from _common import cli_main
+from _common import cli_main, write_csv
 
 from ctsplat.geometry.cameras import camera_center
 from ctsplat.photos.blame import blame_view
 from ctsplat.photos.config import held_out_split
 from ctsplat.photos.evaluate import run_config, run_scene
 from ctsplat.splat.gaussians import Gaussians
-from ctsplat.utils import CtsplatError, atomic_path, resolve_device
+from ctsplat.utils import CtsplatError, resolve_device
 
 
 def run(argv: list[str] | None = None) -> int:
@@ -69,8 +69,7 @@ def run(argv: list[str] | None = None) -> int:
                          "psnr_without_first_k": without})
         print(f"{view.name}: {r['psnr']:.2f} dB; without the first 1..{a.top}: "
               + ", ".join(f"{p:.2f}" for p in r["psnr_without"]))
-    with atomic_path(run_dir / "blame.csv") as tmp:
-        pd.DataFrame(rows).to_csv(tmp, index=False)
+    write_csv(pd.DataFrame(rows), run_dir / "blame.csv")
     return 0
 
 

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
-from _common import cli_main, out_folder
+from _common import cli_main, out_folder, write_csv
 
 from ctsplat.cli._common import apply_sets
 from ctsplat.config import check_section
@@ -45,7 +45,6 @@ from ctsplat.photos.config import photo_settings
 from ctsplat.photos.select import paired_comparison, read_validation_run
 from ctsplat.utils import (
     CtsplatError,
-    atomic_path,
     code_version,
     compute_platform,
     dotted_items,
@@ -238,8 +237,7 @@ def _write_tables(out: Path, pairs: list[tuple[int, int]], runs: dict[tuple[int,
                "candidate_psnr": runs[(fold, seed, "candidate")]["per_photo"][name]}
               for fold, seed in pairs for name, psnr in runs[(fold, seed, "default")]["per_photo"].items()]
     for name, table in (("pairs.csv", rows), ("per_photo.csv", photos)):
-        with atomic_path(out / name) as tmp:
-            pd.DataFrame(table).to_csv(tmp, index=False)
+        write_csv(pd.DataFrame(table), out / name)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from _common import cli_main, write_csv  # noqa: E402
+from _common import cli_main, earlier_table, write_csv  # noqa: E402
 
 _PARAMS = ("means", "log_scales", "quats", "opacity_raw", "colors", "sh_rest")
 #: The columns of a ``--csv`` row.
@@ -61,18 +61,10 @@ def run(argv: list[str] | None = None) -> int:
 
     if args.iterations < 1 or args.warmup < 0 or args.threads < 1:
         raise CtsplatError("--iterations and --threads must be at least 1 and --warmup at least 0")
-    earlier = None
-    if args.csv is not None and args.csv.exists():  # checked before the timing, not after it
-        import pandas as pd
-
-        try:
-            earlier = pd.read_csv(args.csv)
-        except (OSError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
-            raise CtsplatError(f"--csv {args.csv} cannot be read ({' '.join(str(exc).split())}); give a table of "
-                               "this benchmark or a new file") from None
-        if list(earlier.columns) != list(ROW_COLUMNS):
-            raise CtsplatError(f"--csv {args.csv} holds columns {','.join(map(str, earlier.columns))}, not this "
-                               f"benchmark's ({','.join(ROW_COLUMNS)}); give another file")
+    earlier = earlier_table(args.csv) if args.csv is not None else None  # checked before the timing
+    if earlier is not None and list(earlier.columns) != list(ROW_COLUMNS):
+        raise CtsplatError(f"--csv {args.csv} holds columns {','.join(map(str, earlier.columns))}, not this "
+                           f"benchmark's ({','.join(ROW_COLUMNS)}); give another file")
     torch.set_num_threads(args.threads)
     lam = float(photo_settings()["train"]["lambda_dssim"])
     scene = load_scene(args.sfm_dir, downscale=args.downscale)

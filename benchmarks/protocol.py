@@ -57,7 +57,7 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from _common import cli_main, data_cache, out_folder, shared_train_config, time_to, write_csv  # noqa: E402
+from _common import cli_main, data_key, out_folder, shared_train_config, time_to, write_csv  # noqa: E402
 
 from ctsplat.utils import atomic_path, write_json_atomic  # noqa: E402
 
@@ -110,7 +110,7 @@ def volume_key(name: str, data: Path, size: int) -> str:
     one's cache."""
     if name == "phantom":
         return f"{name}-s{size}"
-    return f"{name}-s{size}-{data_cache(Path(), data / name).name.rsplit('-', 1)[1]}"
+    return f"{name}-s{size}-{data_key(data / name)}"
 
 
 def prepare(name: str, data: Path, out: Path, size: int, n_train: int) -> tuple[Path, Path]:

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from _common import cli_main, write_csv
+from _common import cli_main, earlier_table, write_csv
 
 from ctsplat.utils import CtsplatError
 
@@ -187,16 +187,8 @@ def sweep_overrides(sets: list[str]) -> dict:
 
 def _earlier_table(path: Path) -> pd.DataFrame | None:
     """The ``--csv`` table of an earlier sweep (None when there is none); one line when it cannot be one."""
-    if path.is_dir():
-        raise CtsplatError(f"--csv {path} is a folder; give a CSV file")
-    if not path.exists():
-        return None
-    try:
-        old = pd.read_csv(path)
-    except (OSError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
-        raise CtsplatError(f"--csv {path} cannot be read ({' '.join(str(exc).split())}); give this sweep's table or "
-                           "a new file") from None
-    if not {"volume", "label"} <= set(old.columns):
+    old = earlier_table(path)
+    if old is not None and not {"volume", "label"} <= set(old.columns):
         raise CtsplatError(f"--csv {path} is not a table of this sweep (no volume and label columns); give another "
                            "file")
     return old

@@ -352,7 +352,9 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
         :func:`summarize`'s numbers plus ``colmap`` (stage statistics), ``reversal``, ``alignment`` and, when a
         design is given, ``design_rot_err_deg_median`` (what the design alone scores, degrees).
     rows : list of dict, length V
-        Per view (see :func:`~ctsplat.sfm.align.evaluate_poses`) plus ``reproj_err_px`` and ``in_main_model``.
+        Per view (see :func:`~ctsplat.sfm.align.evaluate_poses`) plus ``reproj_err_px``, ``in_main_model`` and
+        ``model_pose`` (``(R, t)`` in the model's own frame, before the alignment to the truth; None when not
+        registered).
     model_and_alignment : tuple
         ``(main pycolmap model or None, alignment dict of evaluate_poses)``.
     """
@@ -400,6 +402,7 @@ def run_sfm_on_images(images_u8: np.ndarray, intrinsics: tuple[float, float, flo
                                  iterations=int(cfg["align_iterations"]), seed=seed)
     reproj = per_image_reproj(main) if main is not None else {}
     for r in rows:
+        r["model_pose"] = poses.get(r["name"])  # in the model's own frame, for the export (design_frame)
         r["reproj_err_px"] = reproj.get(r["name"], np.nan)
         r["in_main_model"] = r["name"] in reproj or (main is not None and main.find_image_with_name(r["name"])
                                                        is not None and r["registered"] and r["name"] in
@@ -500,22 +503,20 @@ def run_sfm(radiographs_dir: str | Path, out_dir: str | Path, config: dict[str, 
             raise
 
 
-def design_frame(rows: list[dict[str, Any]], align: Mapping[str, Any], design_centres: np.ndarray, *,
-                 in_design_frame: bool, threshold_mm: float, iterations: int, seed: int) -> dict[str, Any] | None:
+def design_frame(rows: list[dict[str, Any]], design_centres: np.ndarray, *, in_design_frame: bool,
+                 threshold_mm: float, iterations: int, seed: int) -> dict[str, Any] | None:
     """The recovered poses as training gets them: in the frame of the designed orbit, which a user knows, not of
     the true one, which only scores them.
 
-    ``rows`` hold the poses aligned to the true camera centres by ``align`` (:func:`evaluate_poses`: ``x_true = s
-    R x_sfm + t``); that alignment is undone. A model made with a pose prior or fused with the design
-    (``in_design_frame``) is in the design's frame already and is exported as it is; any other is moved there by a
-    robust Sim(3) from its camera centres to the designed ones (with the scores' alignment settings).
+    A model made with a pose prior or fused with the design (``in_design_frame``) is in the design's frame already
+    and is exported as it is; any other is moved there by a robust Sim(3) from its camera centres to the designed
+    ones (with the scores' alignment settings).
 
     Parameters
     ----------
     rows : list of dict
-        Per view: ``view`` (row), ``R`` (3, 3) and ``t`` (3,), truth-aligned, None when not registered.
-    align : mapping
-        ``ok``, ``scale``, ``R``, ``t`` of the alignment to the truth.
+        Per view: ``view`` (row) and ``model_pose`` (``(R (3, 3), t (3,))`` in the model's frame, None when not
+        registered), as :func:`run_sfm_on_images` returns them.
     design_centres : ndarray (V, 3)
         The designed camera centres, world mm.
     in_design_frame : bool
@@ -526,19 +527,12 @@ def design_frame(rows: list[dict[str, Any]], align: Mapping[str, Any], design_ce
     -------
     dict or None
         ``poses`` (row -> ``(R, t)`` world-to-camera, mm) and the Sim(3) ``scale``, ``R``, ``t`` from the SfM
-        model's frame into the design's (for its points); None when nothing was aligned.
+        model's frame into the design's (for its points); None with fewer than 3 registered views.
     """
     from ctsplat.sfm.align import robust_sim3
 
-    if not align.get("ok"):
-        return None
-    s, Rg, tg = float(align["scale"]), np.asarray(align["R"], float), np.asarray(align["t"], float)
-    model: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    for r in rows:  # undo x_true = s Rg x + tg: R = R_w Rg, c = Rgᵀ (c_w - tg) / s
-        if r["R"] is not None:
-            R = np.asarray(r["R"], float) @ Rg
-            c = Rg.T @ (camera_center(r["R"], r["t"]) - tg) / s
-            model[int(r["view"])] = (R, -R @ c)
+    model = {int(r["view"]): (np.asarray(r["model_pose"][0], float), np.asarray(r["model_pose"][1], float))
+             for r in rows if r["model_pose"] is not None}
     if len(model) < 3:
         return None
     if in_design_frame:
@@ -589,10 +583,11 @@ def _register_and_write(p: np.ndarray, vs: ViewSet, out_dir: Path, cfg: dict[str
                 write_model(main, out_dir / "sparse" / "0")
             else:
                 shutil.rmtree(out_dir / "sparse" / "0", ignore_errors=True)
-            export = design_frame(rows, align, design_centres,
+            # what the scores could not align (fewer than 3 registered views) is not exported either
+            export = design_frame(rows, design_centres,
                                   in_design_frame=cfg["pose_prior"] != "none" or "unfused" in summary,
                                   threshold_mm=float(cfg["align_inlier_threshold_frac"]) * float(cam.dso_mm),
-                                  iterations=int(cfg["align_iterations"]), seed=seed)
+                                  iterations=int(cfg["align_iterations"]), seed=seed) if align["ok"] else None
             if main is not None and export is not None:
                 xyz = np.array([pt.xyz for pt in main.points3D.values()]).reshape(-1, 3)
                 write_points_ply(out_dir / "points3d.ply", export["scale"] * xyz @ export["R"].T + export["t"])
