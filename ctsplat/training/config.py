@@ -387,10 +387,28 @@ def resolve_config(config: dict[str, Any] | None) -> dict[str, Any]:
         raise CtsplatError("train.volume is empty: give the preprocessed reference volume (.nii.gz)")
     if not cfg["radiographs"]:
         raise CtsplatError("train.radiographs is empty: give the folder written by `ctsplat project`")
+    if refine_enabled(cfg) and int(cfg["pose_refine"]["start"]) >= int(cfg["iterations"]):
+        raise CtsplatError(f"train.pose_refine.start ({cfg['pose_refine']['start']}) is not before train.iterations "
+                           f"({cfg['iterations']}): the poses would never be refined; lower start, or turn "
+                           "refinement off (poses without +refine, pose_refine.enabled: false)")
     if (cfg["poses"].startswith("colmap") or cfg["init"] == "sfm") and not cfg["sfm_dir"]:
         raise CtsplatError(f"train.sfm_dir is empty but poses={cfg['poses']}, init={cfg['init']} needs the sfm "
                            "step's folder (ctsplat train: --sfm-dir)")
     return cfg
+
+
+def refine_enabled(cfg: dict[str, Any]) -> bool:
+    """Whether a resolved ``train`` config refines the training poses (``pose_refine.enabled`` or ``poses: *+refine``).
+
+    Parameters
+    ----------
+    cfg : dict
+
+    Returns
+    -------
+    bool
+    """
+    return bool(cfg["pose_refine"]["enabled"]) or str(cfg["poses"]).endswith("+refine")
 
 
 def render_kwargs(cfg: dict[str, Any], filter_3d_var: Any = None) -> dict[str, Any]:

@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from ctsplat.splat.gaussians import quat_to_rotmat
-from ctsplat.training.config import CONE_POSE_MODELS
+from ctsplat.training.config import CONE_POSE_MODELS, refine_enabled
 from ctsplat.utils import CtsplatError
 
 __all__ = ["rotvec_to_quat", "quat_mul", "correct_pose", "transform_gaussians", "PoseCorrection",
@@ -75,20 +75,6 @@ def pose_source(poses: str) -> str:
     'perturbed'
     """
     return str(poses).removesuffix("+refine")
-
-
-def refine_enabled(cfg: dict[str, Any]) -> bool:
-    """Whether a resolved ``train`` config refines the training poses (``pose_refine.enabled`` or ``poses: *+refine``).
-
-    Parameters
-    ----------
-    cfg : dict
-
-    Returns
-    -------
-    bool
-    """
-    return bool(cfg["pose_refine"]["enabled"]) or str(cfg["poses"]).endswith("+refine")
 
 
 # ------------------------------------------------------------------------------------------- rotations

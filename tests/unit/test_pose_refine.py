@@ -361,12 +361,22 @@ def test_resume_continues_the_corrections_exactly(scene_dir: Path, tmp_path: Pat
     ({"pose_refine": {"cone_model": "isocentric"}}, "unknown train.pose_refine.cone_model 'isocentric'"),
     ({"perturb_rot_deg": -1.0}, r"train\.perturb_rot_deg must be"),
     ({"poses": "colmap+refine"}, "sfm_dir is empty"),
+    ({"poses": "gt+refine", "iterations": 100, "pose_refine": {"start": 100}},
+     r"train\.pose_refine\.start \(100\) is not before train\.iterations \(100\): the poses would never be refined"),
+    ({"iterations": 50, "pose_refine": {"enabled": True, "start": 400}}, r"pose_refine\.start \(400\) is not before"),
 ])
 def test_bad_keys_are_one_line_errors(override: dict, match: str) -> None:
     cfg = {"volume": "v.nii.gz", "radiographs": "rad", **override}
     with pytest.raises(CtsplatError, match=match) as exc:
         config.resolve_config(cfg)
     assert "\n" not in str(exc.value)
+
+
+def test_a_late_refinement_start_is_refused_only_when_refinement_is_on() -> None:
+    base = {"volume": "v.nii.gz", "radiographs": "rad", "iterations": 100}
+    assert config.resolve_config({**base, "poses": "gt+refine", "pose_refine": {"start": 99}})["iterations"] == 100
+    # without refinement the start is unused: no error for a value that only matters when refining
+    assert config.resolve_config({**base, "pose_refine": {"start": 500}})["pose_refine"]["start"] == 500
 
 
 @pytest.mark.parametrize(("kwargs", "match"), [
