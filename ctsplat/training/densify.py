@@ -32,6 +32,7 @@ splatting for tomographic reconstruction. NeurIPS (mass-conserving densification
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
@@ -43,6 +44,8 @@ from ctsplat.training.seeding import grid_bounds_mm
 from ctsplat.training.state import TrainState, amplitude, replace_params
 
 __all__ = ["GradientDensify", "ErrorDensify", "make_densify", "reset_stats"]
+
+log = logging.getLogger(__name__)
 
 
 class GradientDensify:
@@ -68,6 +71,13 @@ class GradientDensify:
         self.compositor = compositor
         self.iterations = int(iterations)
         self.stop = int(settings["stop"]) or int(0.75 * self.iterations)
+        interval, start = int(settings["interval"]), int(settings["start"])
+        if interval:
+            first = -(-max(start, 1) // interval) * interval  # the first multiple of the interval from start on
+            if first > min(self.stop, self.iterations - 1):
+                log.warning("train.densify never runs: its first step would be iteration %d, after its stop (%d) or "
+                            "the last iteration (%d); the run keeps its initial Gaussians (lower densify.start, or "
+                            "set densify.interval: 0 to turn densification off)", first, self.stop, self.iterations)
 
     def due(self, iteration: int) -> bool:
         """Whether :meth:`maybe_step` densifies after ``iteration``.

@@ -782,3 +782,23 @@ def test_evaluate_refuses_a_model_whose_read_out_overflows(full_run, tmp_path: P
     with pytest.raises(CtsplatError, match=r"model\.pt renders \d+ non-finite (pixel|voxel)\(s\) of \d+ .*; retrain"):
         evaluate(run, device="cpu")
     assert not (run / "metrics.json").exists()
+
+
+@pytest.mark.parametrize(("settings", "iterations", "warned"), [
+    ({"interval": 500, "start": 500, "stop": 0}, 400, True),  # stop 0.75 x 400 = 300 < 500
+    ({"interval": 100, "start": 50, "stop": 80}, 1000, True),  # no multiple of 100 in [50, 80]
+    ({"interval": 100, "start": 0, "stop": 0}, 100, True),  # iteration 100 is the last: never densified
+    ({"interval": 0, "start": 500, "stop": 0}, 400, False),  # turned off on purpose
+    ({"interval": 100, "start": 100, "stop": 0}, 400, False),  # 100, 200, 300
+    ({"interval": 100, "start": 150, "stop": 200}, 1000, False),  # 200
+])
+def test_a_densification_that_never_runs_is_reported(caplog, settings: dict, iterations: int, warned: bool) -> None:
+    from ctsplat.training.densify import make_densify
+
+    full = {**config.TRAIN_DEFAULTS["densify"], **settings}
+    with caplog.at_level(logging.WARNING, logger="ctsplat.training.densify"):
+        d = make_densify(full, compositor="radiative", iterations=iterations)
+    assert ("train.densify never runs" in caplog.text) == warned
+    # the warning says what due() does: no iteration densifies (interval 0 densifies nothing, unwarned)
+    assert any(d.due(i) for i in range(1, iterations + 1)) == (not warned and settings["interval"] > 0)
+    assert isinstance(d, GradientDensify)
