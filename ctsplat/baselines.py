@@ -543,8 +543,9 @@ ITERATION_CAPS = {"sart": "sart_max_iterations", "asd_pocs": "asd_pocs_iteration
 #: (``{method}_n{views:03d}.nii.gz`` with its sidecar, when ``save_volumes``). A folder holding anything else is
 #: not replaced.
 BASELINE_FILES = ("trials.csv", "*_n[0-9][0-9][0-9]*.nii.gz", "*_n[0-9][0-9][0-9]*.json")
-#: Either marks a folder as an earlier baselines output (the workflow removes the table before it reruns the step).
-BASELINE_MARKERS = ("baselines.csv", "baselines.json")
+#: Any of these marks a folder as an earlier baselines output. ``trials.csv`` is one: the workflow declares the two
+#: tables as the rule's outputs, and Snakemake removes them before it reruns the step.
+BASELINE_MARKERS = ("baselines.csv", "baselines.json", "trials.csv")
 
 
 def _counts(value: Any) -> list[int]:

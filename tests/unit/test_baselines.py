@@ -207,6 +207,12 @@ def test_run_baselines_writes_csv_volumes_and_metrics(tmp_path):
     run_baselines(vol_path, rad, out, {**QUICK, "n_views": [12], "methods": ["fbp"]})
     assert sorted(p.name for p in out.iterdir()) == ["baselines.csv", "baselines.json", "fbp_n012.json",
                                                      "fbp_n012.nii.gz", "trials.csv"]
+    # Snakemake removes a rule's declared outputs (the two tables) before it reruns the step: what is left is still
+    # this step's folder, and is replaced
+    (out / "baselines.csv").unlink()
+    (out / "baselines.json").unlink()
+    run_baselines(vol_path, rad, out, {**QUICK, "n_views": [12], "methods": ["fbp"]})
+    assert (out / "baselines.csv").is_file()
     (out / "notes.txt").write_text("mine")  # a file it did not write: refused before any work
     with pytest.raises(CtsplatError, match=r"baselines holds notes\.txt, which this step does not write, and replacing "
                        r"the folder would delete it"):

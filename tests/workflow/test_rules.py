@@ -104,6 +104,10 @@ def test_rule_baseline(wd):
     assert set(df["method"]) >= {"fbp", "sart"}
     assert (df["n_views"] == VIEWS).all()  # the grid's view counts
     assert np.isfinite(df["psnr3d"]).all()
+    # a rerun replaces the folder that Snakemake emptied of the rule's declared outputs (the two tables)
+    proc = run_rule(wd, "baseline", f"{VOL}/baselines/circular/baselines.csv", extra=("--forcerun", "baseline"))
+    assert "rule baseline:" in proc.stdout + proc.stderr
+    assert pd.read_csv(wd / VOL / "baselines/circular/baselines.csv")["psnr3d"].tolist() == df["psnr3d"].tolist()
 
 
 def test_rule_sfm(wd):
