@@ -75,9 +75,9 @@ class GradientDensify:
         if interval:
             first = -(-max(start, 1) // interval) * interval  # the first multiple of the interval from start on
             if first > min(self.stop, self.iterations - 1):
-                log.warning("train.densify never runs: its first step would be iteration %d, after its stop (%d) or "
-                            "the last iteration (%d); the run keeps its initial Gaussians (lower densify.start, or "
-                            "set densify.interval: 0 to turn densification off)", first, self.stop, self.iterations)
+                log.warning("train.densify never clones or splits: its first step would be iteration %d, after its "
+                            "stop (%d) or the last iteration (%d); lower densify.start, or set densify.interval: 0 to "
+                            "turn densification off", first, self.stop, self.iterations)
 
     def due(self, iteration: int) -> bool:
         """Whether :meth:`maybe_step` densifies after ``iteration``.

@@ -563,7 +563,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
         if counts is not None:
             for k in state.densify_counts:
                 state.densify_counts[k] += counts[k]
-            log.info("densify at %d: %s", it, counts)
+            log.info("%s at %d: %s", "densify" if densify.due(it) else "prune", it, counts)
             state.filter_var = mip_filter(cfg, as_gaussians(state.params), tr.camera, tr.Rs, tr.ts)
         if ok and (counts is not None or it % 10 == 0):
             snap = snapshot(state)

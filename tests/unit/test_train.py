@@ -346,7 +346,8 @@ def test_variants_run_and_learn(scene_dir: Path, tmp_path: Path, kw: dict) -> No
 
 
 def test_a_mip_model_is_saved_and_scored_with_the_filter_it_was_trained_with(scene_dir: Path, tmp_path: Path,
-                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+                                                                            monkeypatch: pytest.MonkeyPatch,
+                                                                            caplog: pytest.LogCaptureFixture) -> None:
     """Mip-Splatting stores its 3D filter with the model: model.pt and model_best.pt carry the filter the training
     rendered them with, and the evaluation scores them with it instead of computing another one from the final
     means (so the validation PSNR logged at the last iteration is the one evaluate gives)."""
@@ -354,7 +355,11 @@ def test_a_mip_model_is_saved_and_scored_with_the_filter_it_was_trained_with(sce
     from ctsplat.training import config as train_config
 
     run = tmp_path / "mip"
-    loop.train(_cfg(scene_dir, iterations=30, mip=True, densify={"interval": 10, "start": 10, "stop": 15}), run)
+    with caplog.at_level(logging.INFO, logger="ctsplat.training.loop"):
+        loop.train(_cfg(scene_dir, iterations=30, mip=True, densify={"interval": 10, "start": 10, "stop": 15}), run)
+    # the log names what each step did: densification up to its stop, pruning alone after it
+    steps = [r.getMessage().split(":")[0] for r in caplog.records if " at " in r.getMessage()]
+    assert steps == ["densify at 10", "prune at 20", "prune at 30"], steps
     last, best = Gaussians.load(run / "model.pt"), Gaussians.load(run / "model_best.pt")
     for g in (last, best):
         assert g.filter_3d_var is not None and g.filter_3d_var.shape == (len(g),) and bool((g.filter_3d_var > 0).all())
@@ -798,7 +803,7 @@ def test_a_densification_that_never_runs_is_reported(caplog, settings: dict, ite
     full = {**config.TRAIN_DEFAULTS["densify"], **settings}
     with caplog.at_level(logging.WARNING, logger="ctsplat.training.densify"):
         d = make_densify(full, compositor="radiative", iterations=iterations)
-    assert ("train.densify never runs" in caplog.text) == warned
+    assert ("train.densify never clones or splits" in caplog.text) == warned
     # the warning says what due() does: no iteration densifies (interval 0 densifies nothing, unwarned)
     assert any(d.due(i) for i in range(1, iterations + 1)) == (not warned and settings["interval"] > 0)
     assert isinstance(d, GradientDensify)
