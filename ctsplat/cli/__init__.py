@@ -11,6 +11,7 @@ import errno
 import importlib
 import logging
 import sys
+from pathlib import Path
 
 from ctsplat.utils import CtsplatError, Terminated, log_warnings_once, terminate_as_interrupt
 
@@ -113,11 +114,23 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ctsplat {args.command}: error: {os_error_message(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        again = "continue with `ctsplat train --resume`" if args.command == "train" else "run the command again"
+        again = _after_interrupt(args)
         how = "terminated" if isinstance(exc, Terminated) else "interrupted"
         print(f"ctsplat {args.command}: {how}; files are written whole or not at all: {again}", file=sys.stderr)
         return 143 if isinstance(exc, Terminated) else 130
     return 0
+
+
+def _after_interrupt(args: argparse.Namespace) -> str:
+    """What to do after Ctrl-C or SIGTERM: a training run with a checkpoint continues with ``--resume``; one
+    stopped before its first checkpoint, and any other command, is run again."""
+    if args.command != "train":
+        return "run the command again"
+    from ctsplat.training.checkpoint import list_checkpoints
+
+    if Path(args.out).is_dir() and list_checkpoints(Path(args.out)):
+        return "continue with `ctsplat train --resume`"
+    return "no checkpoint was saved yet: run the command again"
 
 
 if __name__ == "__main__":

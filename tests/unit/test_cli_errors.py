@@ -459,3 +459,24 @@ def test_a_seed_outside_what_the_generators_accept_is_refused_by_the_parser(
     assert exc.value.code == 2
     assert_one_line_error(capsys.readouterr().err, command, f"argument --seed: {needle}")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_interrupted_training_says_whether_there_is_a_checkpoint_to_resume(tmp_path, monkeypatch, capsys):
+    """Ctrl-C before the first checkpoint leaves nothing to resume: the message says to run again, not --resume."""
+    import ctsplat.training
+    from ctsplat.cli import main
+
+    def interrupted(cfg, out, resume=False):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ctsplat.training, "train", interrupted)
+    out = tmp_path / "run"
+    argv = ["train", "--volume", str(tmp_path / "v.nii.gz"), "--radiographs", str(tmp_path / "rad"), "--out", str(out)]
+    assert main(argv) == 130
+    err = capsys.readouterr().err.strip()
+    assert err == ("ctsplat train: interrupted; files are written whole or not at all: no checkpoint was saved yet: "
+                   "run the command again")
+    (out / "checkpoints").mkdir(parents=True)
+    (out / "checkpoints" / "ckpt_00000250.pt").write_bytes(b"")
+    assert main([*argv, "--resume"]) == 130
+    assert capsys.readouterr().err.strip().endswith("continue with `ctsplat train --resume`")
