@@ -239,8 +239,8 @@ class ViewSet:
         d = read_json_object(path, what="view set", fix="render it with `ctsplat project`")
         try:
             return cls.from_dict(d)
-        except CtsplatError:
-            raise
+        except CtsplatError as exc:  # from_dict does not know the file; the message names it
+            raise CtsplatError(f"view set {path}: {exc}") from None
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             what = f"no {exc.args[0]!r} entry" if isinstance(exc, KeyError) else str(exc).splitlines()[0]
             raise CtsplatError(f"view set {path} is malformed ({what}); re-render it") from None

@@ -516,6 +516,13 @@ def test_a_view_set_file_that_is_not_a_json_object_is_named(tmp_path, text, need
         ViewSet.load(path)
 
 
+def test_a_json_object_of_another_format_is_named_as_the_view_set_it_is_not(tmp_path) -> None:
+    path = tmp_path / "radiographs.json"  # the folder's other JSON, passed where views.json belongs
+    path.write_text(json.dumps({"n_views": 4}))
+    with pytest.raises(CtsplatError, match=rf"^view set {re.escape(str(path))}: not a ctsplat view set \(format None\)"):
+        ViewSet.load(path)
+
+
 def test_a_volume_is_not_written_over_a_json_that_is_not_its_sidecar(tmp_path) -> None:
     # ct.nii.gz's JSON goes to ct.json, a name the user never gave: a BIDS sidecar or a config there is refused
     from ctsplat.volume import ingest
