@@ -12,6 +12,7 @@ import importlib
 import logging
 import sys
 from pathlib import Path
+from typing import NoReturn
 
 from ctsplat.utils import CtsplatError, Terminated, log_warnings_once, terminate_as_interrupt
 
@@ -20,10 +21,17 @@ from ctsplat.utils import CtsplatError, Terminated, log_warnings_once, terminate
 STEP_MODULES = ["data", "radiographs", "render", "train", "sfm", "analysis", "photos"]
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line (the problem and where the usage is), not the usage block."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {one_line(message)}; see `{self.prog} --help`\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from ctsplat import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="ctsplat",
         description="CT scans -> synthetic radiographs -> rectified radiative Gaussian splatting. "
         "Each subcommand is one workflow step; see `ctsplat COMMAND --help`.",
@@ -89,7 +97,11 @@ def main(argv: list[str] | None = None) -> int:
     """
     terminate_as_interrupt()  # a killed command (SIGTERM) removes its temporary files like an interrupted one
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # named by the subcommand; an argument after an option is the usual cause
+        print(f"ctsplat {args.command}: error: unrecognized arguments: {' '.join(extra)} (give the positional "
+              f"arguments before the options); see `ctsplat {args.command} --help`", file=sys.stderr)
+        return 2
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

@@ -10,24 +10,35 @@ from ctsplat.cli._common import load_section, seed_value
 from ctsplat.utils import CtsplatError
 
 
+def _numbers(text: str, kind: type, form: str) -> list:
+    """The comma-separated numbers of an option value; anything else is argparse's one-line error naming ``form``."""
+    try:
+        return [kind(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be {form}, got {text!r}") from None
+
+
 def _grid(text: str) -> int | list[int]:
-    parts = [int(x) for x in text.replace("x", ",").split(",") if x]
+    parts = _numbers(",".join(x for x in text.replace("x", ",").split(",") if x), int,
+                     "N or I,J,K (whole numbers, e.g. 128 or 128,128,96)")
     if len(parts) == 1:
         return parts[0]
     if len(parts) == 3:
         return parts
-    raise argparse.ArgumentTypeError("grid must be N or I,J,K")
+    raise argparse.ArgumentTypeError(f"must be N or I,J,K (e.g. 128 or 128,128,96), got {text!r}")
 
 
 def _window(text: str) -> str | list[float]:
     if "," in text:
-        level, width = text.split(",")
-        return [float(level), float(width)]
+        parts = _numbers(text, float, "a preset name or LEVEL,WIDTH in HU (e.g. 40,80)")
+        if len(parts) != 2:
+            raise argparse.ArgumentTypeError(f"must be a preset name or LEVEL,WIDTH in HU (e.g. 40,80), got {text!r}")
+        return parts
     return text
 
 
 def _rescale(text: str) -> list[float]:
-    parts = [float(x) for x in text.split(",")]
+    parts = _numbers(text, float, "SLOPE,INTERCEPT (e.g. 1,-1024)")
     if len(parts) != 2:
         raise argparse.ArgumentTypeError("rescale must be SLOPE,INTERCEPT (e.g. 1,-1024)")
     if not all(math.isfinite(x) for x in parts):
@@ -38,7 +49,7 @@ def _rescale(text: str) -> list[float]:
 
 
 def _voxel(text: str) -> float | list[float]:
-    parts = [float(x) for x in text.split(",")]
+    parts = _numbers(text, float, "S or X,Y,Z in mm (e.g. 0.5,0.5,1.25)")
     if len(parts) not in (1, 3) or not all(math.isfinite(x) and x > 0 for x in parts):
         raise argparse.ArgumentTypeError(f"voxel size must be S or X,Y,Z in mm, each a finite number > 0 (e.g. "
                                          f"0.5,0.5,1.25), got {text}")

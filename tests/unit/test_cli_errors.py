@@ -265,6 +265,37 @@ def test_tiff_voxel_size_must_be_one_or_three_finite_positive_numbers(tmp_path, 
         capsys.readouterr().err)
 
 
+@pytest.mark.parametrize(("args", "needle"), [
+    (["--grid", "abc"], "argument --grid: must be N or I,J,K (whole numbers, e.g. 128 or 128,128,96), got 'abc'"),
+    (["--grid", "64,64"], "argument --grid: must be N or I,J,K (e.g. 128 or 128,128,96), got '64,64'"),
+    (["--rescale", "1,x"], "argument --rescale: must be SLOPE,INTERCEPT (e.g. 1,-1024), got '1,x'"),
+    (["--window", "40,wide"], "argument --window: must be a preset name or LEVEL,WIDTH in HU (e.g. 40,80)"),
+    (["--window", "1,2,3"], "argument --window: must be a preset name or LEVEL,WIDTH in HU (e.g. 40,80), got '1,2,3'"),
+    (["--tiff-voxel-size", "0.5mm"], "argument --tiff-voxel-size: must be S or X,Y,Z in mm (e.g. 0.5,0.5,1.25)"),
+    (["--bogus"], "unrecognized arguments: --bogus (give the positional arguments before the options)"),
+])
+def test_a_malformed_option_is_one_line_naming_the_option_and_the_help(tmp_path, capsys, args, needle):
+    """argparse's own errors too: one line, the option and the form it takes, not the usage block or the name of
+    the function that parsed it."""
+    try:
+        code = main(["ingest", str(tmp_path / "src"), str(tmp_path / "v.nii.gz"), *args])
+    except SystemExit as stop:
+        code = stop.code
+    assert code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("ctsplat ingest: error: ") and needle in err, err
+    assert err.rstrip().endswith("see `ctsplat ingest --help`") and "invalid _" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_argument_after_an_option_is_explained(tmp_path, capsys):
+    """argparse fills an optional positional (ingest's OUT) before the options and then finds OUT unrecognized."""
+    assert main(["ingest", str(tmp_path / "src"), "--grid", "16", str(tmp_path / "v.nii.gz")]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"ctsplat ingest: error: unrecognized arguments: {tmp_path / 'v.nii.gz'} (give the positional "
+                   "arguments before the options); see `ctsplat ingest --help`\n")
+
+
 # ------------------------------------------------------------------------------------------------ run outputs
 def test_csvs_use_lf_and_figures_off_removes_stale_figures(scene, tmp_path, capsys):
     vol, rad = scene
