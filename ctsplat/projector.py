@@ -444,6 +444,8 @@ def _joseph_slices(mu: torch.Tensor, A: np.ndarray, camera: Camera, Rs: np.ndarr
 
 
 NOISE_MODELS = ("physical", "tigre")
+#: The largest photon count per pixel ``noise.i0`` may give.
+MAX_I0 = 1e15
 
 
 def check_noise(noise: dict[str, Any], key: str = "radiographs.noise") -> None:
@@ -467,6 +469,9 @@ def check_noise(noise: dict[str, Any], key: str = "radiographs.noise") -> None:
     i0, sigma = noise.get("i0"), noise.get("electronic_sigma")
     if isinstance(i0, bool) or not isinstance(i0, int | float) or not (math.isfinite(i0) and i0 > 0):
         raise CtsplatError(f"{key}.i0 must be a positive number of photons per pixel, got {i0!r}")
+    if i0 > MAX_I0:  # numpy's Poisson sampler stops near 1e18; no scanner counts 1e15 photons a pixel
+        raise CtsplatError(f"{key}.i0 must be at most {MAX_I0:.0e} photons per pixel, got {i0:g}; for radiographs "
+                           f"without noise set {key}.enabled: false")
     if isinstance(sigma, bool) or not isinstance(sigma, int | float) or not (math.isfinite(sigma) and sigma >= 0):
         raise CtsplatError(f"{key}.electronic_sigma must be a number of counts >= 0, got {sigma!r}")
     if noise.get("model") not in NOISE_MODELS:
@@ -513,8 +518,8 @@ def add_noise(p: np.ndarray, i0: float, electronic_sigma: float, rng: np.random.
     CtsplatError
         For a non-positive or non-finite ``i0``, a negative ``electronic_sigma`` or an unknown ``model``.
     """
-    if not (i0 > 0 and np.isfinite(i0)):
-        raise CtsplatError(f"noise i0 (photons per pixel) must be positive, got {i0}")
+    if not (i0 > 0 and np.isfinite(i0)) or i0 > MAX_I0:
+        raise CtsplatError(f"noise i0 (photons per pixel) must be positive and at most {MAX_I0:.0e}, got {i0}")
     if electronic_sigma < 0:
         raise CtsplatError(f"noise electronic_sigma must be >= 0, got {electronic_sigma}")
     if model not in NOISE_MODELS:

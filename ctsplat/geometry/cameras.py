@@ -68,14 +68,18 @@ __all__ = [
 ]
 
 # --------------------------------------------------------------------------------------------- cameras
+#: The most pixels a detector or image may have on a side.
+MAX_PIXELS = 65536
+
+
 def _check_size(width: int, height: int) -> None:
     for name, n in (("width", width), ("height", height)):
-        try:
-            whole = int(n) == n and int(n) > 0
+        try:  # a bool is an int to Python, not a pixel count
+            whole = not isinstance(n, bool) and int(n) == n and 0 < int(n) <= MAX_PIXELS
         except (TypeError, ValueError, OverflowError):  # text, None, infinity, NaN
             whole = False
         if not whole:
-            raise CtsplatError(f"detector {name} must be a positive integer number of pixels, got {n!r}")
+            raise CtsplatError(f"detector {name} must be a whole number of pixels from 1 to {MAX_PIXELS}, got {n!r}")
 
 
 def _check_positive(name: str, value: float) -> None:

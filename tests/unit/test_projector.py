@@ -23,6 +23,7 @@ from ctsplat.phantom import Ellipsoid, rasterize, shepp_logan_ellipsoids
 from ctsplat.projector import (
     RADIOGRAPHS_DEFAULTS,
     add_noise,
+    check_noise,
     clip_rays_to_box,
     line_integrals,
     render_radiographs,
@@ -303,6 +304,13 @@ def test_noise_statistics_seed_and_clipping():
     assert counts.min() == 1.0 and np.isfinite(q).all() and q.max() == pytest.approx(np.log(100.0))
     with pytest.raises(CtsplatError, match="i0"):
         add_noise(p, 0.0, 0.0, np.random.default_rng(0))
+    # a count numpy's Poisson sampler cannot draw (it raised ValueError past ~1e18): refused, and 1e15 still draws
+    with pytest.raises(CtsplatError, match=r"must be positive and at most 1e\+15, got 1e\+19"):
+        add_noise(p, 1e19, 0.0, np.random.default_rng(0))
+    with pytest.raises(CtsplatError, match=r"noise\.i0 must be at most 1e\+15 photons per pixel, got 1e\+19; for "
+                       r"radiographs without noise set radiographs\.noise\.enabled: false"):
+        check_noise({**RADIOGRAPHS_DEFAULTS["noise"], "enabled": True, "i0": 1e19})
+    assert np.isfinite(add_noise(p, 1e15, 0.0, np.random.default_rng(0))[0]).all()
     with pytest.raises(CtsplatError, match="electronic_sigma"):
         add_noise(p, 10.0, -1.0, np.random.default_rng(0))
 
@@ -519,7 +527,8 @@ def test_a_view_set_file_that_is_not_a_json_object_is_named(tmp_path, text, need
 def test_a_json_object_of_another_format_is_named_as_the_view_set_it_is_not(tmp_path) -> None:
     path = tmp_path / "radiographs.json"  # the folder's other JSON, passed where views.json belongs
     path.write_text(json.dumps({"n_views": 4}))
-    with pytest.raises(CtsplatError, match=rf"^view set {re.escape(str(path))}: not a ctsplat view set \(format None\)"):
+    with pytest.raises(CtsplatError,
+                       match=rf"^view set {re.escape(str(path))}: not a ctsplat view set \(format None\)"):
         ViewSet.load(path)
 
 
