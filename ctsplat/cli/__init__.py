@@ -113,11 +113,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ctsplat {args.command}: error: {one_line(str(exc))}", file=sys.stderr)
         return 2
     except (MemoryError, RuntimeError) as exc:
-        # torch.OutOfMemoryError (a GPU allocation) is a RuntimeError; other RuntimeErrors are bugs: traceback
-        if not isinstance(exc, MemoryError) and type(exc).__name__ != "OutOfMemoryError":
+        # torch.OutOfMemoryError (a GPU allocation) and torch's CPU allocator failing are RuntimeErrors; other
+        # RuntimeErrors are bugs: traceback
+        cpu_alloc = "DefaultCPUAllocator: can't allocate memory" in str(exc)
+        if not isinstance(exc, MemoryError) and type(exc).__name__ != "OutOfMemoryError" and not cpu_alloc:
             raise
         logging.getLogger(__name__).debug("out of memory", exc_info=True)
-        what = one_line(str(exc)).split(". ")[0] or "an allocation failed"
+        what = "a CPU allocation failed" if cpu_alloc else one_line(str(exc)).split(". ")[0] or "an allocation failed"
         print(f"ctsplat {args.command}: error: out of memory ({what}); choose smaller sizes (grid, size, views, "
               "image size) or run on a machine with more memory", file=sys.stderr)
         return 2

@@ -168,6 +168,15 @@ def test_render_cli_names_a_view_set_folder_and_a_gpu_out_of_memory(tmp_path, ca
     assert err == ("ctsplat render: error: out of memory (CUDA out of memory); choose smaller sizes (grid, size, "
                    "views, image size) or run on a machine with more memory")
 
+    def cpu_oom(*args, **kwargs):
+        return torch.empty(10**13)  # 40 TB: torch's CPU allocator refuses it with a RuntimeError
+
+    monkeypatch.setattr(module, "render_to_folder", cpu_oom)
+    assert main(["render", str(tmp_path / "model.pt"), str(tmp_path / "views.json"), str(tmp_path / "r")]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "ctsplat render: error: out of memory (a CPU allocation failed); choose smaller sizes (grid, size, views, "
+        "image size) or run on a machine with more memory")
+
     def bug(*args, **kwargs):
         raise RuntimeError("shape mismatch")
 
