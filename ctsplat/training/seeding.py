@@ -264,6 +264,28 @@ def seed_from_points(
 
 
 
+def _sfm_seed(cfg: dict[str, Any], lo: np.ndarray, hi: np.ndarray, n: int, rng: np.random.Generator) -> Seed:
+    """``init: sfm``: the points of an SfM run that passed its verdict, inside the volume's box; a failed run, or
+    points of which none lies in the box, are refused (the seed would be uniform under the name sfm)."""
+    from ctsplat.sfm.step import sfm_failure  # pycolmap loads only for init: sfm
+
+    sfm_dir = Path(cfg["sfm_dir"])
+    failure = sfm_failure(sfm_dir / "summary.json")
+    if failure is not None:
+        raise CtsplatError(f"init: sfm seeds from the SfM run in {sfm_dir}, which may not be trained on: {failure}; "
+                           "use another init or improve the sfm step")
+    points = read_ply_points(sfm_dir / "points3d.ply")
+    inside = int(np.all((points >= lo) & (points <= hi), axis=1).sum())
+    if inside == 0:
+        raise CtsplatError(f"none of the {len(points)} SfM points in {sfm_dir / 'points3d.ply'} lies inside the "
+                           "volume's box, so init: sfm would seed uniformly; run the sfm step again for this volume")
+    seed = seed_from_points(points, lo, hi, n, rng, fill_fraction=cfg["sfm_fill_fraction"],
+                            density=cfg["init_density"])
+    used = min(inside, n - int(round(float(cfg["sfm_fill_fraction"]) * n)))
+    seed.strategy = f"sfm ({used} of {len(points)} points, {n - used} uniform)"
+    return seed
+
+
 # ------------------------------------------------------------------------------------------ the init setting
 def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> Seed:
     """The initial Gaussians for ``cfg['init']`` (only ``volume`` reads the reference voxel values).
@@ -292,9 +314,7 @@ def make_seed(cfg: dict[str, Any], scene: Scene, rng: np.random.Generator) -> Se
     if cfg["init"] == "uniform":
         return seed_uniform(lo, hi, n, rng, density=cfg["init_density"])
     if cfg["init"] == "sfm":
-        pts = read_ply_points(Path(cfg["sfm_dir"]) / "points3d.ply")
-        return seed_from_points(pts, lo, hi, n, rng, fill_fraction=cfg["sfm_fill_fraction"],
-                                density=cfg["init_density"])
+        return _sfm_seed(cfg, lo, hi, n, rng)
     recon, method = fbp_reconstruction(scene, cfg.get("fbp_filter", "ramp"), device=cfg["device"])
     strategy = "fbp" if method == "fbp" else f"fbp ({method})"
     refine_iterations = int(cfg["init_asd_pocs"]["iterations"])

@@ -504,9 +504,24 @@ def test_sfm_init_reads_points(scene_dir: Path, tmp_path: Path) -> None:
            "property float z\nend_header\n"
     (sfm / "points3d.ply").write_bytes(head.encode() + pts.tobytes())
     assert np.allclose(read_ply_points(sfm / "points3d.ply"), pts)
+    (sfm / "summary.json").write_text(json.dumps({"ok": True}))
     cfg = config.resolve_config(_cfg(scene_dir, init="sfm", sfm_dir=str(sfm), n_init=100))
-    seed = seeding.make_seed(cfg, sc.load_scene(cfg), np.random.default_rng(0))
+    scene = sc.load_scene(cfg)
+    seed = seeding.make_seed(cfg, scene, np.random.default_rng(0))
     assert len(seed) == 100 and np.allclose(seed.means[:40], pts)
+    assert seed.strategy == "sfm (40 of 40 points, 60 uniform)"
+    # a failed SfM run, or one whose points all lie outside the volume, would seed uniformly under the name sfm
+    (sfm / "summary.json").write_text(json.dumps({"ok": False, "reason": "median rotation error 3 deg (need <= 1)"}))
+    with pytest.raises(CtsplatError, match=r"init: sfm seeds from the SfM run in .*sfm, which may not be trained on: "
+                                           r"median rotation error 3 deg \(need <= 1\); use another init"):
+        seeding.make_seed(cfg, scene, np.random.default_rng(0))
+    (sfm / "summary.json").unlink()
+    with pytest.raises(CtsplatError, match=r"summary\.json does not exist \(the sfm step did not run\)"):
+        seeding.make_seed(cfg, scene, np.random.default_rng(0))
+    (sfm / "summary.json").write_text(json.dumps({"ok": True}))
+    (sfm / "points3d.ply").write_bytes(head.encode() + (pts + 2000.0).astype(np.float32).tobytes())
+    with pytest.raises(CtsplatError, match=r"none of the 40 SfM points in .*points3d\.ply lies inside the volume's box"):
+        seeding.make_seed(cfg, scene, np.random.default_rng(0))
 
 
 # ------------------------------------------------------------------------------------------ poses: colmap
