@@ -1279,7 +1279,12 @@ def read_nifti(path: str | Path, *, units: str = "hu") -> SliceStack:
     path = Path(path)
     try:
         img = nib.load(str(path))
+        if img.get_data_dtype().kind == "c":  # float32 would keep the real part, silently
+            raise CtsplatError(f"NIfTI {path} holds complex values ({img.get_data_dtype()}); ingest needs real "
+                               "intensities: write the magnitude or the real part")
         data = np.asarray(img.dataobj, dtype=np.float32)  # applies scl_slope/scl_inter
+    except CtsplatError:
+        raise
     except Exception as exc:  # noqa: BLE001
         raise CtsplatError(f"cannot read NIfTI {path} ({type(exc).__name__}: {exc}); is the file complete?") from None
     data = np.squeeze(data) if data.ndim > 3 else data
@@ -1388,6 +1393,9 @@ def read_tiff_stack(
         arr = _read_tiff(path, "TIFF stack", "re-export it")
     if arr.ndim != 3 or arr.shape[0] < 2:
         raise CtsplatError(f"TIFF stack {path} has shape {arr.shape}; need >= 2 greyscale slices (Z, Y, X)")
+    if np.iscomplexobj(arr):  # float32 would keep the real part, silently
+        raise CtsplatError(f"TIFF stack {path} holds complex values ({arr.dtype}); ingest needs real intensities: "
+                           "write the magnitude or the real part")
     data = np.ascontiguousarray(arr.transpose(2, 1, 0), dtype=np.float32)  # (X, Y, Z)
     shape = np.asarray(data.shape, float)
     affine = np.diag([*vs, 1.0])

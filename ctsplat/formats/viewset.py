@@ -410,10 +410,14 @@ def load_radiographs(out_dir: str | Path) -> tuple[np.ndarray, ViewSet]:
         raise CtsplatError(f"{tif} does not exist; run `ctsplat project` for this geometry first")
     view_set = ViewSet.load(out_dir / "views.json")
     try:
-        p = np.asarray(tifffile.imread(tif), dtype=np.float32)
+        raw = tifffile.imread(tif)
     except (OSError, ValueError) as exc:  # truncated, corrupt, or not a TIFF at all (TiffFileError)
         raise CtsplatError(f"{tif} is not a readable TIFF file ({type(exc).__name__}: {exc}); re-render the "
                            "radiographs with `ctsplat project`") from None
+    if raw.dtype.kind != "f":  # integers are counts or scaled values, not line integrals: they would train wrongly
+        raise CtsplatError(f"{tif} holds {raw.dtype} values, not line integrals (floating point, as `ctsplat project` "
+                           "writes them); convert the images to line integrals -ln(I / I0) or re-render them")
+    p = np.asarray(raw, dtype=np.float32)
     if p.ndim == 2:
         p = p[None]
     expected = (len(view_set), view_set.camera.height, view_set.camera.width)

@@ -388,6 +388,21 @@ def test_render_radiographs_bad_input(tmp_path, small_volume):
     json.dumps(RADIOGRAPHS_DEFAULTS)
 
 
+def test_integer_radiographs_are_not_taken_as_line_integrals(tmp_path) -> None:
+    import tifffile
+
+    save_volume(Volume(np.ones((8, 8, 8), np.float32), np.eye(4), {"volume_id": "i"}), tmp_path / "v.nii.gz")
+    render_radiographs(tmp_path / "v.nii.gz", tmp_path / "rad", {"n_views": 4, "detector_width": 8,
+                                                                  "detector_height": 8})
+    tif = tmp_path / "rad" / "line_integrals.tif"
+    p = tifffile.imread(tif)
+    tifffile.imwrite(tif, np.round(p * 1000).astype(np.uint16))  # counts or scaled values from another tool
+    with pytest.raises(CtsplatError, match=r"line_integrals\.tif holds uint16 values, not line integrals"):
+        load_radiographs(tmp_path / "rad")
+    tifffile.imwrite(tif, p.astype(np.float64))  # any floating point type is line integrals
+    np.testing.assert_array_equal(load_radiographs(tmp_path / "rad")[0], p)
+
+
 def test_carm_view_set_fits_the_object_and_stores_the_design(tmp_path) -> None:
     """orbit: carm renders the SfM view set: every view a training view with its designed pose; the detector pitch
     fits the object's bounding sphere; the true orbit's error is seeded by the projection seed."""

@@ -954,6 +954,16 @@ def test_nifti_spatial_unit_is_converted_to_mm(tmp_path, unit, to_mm):
     np.testing.assert_allclose(stack.source["zooms_mm"], np.array([500.0, 400.0, 300.0]) * to_mm)
 
 
+def test_complex_scans_are_refused_not_cut_to_their_real_part(tmp_path):
+    data = (np.ones((4, 4, 4)) + 2j * np.ones((4, 4, 4))).astype(np.complex64)
+    nib.save(nib.Nifti1Image(data, np.eye(4)), tmp_path / "c.nii.gz")
+    with pytest.raises(CtsplatError, match=r"c\.nii\.gz holds complex values \(complex64\); ingest needs real"):
+        read_nifti(tmp_path / "c.nii.gz")
+    tifffile.imwrite(tmp_path / "c.tif", data, photometric="minisblack")
+    with pytest.raises(CtsplatError, match=r"c\.tif holds complex values \(complex64\); ingest needs real"):
+        read_tiff_stack(tmp_path / "c.tif", 1.0)
+
+
 def test_nifti_without_an_orientation_is_refused(tmp_path):
     """Neither sform nor qform: nibabel falls back to an x-mirrored guess; refused instead of ingested mirrored."""
     data = np.zeros((6, 5, 4), np.float32)
