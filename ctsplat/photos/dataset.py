@@ -8,6 +8,8 @@ principal point and separate focal lengths.
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,6 +48,14 @@ class PinholeCamera:
     cy: float
     model: str = field(default="cone", init=False)
     pitch_mm: float = field(default=1.0, init=False)  # unit pitch: the renderer then reads fx, fy in px directly
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy", "cx", "cy"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, numbers.Real) and math.isfinite(value)):
+                raise CtsplatError(f"pinhole camera {name} must be a finite number of pixels, got {value!r}")
+        if not (self.fx > 0 and self.fy > 0):
+            raise CtsplatError(f"pinhole camera focal lengths must be > 0 px, got fx {self.fx}, fy {self.fy}")
 
     @property
     def dsd_mm(self) -> float:

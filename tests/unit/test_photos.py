@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -1477,3 +1478,29 @@ def test_size_prune_starts_after_the_first_reset_not_at_it(iteration: int, wide_
     widths = torch.exp(params["log_scales"]).max(-1).values
     assert st["pruned"] == 1 + wide_pruned and st["cloned"] == st["split"] == 0
     assert bool((widths > 0.1).any()) != wide_pruned
+
+
+def test_a_pinhole_camera_with_no_focal_length_is_impossible(tmp_path: Path, monkeypatch) -> None:
+    """A cameras.bin cut short reads as focal lengths of 0: the camera is refused, and load_scene names the model
+    as damaged (not a renderer error about cone-beam distances later)."""
+    from types import SimpleNamespace
+
+    from ctsplat.photos import dataset
+
+    for args, needle in (((32, 24, 0.0, 0.0, 16.0, 12.0), "focal lengths must be > 0 px, got fx 0.0, fy 0.0"),
+                         ((32, 24, 30.0, float("nan"), 16.0, 12.0), "fy must be a finite number of pixels"),
+                         ((32, 24, 30.0, 30.0, None, 12.0), "cx must be a finite number of pixels, got None")):
+        with pytest.raises(CtsplatError, match=re.escape(needle)):
+            dataset.PinholeCamera(*args)
+    assert dataset.PinholeCamera(32, 24, np.float32(30.0), 30.0, 16.0, 12.0).fx == 30.0  # NumPy scalars are numbers
+    sparse = tmp_path / "sfm" / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        (sparse / name).write_bytes(b"")
+    cam = SimpleNamespace(model=SimpleNamespace(name="PINHOLE"), params=[0.0, 0.0, 16.0, 12.0], width=32, height=24)
+    image = SimpleNamespace(name="01.jpg", camera_id=1, has_pose=True)
+    monkeypatch.setattr(dataset, "_read_model", lambda sparse: SimpleNamespace(
+        images={1: image}, cameras={1: cam}, points3D={}))
+    with pytest.raises(CtsplatError, match=r"gives 01\.jpg an impossible camera \(pinhole camera focal lengths must be "
+                                           r"> 0 px, got fx 0\.0, fy 0\.0\); it is damaged"):
+        dataset.load_scene(tmp_path / "sfm")
