@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
+import numbers
 import os
 import resource
 import tempfile
@@ -460,6 +462,9 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     if unknown:
         raise CtsplatError(f"evaluate settings: {unknown[0]!r} is not an evaluation key; allowed: "
                            f"{', '.join(EVALUATION_KEYS)}")
+    from ctsplat.config import check_section
+
+    check_section("train", dict(settings or {}), where="evaluate settings")  # types and nested keys, as train does
     fix = "train the run again (`ctsplat train`)"
     run_cfg = read_json_object(run_dir / "config.json", what="run config", fix=fix)
     if not isinstance(run_cfg.get("config"), dict):
@@ -469,6 +474,11 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     # key by key: --set sharpen.amounts=... keeps the recorded radius_voxels
     cfg = deep_update(deep_update(run_cfg["config"], earlier.get("evaluation_settings", {})), dict(settings or {}))
     milestones = earlier.get("evaluation_milestones") if milestones is None else milestones
+    for metric, value in dict(milestones or {}).items():
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+            raise CtsplatError(f"evaluation milestone {metric!r} must be a finite number, got {value!r} (an earlier "
+                               f"metrics file that was edited? remove {_metrics_path(run_dir, split).name} and "
+                               "evaluate again)")
     model = model or cfg.get("model_selection", "last")
     if model not in ("last", "best"):
         raise CtsplatError(f"unknown model {model!r}; allowed: last, best")
@@ -702,6 +712,9 @@ def _recorded_evaluation(run_dir: Path, split: str, keys: tuple[str, ...]) -> di
     out = {k: earlier[k] for k in ("evaluation_settings", "evaluation_milestones") if isinstance(earlier.get(k), dict)}
     if "evaluation_settings" in out:
         out["evaluation_settings"] = {k: v for k, v in out["evaluation_settings"].items() if k in keys}
+        from ctsplat.config import check_section
+
+        check_section("train", out["evaluation_settings"], where=f"{path} evaluation_settings")
     if out:
         log.info("%s: the settings %s recorded are used where none is given", run_dir, path.name)
     return out

@@ -25,6 +25,10 @@ from ctsplat.utils import CtsplatError
 
 __all__ = ["PinholeCamera", "PhotoView", "PhotoScene", "load_scene", "scene_extent", "split_names"]
 
+#: The side of the SSIM window (:func:`ctsplat.training.losses.gaussian_window`, 3DGS's 11 px): photos smaller than
+#: it cannot be trained or scored.
+SSIM_WINDOW_PX = 11
+
 
 @dataclass(frozen=True)
 class PinholeCamera:
@@ -225,6 +229,10 @@ def load_scene(sfm_dir: str | Path, *, downscale: int = 1, test_every: int = 8, 
         except (CtsplatError, ValueError, OverflowError, ZeroDivisionError) as exc:  # a damaged cameras.bin
             raise CtsplatError(f"the SfM model in {sparse} gives {im.name} an impossible camera ({exc}); it is "
                                "damaged: run `ctsplat photos-sfm` again") from None
+        if min(pc.width, pc.height) < SSIM_WINDOW_PX:
+            raise CtsplatError(f"{im.name} is {pc.width} x {pc.height} px at downscale {int(downscale)}, smaller than "
+                               f"the {SSIM_WINDOW_PX} px SSIM window of the loss and the scores; lower the downscale "
+                               "(train.downscale) or use larger photos")
         path = sfm_dir / "images" / im.name
         if not path.is_file():
             raise CtsplatError(f"SfM image {path} is missing; run `ctsplat photos-sfm` again")

@@ -1504,3 +1504,23 @@ def test_a_pinhole_camera_with_no_focal_length_is_impossible(tmp_path: Path, mon
     with pytest.raises(CtsplatError, match=r"gives 01\.jpg an impossible camera \(pinhole camera focal lengths must be "
                                            r"> 0 px, got fx 0\.0, fy 0\.0\); it is damaged"):
         dataset.load_scene(tmp_path / "sfm")
+
+
+def test_photos_smaller_than_the_ssim_window_are_refused_naming_the_downscale(tmp_path: Path, monkeypatch) -> None:
+    from types import SimpleNamespace
+
+    from ctsplat.photos import dataset
+    from ctsplat.training.losses import gaussian_window
+
+    assert dataset.SSIM_WINDOW_PX == gaussian_window().numel()
+    sparse = tmp_path / "sfm" / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        (sparse / name).write_bytes(b"")
+    cam = SimpleNamespace(model=SimpleNamespace(name="PINHOLE"), params=[30.0, 30.0, 16.0, 12.0], width=32, height=24)
+    image = SimpleNamespace(name="01.jpg", camera_id=1, has_pose=True)
+    monkeypatch.setattr(dataset, "_read_model", lambda sparse: SimpleNamespace(
+        images={1: image}, cameras={1: cam}, points3D={}))
+    with pytest.raises(CtsplatError, match=r"01\.jpg is 8 x 6 px at downscale 4, smaller than the 11 px SSIM window .*"
+                                           r"lower the downscale \(train\.downscale\)"):
+        dataset.load_scene(tmp_path / "sfm", downscale=4)

@@ -426,6 +426,22 @@ def test_evaluating_again_scores_with_the_recorded_settings(scene_dir, tmp_path)
                                                         "radius_voxels": first["evaluation_settings"]["sharpen"][
                                                             "radius_voxels"]}
     assert nested["sharpen_amount"] in (0.0, 0.5)
+    # settings are checked as train checks them, given or recorded (an edited metrics.json)
+    for bad, needle in (({"sharpen": 5}, r"evaluate settings\.sharpen: 5 is not of type 'object'"),
+                        ({"figures": "maybe"}, r"evaluate settings\.figures: 'maybe' is not of type 'boolean'"),
+                        ({"sharpen": {"foo": 1}}, r"unknown config key evaluate settings\.sharpen\.foo")):
+        with pytest.raises(CtsplatError, match=needle):
+            evaluate(out, device="cpu", settings=bad, write=False)
+    record = json.loads((out / "metrics.json").read_text())
+    edited = {**record, "evaluation_settings": {**record["evaluation_settings"], "figures": "maybe"}}
+    (out / "metrics.json").write_text(json.dumps(edited))
+    with pytest.raises(CtsplatError, match=r"metrics\.json evaluation_settings\.figures: 'maybe' is not of type"):
+        evaluate(out, device="cpu", write=False)
+    (out / "metrics.json").write_text(json.dumps({**record, "evaluation_milestones": {"psnr2d": "abc"}}))
+    with pytest.raises(CtsplatError, match=r"evaluation milestone 'psnr2d' must be a finite number, got 'abc' \(an "
+                                           r"earlier metrics file that was edited\? remove metrics\.json"):
+        evaluate(out, device="cpu", write=False)
+    (out / "metrics.json").write_text(json.dumps(record))
     val = evaluate(out, split="val", device="cpu")  # each split keeps its own record
     assert val["fps_resolution"] == [_cfg(scene_dir)["fps_width"], _cfg(scene_dir)["fps_height"]]
     # a new run in the folder removes every split's metrics: no earlier record is left to score it with
