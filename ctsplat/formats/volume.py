@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -263,7 +264,22 @@ def load_volume(path: str | Path) -> Volume:
         if recorded is not None and list(recorded) != list(data.shape):
             raise CtsplatError(f"volume sidecar {jp} describes a {recorded} volume, but {path} is {list(data.shape)}: "
                                "they belong to different volumes; ingest the volume again (it writes both files)")
+        _check_intensity(meta, jp)
     return Volume(data=data, affine=np.asarray(img.affine, float), meta=meta)
+
+
+def _check_intensity(meta: dict[str, Any], sidecar: Path) -> None:
+    """Refuse a sidecar whose ``intensity`` is not a mapping, or whose scale to 1/mm is not a finite number > 0
+    (every projection, seed and score multiplies by it)."""
+    fix = "ingest the volume again (it writes both files)"
+    intensity = meta.get("intensity", {})
+    if not isinstance(intensity, dict):
+        raise CtsplatError(f"volume sidecar {sidecar}: 'intensity' is {intensity!r}, not an object; {fix}")
+    if "mu_scale_per_mm" in intensity:
+        scale = intensity["mu_scale_per_mm"]
+        if isinstance(scale, bool) or not isinstance(scale, int | float) or not (math.isfinite(scale) and scale > 0):
+            raise CtsplatError(f"volume sidecar {sidecar}: intensity.mu_scale_per_mm must be a finite number > 0 "
+                               f"(1/mm per unit of the voxel values), got {scale!r}; {fix}")
 
 
 def check_attenuation(volume: Volume, name: str | Path) -> None:

@@ -675,3 +675,25 @@ def test_radiograph_folder_never_pairs_new_images_with_the_old_view_set(tmp_path
         load_radiographs(out)
     with pytest.raises(CtsplatError, match=r"line_integrals\.tif is a file; give the radiographs folder that holds"):
         load_radiographs(out / "line_integrals.tif")
+
+
+@pytest.mark.parametrize(("intensity", "needle"), [
+    ("attenuation", "'intensity' is 'attenuation', not an object"),
+    ({"mu_scale_per_mm": "abc"}, "intensity.mu_scale_per_mm must be a finite number > 0 (1/mm per unit of the voxel "
+                                 "values), got 'abc'"),
+    ({"mu_scale_per_mm": None}, "got None"),
+    ({"mu_scale_per_mm": -1.0}, "got -1.0"),
+    ({"mu_scale_per_mm": float("nan")}, "got nan"),
+])
+def test_a_volume_sidecar_with_an_impossible_intensity_scale_is_refused_when_read(tmp_path, intensity, needle):
+    """Every projection, seed and score multiplies by the scale: a NaN rendered NaN radiographs, -1 was recorded."""
+    save_volume(Volume(np.ones((8, 8, 8), np.float32), np.eye(4), {"volume_id": "s"}), tmp_path / "v.nii.gz")
+    meta = json.loads((tmp_path / "v.json").read_text())
+    (tmp_path / "v.json").write_text(json.dumps({**meta, "intensity": intensity}))
+    sidecar = re.escape(str(tmp_path / "v.json"))
+    with pytest.raises(CtsplatError, match=rf"^volume sidecar {sidecar}: .*{re.escape(needle)}"):
+        load_volume(tmp_path / "v.nii.gz")
+    with pytest.raises(CtsplatError, match="ingest the volume again"):
+        render_radiographs(tmp_path / "v.nii.gz", tmp_path / "rad", {"n_views": 2, "detector_width": 8,
+                                                                      "detector_height": 8})
+    assert not (tmp_path / "rad").exists()
