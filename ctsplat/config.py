@@ -24,7 +24,7 @@ from typing import Any
 
 from ctsplat.grid import expand_grid, needs_sfm, uses_colmap
 from ctsplat.photos.config import DENSIFY_CHOICES
-from ctsplat.utils import SEED_MAX, CtsplatError, first_nonfinite, merge_config
+from ctsplat.utils import SEED_MAX, CtsplatError, first_nonfinite, merge_config, unknown_key_message
 
 __all__ = [
     "LIBRARY_SECTIONS",
@@ -266,9 +266,12 @@ def _raise_first_error(errors: Iterable[Any], prefix: Iterable[Any] = ()) -> Non
         raise CtsplatError(f"invalid config at {where}: give the series id `ctsplat ingest SOURCE --list-series` "
                            "prints, or its series number (the value given is not shown: it may be a UID)")
     msg = err.message
-    if err.validator == "additionalProperties":
-        allowed = sorted((err.schema.get("properties") or {}).keys())
-        msg += f" (allowed: {', '.join(allowed)})" if allowed else ""
+    if err.validator == "additionalProperties" and isinstance(err.instance, Mapping):
+        allowed = (err.schema.get("properties") or {}).keys()
+        extra = sorted(str(k) for k in set(err.instance) - set(allowed))
+        if allowed and extra:  # as a step names it (merge_config), with the closest allowed key
+            section = "" if where == "<config>" else where
+            raise CtsplatError(f"invalid config at {where}: {unknown_key_message(section, extra[0], allowed)}")
     if err.validator == "type" and isinstance(err.instance, str) and _reads_as_non_text(err.instance):
         msg += (" (the value is text: quoted in the file, or a nested value of Snakemake's --config, which arrives "
                 "as text; write it unquoted in a --configfile)")

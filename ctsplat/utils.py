@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import difflib
 import fnmatch
 import hashlib
 import json
@@ -19,7 +20,7 @@ import threading
 import traceback
 import warnings
 from collections import Counter
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -884,6 +885,22 @@ def dotted_items(d: Mapping[str, Any], *, lists_as_json: bool = False) -> dict[s
     return out
 
 
+def unknown_key_message(section: str, key: Any, allowed: Iterable[str]) -> str:
+    """One line for a config key ``section.key`` that is not among ``allowed``: the closest allowed key, if one is
+    close, and the list.
+
+    Examples
+    --------
+    >>> unknown_key_message("train", "iteratons", ["iterations", "lr"])
+    'unknown config key train.iteratons (did you mean iterations?); allowed keys in train: iterations, lr'
+    """
+    allowed = sorted(str(a) for a in allowed)
+    close = difflib.get_close_matches(str(key), allowed, n=1)
+    hint = f" (did you mean {close[0]}?)" if close else ""
+    path, where = (f"{section}.{key}", f"in {section}") if section else (str(key), "at the top level")
+    return f"unknown config key {path}{hint}; allowed keys {where}: {', '.join(allowed)}"
+
+
 def merge_config(section: str, user: dict[str, Any] | None, defaults: dict[str, Any]) -> dict[str, Any]:
     """Fill a user config section with its defaults (recursively); unknown keys fail fast naming their path.
 
@@ -915,8 +932,7 @@ def merge_config(section: str, user: dict[str, Any] | None, defaults: dict[str, 
     user = dict(user or {})
     unknown = sorted(set(user) - set(defaults))
     if unknown:
-        allowed = ", ".join(sorted(defaults))
-        raise CtsplatError(f"unknown config key {section}.{unknown[0]}; allowed keys in {section}: {allowed}")
+        raise CtsplatError(unknown_key_message(section, unknown[0], defaults))
     out: dict[str, Any] = {}
     for key, default in defaults.items():
         if key in user and isinstance(default, dict) and default and isinstance(user[key], dict):
