@@ -1218,15 +1218,26 @@ def _apply_missing_rescale(
 # --------------------------------------------------------------------------------------------------
 
 
-def _stack_from_affine(data: np.ndarray, affine: np.ndarray, units: str, source: dict[str, Any]) -> SliceStack:
-    """Regular grid with a (possibly sheared along k) RAS affine -> SliceStack (slices ascending)."""
+#: The voxel sizes ingest accepts, mm: 0.1 nm to 10 km, far beyond any scanner; anything else is a unit or header error
+#: (a 1e-30 mm voxel turned every later affine singular, a 1e30 mm one gave line integrals of 1e29).
+VOXEL_MM_RANGE = (1e-7, 1e7)
+
+
+def _stack_from_affine(data: np.ndarray, affine: np.ndarray, units: str, source: dict[str, Any], *,
+                       fix: str = "fix the NIfTI header (qform/sform)") -> SliceStack:
+    """Regular grid with a (possibly sheared along k) RAS affine -> SliceStack (slices ascending); ``fix`` is what
+    an error tells the user to do about the grid."""
     a = np.asarray(affine, float)
     if not np.isfinite(a).all():
-        raise CtsplatError("volume affine has NaN or infinite entries; fix the NIfTI header (qform/sform)")
+        raise CtsplatError(f"volume affine has NaN or infinite entries; {fix}")
     di, dj = np.linalg.norm(a[:3, 0]), np.linalg.norm(a[:3, 1])
     dk = np.linalg.norm(a[:3, 2])
     if di <= 0 or dj <= 0 or dk <= 0:
-        raise CtsplatError("volume affine has a zero-length axis; fix the NIfTI header (qform/sform)")
+        raise CtsplatError(f"volume affine has a zero-length axis; {fix}")
+    lo, hi = VOXEL_MM_RANGE
+    if not all(lo <= d <= hi for d in (di, dj, dk)):
+        raise CtsplatError(f"voxel size {di:.3g} x {dj:.3g} x {dk:.3g} mm lies outside {lo:g} .. {hi:g} mm (a unit "
+                           f"or header error); {fix}")
     u, v = a[:3, 0] / di, a[:3, 1] / dj
     if abs(u @ v) > 1e-4:
         raise CtsplatError("volume affine has non-orthogonal in-plane axes; resample it to an orthogonal grid first")
@@ -1407,7 +1418,8 @@ def read_tiff_stack(
         "value_range": _finite_range(data),
         "units": units,
     }
-    return _stack_from_affine(data, affine, units, source)
+    return _stack_from_affine(data, affine, units, source,
+                              fix="give the TIFF voxel size in mm (--tiff-voxel-size, tiff_voxel_size_mm)")
 
 
 def read_source(

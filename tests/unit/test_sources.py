@@ -256,7 +256,16 @@ def test_nifti_header_without_a_usable_geometry_is_named(tmp_path):
     zero["pixdim"][1:4] = 0.0
     _write_nifti_as_is(tmp_path / "zero_q.nii", zero, data)
     assert_fails_cleanly(tmp_path / "zero_q.nii", tmp_path, r"pixdim\) \[0.0, 0.0, 0.0\] and no sform")
-    tiny = np.diag([1e-6, 1e-6, 1e-6, 1.0])  # micrometre voxels are a volume, not a degenerate header
+    for size, name in ((1e-30, "small"), (1e30, "large")):  # a unit or header error, not a scan
+        nib.save(nib.Nifti1Image(data, np.diag([size, 1.0, 1.0, 1.0])), tmp_path / f"{name}.nii.gz")
+        shown = re.escape(f"{size:.3g}")
+        assert_fails_cleanly(tmp_path / f"{name}.nii.gz", tmp_path, rf"voxel size {shown} x 1 x 1 mm lies outside "
+                             r"1e-07 \.\. 1e\+07 mm \(a unit or header error\); fix the NIfTI header")
+    stack = np.arange(120, dtype=np.float32).reshape(4, 5, 6)
+    tifffile.imwrite(tmp_path / "s.tif", stack)
+    with pytest.raises(CtsplatError, match=r"lies outside .* give the TIFF voxel size in mm \(--tiff-voxel-size"):
+        read_tiff_stack(tmp_path / "s.tif", 1e-20)
+    tiny = np.diag([1e-6, 1e-6, 1e-6, 1.0])  # nanometre voxels are a volume, not a degenerate header
     nib.save(nib.Nifti1Image(np.arange(120, dtype=np.float32).reshape(6, 5, 4), tiny), tmp_path / "tiny.nii.gz")
     vol = ingest(tmp_path / "tiny.nii.gz", tmp_path / "t" / "v.nii.gz", {"voxel_size_mm": 1e-6})
     assert vol.shape == (6, 5, 4)
