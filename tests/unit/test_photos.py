@@ -1480,11 +1480,26 @@ def test_size_prune_starts_after_the_first_reset_not_at_it(iteration: int, wide_
     assert bool((widths > 0.1).any()) != wide_pruned
 
 
+def _one_camera_model(tmp_path: Path, monkeypatch, params: list[float]) -> Path:
+    """An SfM folder whose model (read through a stand-in for pycolmap) holds one 32 x 24 PINHOLE photo, 01.jpg."""
+    from types import SimpleNamespace
+
+    from ctsplat.photos import dataset
+
+    sparse = tmp_path / "sfm" / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        (sparse / name).write_bytes(b"")
+    cam = SimpleNamespace(model=SimpleNamespace(name="PINHOLE"), params=params, width=32, height=24)
+    image = SimpleNamespace(name="01.jpg", camera_id=1, has_pose=True)
+    monkeypatch.setattr(dataset, "_read_model", lambda sparse: SimpleNamespace(
+        images={1: image}, cameras={1: cam}, points3D={}))
+    return tmp_path / "sfm"
+
+
 def test_a_pinhole_camera_with_no_focal_length_is_impossible(tmp_path: Path, monkeypatch) -> None:
     """A cameras.bin cut short reads as focal lengths of 0: the camera is refused, and load_scene names the model
     as damaged (not a renderer error about cone-beam distances later)."""
-    from types import SimpleNamespace
-
     from ctsplat.photos import dataset
 
     for args, needle in (((32, 24, 0.0, 0.0, 16.0, 12.0), "focal lengths must be > 0 px, got fx 0.0, fy 0.0"),
@@ -1493,34 +1508,18 @@ def test_a_pinhole_camera_with_no_focal_length_is_impossible(tmp_path: Path, mon
         with pytest.raises(CtsplatError, match=re.escape(needle)):
             dataset.PinholeCamera(*args)
     assert dataset.PinholeCamera(32, 24, np.float32(30.0), 30.0, 16.0, 12.0).fx == 30.0  # NumPy scalars are numbers
-    sparse = tmp_path / "sfm" / "sparse" / "0"
-    sparse.mkdir(parents=True)
-    for name in ("cameras.bin", "images.bin", "points3D.bin"):
-        (sparse / name).write_bytes(b"")
-    cam = SimpleNamespace(model=SimpleNamespace(name="PINHOLE"), params=[0.0, 0.0, 16.0, 12.0], width=32, height=24)
-    image = SimpleNamespace(name="01.jpg", camera_id=1, has_pose=True)
-    monkeypatch.setattr(dataset, "_read_model", lambda sparse: SimpleNamespace(
-        images={1: image}, cameras={1: cam}, points3D={}))
+    sfm = _one_camera_model(tmp_path, monkeypatch, [0.0, 0.0, 16.0, 12.0])
     with pytest.raises(CtsplatError, match=r"gives 01\.jpg an impossible camera \(pinhole camera focal lengths must be "
                                            r"> 0 px, got fx 0\.0, fy 0\.0\); it is damaged"):
-        dataset.load_scene(tmp_path / "sfm")
+        dataset.load_scene(sfm)
 
 
 def test_photos_smaller_than_the_ssim_window_are_refused_naming_the_downscale(tmp_path: Path, monkeypatch) -> None:
-    from types import SimpleNamespace
-
     from ctsplat.photos import dataset
     from ctsplat.training.losses import gaussian_window
 
     assert dataset.SSIM_WINDOW_PX == gaussian_window().numel()
-    sparse = tmp_path / "sfm" / "sparse" / "0"
-    sparse.mkdir(parents=True)
-    for name in ("cameras.bin", "images.bin", "points3D.bin"):
-        (sparse / name).write_bytes(b"")
-    cam = SimpleNamespace(model=SimpleNamespace(name="PINHOLE"), params=[30.0, 30.0, 16.0, 12.0], width=32, height=24)
-    image = SimpleNamespace(name="01.jpg", camera_id=1, has_pose=True)
-    monkeypatch.setattr(dataset, "_read_model", lambda sparse: SimpleNamespace(
-        images={1: image}, cameras={1: cam}, points3D={}))
+    sfm = _one_camera_model(tmp_path, monkeypatch, [30.0, 30.0, 16.0, 12.0])
     with pytest.raises(CtsplatError, match=r"01\.jpg is 8 x 6 px at downscale 4, smaller than the 11 px SSIM window .*"
                                            r"lower the downscale \(train\.downscale\)"):
-        dataset.load_scene(tmp_path / "sfm", downscale=4)
+        dataset.load_scene(sfm, downscale=4)
