@@ -262,7 +262,7 @@ def test_nifti_header_without_a_usable_geometry_is_named(tmp_path):
         assert_fails_cleanly(tmp_path / f"{name}.nii.gz", tmp_path, rf"voxel size {shown} x 1 x 1 mm lies outside "
                              r"1e-07 \.\. 1e\+07 mm \(a unit or header error\); fix the NIfTI header")
     stack = np.arange(120, dtype=np.float32).reshape(4, 5, 6)
-    tifffile.imwrite(tmp_path / "s.tif", stack)
+    tifffile.imwrite(tmp_path / "s.tif", stack, photometric="minisblack")
     with pytest.raises(CtsplatError, match=r"lies outside .* give the TIFF voxel size in mm \(--tiff-voxel-size"):
         read_tiff_stack(tmp_path / "s.tif", 1e-20)
     tiny = np.diag([1e-6, 1e-6, 1e-6, 1.0])  # nanometre voxels are a volume, not a degenerate header
