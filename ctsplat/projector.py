@@ -469,9 +469,9 @@ def check_noise(noise: dict[str, Any], key: str = "radiographs.noise") -> None:
     i0, sigma = noise.get("i0"), noise.get("electronic_sigma")
     if isinstance(i0, bool) or not isinstance(i0, int | float) or not (math.isfinite(i0) and i0 > 0):
         raise CtsplatError(f"{key}.i0 must be a positive number of photons per pixel, got {i0!r}")
-    if i0 > MAX_I0:  # numpy's Poisson sampler stops near 1e18; no scanner counts 1e15 photons a pixel
-        raise CtsplatError(f"{key}.i0 must be at most {MAX_I0:.0e} photons per pixel, got {i0:g}; for radiographs "
-                           f"without noise set {key}.enabled: false")
+    if noise.get("enabled") and i0 > MAX_I0:  # numpy's Poisson sampler stops near 1e18; no scanner counts 1e15
+        raise CtsplatError(f"{key}.i0 must be at most {MAX_I0:.0e} photons per pixel, got {i0:g}; lower it (or set "
+                           f"{key}.enabled: false for radiographs without noise)")
     if isinstance(sigma, bool) or not isinstance(sigma, int | float) or not (math.isfinite(sigma) and sigma >= 0):
         raise CtsplatError(f"{key}.electronic_sigma must be a number of counts >= 0, got {sigma!r}")
     if noise.get("model") not in NOISE_MODELS:

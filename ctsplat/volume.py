@@ -197,7 +197,12 @@ def _window_params(window: str | Sequence[float]) -> tuple[float, float]:
             raise CtsplatError(f"unknown window preset {window!r}; allowed: {allowed} or [level, width]")
         return WINDOW_PRESETS[window]
     if isinstance(window, list | tuple) and len(window) == 2 and float(window[1]) > 0:
-        return float(window[0]), float(window[1])
+        level, width = float(window[0]), float(window[1])
+        if level + width / 2 <= -1000.0:  # the top's attenuation scales the volume to 1/mm: it must be > 0
+            raise CtsplatError(f"window [{level:g}, {width:g}] ends at {level + width / 2:g} HU, at or below air "
+                               "(-1000 HU), where attenuation is 0; raise its level or width so that its top lies "
+                               "above -1000 HU")
+        return level, width
     raise CtsplatError(f"window must be a preset name or [level, width] with width > 0, got {window!r}")
 
 

@@ -7,6 +7,7 @@ the subparser and sets ``func`` to a callable taking the parsed ``argparse.Names
 from __future__ import annotations
 
 import argparse
+import difflib
 import errno
 import importlib
 import logging
@@ -98,9 +99,9 @@ def main(argv: list[str] | None = None) -> int:
     terminate_as_interrupt()  # a killed command (SIGTERM) removes its temporary files like an interrupted one
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
-    if extra:  # named by the subcommand; an argument after an option is the usual cause
-        print(f"ctsplat {args.command}: error: unrecognized arguments: {' '.join(extra)} (give the positional "
-              f"arguments before the options); see `ctsplat {args.command} --help`", file=sys.stderr)
+    if extra:  # named by the subcommand, with what most likely went wrong
+        print(f"ctsplat {args.command}: error: {_unrecognized(parser, args.command, extra)}; see "
+              f"`ctsplat {args.command} --help`", file=sys.stderr)
         return 2
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
@@ -133,6 +134,20 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ctsplat {args.command}: {how}; files are written whole or not at all: {again}", file=sys.stderr)
         return 143 if isinstance(exc, Terminated) else 130
     return 0
+
+
+def _unrecognized(parser: argparse.ArgumentParser, command: str, extra: list[str]) -> str:
+    """What to say about arguments no parser took: an unknown option with the closest known one; a value after an
+    option, where a command with an optional positional (ingest's OUT) stopped reading positionals; too many."""
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+    option = next((e for e in extra if e.startswith("-")), None)
+    if option is not None:
+        name = option.split("=", 1)[0]
+        close = difflib.get_close_matches(name, list(sub._option_string_actions), n=1)
+        return f"unknown option {name}" + (f" (did you mean {close[0]}?)" if close else "")
+    optional_positional = any(not a.option_strings and a.nargs == "?" for a in sub._actions)
+    hint = " (give the positional arguments before the options)" if optional_positional else ""
+    return f"unrecognized arguments: {' '.join(extra)}{hint}"
 
 
 def _after_interrupt(args: argparse.Namespace) -> str:

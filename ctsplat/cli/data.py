@@ -10,17 +10,18 @@ from ctsplat.cli._common import load_section, seed_value
 from ctsplat.utils import CtsplatError
 
 
-def _numbers(text: str, kind: type, form: str) -> list:
-    """The comma-separated numbers of an option value; anything else is argparse's one-line error naming ``form``."""
+def _numbers(text: str, kind: type, form: str, *, shown: str | None = None) -> list:
+    """The comma-separated numbers of an option value; anything else is argparse's one-line error naming ``form``
+    and the value as typed (``shown``, default ``text``)."""
     try:
         return [kind(x) for x in text.split(",")]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"must be {form}, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"must be {form}, got {text if shown is None else shown!r}") from None
 
 
 def _grid(text: str) -> int | list[int]:
     parts = _numbers(",".join(x for x in text.replace("x", ",").split(",") if x), int,
-                     "N or I,J,K (whole numbers, e.g. 128 or 128,128,96)")
+                     "N or I,J,K (whole numbers, e.g. 128 or 128,128,96)", shown=text)
     if len(parts) == 1:
         return parts[0]
     if len(parts) == 3:
@@ -40,7 +41,7 @@ def _window(text: str) -> str | list[float]:
 def _rescale(text: str) -> list[float]:
     parts = _numbers(text, float, "SLOPE,INTERCEPT (e.g. 1,-1024)")
     if len(parts) != 2:
-        raise argparse.ArgumentTypeError("rescale must be SLOPE,INTERCEPT (e.g. 1,-1024)")
+        raise argparse.ArgumentTypeError(f"must be SLOPE,INTERCEPT (e.g. 1,-1024), got {text!r}")
     if not all(math.isfinite(x) for x in parts):
         raise argparse.ArgumentTypeError(f"rescale SLOPE,INTERCEPT must be finite numbers (e.g. 1,-1024), got {text}")
     if not parts[0] > 0:

@@ -464,7 +464,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
                            f"{', '.join(EVALUATION_KEYS)}")
     from ctsplat.config import check_section
 
-    check_section("train", dict(settings or {}), where="evaluate settings")  # types and nested keys, as train does
+    check_section("train", dict(settings or {}))  # types and nested keys, as train checks them
     fix = "train the run again (`ctsplat train`)"
     run_cfg = read_json_object(run_dir / "config.json", what="run config", fix=fix)
     if not isinstance(run_cfg.get("config"), dict):

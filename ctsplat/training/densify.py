@@ -74,10 +74,12 @@ class GradientDensify:
         interval, start = int(settings["interval"]), int(settings["start"])
         if interval:
             first = -(-max(start, 1) // interval) * interval  # the first multiple of the interval from start on
-            if first > min(self.stop, self.iterations - 1):
-                log.warning("train.densify never clones or splits: its first step would be iteration %d, after its "
-                            "stop (%d) or the last iteration (%d); lower densify.start, or set densify.interval: 0 to "
-                            "turn densification off", first, self.stop, self.iterations)
+            last = min(self.stop, self.iterations - 1)
+            if first > last:
+                log.warning("train.densify never clones or splits: no multiple of densify.interval (%d) lies in "
+                            "[densify.start, min(stop, iterations - 1)] = [%d, %d]; lower densify.interval or "
+                            "densify.start, raise densify.stop, or set densify.interval: 0 to turn densification off",
+                            interval, start, last)
 
     def due(self, iteration: int) -> bool:
         """Whether :meth:`maybe_step` densifies after ``iteration``.

@@ -379,7 +379,7 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
         raise CtsplatError(f"train.lambda_ssim needs radiographs of at least {window} x {window} pixels (the SSIM "
                            f"window), got {cam.width} x {cam.height}; set lambda_ssim: 0 or render larger ones")
     # the scores every evaluation computes (2D SSIM of the views, 3D SSIM of the read-out): before anything is written
-    for what, shape, fix in (("radiographs are", (cam.height, cam.width), "render larger ones"),
+    for what, shape, fix in (("radiographs are", (cam.width, cam.height), "render larger ones"),
                              ("reference volume is", scene.volume.shape, "ingest it at a larger grid")):
         if min(shape) < 3:
             raise CtsplatError(f"the {what} {' x '.join(map(str, shape))}: the SSIM scores need at least 3 on a "

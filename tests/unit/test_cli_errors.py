@@ -273,7 +273,8 @@ def test_tiff_voxel_size_must_be_one_or_three_finite_positive_numbers(tmp_path, 
     (["--window", "40,wide"], "argument --window: must be a preset name or LEVEL,WIDTH in HU (e.g. 40,80)"),
     (["--window", "1,2,3"], "argument --window: must be a preset name or LEVEL,WIDTH in HU (e.g. 40,80), got '1,2,3'"),
     (["--tiff-voxel-size", "0.5mm"], "argument --tiff-voxel-size: must be S or X,Y,Z in mm (e.g. 0.5,0.5,1.25)"),
-    (["--bogus"], "unrecognized arguments: --bogus (give the positional arguments before the options)"),
+    (["--bogus"], "unknown option --bogus"),
+    (["--gird", "64"], "unknown option --gird (did you mean --grid?)"),
 ])
 def test_a_malformed_option_is_one_line_naming_the_option_and_the_help(tmp_path, capsys, args, needle):
     """argparse's own errors too: one line, the option and the form it takes, not the usage block or the name of
@@ -290,11 +291,16 @@ def test_a_malformed_option_is_one_line_naming_the_option_and_the_help(tmp_path,
 
 
 def test_an_argument_after_an_option_is_explained(tmp_path, capsys):
-    """argparse fills an optional positional (ingest's OUT) before the options and then finds OUT unrecognized."""
+    """argparse fills an optional positional (ingest's OUT) before the options and then finds OUT unrecognized;
+    a command without one just has too many arguments."""
     assert main(["ingest", str(tmp_path / "src"), "--grid", "16", str(tmp_path / "v.nii.gz")]) == 2
     err = capsys.readouterr().err
     assert err == (f"ctsplat ingest: error: unrecognized arguments: {tmp_path / 'v.nii.gz'} (give the positional "
                    "arguments before the options); see `ctsplat ingest --help`\n")
+    assert main(["render", "m.pt", "v.json", "out", "extra"]) == 2
+    assert capsys.readouterr().err == ("ctsplat render: error: unrecognized arguments: extra; see `ctsplat render "
+                                       "--help`\n")
+    assert not list(tmp_path.iterdir())
 
 
 # ------------------------------------------------------------------------------------------------ run outputs

@@ -427,9 +427,9 @@ def test_evaluating_again_scores_with_the_recorded_settings(scene_dir, tmp_path)
                                                             "radius_voxels"]}
     assert nested["sharpen_amount"] in (0.0, 0.5)
     # settings are checked as train checks them, given or recorded (an edited metrics.json)
-    for bad, needle in (({"sharpen": 5}, r"evaluate settings\.sharpen: 5 is not of type 'object'"),
-                        ({"figures": "maybe"}, r"evaluate settings\.figures: 'maybe' is not of type 'boolean'"),
-                        ({"sharpen": {"foo": 1}}, r"unknown config key evaluate settings\.sharpen\.foo")):
+    for bad, needle in (({"sharpen": 5}, r"train\.sharpen: 5 is not of type 'object'"),
+                        ({"figures": "maybe"}, r"train\.figures: 'maybe' is not of type 'boolean'"),
+                        ({"sharpen": {"foo": 1}}, r"unknown config key train\.sharpen\.foo")):
         with pytest.raises(CtsplatError, match=needle):
             evaluate(out, device="cpu", settings=bad, write=False)
     record = json.loads((out / "metrics.json").read_text())

@@ -617,7 +617,7 @@ def test_ssim_on_radiographs_smaller_than_its_window_is_refused_before_training(
     # without the SSIM loss the scores still need a 3 px window: refused before anything is written
     render_radiographs(tmp_path / "volume.nii.gz", tmp_path / "rad2",
                        {"detector_width": 2, "detector_height": 8, "n_views": 6, "device": "cpu"})
-    with pytest.raises(CtsplatError, match=r"^the radiographs are 8 x 2: the SSIM scores need at least 3 on a side; "
+    with pytest.raises(CtsplatError, match=r"^the radiographs are 2 x 8: the SSIM scores need at least 3 on a side; "
                                            r"render larger ones$"):
         loop.train({**cfg, "lambda_ssim": 0.0, "radiographs": str(tmp_path / "rad2")}, tmp_path / "run2")
     assert not (tmp_path / "run2").exists()

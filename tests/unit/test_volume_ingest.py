@@ -300,6 +300,8 @@ def test_ingest_replaces_only_an_earlier_ingest_output(tmp_path):
         ({"voxel_sise_mm": 1.0}, "unknown config key preprocessing.voxel_sise_mm"),
         ({"intensity": "density"}, "intensity"),
         ({"intensity": "window", "window": "liver"}, "unknown window preset"),
+        # its top is the scale to 1/mm: at or below air it would be <= 0, a volume no step could read
+        ({"intensity": "window", "window": [-1100, 100]}, r"window \[-1100, 100\] ends at -1050 HU, at or below air"),
         ({"grid": 1}, "grid"),
         ({"voxel_size_mm": -1}, "voxel_size_mm"),
         ({"mask": "magic"}, "mask"),
