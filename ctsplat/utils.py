@@ -9,6 +9,7 @@ import hashlib
 import json
 import logging
 import math
+import numbers
 import os
 import random
 import shutil
@@ -422,6 +423,17 @@ def _json_default(o: Any) -> Any:
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def is_finite_real(value: Any) -> bool:
+    """Whether ``value`` is a finite real number (Python or NumPy); a bool is not one, though Python counts it an int.
+
+    Examples
+    --------
+    >>> [is_finite_real(v) for v in (1, 2.5, np.float32(3), True, float("nan"), "1", None)]
+    [True, True, True, False, False, False, False]
+    """
+    return not isinstance(value, bool) and isinstance(value, numbers.Real) and math.isfinite(value)
 
 
 def first_nonfinite(obj: Any, where: str = "") -> str | None:

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
-import numbers
 import os
 import resource
 import tempfile
@@ -33,6 +31,7 @@ from ctsplat.utils import (
     code_version,
     compute_platform,
     deep_update,
+    is_finite_real,
     json_safe,
     read_json_object,
     resolve_device,
@@ -475,7 +474,7 @@ def evaluate(run_dir: str | Path, *, split: str = "test", device: str = "auto",
     cfg = deep_update(deep_update(run_cfg["config"], earlier.get("evaluation_settings", {})), dict(settings or {}))
     milestones = earlier.get("evaluation_milestones") if milestones is None else milestones
     for metric, value in dict(milestones or {}).items():
-        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        if not is_finite_real(value):
             raise CtsplatError(f"evaluation milestone {metric!r} must be a finite number, got {value!r} (an earlier "
                                f"metrics file that was edited? remove {_metrics_path(run_dir, split).name} and "
                                "evaluate again)")

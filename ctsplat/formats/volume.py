@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,7 +32,7 @@ from typing import Any
 import nibabel as nib
 import numpy as np
 
-from ctsplat.utils import CtsplatError, atomic_path, read_json_object, write_json_atomic
+from ctsplat.utils import CtsplatError, atomic_path, is_finite_real, read_json_object, write_json_atomic
 
 __all__ = ["Volume", "load_volume", "save_volume", "json_path_for", "check_sidecar_target", "compute_volume_id",
            "check_attenuation"]
@@ -277,7 +276,7 @@ def _check_intensity(meta: dict[str, Any], sidecar: Path) -> None:
         raise CtsplatError(f"volume sidecar {sidecar}: 'intensity' is {intensity!r}, not an object; {fix}")
     if "mu_scale_per_mm" in intensity:
         scale = intensity["mu_scale_per_mm"]
-        if isinstance(scale, bool) or not isinstance(scale, int | float) or not (math.isfinite(scale) and scale > 0):
+        if not (is_finite_real(scale) and scale > 0):
             raise CtsplatError(f"volume sidecar {sidecar}: intensity.mu_scale_per_mm must be a finite number > 0 "
                                f"(1/mm per unit of the voxel values), got {scale!r}; {fix}")
 

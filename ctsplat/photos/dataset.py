@@ -8,8 +8,6 @@ principal point and separate focal lengths.
 
 from __future__ import annotations
 
-import math
-import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,13 +19,14 @@ import torch
 from ctsplat.geometry.cameras import camera_center
 from ctsplat.photos.config import validation_position
 from ctsplat.photos.images import load_rgb
-from ctsplat.utils import CtsplatError
+from ctsplat.training.losses import gaussian_window
+from ctsplat.utils import CtsplatError, is_finite_real
 
 __all__ = ["PinholeCamera", "PhotoView", "PhotoScene", "load_scene", "scene_extent", "split_names"]
 
 #: The side of the SSIM window (:func:`ctsplat.training.losses.gaussian_window`, 3DGS's 11 px): photos smaller than
 #: it cannot be trained or scored.
-SSIM_WINDOW_PX = 11
+SSIM_WINDOW_PX = gaussian_window().numel()
 
 
 @dataclass(frozen=True)
@@ -56,7 +55,7 @@ class PinholeCamera:
     def __post_init__(self) -> None:
         for name in ("fx", "fy", "cx", "cy"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, numbers.Real) and math.isfinite(value)):
+            if not is_finite_real(value):
                 raise CtsplatError(f"pinhole camera {name} must be a finite number of pixels, got {value!r}")
         if not (self.fx > 0 and self.fy > 0):
             raise CtsplatError(f"pinhole camera focal lengths must be > 0 px, got fx {self.fx}, fy {self.fy}")

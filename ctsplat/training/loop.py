@@ -72,6 +72,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from ctsplat.evaluation.metrics import ssim_window
 from ctsplat.evaluation.run import (
     check_validation_choices,
     peak_memory_mb,
@@ -381,9 +382,11 @@ def _train(cfg: dict[str, Any], out_dir: Path, resume: bool | str,
     # the scores every evaluation computes (2D SSIM of the views, 3D SSIM of the read-out): before anything is written
     for what, shape, fix in (("radiographs are", (cam.width, cam.height), "render larger ones"),
                              ("reference volume is", scene.volume.shape, "ingest it at a larger grid")):
-        if min(shape) < 3:
+        try:
+            ssim_window(shape)
+        except CtsplatError:
             raise CtsplatError(f"the {what} {' x '.join(map(str, shape))}: the SSIM scores need at least 3 on a "
-                               f"side; {fix}")
+                               f"side; {fix}") from None
     if scene.eval_split != "val":
         log.warning("the radiographs in %s have no validation views: the periodic evaluation (train_log.csv, "
                     "model_best.pt, the collapse checks) scores the test views; the final model is unaffected",
