@@ -228,12 +228,11 @@ def seed_from_points(
     Returns
     -------
     Seed
-        Means (n, 3) mm, scales (n, 3) mm, densities (n,); its ``strategy`` says how many of the points it kept.
+        Means (n, 3) mm, scales (n, 3) mm, densities (n,).
     """
     from scipy.spatial import cKDTree
 
     points = np.asarray(points, float).reshape(-1, 3)
-    n_given = points.shape[0]
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     inside = np.all((points >= lo) & (points <= hi), axis=1)
     points = points[inside]
@@ -260,7 +259,7 @@ def seed_from_points(
         scales=np.concatenate(scales).astype(np.float32),
         densities=np.concatenate(dens).astype(np.float32),
         uses_reference_volume=False,
-        strategy=f"sfm ({keep} of {n_given} points, {n - keep} uniform)",
+        strategy="sfm",
     )
 
 
@@ -280,8 +279,11 @@ def _sfm_seed(cfg: dict[str, Any], lo: np.ndarray, hi: np.ndarray, n: int, rng: 
     if inside == 0:
         raise CtsplatError(f"none of the {len(points)} SfM points in {sfm_dir / 'points3d.ply'} lies inside the "
                            "volume's box, so init: sfm would seed uniformly; run the sfm step again for this volume")
-    return seed_from_points(points, lo, hi, n, rng, fill_fraction=cfg["sfm_fill_fraction"],
+    seed = seed_from_points(points, lo, hi, n, rng, fill_fraction=cfg["sfm_fill_fraction"],
                             density=cfg["init_density"])
+    used = min(inside, n - int(round(float(cfg["sfm_fill_fraction"]) * n)))
+    seed.strategy = f"sfm ({used} of {len(points)} points, {n - used} uniform)"
+    return seed
 
 
 # ------------------------------------------------------------------------------------------ the init setting
